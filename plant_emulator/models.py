@@ -136,9 +136,7 @@ class ClosedLoopChannel:
 
     def dc_gain(self) -> float:
         n = self.a_cl.shape[0]
-        return float(
-            self.c_cl @ np.linalg.solve(np.eye(n) - self.a_cl, self.b_cl) + self.d_cl
-        )
+        return float(self.c_cl @ np.linalg.solve(np.eye(n) - self.a_cl, self.b_cl) + self.d_cl)
 
     def as_state_space(self) -> control.StateSpace:
         return control.ss(

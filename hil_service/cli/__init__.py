@@ -1,0 +1,28 @@
+"""``glider-hil``: one console script, one module per verb (rosbag2 style)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from collections.abc import Sequence
+
+#: verb → (module with add_arguments/run, one-line help)
+VERBS: dict[str, tuple[str, str]] = {
+    "emulate": ("plant_emulator.cli", "run the emulated glider autopilot over MAVLink"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="glider-hil", description=__doc__)
+    verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+    for verb, (module_name, help_text) in VERBS.items():
+        module = importlib.import_module(module_name)
+        sub = verbs.add_parser(verb, help=help_text, description=module.__doc__)
+        module.add_arguments(sub)
+        sub.set_defaults(run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.run(args) or 0)

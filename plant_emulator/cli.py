@@ -1,0 +1,110 @@
+"""``glider-hil emulate``: run the emulated autopilot on a MAVLink link."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+
+from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
+from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
+from plant_emulator.plant import GliderPlant, PlantConfig
+from plant_emulator.scenarios import SCENARIOS
+from protocols.mapping import TelemetryMapping
+from protocols.mavlink_io import Link
+from protocols.units import InputScale, PressureDepth
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--connect",
+        default="udpout:127.0.0.1:14550",
+        help="pymavlink connection string of the link to the service (default %(default)s)",
+    )
+    parser.add_argument("--sysid", type=int, default=1, help="MAVLink system id (default 1)")
+    parser.add_argument("--period", type=float, default=1.0, help="plant step, simulated s")
+    parser.add_argument("--speed", type=float, default=1.0, help="times faster than real time")
+    parser.add_argument(
+        "--duration", type=float, default=None, help="simulated seconds to run (default: forever)"
+    )
+    parser.add_argument("--scenario", choices=SCENARIOS, default="paper")
+    parser.add_argument("--excitation", choices=EXCITATIONS, default="steps")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--trim-depth", type=float, default=15.0, help="m (default 15)")
+    parser.add_argument("--rate-limit", type=float, default=0.5, help="model units per step")
+    parser.add_argument(
+        "--command-timeout",
+        type=float,
+        default=10.0,
+        help="simulated s without a command before falling back (default 10)",
+    )
+    parser.add_argument("--fallback", choices=FALLBACKS, default="excitation")
+    parser.add_argument("--full-scale", type=float, default=2.0, help="model units at wire 1.0")
+    parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
+    parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
+    parser.add_argument(
+        "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        plant = GliderPlant(
+            PlantConfig(
+                scenario=args.scenario,
+                period=args.period,
+                seed=args.seed,
+                trim_depth=args.trim_depth,
+                rate_limit=args.rate_limit,
+            ),
+            system_id=args.sysid,
+        )
+        config = AutopilotConfig(
+            system_id=args.sysid,
+            speed=args.speed,
+            duration=args.duration,
+            command_timeout=args.command_timeout,
+            fallback=args.fallback,
+        )
+        mapping = TelemetryMapping(
+            pressure=PressureDepth(args.water_density, args.surface_pressure),
+            inputs=InputScale(args.full_scale),
+        )
+    except ValueError as error:
+        print(f"glider-hil emulate: {error}", file=sys.stderr)
+        return 2
+    link = Link(args.connect, source_system=args.sysid, source_component=1)
+    stop = threading.Event()
+
+    def request_stop(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+
+    def print_sample(sample: object) -> None:
+        if args.print_every and autopilot.stats.steps % args.print_every == 0:
+            print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
+
+    autopilot = Autopilot(
+        plant,
+        link,
+        build_channel_excitations(args.excitation, seed=args.seed),
+        config,
+        mapping,
+        on_step=print_sample if args.print_every else None,
+    )
+    print(
+        f"emulating glider sysid {args.sysid} ({args.scenario}, {args.excitation}) "
+        f"on {args.connect} at {args.speed:g}x",
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        stats = autopilot.run(stop)
+    finally:
+        link.close()
+    print(json.dumps({"emulator": stats.as_dict(autopilot.codec)}), flush=True)
+    return 0

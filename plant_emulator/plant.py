@@ -1,0 +1,97 @@
+"""The simulated glider: two stabilised channels, their actuators and disturbances.
+
+Pure simulation (no sockets, no clock): the MAVLink autopilot and the in-process experiment
+both step it. Time is simulated: step k is at t = k·period.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from plant_emulator.actuator import BallastActuator
+from plant_emulator.disturbances import Disturbance
+from plant_emulator.models import CHANNELS, ClosedLoopChannel, design_closed_loop
+from plant_emulator.scenarios import build_actuator, build_disturbance, check_scenario
+from protocols.samples import TelemetrySample
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    scenario: str = "paper"
+    period: float = 1.0  # s of simulated time per step; the paper does not give it
+    seed: int = 0
+    trim_depth: float = 15.0  # m; depth is reported as trim + model output
+    input_limit: float = 2.0  # model units
+    rate_limit: float = 0.5  # model units per step
+
+    def __post_init__(self) -> None:
+        check_scenario(self.scenario)
+        if not (self.period > 0 and math.isfinite(self.period)):
+            raise ValueError(f"period must be positive, got {self.period}")
+
+
+class GliderPlant:
+    """Steps both channels once per call; reports what a vehicle's sensors would see."""
+
+    def __init__(self, config: PlantConfig | None = None, system_id: int = 1):
+        self.config = config or PlantConfig()
+        self.system_id = system_id
+        self.loops: dict[str, ClosedLoopChannel] = {
+            ch: design_closed_loop(ch, self.config.period) for ch in CHANNELS
+        }
+        self.actuators: dict[str, BallastActuator] = {
+            ch: build_actuator(
+                self.config.scenario, self.config.input_limit, self.config.rate_limit
+            )
+            for ch in CHANNELS
+        }
+        self.disturbances: dict[str, Disturbance] = {
+            ch: build_disturbance(self.config.scenario, ch, self.config.seed) for ch in CHANNELS
+        }
+        self.k = 0
+        self._last_depth: float | None = None
+        self._last_pitch: float | None = None
+
+    @property
+    def t(self) -> float:
+        return self.k * self.config.period
+
+    def step(self, u_depth: float, u_pitch: float) -> TelemetrySample:
+        """Apply the commanded inputs for one period.
+
+        The sample holds the outputs at the start of the step (they depend on the inputs of
+        earlier steps only) and the inputs applied during it (actuator positions after rate
+        limiting), so an identifier sees y(t) together with u(t) and uses u(t−1) from the
+        previous sample.
+        """
+        t = self.t
+        outputs = {}
+        applied = {}
+        for ch, command in (("depth", u_depth), ("pitch", u_pitch)):
+            actuator = self.actuators[ch]
+            effective = actuator.apply(command)
+            applied[ch] = actuator.position
+            y = self.loops[ch].step(effective)
+            outputs[ch] = y + self.disturbances[ch].sample(t)
+        depth = self.config.trim_depth + outputs["depth"]
+        pitch = outputs["pitch"]
+        period = self.config.period
+        climb = 0.0 if self._last_depth is None else -(depth - self._last_depth) / period
+        pitch_rate = 0.0 if self._last_pitch is None else (pitch - self._last_pitch) / period
+        self._last_depth, self._last_pitch = depth, pitch
+        sample = TelemetrySample(
+            system_id=self.system_id,
+            time_boot_ms=round(t * 1000.0),
+            depth=depth,
+            pitch=pitch,
+            u_depth=applied["depth"],
+            u_pitch=applied["pitch"],
+            pitch_rate=pitch_rate,
+            climb=climb,
+        )
+        self.k += 1
+        return sample
+
+    def applied_inputs(self) -> tuple[float, float]:
+        return self.actuators["depth"].position, self.actuators["pitch"].position

@@ -1,0 +1,151 @@
+"""The one module of ours that imports pymavlink.
+
+MAVLink 2 always, with the standard ``common`` dialect: a codec that turns messages into
+frames and frames (or garbage) back into messages while counting what it dropped, and a
+byte transport opened from a pymavlink connection string (``udpin:``, ``udpout:``, ``tcp:``,
+a serial device), so attaching to a real vehicle is a connection string, nothing else.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+from dataclasses import dataclass, field
+from typing import Any
+
+# mavutil picks its own dialect from the environment at import time; we never use its
+# parser, but pin MAVLink 2 so it does not print or negotiate version 1 on our links.
+os.environ.setdefault("MAVLINK20", "1")
+
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as dialect
+
+DIALECT_NAME = "common"
+MAVLINK_VERSION = 2
+
+MavMessage = Any  # pymavlink generates one class per message; they share MAVLink_message
+
+
+@dataclass
+class ParseCounters:
+    """What the codec saw: frames decoded, and bytes or frames it could not use."""
+
+    frames: int = 0
+    bad_frames: int = 0
+    unknown_frames: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {
+            "frames": self.frames,
+            "bad_frames": self.bad_frames,
+            "unknown_frames": self.unknown_frames,
+        }
+
+
+@dataclass
+class MavlinkCodec:
+    """Encodes and decodes MAVLink 2 frames for one local identity (system, component).
+
+    Decoding is robust: garbage, truncated frames and CRC failures are counted in
+    ``counters`` and skipped, never raised.
+    """
+
+    system_id: int
+    component_id: int
+    counters: ParseCounters = field(default_factory=ParseCounters)
+
+    def __post_init__(self) -> None:
+        self._mav = dialect.MAVLink(None, srcSystem=self.system_id, srcComponent=self.component_id)
+        self._mav.robust_parsing = True
+
+    @property
+    def signing(self) -> Any:
+        return self._mav.signing
+
+    def pack(self, message: MavMessage) -> bytes:
+        """Frame ``message`` with our identity and the next sequence number."""
+        return bytes(message.pack(self._mav))
+
+    def parse(self, data: bytes, datagram: bool = False) -> list[MavMessage]:
+        """All complete, valid messages in ``data``.
+
+        On a stream (serial, TCP) a frame may span calls. A datagram holds whole frames
+        only, so with ``datagram=True`` whatever is left over at its end is a truncated
+        frame: it is counted and dropped, so it cannot swallow the next datagram's frames.
+        """
+        if not data:
+            return []
+        try:
+            messages = self._mav.parse_buffer(data) or []
+        except Exception:  # pymavlink raises on some malformed payloads; count, never crash
+            self.counters.bad_frames += 1
+            self._reset_parser()
+            return []
+        if datagram and self._mav.buf_len() > 0:
+            self.counters.bad_frames += 1
+            self._reset_parser()
+        good = []
+        for message in messages:
+            kind = message.get_type()
+            if kind == "BAD_DATA":
+                self.counters.bad_frames += 1
+                continue
+            if kind.startswith("UNKNOWN_"):
+                # pymavlink cannot check the CRC of an id it does not know: such frames are
+                # as likely garbage as a foreign dialect, and carry nothing we use.
+                self.counters.unknown_frames += 1
+                continue
+            self.counters.frames += 1
+            good.append(message)
+        return good
+
+    def _reset_parser(self) -> None:
+        self._mav.buf = bytearray()
+        self._mav.buf_index = 0
+        self._mav.expected_length = dialect.HEADER_LEN_V1 + 2
+        self._mav.have_prefix_error = False
+
+
+class Link:
+    """A byte pipe to a vehicle or a ground station, opened from a pymavlink connection string.
+
+    Only bytes cross this class: parsing, statistics and vehicle state live elsewhere.
+    """
+
+    def __init__(self, connection: str, source_system: int = 255, source_component: int = 0):
+        self.connection = connection
+        self._file = mavutil.mavlink_connection(
+            connection,
+            source_system=source_system,
+            source_component=source_component,
+            autoreconnect=True,
+        )
+        #: UDP delivers whole frames per datagram; streams may split them anywhere.
+        self.datagram = isinstance(self._file, mavutil.mavudp)
+
+    def fileno(self) -> int:
+        return self._file.fd if self._file.fd is not None else self._file.port.fileno()
+
+    def wait(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for readable data; True when some may be there."""
+        try:
+            ready, _, _ = select.select([self.fileno()], [], [], max(timeout, 0.0))
+        except (OSError, ValueError):
+            return False
+        return bool(ready)
+
+    def recv(self) -> bytes:
+        """Bytes available now (one datagram for UDP), or b'' when there are none."""
+        try:
+            data = self._file.recv()
+        except OSError:
+            return b""
+        if not data:
+            return b""
+        return data if isinstance(data, bytes) else bytes(data, "latin-1")
+
+    def send(self, frame: bytes) -> None:
+        self._file.write(frame)
+
+    def close(self) -> None:
+        self._file.close()

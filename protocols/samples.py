@@ -1,0 +1,61 @@
+"""The sample and command types that flow through the whole system, one per plant step."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class TelemetrySample:
+    """One plant step of one vehicle, assembled from the messages sharing its timestamp.
+
+    ``depth`` m (positive down), ``pitch`` rad, ``u_depth``/``u_pitch`` the ballast inputs
+    applied during this step in model units (the paper's −2..2 range is full scale).
+    """
+
+    system_id: int
+    time_boot_ms: int
+    depth: float
+    pitch: float
+    u_depth: float
+    u_pitch: float
+    pitch_rate: float = 0.0
+    climb: float = 0.0
+
+    @property
+    def t(self) -> float:
+        return self.time_boot_ms / 1000.0
+
+    def output(self, channel: str) -> float:
+        return self.depth if channel == "depth" else self.pitch
+
+    def input(self, channel: str) -> float:
+        return self.u_depth if channel == "depth" else self.u_pitch
+
+    def is_finite(self) -> bool:
+        return all(
+            math.isfinite(v)
+            for v in (self.depth, self.pitch, self.u_depth, self.u_pitch, self.pitch_rate)
+        )
+
+    def to_payload(self) -> dict[str, float]:
+        """The Zenoh ``telemetry`` payload (DESIGN.md section 3)."""
+        return {
+            "t": self.t,
+            "depth": self.depth,
+            "pitch": self.pitch,
+            "u_depth": self.u_depth,
+            "u_pitch": self.u_pitch,
+        }
+
+    def as_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class BallastCommand:
+    """A ballast command in model units; NaN leaves that channel unchanged."""
+
+    u_depth: float
+    u_pitch: float
