@@ -9,6 +9,8 @@ from collections.abc import Sequence
 #: verb → (module with add_arguments/run, one-line help)
 VERBS: dict[str, tuple[str, str]] = {
     "emulate": ("plant_emulator.cli", "run the emulated glider autopilot over MAVLink"),
+    "serve": ("hil_service.cli.serve", "run the HIL service: MAVLink in, Zenoh out, MCAP log"),
+    "demo": ("hil_service.cli.demo", "emulator + service + Zenoh peer on loopback, summary"),
 }
 
 

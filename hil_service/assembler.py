@@ -1,0 +1,162 @@
+"""MAVLink messages → one ``TelemetrySample`` per plant step and vehicle.
+
+A step is complete when its ATTITUDE, SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATUS, all
+stamped with the same time, have arrived (VFR_HUD carries no timestamp and is not needed).
+A step with a missing piece is counted when a later step supersedes it, never guessed;
+a timestamp at or before the last emitted one is counted as out of order and dropped;
+non-finite or physically absurd values are counted as invalid and dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from protocols.mapping import (
+    MSG_ACTUATORS,
+    MSG_ATTITUDE,
+    MSG_PRESSURE,
+    TelemetryMapping,
+)
+from protocols.mavlink_io import MavMessage
+from protocols.samples import TelemetrySample
+
+MAX_PENDING_STEPS = 4
+DEPTH_RANGE = (-50.0, 11_000.0)  # m: above the surface by a wave crest .. the deepest trench
+
+
+@dataclass
+class AssemblyCounters:
+    samples: int = 0
+    incomplete: int = 0
+    out_of_order: int = 0
+    invalid: int = 0
+    unknown_system: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Pending:
+    attitude: MavMessage | None = None
+    pressure: MavMessage | None = None
+    actuators: MavMessage | None = None
+
+    def complete(self) -> bool:
+        return None not in (self.attitude, self.pressure, self.actuators)
+
+
+@dataclass
+class _VehicleState:
+    pending: dict[int, _Pending] = field(default_factory=dict)
+    last_emitted_ms: int | None = None
+    last_late_ms: int | None = None
+
+
+class SampleAssembler:
+    """Groups telemetry by (system id, timestamp); thread-confined, no I/O."""
+
+    def __init__(
+        self,
+        mapping: TelemetryMapping | None = None,
+        system_ids: Iterable[int] | None = None,
+        max_vehicles: int = 32,
+    ):
+        self.mapping = mapping or TelemetryMapping()
+        self.allowed = frozenset(system_ids) if system_ids else None
+        self.max_vehicles = max_vehicles
+        self.counters = AssemblyCounters()
+        self._vehicles: dict[int, _VehicleState] = {}
+
+    @property
+    def system_ids(self) -> list[int]:
+        return sorted(self._vehicles)
+
+    def add(self, message: MavMessage) -> TelemetrySample | None:
+        """Take one decoded message; return the sample it completes, if any."""
+        kind = message.get_type()
+        if kind in (MSG_ATTITUDE, MSG_PRESSURE):
+            stamp = int(message.time_boot_ms)
+        elif kind == MSG_ACTUATORS:
+            stamp = int(message.time_usec) // 1000
+        else:
+            return None
+        vehicle = self._vehicle(message.get_srcSystem())
+        if vehicle is None:
+            return None
+        if vehicle.last_emitted_ms is not None and stamp <= vehicle.last_emitted_ms:
+            if stamp != vehicle.last_late_ms:  # count a late step once, not per message
+                self.counters.out_of_order += 1
+                vehicle.last_late_ms = stamp
+            return None
+        pending = vehicle.pending.get(stamp)
+        if pending is None:
+            pending = vehicle.pending[stamp] = _Pending()
+            self._evict(vehicle)
+        if kind == MSG_ATTITUDE:
+            pending.attitude = message
+        elif kind == MSG_PRESSURE:
+            pending.pressure = message
+        else:
+            pending.actuators = message
+        if not pending.complete():
+            return None
+        del vehicle.pending[stamp]
+        # Older steps still pending can no longer complete in order.
+        for older in [s for s in vehicle.pending if s < stamp]:
+            if vehicle.last_emitted_ms is None or older > vehicle.last_emitted_ms:
+                self.counters.incomplete += 1
+            del vehicle.pending[older]
+        vehicle.last_emitted_ms = stamp
+        sample = self._build(message.get_srcSystem(), stamp, pending)
+        if sample is None:
+            self.counters.invalid += 1
+            return None
+        self.counters.samples += 1
+        return sample
+
+    def _vehicle(self, system_id: int) -> _VehicleState | None:
+        if self.allowed is not None and system_id not in self.allowed:
+            self.counters.unknown_system += 1
+            return None
+        vehicle = self._vehicles.get(system_id)
+        if vehicle is None:
+            if len(self._vehicles) >= self.max_vehicles:
+                self.counters.unknown_system += 1
+                return None
+            vehicle = self._vehicles[system_id] = _VehicleState()
+        return vehicle
+
+    def _evict(self, vehicle: _VehicleState) -> None:
+        while len(vehicle.pending) > MAX_PENDING_STEPS:
+            oldest = min(vehicle.pending)
+            del vehicle.pending[oldest]
+            if vehicle.last_emitted_ms is None or oldest > vehicle.last_emitted_ms:
+                self.counters.incomplete += 1
+
+    def _build(self, system_id: int, stamp: int, pending: _Pending) -> TelemetrySample | None:
+        try:
+            depth = self.mapping.depth_from_pressure(pending.pressure)
+            u_depth, u_pitch = self.mapping.inputs_from_actuators(pending.actuators)
+            sample = TelemetrySample(
+                system_id=system_id,
+                time_boot_ms=stamp,
+                depth=depth,
+                pitch=float(pending.attitude.pitch),
+                u_depth=u_depth,
+                u_pitch=u_pitch,
+                pitch_rate=float(pending.attitude.pitchspeed),
+            )
+        except (TypeError, ValueError, IndexError, AttributeError):
+            return None
+        full_scale = self.mapping.inputs.full_scale * (1 + 1e-6)
+        plausible = (
+            sample.is_finite()
+            and DEPTH_RANGE[0] <= sample.depth <= DEPTH_RANGE[1]
+            and abs(sample.pitch) <= math.pi
+            and abs(sample.u_depth) <= full_scale
+            and abs(sample.u_pitch) <= full_scale
+        )
+        return sample if plausible else None

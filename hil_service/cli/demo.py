@@ -1,0 +1,221 @@
+"""``glider-hil demo``: emulator and service as separate processes on loopback, driven over Zenoh.
+
+Timeline (simulated time): the identifier learns from the emulator's excitation; then the
+demo enables control over Zenoh and steps the depth and pitch setpoints twice; finally it
+prints identification and tracking figures and where the MCAP log is.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hil_service.zenoh_config import ZenohOptions, open_session
+from protocols import keys
+
+SYSTEM_ID = 1
+TRIM_DEPTH = 15.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=60.0, help="wall s (default 60)")
+    parser.add_argument("--speed", type=float, default=50.0, help="x real time (default 50)")
+    parser.add_argument("--scenario", default="disturbed", help="emulator scenario")
+    parser.add_argument("--model", default="dynamic", choices=("paper", "dynamic"))
+    parser.add_argument("--log-dir", default="logs")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@dataclass
+class Observations:
+    """What the demo's own Zenoh subscriber saw; written by Zenoh threads."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    telemetry: list[dict[str, Any]] = field(default_factory=list)
+    commands: int = 0
+    health: dict[str, Any] = field(default_factory=dict)
+
+    def on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        payload = json.loads(sample.payload.to_bytes())
+        with self.lock:
+            if key.endswith("/telemetry"):
+                self.telemetry.append(payload)
+            elif key.endswith("/command/ballast"):
+                self.commands += 1
+            elif key.endswith("/health"):
+                self.health = payload
+
+    def latest_t(self) -> float:
+        with self.lock:
+            return self.telemetry[-1]["t"] if self.telemetry else -1.0
+
+
+def _start(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "hil_service.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def _stop(process: subprocess.Popen[str]) -> tuple[str, str]:
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        return process.communicate(timeout=15)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.communicate(timeout=5)
+
+
+def _last_json(text: str, key: str) -> dict[str, Any]:
+    for line in reversed(text.strip().splitlines()):
+        try:
+            data = json.loads(line)
+        except ValueError:
+            continue
+        if key in data:
+            return data[key]
+    return {}
+
+
+def tracking_error(
+    telemetry: list[dict[str, Any]], channel: str, segments: list[tuple[float, float, float]]
+) -> float | None:
+    """Mean |y − setpoint| over the second half of each setpoint segment (t0, t1, value)."""
+    errors = []
+    for t0, t1, value in segments:
+        start = t0 + (t1 - t0) / 2
+        errors += [abs(s[channel] - value) for s in telemetry if start <= s["t"] < t1]
+    return sum(errors) / len(errors) if errors else None
+
+
+def run(args: argparse.Namespace) -> int:
+    udp_port, zenoh_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
+    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    sim_total = args.duration * args.speed
+    t_control, t_second = 0.4 * sim_total, 0.7 * sim_total
+    Path(args.log_dir).mkdir(parents=True, exist_ok=True)
+    service = _start(
+        "serve", "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
+        "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
+        "--burn-in", str(int(0.25 * sim_total)),
+    )  # fmt: skip
+    emulator = None
+    session = None
+    observations = Observations()
+    try:
+        time.sleep(1.0)  # let the service bind its UDP port and Zenoh listener
+        if service.poll() is not None:
+            print(service.stderr.read() if service.stderr else "", file=sys.stderr)
+            return 1
+        session = open_session(ZenohOptions(connect=(endpoint,)))
+        subscriber = session.declare_subscriber(f"glider/{SYSTEM_ID}/**", observations.on_sample)
+        emulator = _start(
+            "emulate", "--connect", f"udpout:127.0.0.1:{udp_port}", "--speed", str(args.speed),
+            "--duration", str(sim_total), "--scenario", args.scenario, "--seed", str(args.seed),
+            "--trim-depth", str(TRIM_DEPTH), "--command-timeout", "5", "--fallback", "hold",
+        )  # fmt: skip
+        plan = [
+            (t_control, {"depth": TRIM_DEPTH + 2.0, "pitch": 0.15}),
+            (t_second, {"depth": TRIM_DEPTH - 1.0, "pitch": -0.1}),
+        ]
+        print(
+            f"demo: {sim_total:.0f} simulated s at {args.speed:g}x; identification until "
+            f"t={t_control:.0f}s, then setpoint steps at t={t_control:.0f}s and {t_second:.0f}s",
+            flush=True,
+        )
+        deadline = time.monotonic() + args.duration + 20
+        step = 0
+        while emulator.poll() is None and time.monotonic() < deadline:
+            t = observations.latest_t()
+            if step < len(plan) and t >= plan[step][0]:
+                session.put(keys.control(SYSTEM_ID), json.dumps({"enabled": True}))
+                for channel, value in plan[step][1].items():
+                    session.put(keys.setpoint(SYSTEM_ID, channel), json.dumps({"value": value}))
+                print(f"demo: t={t:.0f}s control on, setpoints {plan[step][1]}", flush=True)
+                step += 1
+            time.sleep(0.05)
+        subscriber.undeclare()
+    finally:
+        emulator_out = _stop(emulator)[0] if emulator is not None else ""
+        service_out, service_err = _stop(service)
+        if session is not None:
+            session.close()
+    summary = _last_json(service_out, "service")
+    if not summary:
+        print(f"demo: the service printed no summary\n{service_err}", file=sys.stderr)
+        return 1
+    segments = {
+        ch: [
+            (plan[0][0], plan[1][0], plan[0][1][ch]),
+            (plan[1][0], sim_total, plan[1][1][ch]),
+        ]
+        for ch in ("depth", "pitch")
+    }
+    with observations.lock:
+        telemetry = list(observations.telemetry)
+        commands = observations.commands
+        health = dict(observations.health)
+    vehicle = summary.get("vehicles", {}).get(str(SYSTEM_ID), {})
+    result = {
+        "samples": summary.get("counters", {}).get("samples", 0),
+        "identification": {
+            ch: {k: v[k] for k in ("nmse", "persistence_nmse", "skill")}
+            for ch, v in vehicle.get("identifier", {}).items()
+        },
+        "tracking_mae": {ch: tracking_error(telemetry, ch, segments[ch]) for ch in segments},
+        "commands_published": commands,
+        "commands_sent": vehicle.get("commands_sent", 0),
+        "acks": vehicle.get("acks", {}),
+        "control_reason_at_end": health.get("control", {}).get("reason"),
+        "log": summary.get("log", {}).get("file"),
+        "emulator": _last_json(emulator_out, "emulator").get("steps"),
+    }
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print_summary(result)
+    return 0 if result["samples"] and result["log"] else 1
+
+
+def print_summary(result: dict[str, Any]) -> None:
+    def fmt(value: Any) -> str:
+        if value is None:
+            return "n/a"
+        return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+    print(f"\nsamples assembled: {result['samples']}")
+    print(f"{'channel':8} {'NMSE':>10} {'persist.':>10} {'skill':>8} {'track MAE':>10}")
+    for channel, scores in result["identification"].items():
+        mae = result["tracking_mae"].get(channel)
+        unit = "m" if channel == "depth" else "rad"
+        print(
+            f"{channel:8} {fmt(scores['nmse']):>10} {fmt(scores['persistence_nmse']):>10} "
+            f"{fmt(scores['skill']):>8} {fmt(mae):>8} {unit}"
+        )
+    print(
+        f"commands: {result['commands_sent']} sent, acks {result['acks']}; "
+        f"control at end: {result['control_reason_at_end'] or 'commanding'}"
+    )
+    print(f"log: {result['log']}")

@@ -1,0 +1,130 @@
+"""``glider-hil serve``: the HIL service on a MAVLink link, publishing on Zenoh, logging MCAP."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+
+from hil_service.bus import Inbox, ZenohBus
+from hil_service.recorder import McapRecorder
+from hil_service.service import HilService, ServiceConfig
+from hil_service.vehicle import MODEL_CHOICES, PipelineSettings
+from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
+from protocols.mapping import TelemetryMapping
+from protocols.mavlink_io import Link
+from protocols.units import InputScale, PressureDepth
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--mavlink",
+        default="udpin:127.0.0.1:14550",
+        help="pymavlink connection string: udpin:HOST:PORT, udpout:, tcp:, or a serial device",
+    )
+    parser.add_argument(
+        "--sysid",
+        type=int,
+        action="append",
+        default=[],
+        help="vehicle system id to serve (repeatable; default: every vehicle on the link)",
+    )
+    parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
+    parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
+    control = parser.add_mutually_exclusive_group()
+    control.add_argument(
+        "--control", dest="control", action="store_true", help="control enabled at start"
+    )
+    control.add_argument("--no-control", dest="control", action="store_false")
+    parser.set_defaults(control=False)
+    parser.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
+    parser.add_argument("--burn-in", type=int, default=None, help="samples before control")
+    parser.add_argument("--log-dir", default="logs", help="MCAP directory (default logs)")
+    parser.add_argument("--no-log", action="store_true", help="do not record MCAP")
+    parser.add_argument("--log-max-mb", type=float, default=256.0, help="rotate after this size")
+    parser.add_argument("--log-max-s", type=float, default=3600.0, help="rotate after this long")
+    parser.add_argument("--full-scale", type=float, default=2.0, help="model units at wire 1.0")
+    parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
+    parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
+    parser.add_argument("--duration", type=float, default=None, help="wall s, then exit")
+    add_zenoh_arguments(parser)
+
+
+def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
+    settings = PipelineSettings(model=args.model, seed=args.seed)
+    if args.burn_in is not None:
+        settings = settings.replace(burn_in=args.burn_in)
+    return settings
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        mapping = TelemetryMapping(
+            pressure=PressureDepth(args.water_density, args.surface_pressure),
+            inputs=InputScale(args.full_scale),
+        )
+        config = ServiceConfig(
+            system_ids=tuple(args.sysid),
+            control_default=args.control,
+            stale_timeout=args.stale_timeout,
+            pipeline=settings_from_args(args),
+        )
+        zenoh_options = options_from_args(args)
+        zenoh_options.to_config()  # a bad config file is reported here, before anything opens
+    except Exception as error:
+        print(f"glider-hil serve: {error}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    recorder = None
+    if not args.no_log:
+        recorder = McapRecorder(
+            args.log_dir,
+            metadata={"service": json.dumps(config.to_json()), "mapping": json.dumps(
+                {"full_scale": args.full_scale, "water_density": args.water_density,
+                 "surface_pressure": args.surface_pressure})},
+            max_bytes=int(args.log_max_mb * 1024 * 1024),
+            max_seconds=args.log_max_s,
+        ).start()  # fmt: skip
+    try:
+        link = Link(args.mavlink, source_system=255, source_component=191)
+    except Exception as error:  # pymavlink raises many kinds for a bad connection string
+        print(f"glider-hil serve: cannot open {args.mavlink}: {error}", file=sys.stderr)
+        if recorder is not None:
+            recorder.close()
+        return 2
+    try:
+        session = open_session(zenoh_options)
+    except Exception as error:  # zenoh raises its own ZError for bad endpoints
+        print(f"glider-hil serve: cannot open Zenoh session: {error}", file=sys.stderr)
+        link.close()
+        if recorder is not None:
+            recorder.close()
+        return 2
+    inbox = Inbox()
+    bus = ZenohBus(session, inbox, recorder)
+    service = HilService(config, bus, inbox, link=link, recorder=recorder, mapping=mapping)
+    print(f"glider-hil serve: {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)
+    if args.duration is not None:
+        timer = threading.Timer(args.duration, stop.set)
+        timer.daemon = True
+        timer.start()
+    started = time.monotonic()
+    try:
+        service.run(stop)
+    finally:
+        summary = service.summary()
+        summary["wall_s"] = time.monotonic() - started
+        bus.close()
+        session.close()
+        link.close()
+        if recorder is not None:
+            recorder.close()
+            summary["log"] = recorder.status.as_dict()
+    print(json.dumps({"service": summary}), flush=True)
+    return 0

@@ -1,0 +1,133 @@
+"""Reads our MCAP logs, including ones whose writer was killed or that were cut or damaged.
+
+A complete file is read through its records like any other; a file with no summary section
+(the writer was killed) is read up to its last complete chunk, and a truncated or corrupted
+file stops at the first bad record with the byte offset reported, never an exception.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from hil_service.recorder import CONFIG_METADATA
+
+RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
+
+
+class LogError(Exception):
+    """The file is not an MCAP log at all (missing or wrong magic)."""
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    topic: str
+    log_time_ns: int
+    data: bytes
+    message_encoding: str
+    channel_metadata: dict[str, str]
+
+    def json(self) -> Any:
+        return json.loads(self.data)
+
+
+@dataclass
+class ReadReport:
+    """What reading found: whether the file was finished, and where it stopped if not."""
+
+    path: str
+    complete: bool = False
+    messages: int = 0
+    bytes_read: int = 0
+    file_size: int = 0
+    error: str = ""
+    error_offset: int | None = None
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    channels: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def describe(self) -> str:
+        if self.complete:
+            return f"{self.path}: complete, {self.messages} messages"
+        return (
+            f"{self.path}: not finished ({self.error or 'no footer'}"
+            f"{'' if self.error_offset is None else f' at byte {self.error_offset}'}); "
+            f"recovered {self.messages} messages from {self.bytes_read} of "
+            f"{self.file_size} bytes"
+        )
+
+
+class LogReader:
+    """Iterate a log's messages in file order; ``report`` is filled in as it goes."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.report = ReadReport(path=str(self.path))
+
+    def messages(self, topics: set[str] | None = None) -> Iterator[LogMessage]:
+        report = self.report
+        report.file_size = self.path.stat().st_size
+        channels: dict[int, Channel] = {}
+        schemas: dict[int, Schema] = {}
+        with open(self.path, "rb") as stream:
+            reader = StreamReader(
+                stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT
+            )
+            records = reader.records
+            while True:
+                offset = stream.tell()
+                try:
+                    record = next(records)
+                except StopIteration:
+                    break
+                except Exception as error:  # truncated or corrupted: stop, say where
+                    if offset == 0:
+                        raise LogError(f"{self.path}: not an MCAP file ({error})") from error
+                    report.error = f"{type(error).__name__}: {error}".strip()
+                    report.error_offset = offset  # the start of the first bad record
+                    break
+                report.bytes_read = stream.tell()
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                    schema = schemas.get(record.schema_id)
+                    report.channels.setdefault(
+                        record.topic,
+                        {
+                            "encoding": record.message_encoding,
+                            "schema": schema.name if schema else None,
+                            "schema_encoding": schema.encoding if schema else None,
+                            "metadata": dict(record.metadata),
+                            "count": 0,
+                        },
+                    )
+                elif isinstance(record, Metadata):
+                    report.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is None:
+                        continue
+                    report.messages += 1
+                    report.channels[channel.topic]["count"] += 1
+                    if topics is None or channel.topic in topics:
+                        yield LogMessage(
+                            channel.topic,
+                            record.log_time,
+                            record.data,
+                            channel.message_encoding,
+                            channel.metadata,
+                        )
+                elif isinstance(record, Footer):
+                    report.complete = True
+
+    def config(self) -> dict[str, Any]:
+        """The service configuration stored in the log (read the messages first)."""
+        stored = self.report.metadata.get(CONFIG_METADATA, {})
+        return {key: json.loads(value) for key, value in stored.items()}
+

@@ -1,0 +1,78 @@
+"""One-step prediction scores: NMSE and skill versus persistence, windowed and cumulative.
+
+NMSE = mean((y − ŷ)²) / var(y); skill = 1 − MSE_model / MSE_persistence, so 0 means no
+better than "y(t) = y(t−1)" and 1 means perfect.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+
+@dataclass
+class ErrorStats:
+    """Running sums over all samples after ``burn_in``, plus a sliding window."""
+
+    burn_in: int = 0
+    window: int = 500
+    count: int = 0
+    _n: int = 0
+    _sum_e2: float = 0.0
+    _sum_p2: float = 0.0
+    _sum_y: float = 0.0
+    _sum_y2: float = 0.0
+    _recent: deque[tuple[float, float, float]] = field(default_factory=deque)
+
+    def add(self, y: float, error: float, persistence_error: float) -> None:
+        self.count += 1
+        self._recent.append((y, error * error, persistence_error * persistence_error))
+        if len(self._recent) > self.window:
+            self._recent.popleft()
+        if self.count <= self.burn_in:
+            return
+        self._n += 1
+        self._sum_e2 += error * error
+        self._sum_p2 += persistence_error * persistence_error
+        self._sum_y += y
+        self._sum_y2 += y * y
+
+    def nmse(self) -> float | None:
+        if self._n < 2:
+            return None
+        mean = self._sum_y / self._n
+        var = max(self._sum_y2 / self._n - mean * mean, 1e-300)
+        return (self._sum_e2 / self._n) / var
+
+    def persistence_nmse(self) -> float | None:
+        if self._n < 2:
+            return None
+        mean = self._sum_y / self._n
+        var = max(self._sum_y2 / self._n - mean * mean, 1e-300)
+        return (self._sum_p2 / self._n) / var
+
+    def skill(self) -> float | None:
+        if self._n < 2 or self._sum_p2 <= 0:
+            return None
+        return 1.0 - self._sum_e2 / self._sum_p2
+
+    def recent_skill(self) -> float | None:
+        if len(self._recent) < 2:
+            return None
+        model = sum(r[1] for r in self._recent)
+        persistence = sum(r[2] for r in self._recent)
+        return None if persistence <= 0 else 1.0 - model / persistence
+
+    def summary(self) -> dict[str, float | int | None]:
+        return {
+            "samples": self.count,
+            "nmse": _round(self.nmse()),
+            "persistence_nmse": _round(self.persistence_nmse()),
+            "skill": _round(self.skill()),
+            "recent_skill": _round(self.recent_skill()),
+        }
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(f"{value:.6g}")

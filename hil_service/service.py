@@ -1,0 +1,262 @@
+"""The HIL service runtime: MAVLink in, identification and control, Zenoh out, MCAP always.
+
+One thread owns the MAVLink link and everything on the per-sample path (decode, assemble,
+identify, decide, publish, send); Zenoh callbacks only fill the ``Inbox``; the recorder
+writes on its own thread. ``process_datagram`` is the same entry point for live traffic,
+replay and benchmarks.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from hil_service.assembler import SampleAssembler
+from hil_service.bus import Bus, Inbox
+from hil_service.link_stats import RateMeter, SequenceTracker
+from hil_service.recorder import McapRecorder
+from hil_service.vehicle import PipelineSettings, VehiclePipeline
+from protocols import keys
+from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
+from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
+from protocols.samples import TelemetrySample
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    system_ids: tuple[int, ...] = ()  # empty: every vehicle on the link
+    service_system_id: int = 255
+    control_default: bool = False  # control state before any control message arrives
+    stale_timeout: float = 3.0  # wall s without a sample → no commands
+    health_period: float = 1.0  # wall s
+    pipeline: PipelineSettings = field(default_factory=PipelineSettings)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "system_ids": list(self.system_ids),
+            "control_default": self.control_default,
+            "stale_timeout": self.stale_timeout,
+            "pipeline": self.pipeline.to_json(),
+        }
+
+
+@dataclass
+class VehicleRuntime:
+    """What the runtime keeps per vehicle beside its pure pipeline."""
+
+    pipeline: VehiclePipeline
+    rate: RateMeter = field(default_factory=RateMeter)
+    last_sample_wall: float | None = None
+    last_sample: TelemetrySample | None = None
+    last_estimates: dict[str, dict[str, Any]] = field(default_factory=dict)
+    last_command: dict[str, Any] | None = None
+    control_reason: str = "no sample yet"
+    commands_sent: int = 0
+    acks: dict[str, int] = field(default_factory=lambda: {"accepted": 0, "refused": 0})
+
+
+class HilService:
+    def __init__(
+        self,
+        config: ServiceConfig,
+        bus: Bus,
+        inbox: Inbox,
+        link: Link | None = None,
+        recorder: McapRecorder | None = None,
+        mapping: TelemetryMapping | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        send_commands: bool = True,
+    ):
+        self.config = config
+        self.bus = bus
+        self.inbox = inbox
+        self.link = link
+        self.recorder = recorder
+        self.mapping = mapping or TelemetryMapping()
+        self.clock = clock
+        self.send_commands = send_commands and link is not None
+        self.codec = MavlinkCodec(config.service_system_id, SERVICE_COMPONENT)
+        self.assembler = SampleAssembler(self.mapping, config.system_ids or None)
+        self.sequence = SequenceTracker()
+        self.vehicles: dict[int, VehicleRuntime] = {}
+        self._next_health = 0.0
+        self._lock = threading.Lock()  # guards snapshots read by the state queryable
+
+    # ---- the per-datagram path --------------------------------------------------------
+    def process_datagram(self, data: bytes, datagram: bool = True) -> list[TelemetrySample]:
+        now_ns = time.time_ns()
+        samples = []
+        for message in self.codec.parse(data, datagram=datagram):
+            if self.recorder is not None:
+                self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
+                self.recorder.mavlink("in", message, now_ns)
+            sample = self.process_message(message)
+            if sample is not None:
+                samples.append(sample)
+        return samples
+
+    def process_message(self, message: MavMessage) -> TelemetrySample | None:
+        header = message.get_header()
+        self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
+        if message.get_type() == "COMMAND_ACK":
+            self._on_ack(message)
+            return None
+        sample = self.assembler.add(message)
+        if sample is not None:
+            self.process_sample(sample)
+        return sample
+
+    def process_sample(self, sample: TelemetrySample) -> None:
+        vehicle = self._vehicle(sample.system_id)
+        now = self.clock()
+        vehicle.rate.tick(now)
+        vehicle.last_sample_wall = now
+        system_id = sample.system_id
+        self.bus.publish(keys.telemetry(system_id), sample.to_payload())
+        estimates = vehicle.pipeline.observe(sample)
+        for channel, payload in estimates.items():
+            self.bus.publish(keys.umodel(system_id, channel), payload)
+        inputs = self.inbox.get(system_id)
+        enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
+        decision = vehicle.pipeline.decide(sample, inputs.setpoints, enabled)
+        with self._lock:
+            vehicle.last_sample = sample
+            vehicle.last_estimates = estimates
+            vehicle.control_reason = decision.reason
+            if decision.payload is not None:
+                vehicle.last_command = decision.payload
+        if decision.command is not None and decision.payload is not None:
+            self.bus.publish(keys.command_ballast(system_id), decision.payload, reliable=True)
+            if self.send_commands:
+                self._send(self.mapping.ballast_command(decision.command, system_id))
+            vehicle.commands_sent += 1
+
+    def _send(self, message: MavMessage) -> None:
+        assert self.link is not None
+        frame = self.codec.pack(message)
+        self.link.send(frame)
+        if self.recorder is not None:
+            now_ns = time.time_ns()
+            self.recorder.raw("out", frame, now_ns)
+            self.recorder.mavlink("out", message, now_ns)
+
+    def _on_ack(self, message: MavMessage) -> None:
+        vehicle = self.vehicles.get(message.get_srcSystem())
+        if vehicle is None:
+            return
+        accepted = message.result == 0
+        vehicle.acks["accepted" if accepted else "refused"] += 1
+
+    def _vehicle(self, system_id: int) -> VehicleRuntime:
+        vehicle = self.vehicles.get(system_id)
+        if vehicle is None:
+            pipeline = VehiclePipeline(self.config.pipeline)
+            vehicle = self.vehicles[system_id] = VehicleRuntime(pipeline)
+            self.bus.declare_vehicle(system_id, lambda: self.state(system_id))
+        return vehicle
+
+    # ---- periodic work ------------------------------------------------------------------
+    def tick(self) -> None:
+        """Health at ``health_period``; call often (the run loop does every 0.1 s at most)."""
+        now = self.clock()
+        if now < self._next_health:
+            return
+        self._next_health = now + self.config.health_period
+        for system_id in self.vehicles:
+            self.bus.publish(keys.health(system_id), self.health(system_id, now))
+
+    def health(self, system_id: int, now: float | None = None) -> dict[str, Any]:
+        now = self.clock() if now is None else now
+        vehicle = self.vehicles[system_id]
+        stale = (
+            vehicle.last_sample_wall is None
+            or now - vehicle.last_sample_wall > self.config.stale_timeout
+        )
+        inputs = self.inbox.get(system_id)
+        enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
+        reason = "telemetry stale" if stale else vehicle.control_reason
+        if stale:
+            vehicle.pipeline.mark_stale()
+        counters = {
+            **self.assembler.counters.as_dict(),
+            **self.codec.counters.as_dict(),
+            "setpoints_rejected": self.inbox.rejected,
+            "commands_sent": vehicle.commands_sent,
+            "acks_accepted": vehicle.acks["accepted"],
+            "acks_refused": vehicle.acks["refused"],
+        }
+        if self.recorder is not None:
+            counters["log_records"] = self.recorder.status.records
+            counters["log_dropped"] = self.recorder.status.dropped
+        malformed = (
+            self.codec.counters.bad_frames
+            + self.codec.counters.unknown_frames
+            + self.assembler.counters.invalid
+            + self.assembler.counters.out_of_order
+            + self.assembler.counters.incomplete
+        )
+        payload: dict[str, Any] = {
+            "t_wall": time.time(),
+            "link_rate": vehicle.rate.rate(now),
+            "samples": self.assembler.counters.samples,
+            "packet_loss": self.sequence.loss_fraction,
+            "malformed": malformed,
+            "counters": counters,
+            "link": self.sequence.as_dict(),
+            "identifier": vehicle.pipeline.identifier_health(),
+            "control": {
+                "enabled": enabled,
+                "commanding": reason == "",
+                "reason": reason,
+                "setpoints": inputs.setpoints,
+            },
+            "telemetry_age": None
+            if vehicle.last_sample_wall is None
+            else now - vehicle.last_sample_wall,
+        }
+        if self.recorder is not None:
+            payload["logging"] = self.recorder.status.as_dict()
+        if self.inbox.last_rejection:
+            payload["last_rejected_input"] = self.inbox.last_rejection
+        return payload
+
+    def state(self, system_id: int) -> dict[str, Any]:
+        """Answer of the ``state`` queryable: the latest sample, estimates and command."""
+        with self._lock:
+            vehicle = self.vehicles[system_id]
+            return {
+                "telemetry": None
+                if vehicle.last_sample is None
+                else vehicle.last_sample.to_payload(),
+                "umodel": dict(vehicle.last_estimates),
+                "command": vehicle.last_command,
+                "control_reason": vehicle.control_reason,
+            }
+
+    def summary(self) -> dict[str, Any]:
+        """Counters and per-vehicle identification scores, printed when the service stops."""
+        return {
+            "counters": {**self.assembler.counters.as_dict(), **self.codec.counters.as_dict()},
+            "link": self.sequence.as_dict(),
+            "vehicles": {
+                str(system_id): {
+                    "identifier": vehicle.pipeline.identifier_health(),
+                    "commands_sent": vehicle.commands_sent,
+                    "acks": dict(vehicle.acks),
+                }
+                for system_id, vehicle in self.vehicles.items()
+            },
+        }
+
+    # ---- the loop -------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        assert self.link is not None
+        while not stop.is_set():
+            if self.link.wait(0.1):
+                data = self.link.recv()
+                if data:
+                    self.process_datagram(data, datagram=self.link.datagram)
+            self.tick()

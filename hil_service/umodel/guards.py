@@ -1,0 +1,114 @@
+"""Input validation and divergence detection shared by all identifiers.
+
+Divergence is declared when any of these holds:
+
+* the prediction, the error or a parameter is non-finite;
+* max |θ| exceeds ``param_limit``;
+* |e| > ``error_ratio`` · (scale + ``scale_floor``) for ``divergence_steps`` consecutive
+  samples, where *scale* is a robust running mean of |y|.
+
+The scale is an exponential average of |y| whose innovation is clipped to
+``error_ratio``·scale, so a burst of absurd outputs can only raise it geometrically
+(≤ ×(1 + rate·(ratio−1)) per step) instead of instantly absorbing the outliers; a genuinely
+diverging model is therefore still caught, while ordinary level changes are not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+__all__ = ["DIVERGENCE_ACTIONS", "DivergenceMonitor", "GuardConfig"]
+
+DIVERGENCE_ACTIONS = ("reset", "freeze")
+
+
+@dataclass(frozen=True, slots=True)
+class GuardConfig:
+    """Limits for rejecting samples and detecting divergence (JSON-friendly)."""
+
+    input_limit: float = 1e6
+    """|u| above this (or non-finite) → sample rejected, state untouched."""
+    output_limit: float = 1e9
+    """|y| above this (or non-finite) → sample rejected, state untouched."""
+    error_ratio: float = 50.0
+    divergence_steps: int = 10
+    scale_floor: float = 1e-3
+    scale_rate: float = 0.01
+    param_limit: float = 1e6
+    on_divergence: str = "reset"
+    """"reset": restore initial parameters and keep adapting; "freeze": stop adapting
+    (parameters kept if sane, otherwise reset) until ``unfreeze()``/``reset()``."""
+
+    def __post_init__(self) -> None:
+        for name in ("input_limit", "output_limit", "error_ratio", "scale_floor", "param_limit"):
+            val = getattr(self, name)
+            if not (isinstance(val, int | float) and math.isfinite(val) and val > 0):
+                raise ValueError(f"guard {name} must be finite and > 0, got {val!r}")
+        if not (0.0 < self.scale_rate <= 1.0):
+            raise ValueError("guard scale_rate must be in (0, 1]")
+        if int(self.divergence_steps) != self.divergence_steps or self.divergence_steps < 1:
+            raise ValueError("guard divergence_steps must be an integer >= 1")
+        if self.on_divergence not in DIVERGENCE_ACTIONS:
+            raise ValueError(f"guard on_divergence must be one of {DIVERGENCE_ACTIONS}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def coerce(cls, value: GuardConfig | dict[str, Any] | None) -> GuardConfig:
+        if value is None:
+            return cls()
+        if isinstance(value, GuardConfig):
+            return value
+        return cls(**value)
+
+
+class DivergenceMonitor:
+    """Tracks the output scale and counts consecutive large a-priori errors."""
+
+    __slots__ = ("_floor", "_rate", "_ratio", "_steps", "count", "n_divergences", "scale", "seen")
+
+    def __init__(self, cfg: GuardConfig) -> None:
+        self._ratio = float(cfg.error_ratio)
+        self._floor = float(cfg.scale_floor)
+        self._rate = float(cfg.scale_rate)
+        self._steps = int(cfg.divergence_steps)
+        self.scale = 0.0
+        self.seen = False
+        self.count = 0
+        self.n_divergences = 0
+
+    def reset(self) -> None:
+        self.scale = 0.0
+        self.seen = False
+        self.count = 0
+        self.n_divergences = 0
+
+    def observe(self, y: float, error: float) -> bool:
+        """Account for one accepted sample; True when the error test declares divergence."""
+        ay = abs(y)
+        if not self.seen:
+            self.seen = True
+            self.scale = ay
+            return False
+        s = self.scale
+        if abs(error) > self._ratio * (s + self._floor):
+            self.count += 1
+        else:
+            self.count = 0
+        lim = self._ratio * (s + self._floor)
+        self.scale = s + self._rate * ((ay if ay < lim else lim) - s)
+        if self.count >= self._steps:
+            self.count = 0
+            return True
+        return False
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "scale": self.scale,
+            "seen": self.seen,
+            "count": self.count,
+            "n_divergences": self.n_divergences,
+        }

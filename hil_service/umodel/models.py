@@ -1,0 +1,689 @@
+"""One-step-ahead identifiers sharing a common interface.
+
+Timing convention (all models): ``step(u_prev, y)`` is called once per sample with
+u_prev = u(t−1), the input applied *before* y(t) was measured. The model first forms the
+a-priori prediction ŷ(t) from u(t−1) and its internal history (which only contains data up
+to t−1), then reveals y(t), computes e = y(t) − ŷ(t), adapts, and finally shifts y(t) and
+u(t−1) into its history. ``predict(u)`` returns the same a-priori prediction without changing
+anything; after a step it is the model's forecast of y(t+1) as a function of the next input
+u(t), which is what the inverse controller inverts via ``output_given_input`` /
+``output_derivative``.
+
+Models (``MODEL_NAMES``):
+
+* ``paper``       — Abbasi et al. 2015: y(t) = α₀(t) + Σ_{i=1..M} α_i(t)·u^i(t−1) with
+  α₀ = Σ_j w_j Φ_j(u(t−1)), Φ_j(u) = exp(−(u−c_j)²/β²) (eq. 8 convention). α_i and w are
+  adapted by one NLMS on φ = [Φ(u(t−1)), u, …, u^M].
+* ``dynamic``     — as ``paper`` but α₀ also contains a bias and linear terms in
+  y(t−1..t−na)/y_scale and u(t−2..t−nb); one NLMS adapts the concatenated vector. A single
+  normalised update keeps the structure of the paper (one step size, stability 0<μ<2) and
+  is cheap; ``y_scale`` lets the caller bring large-valued outputs to O(1) so that they do
+  not dominate the normalisation φᵀφ.
+* ``persistence`` — ŷ(t) = y(t−1); the baseline every identifier must beat.
+* ``rls-arx``     — ARX y(t) = Σ a_i y(t−i) + Σ b_k u(t−k) + c by RLS with forgetting and a
+  covariance trace bound (see :mod:`.rls`).
+
+Every model rejects non-finite/absurd samples without touching its state, detects
+divergence (see :mod:`.guards`) and never returns NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from .guards import DivergenceMonitor, GuardConfig
+from .nlms import DEFAULT_EPS, NLMS
+from .rbf import GaussianRBF, evenly_spaced_centres
+from .rls import RLS
+
+__all__ = [
+    "MODEL_NAMES",
+    "STATUSES",
+    "DynamicUModel",
+    "Estimate",
+    "OneStepModel",
+    "PaperUModel",
+    "PersistenceModel",
+    "RlsArxModel",
+    "Status",
+    "build_model",
+    "from_config",
+    "paper_preset",
+]
+
+MODEL_NAMES: tuple[str, ...] = ("paper", "dynamic", "rls-arx", "persistence")
+Status = Literal["ok", "rejected", "diverged", "frozen"]
+STATUSES: tuple[str, ...] = ("ok", "rejected", "diverged", "frozen")
+
+PAPER_DEGREE = 3
+PAPER_MU = 0.5
+PAPER_N_CENTRES = 17
+PAPER_CENTRE_RANGE = (-2.0, 2.0)
+PAPER_BETA = 0.25
+PAPER_INIT_SCALE = 0.1
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """Result of one ``step``.
+
+    ``alpha`` = (α₀, α₁, …) are the U-model coefficients *that produced y_hat*, i.e.
+    y_hat = α₀ + Σ α_i u_prev^i (up to rounding): for ``rls-arx`` α₁ is b₁ and α₀ the rest
+    of the ARX sum; for ``persistence`` alpha = (y(t−1),). ``weights`` are the other adapted
+    parameters before this step's update: RBF weights (``paper``), RBF weights followed by
+    [bias, a_1..a_na, b_2..b_nb] (``dynamic``), the full ARX vector (``rls-arx``).
+    For a rejected sample, ``error`` is 0.0 and a non-finite ``y`` is replaced by ``y_hat``
+    so that no field is ever NaN.
+    """
+
+    model: str
+    status: str
+    y: float
+    y_hat: float
+    error: float
+    alpha: tuple[float, ...]
+    weights: tuple[float, ...]
+
+
+@runtime_checkable
+class OneStepModel(Protocol):
+    """What the service and the inverse controller rely on."""
+
+    name: str
+
+    def predict(self, u_prev: float) -> float: ...
+
+    def step(self, u_prev: float, y: float) -> Estimate: ...
+
+    def output_given_input(self, u: float) -> float: ...
+
+    def output_derivative(self, u: float) -> float: ...
+
+    def config(self) -> dict[str, Any]: ...
+
+    def snapshot(self) -> dict[str, Any]: ...
+
+    def reset(self) -> None: ...
+
+
+def _isfinite(x: float) -> bool:
+    return math.isfinite(x)
+
+
+class _ModelBase:
+    """Guards and the step skeleton; subclasses provide the numerics via small hooks."""
+
+    name: ClassVar[str] = ""
+    _checks_error: ClassVar[bool] = True
+
+    def __init__(self, guard: GuardConfig | dict[str, Any] | None) -> None:
+        self.guard = GuardConfig.coerce(guard)
+        self._monitor = DivergenceMonitor(self.guard)
+        self._frozen = False
+        self._y_last = 0.0
+        self._u_last = 0.0
+        self._n_accepted = 0
+        self._n_rejected = 0
+
+    # ---- hooks -------------------------------------------------------------------------
+    def _predict(self, u: float) -> float:  # may write scratch buffers only
+        raise NotImplementedError
+
+    def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        raise NotImplementedError
+
+    def _adapt(self, error: float) -> None:
+        raise NotImplementedError
+
+    def _params_ok(self) -> bool:
+        return True
+
+    def _reset_params(self) -> None:
+        pass
+
+    def _push(self, u: float, y: float) -> None:
+        pass
+
+    def _reset_history(self) -> None:
+        pass
+
+    def _options(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def _state(self) -> dict[str, Any]:
+        return {}
+
+    def output_given_input(self, u: float) -> float:
+        raise NotImplementedError
+
+    def output_derivative(self, u: float) -> float:
+        raise NotImplementedError
+
+    # ---- public API --------------------------------------------------------------------
+    @property
+    def frozen(self) -> bool:
+        return self._frozen
+
+    def predict(self, u_prev: float) -> float:
+        """A-priori ŷ for input ``u_prev`` given the current history; never NaN, no mutation."""
+        if not (_isfinite(u_prev) and abs(u_prev) <= self.guard.input_limit):
+            u_prev = self._u_last
+        y_hat = self._predict(u_prev)
+        return y_hat if _isfinite(y_hat) else self._y_last
+
+    def step(self, u_prev: float, y: float) -> Estimate:
+        """Predict ŷ(t) from u(t−1), then learn from y(t). See module docstring."""
+        g = self.guard
+        u_ok = _isfinite(u_prev) and abs(u_prev) <= g.input_limit
+        if not (u_ok and _isfinite(y) and abs(y) <= g.output_limit):
+            self._n_rejected += 1
+            y_hat = self.predict(u_prev if u_ok else self._u_last)
+            alpha, weights = self._coefficients(u_prev if u_ok else self._u_last, y_hat)
+            return Estimate(
+                self.name, "rejected", y if _isfinite(y) else y_hat, y_hat, 0.0, alpha, weights
+            )
+
+        y_hat = self._predict(u_prev)
+        error = y - y_hat
+        if not (_isfinite(y_hat) and _isfinite(error)):
+            y_hat = self._y_last
+            error = y - y_hat
+            alpha, weights = self._coefficients(u_prev, y_hat)
+            self._diverged()
+            return self._finish(u_prev, y, y_hat, error, alpha, weights, "diverged")
+
+        alpha, weights = self._coefficients(u_prev, y_hat)
+        status = "frozen" if self._frozen else "ok"
+        if not self._frozen:
+            self._adapt(error)
+            if not self._params_ok():
+                self._diverged()
+                status = "diverged"
+        if self._checks_error and self._monitor.observe(y, error) and status != "diverged":
+            self._diverged()
+            status = "diverged"
+        return self._finish(u_prev, y, y_hat, error, alpha, weights, status)
+
+    def unfreeze(self) -> None:
+        """Resume adaptation after a freeze (parameters are kept)."""
+        self._frozen = False
+        self._monitor.count = 0
+
+    def reset(self) -> None:
+        """Back to the freshly constructed state (same seed → same initial parameters)."""
+        self._reset_params()
+        self._reset_history()
+        self._monitor.reset()
+        self._frozen = False
+        self._y_last = 0.0
+        self._u_last = 0.0
+        self._n_accepted = 0
+        self._n_rejected = 0
+
+    def config(self) -> dict[str, Any]:
+        """JSON-serialisable construction parameters; ``from_config`` rebuilds exactly."""
+        cfg: dict[str, Any] = {"name": self.name}
+        cfg.update(self._options())
+        cfg["guard"] = self.guard.to_dict()
+        return cfg
+
+    def snapshot(self) -> dict[str, Any]:
+        """Plain-Python copy of the full mutable state (for logs and tests)."""
+        snap: dict[str, Any] = {
+            "name": self.name,
+            "frozen": self._frozen,
+            "y_last": self._y_last,
+            "u_last": self._u_last,
+            "n_accepted": self._n_accepted,
+            "n_rejected": self._n_rejected,
+            "monitor": self._monitor.state(),
+        }
+        snap.update(self._state())
+        return snap
+
+    # ---- internals ---------------------------------------------------------------------
+    def _finish(
+        self,
+        u: float,
+        y: float,
+        y_hat: float,
+        error: float,
+        alpha: tuple[float, ...],
+        weights: tuple[float, ...],
+        status: str,
+    ) -> Estimate:
+        self._push(u, y)
+        self._y_last = y
+        self._u_last = u
+        self._n_accepted += 1
+        return Estimate(self.name, status, y, y_hat, error, alpha, weights)
+
+    def _diverged(self) -> None:
+        mon = self._monitor
+        mon.n_divergences += 1
+        mon.count = 0
+        if self.guard.on_divergence == "reset" or not self._params_ok():
+            self._reset_params()
+        if self.guard.on_divergence == "freeze":
+            self._frozen = True
+
+
+def _theta_ok(theta: np.ndarray, limit: float) -> bool:
+    # max|θ| ≤ limit  ⇐ θᵀθ ≤ limit²  is too strict for long vectors, so test the max; the
+    # comparison is False for NaN, hence also catches non-finite parameters.
+    return bool(np.max(np.abs(theta)) <= limit)
+
+
+class _UModelCore(_ModelBase):
+    """Shared RBF + polynomial machinery of ``paper`` and ``dynamic``."""
+
+    def __init__(
+        self,
+        *,
+        degree: int,
+        mu: float,
+        eps: float,
+        centres: Sequence[float] | None,
+        beta: float,
+        init_scale: float,
+        seed: int,
+        n_extra: int,
+        guard: GuardConfig | dict[str, Any] | None,
+    ) -> None:
+        super().__init__(guard)
+        if int(degree) != degree or degree < 1:
+            raise ValueError("degree M must be an integer >= 1")
+        if not (math.isfinite(init_scale) and init_scale >= 0.0):
+            raise ValueError("init_scale must be finite and >= 0")
+        if int(seed) != seed:
+            raise ValueError("seed must be an integer")
+        if centres is None:
+            centres = evenly_spaced_centres(PAPER_N_CENTRES, *PAPER_CENTRE_RANGE)
+        self.rbf = GaussianRBF(centres, beta)
+        self.degree = int(degree)
+        self.nlms = NLMS(float(mu), float(eps))
+        self.init_scale = float(init_scale)
+        self.seed = int(seed)
+        self._nr = self.rbf.size
+        self._np = self._nr + self.degree  # end of the polynomial block
+        n = self._np + n_extra
+        rng = np.random.default_rng(self.seed)
+        self._theta0 = rng.uniform(-self.init_scale, self.init_scale, size=n)
+        self._theta = self._theta0.copy()
+        self._phi = np.zeros(n)
+        self._phi_rbf = self._phi[: self._nr]
+        self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
+        self._eval: tuple[float, float, float] | None = None
+
+    def _linear_const(self) -> float:
+        return 0.0
+
+    def _fill(self, u: float) -> None:
+        phi = self._phi
+        self.rbf.values_into(u, self._phi_rbf)
+        p = 1.0
+        for i in range(self._nr, self._np):
+            p *= u
+            phi[i] = p
+
+    def _predict(self, u: float) -> float:
+        self._fill(u)
+        return float(np.dot(self._theta, self._phi))
+
+    def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        th = self._theta.tolist()
+        poly = th[self._nr : self._np]
+        # α₀ collects everything that is not a power of u(t−1): keeps y_hat = α₀ + Σα_i u^i.
+        a0 = y_hat
+        p = 1.0
+        for a in poly:
+            p *= u
+            a0 -= a * p
+        return (a0, *poly), tuple(th[: self._nr] + th[self._np :])
+
+    def _adapt(self, error: float) -> None:
+        self.nlms.update_(self._theta, self._phi, error)
+        self._cache = None
+        self._eval = None
+
+    def _params_ok(self) -> bool:
+        return _theta_ok(self._theta, self.guard.param_limit)
+
+    def _reset_params(self) -> None:
+        self._theta[:] = self._theta0
+        self._cache = None
+        self._eval = None
+
+    def _eval_both(self, u: float) -> tuple[float, float]:
+        ev = self._eval
+        if ev is not None and ev[0] == u:
+            return ev[1], ev[2]
+        cache = self._cache
+        if cache is None:
+            th = self._theta.tolist()
+            cache = (tuple(th[: self._nr]), tuple(th[self._nr : self._np]), self._linear_const())
+            self._cache = cache
+        w, alphas, c = cache
+        s, ds = self.rbf.weighted(u, w)
+        # Horner for Σ α_i u^i and its derivative.
+        f = 0.0
+        df = 0.0
+        for a in reversed(alphas):
+            df = df * u + f
+            f = f * u + a
+        df = df * u + f
+        f = f * u
+        out = (c + s + f, ds + df)
+        self._eval = (u, out[0], out[1])
+        return out
+
+    def output_given_input(self, u: float) -> float:
+        """ŷ(t+1) as a function of the next input u(t) (fast scalar path, ≈ ``predict``)."""
+        f = self._eval_both(u)[0]
+        return f if _isfinite(f) else self._y_last
+
+    def output_derivative(self, u: float) -> float:
+        """Analytic d ŷ(t+1)/d u(t), RBF term included."""
+        d = self._eval_both(u)[1]
+        return d if _isfinite(d) else 0.0
+
+    def _core_options(self) -> dict[str, Any]:
+        return {
+            "degree": self.degree,
+            "mu": self.nlms.mu,
+            "eps": self.nlms.eps,
+            "centres": list(self.rbf.centres),
+            "beta": self.rbf.beta,
+            "init_scale": self.init_scale,
+            "seed": self.seed,
+        }
+
+    def _state(self) -> dict[str, Any]:
+        return {"theta": self._theta.tolist()}
+
+
+class PaperUModel(_UModelCore):
+    """Paper U-model (defaults = paper preset: M=3, μ=0.5, 17 centres on [−2, 2], β=0.25)."""
+
+    name: ClassVar[str] = "paper"
+
+    def __init__(
+        self,
+        *,
+        degree: int = PAPER_DEGREE,
+        mu: float = PAPER_MU,
+        eps: float = DEFAULT_EPS,
+        centres: Sequence[float] | None = None,
+        beta: float = PAPER_BETA,
+        init_scale: float = PAPER_INIT_SCALE,
+        seed: int = 0,
+        guard: GuardConfig | dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(
+            degree=degree,
+            mu=mu,
+            eps=eps,
+            centres=centres,
+            beta=beta,
+            init_scale=init_scale,
+            seed=seed,
+            n_extra=0,
+            guard=guard,
+        )
+
+    def _options(self) -> dict[str, Any]:
+        return self._core_options()
+
+
+class DynamicUModel(_UModelCore):
+    """U-model whose α₀ also regresses on past outputs and older inputs (plus a bias)."""
+
+    name: ClassVar[str] = "dynamic"
+
+    def __init__(
+        self,
+        *,
+        na: int = 3,
+        nb: int = 3,
+        y_scale: float = 1.0,
+        degree: int = PAPER_DEGREE,
+        mu: float = PAPER_MU,
+        eps: float = DEFAULT_EPS,
+        centres: Sequence[float] | None = None,
+        beta: float = PAPER_BETA,
+        init_scale: float = PAPER_INIT_SCALE,
+        seed: int = 0,
+        guard: GuardConfig | dict[str, Any] | None = None,
+    ) -> None:
+        if int(na) != na or na < 0:
+            raise ValueError("na must be an integer >= 0")
+        if int(nb) != nb or nb < 1:
+            raise ValueError("nb must be an integer >= 1 (lag 1 is the U-model polynomial)")
+        if not (math.isfinite(y_scale) and y_scale > 0.0):
+            raise ValueError("y_scale must be finite and > 0")
+        self.na = int(na)
+        self.nb = int(nb)
+        self.y_scale = float(y_scale)
+        self._inv_ys = 1.0 / self.y_scale
+        super().__init__(
+            degree=degree,
+            mu=mu,
+            eps=eps,
+            centres=centres,
+            beta=beta,
+            init_scale=init_scale,
+            seed=seed,
+            n_extra=1 + self.na + (self.nb - 1),
+            guard=guard,
+        )
+        # Layout of the tail of φ: [1, y(t−1..t−na)/y_scale, u(t−2..t−nb)] — it *is* the
+        # history, updated in place by _push; the head (RBF + powers) is scratch.
+        i = self._np
+        self._i_y = i + 1
+        self._i_u = i + 1 + self.na
+        self._phi[i] = 1.0
+        self._lin = self._phi[i:]
+        self._th_lin = self._theta[i:]
+
+    def _linear_const(self) -> float:
+        return float(np.dot(self._th_lin, self._lin))
+
+    def _push(self, u: float, y: float) -> None:
+        phi = self._phi
+        iy, iu = self._i_y, self._i_u
+        if self.na:
+            phi[iy + 1 : iu] = phi[iy : iu - 1]
+            phi[iy] = y * self._inv_ys
+        if self.nb > 1:
+            phi[iu + 1 :] = phi[iu:-1]
+            phi[iu] = u
+        self._cache = None
+        self._eval = None
+
+    def _reset_history(self) -> None:
+        self._lin[1:] = 0.0
+        self._cache = None
+        self._eval = None
+
+    def _options(self) -> dict[str, Any]:
+        opts = {"na": self.na, "nb": self.nb, "y_scale": self.y_scale}
+        opts.update(self._core_options())
+        return opts
+
+    def _state(self) -> dict[str, Any]:
+        st = super()._state()
+        st["history"] = self._lin[1:].tolist()
+        return st
+
+
+class PersistenceModel(_ModelBase):
+    """ŷ(t) = y(t−1) (0 before the first sample). Nothing to adapt, so it never diverges."""
+
+    name: ClassVar[str] = "persistence"
+    _checks_error: ClassVar[bool] = False  # a level change is not a divergence here
+
+    def __init__(self, *, guard: GuardConfig | dict[str, Any] | None = None) -> None:
+        super().__init__(guard)
+
+    def _predict(self, u: float) -> float:
+        return self._y_last
+
+    def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        return (y_hat,), ()
+
+    def _adapt(self, error: float) -> None:
+        pass
+
+    def output_given_input(self, u: float) -> float:
+        return self._y_last
+
+    def output_derivative(self, u: float) -> float:
+        return 0.0
+
+    def _options(self) -> dict[str, Any]:
+        return {}
+
+
+class RlsArxModel(_ModelBase):
+    """ARX(na, nb) with bias identified by RLS (forgetting λ, trace-bounded covariance)."""
+
+    name: ClassVar[str] = "rls-arx"
+
+    def __init__(
+        self,
+        *,
+        na: int = 3,
+        nb: int = 3,
+        lam: float = 0.995,
+        p0: float = 100.0,
+        trace_max: float | None = None,
+        guard: GuardConfig | dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(guard)
+        if int(na) != na or na < 0:
+            raise ValueError("na must be an integer >= 0")
+        if int(nb) != nb or nb < 1:
+            raise ValueError("nb must be an integer >= 1")
+        self.na = int(na)
+        self.nb = int(nb)
+        n = self.na + self.nb + 1
+        self.rls = RLS(n, lam, p0, trace_max)
+        self._trace_max_opt = None if trace_max is None else float(trace_max)
+        # φ = [y(t−1..t−na), u(t−1), u(t−2..t−nb), 1]; the u(t−1) slot is scratch.
+        self._theta = np.zeros(n)
+        self._phi = np.zeros(n)
+        self._phi[-1] = 1.0
+        self._iu = self.na
+        self._cache: tuple[float, float] | None = None
+
+    def _predict(self, u: float) -> float:
+        self._phi[self._iu] = u
+        return float(np.dot(self._theta, self._phi))
+
+    def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        th = self._theta.tolist()
+        b1 = th[self._iu]
+        return (y_hat - b1 * u, b1), tuple(th)
+
+    def _adapt(self, error: float) -> None:
+        self.rls.update_(self._theta, self._phi, error)
+
+    def _params_ok(self) -> bool:
+        return _theta_ok(self._theta, self.guard.param_limit)
+
+    def _reset_params(self) -> None:
+        self._theta[:] = 0.0
+        self.rls.reset()
+        self._cache = None
+
+    def _push(self, u: float, y: float) -> None:
+        phi = self._phi
+        na, iu = self.na, self._iu
+        if na:
+            phi[1:na] = phi[: na - 1]
+            phi[0] = y
+        if self.nb > 1:
+            phi[iu + 1 : iu + self.nb] = phi[iu : iu + self.nb - 1]
+            phi[iu + 1] = u
+        self._cache = None
+
+    def _reset_history(self) -> None:
+        self._phi[:-1] = 0.0
+        self._cache = None
+
+    def _affine(self) -> tuple[float, float]:
+        c = self._cache
+        if c is None:
+            self._phi[self._iu] = 0.0
+            b1 = float(self._theta[self._iu])
+            c = (float(np.dot(self._theta, self._phi)), b1)
+            self._cache = c
+        return c
+
+    def output_given_input(self, u: float) -> float:
+        c, b1 = self._affine()
+        f = c + b1 * u
+        return f if _isfinite(f) else self._y_last
+
+    def output_derivative(self, u: float) -> float:
+        d = self._affine()[1]
+        return d if _isfinite(d) else 0.0
+
+    def _options(self) -> dict[str, Any]:
+        return {
+            "na": self.na,
+            "nb": self.nb,
+            "lam": self.rls.lam,
+            "p0": self.rls.p0,
+            "trace_max": self._trace_max_opt,
+        }
+
+    def _state(self) -> dict[str, Any]:
+        hist = self._phi.tolist()
+        return {
+            "theta": self._theta.tolist(),
+            "p": self.rls.p.tolist(),
+            "history": hist[: self.na] + hist[self.na + 1 : -1],
+        }
+
+
+_REGISTRY: dict[str, type[_ModelBase]] = {
+    "paper": PaperUModel,
+    "dynamic": DynamicUModel,
+    "rls-arx": RlsArxModel,
+    "persistence": PersistenceModel,
+}
+
+
+def build_model(name: str, **options: Any) -> OneStepModel:
+    """Construct a model by name (one of ``MODEL_NAMES``); unknown options raise TypeError."""
+    try:
+        cls = _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown model {name!r}; expected one of {MODEL_NAMES}") from None
+    model: OneStepModel = cls(**options)
+    return model
+
+
+def from_config(cfg: dict[str, Any]) -> OneStepModel:
+    """Rebuild a fresh model from ``model.config()`` (bit-identical behaviour)."""
+    opts = dict(cfg)
+    name = opts.pop("name")
+    return build_model(name, **opts)
+
+
+def paper_preset(seed: int = 0) -> PaperUModel:
+    """Abbasi et al. 2015 preset: M=3, μ=0.5, 17 centres on [−2, 2], β=0.25, θ₀~U(±0.1)."""
+    return PaperUModel(
+        degree=PAPER_DEGREE,
+        mu=PAPER_MU,
+        centres=evenly_spaced_centres(PAPER_N_CENTRES, *PAPER_CENTRE_RANGE),
+        beta=PAPER_BETA,
+        init_scale=PAPER_INIT_SCALE,
+        seed=seed,
+    )

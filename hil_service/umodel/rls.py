@@ -1,0 +1,64 @@
+"""Recursive least squares with exponential forgetting and a covariance trace bound.
+
+Plain exponential forgetting (P ← P/λ every step) makes P grow without limit in directions
+the regressor does not excite — e.g. when the input is held constant — and the estimator
+then "bursts". We use the simplest robust remedy: forgetting is applied only while
+trace(P) ≤ trace_max (default n·p0, i.e. never more uncertain than at start). Unexcited
+directions therefore stop growing at the bound, excited ones still track with factor λ.
+P is re-symmetrised each step to stop round-off from breaking positive definiteness.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["RLS"]
+
+
+class RLS:
+    """In-place RLS update of an external θ; owns the covariance P."""
+
+    __slots__ = ("_eye", "lam", "n", "p", "p0", "trace_max")
+
+    def __init__(
+        self, n: int, lam: float = 0.995, p0: float = 100.0, trace_max: float | None = None
+    ) -> None:
+        if n < 1:
+            raise ValueError("RLS needs at least one parameter")
+        if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
+            raise ValueError(f"forgetting factor must satisfy 0 < lam <= 1, got {lam!r}")
+        if not (math.isfinite(p0) and p0 > 0.0):
+            raise ValueError("p0 must be finite and > 0")
+        tmax = n * p0 if trace_max is None else float(trace_max)
+        if not (math.isfinite(tmax) and tmax > 0.0):
+            raise ValueError("trace_max must be finite and > 0")
+        self.n = n
+        self.lam = float(lam)
+        self.p0 = float(p0)
+        self.trace_max = tmax
+        self._eye = np.eye(n)
+        self.p = self.p0 * self._eye
+
+    def reset(self) -> None:
+        """Back to P = p0·I (used after a divergence)."""
+        self.p = self.p0 * self._eye
+
+    def update_(self, theta: np.ndarray, phi: np.ndarray, error: float) -> None:
+        """θ += k e with k = Pφ/(λ + φᵀPφ); P ← (P − k φᵀP)/λ_eff."""
+        p = self.p
+        pphi = p @ phi
+        denom = self.lam + float(phi @ pphi)
+        if not (math.isfinite(denom) and denom > 0.0):
+            self.reset()
+            return
+        k = pphi / denom
+        theta += error * k
+        p -= np.outer(k, pphi)
+        if float(np.trace(p)) <= self.trace_max:
+            p /= self.lam
+        p += p.T
+        p *= 0.5
+        if not math.isfinite(float(np.trace(p))):
+            self.reset()

@@ -1,0 +1,252 @@
+"""Per-vehicle identification and inverse control, with no I/O: the live service, replay
+and the in-process experiment all feed it the same samples and get the same numbers.
+
+Each channel (depth, pitch) has its identifier, a persistence baseline beside it, error
+statistics, and an inverse controller that is allowed to act only once the identifier has
+converged (``burn_in`` samples and a recent skill versus persistence of at least
+``min_skill``) and has not diverged since.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+from hil_service.scoring import ErrorStats
+from hil_service.umodel import (
+    CommandShaper,
+    Estimate,
+    ImcReference,
+    PersistenceModel,
+    build_model,
+    from_config,
+    solve_inverse,
+)
+from hil_service.umodel.forecast import forecast_model
+from protocols.samples import BallastCommand, TelemetrySample
+
+CHANNELS = ("depth", "pitch")
+MODEL_CHOICES = ("paper", "dynamic")
+
+#: Model options per channel on top of each model's defaults. ``y_scale`` brings depth
+#: (≈ 15 m) to O(1) in the dynamic model's regressor so it does not swamp the NLMS norm.
+DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": {"depth": {}, "pitch": {}},
+    "dynamic": {"depth": {"y_scale": 10.0}, "pitch": {"y_scale": 0.5}},
+}
+
+
+@dataclass(frozen=True)
+class ControlSettings:
+    horizon: dict[str, int] = field(default_factory=lambda: {"depth": 40, "pitch": 8})
+    u_limit: float = 2.0  # model units, the actuator's range
+    rate_limit: float = 0.5  # model units per step, as the vehicle's actuator
+    reference_filter: float = 0.8  # first-order setpoint filter coefficient, 0..1
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    model: str = "dynamic"
+    seed: int = 0
+    model_options: dict[str, dict[str, Any]] | None = None
+    burn_in: int = 300
+    min_skill: float = 0.0
+    window: int = 500
+    control: ControlSettings = field(default_factory=ControlSettings)
+
+    def __post_init__(self) -> None:
+        if self.model not in MODEL_CHOICES:
+            raise ValueError(f"model must be one of {MODEL_CHOICES}, got {self.model!r}")
+
+    def replace(self, **changes: Any) -> PipelineSettings:
+        return replace(self, **changes)
+
+    def options_for(self, channel: str) -> dict[str, Any]:
+        chosen = self.model_options or DEFAULT_MODEL_OPTIONS[self.model]
+        return dict(chosen.get(channel, {}))
+
+    def to_json(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["model_options"] = {ch: self.options_for(ch) for ch in CHANNELS}
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> PipelineSettings:
+        data = dict(data)
+        control = ControlSettings(**data.pop("control", {}))
+        return cls(control=control, **data)
+
+
+@dataclass(frozen=True)
+class Decision:
+    command: BallastCommand | None
+    payload: dict[str, Any] | None
+    reason: str
+
+
+class ChannelPipeline:
+    def __init__(self, channel: str, settings: PipelineSettings, seed: int):
+        self.channel = channel
+        self.settings = settings
+        options = settings.options_for(channel)
+        self.model = build_model(settings.model, seed=seed, **options)
+        self.persistence = PersistenceModel()
+        self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
+        control = settings.control
+        self.reference = ImcReference(a=control.reference_filter)
+        self.shaper = CommandShaper(-control.u_limit, control.u_limit, control.rate_limit)
+        self.u_prev: float | None = None
+        self.last: Estimate | None = None
+        self.converged = False
+        self.divergences = 0
+        self.rejected = 0
+        self.active = False
+
+    def config(self) -> dict[str, Any]:
+        return self.model.config()
+
+    def observe(self, t: float, y: float, u_now: float) -> dict[str, Any]:
+        # The first sample has no u(t−1): its own applied input is the best available guess.
+        u_prev = u_now if self.u_prev is None else self.u_prev
+        estimate = self.model.step(u_prev, y)
+        baseline = self.persistence.step(u_prev, y)
+        self.u_prev = u_now
+        self.last = estimate
+        if estimate.status == "rejected":
+            self.rejected += 1
+        elif estimate.status == "diverged":
+            self.divergences += 1
+            self.converged = False
+        else:
+            self.stats.add(y, estimate.error, baseline.error)
+            skill = self.stats.recent_skill()
+            if (
+                not self.converged
+                and self.stats.count >= self.settings.burn_in
+                and skill is not None
+                and skill >= self.settings.min_skill
+            ):
+                self.converged = True
+        return {
+            "t": t,
+            "y": estimate.y,
+            "y_hat": estimate.y_hat,
+            "error": estimate.error,
+            "alpha": list(estimate.alpha),
+            "weights": list(estimate.weights),
+            "model": estimate.model,
+            "status": estimate.status,
+            "baseline_y_hat": baseline.y_hat,
+        }
+
+    def blocked_reason(self) -> str:
+        if self.last is not None and self.last.status == "diverged":
+            return f"identifier diverged ({self.channel})"
+        if not self.converged:
+            return (
+                f"identifier not converged ({self.channel}: "
+                f"{min(self.stats.count, self.settings.burn_in)}/{self.settings.burn_in} samples, "
+                f"recent skill {self.stats.recent_skill()})"
+            )
+        return ""
+
+    def solve(self, setpoint: float, y: float, u_applied: float) -> tuple[float, str, bool]:
+        """One inverse-control step: (command, solver path, saturated)."""
+        if not self.active:
+            self.reference.reset()
+            self.shaper.reset(u_applied)
+            self.active = True
+        assert self.last is not None
+        target = self.reference.target(setpoint, y, self.last.y_hat)
+        horizon = self.settings.control.horizon[self.channel]
+        prediction = forecast_model(self.model, u_applied, horizon)
+        limit = self.settings.control.u_limit
+        result = solve_inverse(
+            prediction.value, prediction.derivative, target, self.shaper.u, -limit, limit
+        )
+        shaped = self.shaper.shape(result.u)
+        saturated = result.saturated or shaped.saturated or shaped.rate_limited
+        return shaped.u, result.path, saturated
+
+    def deactivate(self) -> None:
+        self.active = False
+
+    def health(self) -> dict[str, Any]:
+        return {
+            "model": self.model.config()["name"],
+            "status": "none" if self.last is None else self.last.status,
+            "converged": self.converged,
+            "divergences": self.divergences,
+            "rejected": self.rejected,
+            **self.stats.summary(),
+        }
+
+
+class VehiclePipeline:
+    def __init__(self, settings: PipelineSettings | None = None):
+        self.settings = settings or PipelineSettings()
+        self.channels = {
+            ch: ChannelPipeline(ch, self.settings, self.settings.seed * 2 + i)
+            for i, ch in enumerate(CHANNELS)
+        }
+
+    def observe(self, sample: TelemetrySample) -> dict[str, dict[str, Any]]:
+        return {
+            ch: pipeline.observe(sample.t, sample.output(ch), sample.input(ch))
+            for ch, pipeline in self.channels.items()
+        }
+
+    def decide(
+        self, sample: TelemetrySample, setpoints: dict[str, float | None], enabled: bool
+    ) -> Decision:
+        """The command for this sample, or why there is none."""
+        active = {ch: v for ch, v in setpoints.items() if v is not None and math.isfinite(v)}
+        reason = ""
+        if not enabled:
+            reason = "control disabled"
+        elif not active:
+            reason = "no setpoint"
+        else:
+            reason = next(
+                (r for ch in active if (r := self.channels[ch].blocked_reason())), ""
+            )
+        if reason:
+            for pipeline in self.channels.values():
+                pipeline.deactivate()
+            return Decision(None, None, reason)
+        values = {"depth": math.nan, "pitch": math.nan}
+        paths, saturated = [], False
+        for ch, pipeline in self.channels.items():
+            if ch not in active:
+                pipeline.deactivate()
+                paths.append("-")
+                continue
+            u, path, sat = pipeline.solve(active[ch], sample.output(ch), sample.input(ch))
+            values[ch] = u
+            paths.append(path)
+            saturated = saturated or sat
+        payload = {
+            "t": sample.t,
+            "u_depth": None if math.isnan(values["depth"]) else values["depth"],
+            "u_pitch": None if math.isnan(values["pitch"]) else values["pitch"],
+            "setpoints": {ch: setpoints.get(ch) for ch in CHANNELS},
+            "saturated": saturated,
+            "mode": "/".join(paths),
+        }
+        return Decision(BallastCommand(values["depth"], values["pitch"]), payload, "")
+
+    def mark_stale(self) -> None:
+        for pipeline in self.channels.values():
+            pipeline.deactivate()
+
+    def identifier_health(self) -> dict[str, Any]:
+        return {ch: pipeline.health() for ch, pipeline in self.channels.items()}
+
+    def configs(self) -> dict[str, dict[str, Any]]:
+        return {ch: pipeline.config() for ch, pipeline in self.channels.items()}
+
+
+def rebuild_models(configs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Fresh models from stored ``configs`` (replay checks recompute with these)."""
+    return {ch: from_config(cfg) for ch, cfg in configs.items()}

@@ -1,0 +1,78 @@
+"""Decoded MAVLink as JSON, with a JSON Schema per message type (for MCAP ``json`` channels).
+
+Non-finite floats (MAVLink uses NaN for "unset" parameters) become ``null``, so every
+payload is strict JSON that any reader, Foxglove included, can parse.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+from typing import Any
+
+from protocols.mavlink_io import MavMessage, dialect
+
+_INTEGER_TYPES = {"int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32_t",
+                  "int64_t", "uint64_t", "uint8_t_mavlink_version"}  # fmt: skip
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
+
+
+def message_to_json(message: MavMessage) -> dict[str, Any]:
+    """Fields of ``message`` plus its header: type, source system and component, sequence."""
+    payload = {name: _finite(getattr(message, name)) for name in message.fieldnames}
+    if isinstance(payload.get("text"), bytes):
+        payload["text"] = payload["text"].decode("utf-8", "replace")
+    header = message.get_header()
+    payload["_header"] = {
+        "type": message.get_type(),
+        "system_id": message.get_srcSystem(),
+        "component_id": message.get_srcComponent(),
+        "seq": header.seq,
+    }
+    return payload
+
+
+def _field_schema(field_type: str, array_length: int) -> dict[str, Any]:
+    if field_type == "char":
+        return {"type": "string"}
+    base: dict[str, Any] = (
+        {"type": "integer"} if field_type in _INTEGER_TYPES else {"type": ["number", "null"]}
+    )
+    if array_length:
+        return {"type": "array", "items": base, "maxItems": array_length}
+    return base
+
+
+@cache
+def message_schema(message_type: str) -> dict[str, Any]:
+    """JSON Schema of ``message_to_json`` output for a ``common`` dialect message type."""
+    cls = getattr(dialect, f"MAVLink_{message_type.lower()}_message")
+    properties = {
+        name: _field_schema(ftype, length)
+        for name, ftype, length in zip(
+            cls.fieldnames, cls.fieldtypes, cls.array_lengths, strict=True
+        )
+    }
+    properties["_header"] = {
+        "type": "object",
+        "properties": {
+            "type": {"type": "string"},
+            "system_id": {"type": "integer"},
+            "component_id": {"type": "integer"},
+            "seq": {"type": "integer"},
+        },
+    }
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": f"MAVLink {message_type} (common dialect)",
+        "type": "object",
+        "properties": properties,
+        "required": list(cls.fieldnames),
+    }
