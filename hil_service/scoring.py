@@ -23,13 +23,20 @@ class ErrorStats:
     _sum_p2: float = 0.0
     _sum_y: float = 0.0
     _sum_y2: float = 0.0
-    _recent: deque[tuple[float, float, float]] = field(default_factory=deque)
+    _recent: deque[tuple[float, float]] = field(default_factory=deque)
+    _recent_e2: float = 0.0
+    _recent_p2: float = 0.0
 
     def add(self, y: float, error: float, persistence_error: float) -> None:
         self.count += 1
-        self._recent.append((y, error * error, persistence_error * persistence_error))
+        e2, p2 = error * error, persistence_error * persistence_error
+        self._recent.append((e2, p2))
+        self._recent_e2 += e2
+        self._recent_p2 += p2
         if len(self._recent) > self.window:
-            self._recent.popleft()
+            old_e2, old_p2 = self._recent.popleft()
+            self._recent_e2 -= old_e2
+            self._recent_p2 -= old_p2
         if self.count <= self.burn_in:
             return
         self._n += 1
@@ -58,11 +65,9 @@ class ErrorStats:
         return 1.0 - self._sum_e2 / self._sum_p2
 
     def recent_skill(self) -> float | None:
-        if len(self._recent) < 2:
+        if len(self._recent) < 2 or self._recent_p2 <= 0:
             return None
-        model = sum(r[1] for r in self._recent)
-        persistence = sum(r[2] for r in self._recent)
-        return None if persistence <= 0 else 1.0 - model / persistence
+        return 1.0 - max(self._recent_e2, 0.0) / self._recent_p2
 
     def summary(self) -> dict[str, float | int | None]:
         return {

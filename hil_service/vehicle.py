@@ -33,7 +33,7 @@ MODEL_CHOICES = ("paper", "dynamic")
 #: (≈ 15 m) to O(1) in the dynamic model's regressor so it does not swamp the NLMS norm.
 DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"depth": {}, "pitch": {}},
-    "dynamic": {"depth": {"y_scale": 10.0}, "pitch": {"y_scale": 0.5}},
+    "dynamic": {"depth": {"y_scale": 1.0}, "pitch": {"y_scale": 0.1}},
 }
 
 
@@ -43,6 +43,7 @@ class ControlSettings:
     u_limit: float = 2.0  # model units, the actuator's range
     rate_limit: float = 0.5  # model units per step, as the vehicle's actuator
     reference_filter: float = 0.8  # first-order setpoint filter coefficient, 0..1
+    mismatch_filter: float = 0.9  # first-order filter on the IMC mismatch y − ŷ, 0..1
 
 
 @dataclass(frozen=True)
@@ -102,6 +103,7 @@ class ChannelPipeline:
         self.divergences = 0
         self.rejected = 0
         self.active = False
+        self.mismatch = 0.0
 
     def config(self) -> dict[str, Any]:
         return self.model.config()
@@ -153,12 +155,18 @@ class ChannelPipeline:
 
     def solve(self, setpoint: float, y: float, u_applied: float) -> tuple[float, str, bool]:
         """One inverse-control step: (command, solver path, saturated)."""
+        control = self.settings.control
+        assert self.last is not None
         if not self.active:
             self.reference.reset()
             self.shaper.reset(u_applied)
+            self.mismatch = 0.0
             self.active = True
-        assert self.last is not None
-        target = self.reference.target(setpoint, y, self.last.y_hat)
+        # IMC: aim the model off by the plant/model mismatch, low-passed so that one-step
+        # prediction noise does not become input chatter.
+        a = control.mismatch_filter
+        self.mismatch = a * self.mismatch + (1.0 - a) * (y - self.last.y_hat)
+        target = self.reference.filter(setpoint, start=y) - self.mismatch
         horizon = self.settings.control.horizon[self.channel]
         prediction = forecast_model(self.model, u_applied, horizon)
         limit = self.settings.control.u_limit

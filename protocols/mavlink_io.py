@@ -64,7 +64,9 @@ class MavlinkCodec:
 
     def pack(self, message: MavMessage) -> bytes:
         """Frame ``message`` with our identity and the next sequence number."""
-        return bytes(message.pack(self._mav))
+        frame = bytes(message.pack(self._mav))
+        self._mav.seq = (self._mav.seq + 1) % 256  # pymavlink advances it only in send()
+        return frame
 
     def parse(self, data: bytes, datagram: bool = False) -> list[MavMessage]:
         """All complete, valid messages in ``data``.

@@ -3,7 +3,7 @@
 Divergence is declared when any of these holds:
 
 * the prediction, the error or a parameter is non-finite;
-* max |θ| exceeds ``param_limit``;
+* the Euclidean norm ‖θ‖₂ exceeds ``param_limit``;
 * |e| > ``error_ratio`` · (scale + ``scale_floor``) for ``divergence_steps`` consecutive
   samples, where *scale* is a robust running mean of |y|.
 

@@ -6,10 +6,13 @@ polynomials and used with any identifier through ``invert_model``.
 * Newton–Raphson on the full model (RBF term included, analytic derivative) started from the
   previous input u0 (clamped into [u_min, u_max]): fast and smooth in the common case.
 * If Newton fails — non-finite value, |f'| ≤ ``min_slope``, an iterate leaves the actuator
-  range, or no convergence in ``max_iter`` — the target is unreachable or the model is
-  non-monotone there, so we return the minimiser of |f(u) − v| over the range instead: a
-  dense uniform grid, then golden-section refinement around the best grid point. Ties are
-  broken towards u0 (then the lower u), which keeps the result deterministic and avoids
+  range, |f − v| grows on 3 consecutive iterations, or no convergence in ``max_iter`` — the
+  target is unreachable or the model is non-monotone there, so we return the minimiser of
+  |f(u) − v| over the range instead, deterministically: evaluate a dense uniform grid; if
+  f − v changes sign on it, a root exists and the one whose cell is nearest u0 is polished
+  by bracket-safeguarded Newton; otherwise the best grid point (a bound when the target is
+  out of reach) is refined by a stationary-point search (regula falsi on f', golden section
+  as backup) in its neighbouring cells. Ties go to u0 (then the lower u), which avoids
   needless jumps when f is flat (e.g. the persistence model).
 """
 
@@ -18,7 +21,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from functools import lru_cache
+from typing import Any, Literal, Protocol
+
+import numpy as np
 
 __all__ = [
     "CommandShaper",
@@ -63,8 +69,109 @@ def _abs_res(f: Callable[[float], float], u: float, v: float) -> float:
     return abs(r) if math.isfinite(r) else math.inf
 
 
+def _bracketed_root(
+    f: Callable[[float], float],
+    df: Callable[[float], float],
+    v: float,
+    a: float,
+    b: float,
+    ra: float,
+    rb: float,
+    tol: float,
+    max_iter: int,
+) -> tuple[float, int]:
+    """Root of f − v in [a, b] with ra·rb ≤ 0: Newton steps kept inside the bracket,
+    bisection otherwise (never leaves the cell, converges even where Newton would not)."""
+    if ra == 0.0:
+        return a, 0
+    if rb == 0.0:
+        return b, 0
+    u = a - ra * (b - a) / (rb - ra)
+    best_u, best_r = (a, abs(ra)) if abs(ra) <= abs(rb) else (b, abs(rb))
+    it = 0
+    while it < max_iter:
+        it += 1
+        r = f(u) - v
+        if not math.isfinite(r):
+            u = 0.5 * (a + b)
+            continue
+        if abs(r) < best_r:
+            best_u, best_r = u, abs(r)
+        if abs(r) <= tol:
+            break
+        if (r < 0.0) == (ra < 0.0):
+            a, ra = u, r
+        else:
+            b = u
+        if b - a <= 1e-15 * (1.0 + abs(a) + abs(b)):
+            break
+        d = df(u)
+        u_new = u - r / d if math.isfinite(d) and d != 0.0 else a
+        u = u_new if a < u_new < b else 0.5 * (a + b)
+    return best_u, it
+
+
+def _extremum(
+    f: Callable[[float], float],
+    df: Callable[[float], float],
+    v: float,
+    a: float,
+    b: float,
+    xtol: float,
+    max_iter: int,
+) -> tuple[float, float, int]:
+    """Minimise |f − v| on [a, b] when f − v keeps its sign there (touching or unreachable
+    target): the minimiser is a stationary point of f, found by Illinois regula falsi on f'
+    when f' changes sign over [a, b], else by golden-section search."""
+    da, db = df(a), df(b)
+    it = 0
+    if math.isfinite(da) and math.isfinite(db) and da * db < 0.0:
+        side = 0
+        u = a
+        while it < max_iter and (b - a) > xtol:
+            it += 1
+            u = (a * db - b * da) / (db - da)
+            du = df(u)
+            if not math.isfinite(du) or du == 0.0:
+                break
+            if (du < 0.0) == (da < 0.0):
+                a, da = u, du
+                if side == -1:
+                    db *= 0.5
+                side = -1
+            else:
+                b, db = u, du
+                if side == 1:
+                    da *= 0.5
+                side = 1
+        return u, _abs_res(f, u, v), it
+    c = b - _GOLDEN * (b - a)
+    d = a + _GOLDEN * (b - a)
+    fc, fd = _abs_res(f, c, v), _abs_res(f, d, v)
+    while it < max_iter and (b - a) > xtol:
+        it += 1
+        if fc <= fd:
+            b, d, fd = d, c, fc
+            c = b - _GOLDEN * (b - a)
+            fc = _abs_res(f, c, v)
+        else:
+            a, c, fc = c, d, fd
+            d = a + _GOLDEN * (b - a)
+            fd = _abs_res(f, d, v)
+    return (c, fc, it) if fc <= fd else (d, fd, it)
+
+
+@lru_cache(maxsize=32)
+def _grid(lo: float, hi: float, n: int) -> np.ndarray:
+    g = np.linspace(lo, hi, n)
+    g.flags.writeable = False
+    return g
+
+
 def _fallback(
     f: Callable[[float], float],
+    df: Callable[[float], float],
+    f_vec: Callable[[np.ndarray], np.ndarray] | None,
     v: float,
     u0: float,
     lo: float,
@@ -73,45 +180,64 @@ def _fallback(
     grid_points: int,
     refine_iter: int,
 ) -> InverseResult:
-    n = grid_points
-    span = hi - lo
-    best_u = u0
-    best_r = _abs_res(f, u0, v)
-    best_k = -1
-    for k in range(n):
-        u = lo + span * k / (n - 1) if k < n - 1 else hi
-        r = _abs_res(f, u, v)
-        if r < best_r or (r == best_r and (abs(u - u0), u) < (abs(best_u - u0), best_u)):
-            best_u, best_r, best_k = u, r, k
+    grid = _grid(lo, hi, grid_points)
+    if f_vec is not None:
+        vals = np.asarray(f_vec(grid), dtype=float)
+    else:
+        vals = np.array([f(u) for u in grid.tolist()], dtype=float)
+    r = vals - v
+    finite = np.isfinite(r)
     iters = 0
-    if best_r > tol and best_k >= 0:
-        # Golden-section search for min |f − v| on the two cells around the best grid point.
-        a = lo + span * (best_k - 1) / (n - 1) if best_k > 0 else lo
-        b = lo + span * (best_k + 1) / (n - 1) if best_k < n - 1 else hi
-        a, b = max(a, lo), min(b, hi)
-        c = b - _GOLDEN * (b - a)
-        d = a + _GOLDEN * (b - a)
-        fc, fd = _abs_res(f, c, v), _abs_res(f, d, v)
-        while iters < refine_iter and (b - a) > 1e-15 * (1.0 + abs(a) + abs(b)):
-            iters += 1
-            if fc <= fd:
-                b, d, fd = d, c, fc
-                c = b - _GOLDEN * (b - a)
-                fc = _abs_res(f, c, v)
-            else:
-                a, c, fc = c, d, fd
-                d = a + _GOLDEN * (b - a)
-                fd = _abs_res(f, d, v)
-            if min(fc, fd) <= tol:
-                break
-        u_ref, r_ref = (c, fc) if fc <= fd else (d, fd)
-        if r_ref < best_r:
-            best_u, best_r = u_ref, r_ref
-    res = f(best_u) - v
+    # 1) A sign change on the grid means an exact solution exists: take the one nearest u0.
+    cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
+    if cells.size:
+        mids = 0.5 * (grid[cells] + grid[cells + 1])
+        i = int(cells[int(np.argmin(np.abs(mids - u0)))])
+        u, iters = _bracketed_root(
+            f,
+            df,
+            v,
+            float(grid[i]),
+            float(grid[i + 1]),
+            float(r[i]),
+            float(r[i + 1]),
+            tol,
+            refine_iter,
+        )
+    else:
+        # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u) ...
+        a = np.where(finite, np.abs(r), np.inf)
+        ties = np.flatnonzero(a == a.min())
+        i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
+        u = float(grid[i])
+        best = float(a[i])
+        # ... refined inside the neighbouring cells unless a bound is a one-sided minimum.
+        last = grid_points - 1
+        ri = float(r[i]) if finite[i] else 0.0
+        refine = 0 < i < last
+        if i in (0, last) and best > tol:
+            slope = df(u)
+            if math.isfinite(slope):
+                grows_inward = math.copysign(1.0, ri) * slope * (1.0 if i == 0 else -1.0) > 0.0
+                refine = not grows_inward and slope != 0.0
+        if refine and best > tol:
+            ga = float(grid[max(i - 1, 0)])
+            gb = float(grid[min(i + 1, last)])
+            # |f − v| is flat at a stationary point: 1e-7 of the range in u is plenty.
+            uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter)
+            if rc < best:
+                u = uc
+    # u0 itself wins ties: no needless move when f is flat there.
+    res_u0 = _abs_res(f, u0, v)
+    res = f(u) - v
     if not math.isfinite(res):
         res = math.inf
-    saturated = (best_u <= lo or best_u >= hi) and abs(res) > tol
-    return InverseResult(best_u, "fallback", iters, res, saturated)
+    if res_u0 <= abs(res):
+        u, res = u0, f(u0) - v
+        if not math.isfinite(res):
+            res = math.inf
+    saturated = (u <= lo or u >= hi) and abs(res) > tol
+    return InverseResult(u, "fallback", iters, res, saturated)
 
 
 def solve_inverse(
@@ -122,14 +248,16 @@ def solve_inverse(
     u_min: float,
     u_max: float,
     *,
+    f_vec: Callable[[np.ndarray], np.ndarray] | None = None,
     tol: float = 1e-9,
-    max_iter: int = 20,
+    max_iter: int = 12,
     min_slope: float = 1e-12,
-    grid_points: int = 201,
-    refine_iter: int = 80,
+    grid_points: int = 101,
+    refine_iter: int = 60,
 ) -> InverseResult:
     """Find u ∈ [u_min, u_max] with f(u) = v (|f − v| ≤ tol·max(1, |v|)); see module doc.
 
+    ``f_vec`` (optional) evaluates f on a numpy array at once to speed up the fallback grid.
     A non-finite ``v`` cannot be met: the clamped u0 is returned on the fallback path with
     an infinite residual. A non-finite ``u0`` is replaced by the range midpoint.
     """
@@ -142,12 +270,21 @@ def solve_inverse(
         return InverseResult(u, "fallback", 0, math.inf, False)
     tol_abs = tol * max(1.0, abs(v))
     start = u
+    prev = math.inf
+    worse = 0
     for it in range(max_iter + 1):
         r = f(u) - v
         if not math.isfinite(r):
             break
-        if abs(r) <= tol_abs:
+        ar = abs(r)
+        if ar <= tol_abs:
             return InverseResult(u, "newton", it, r, False)
+        # Near a simple root Newton shrinks |r| every step; repeated growth means it is
+        # cycling (e.g. no real root), so stop early and let the fallback decide.
+        worse = worse + 1 if ar >= prev else 0
+        if worse >= 3:
+            break
+        prev = ar
         if it == max_iter:
             break
         d = df(u)
@@ -157,7 +294,7 @@ def solve_inverse(
         if not (u_min <= u_new <= u_max):
             break
         u = u_new
-    return _fallback(f, v, start, u_min, u_max, tol_abs, grid_points, refine_iter)
+    return _fallback(f, df, f_vec, v, start, u_min, u_max, tol_abs, grid_points, refine_iter)
 
 
 def invert_model(
@@ -166,9 +303,11 @@ def invert_model(
     u0: float,
     u_min: float,
     u_max: float,
-    **kwargs: float,
+    **kwargs: Any,
 ) -> InverseResult:
-    """``solve_inverse`` on a model's ŷ(t+1)(u) and its analytic derivative."""
+    """``solve_inverse`` on a model's ŷ(t+1)(u), its analytic derivative and, if the model
+    has one, its vectorised ``output_given_inputs`` for the fallback grid."""
+    kwargs.setdefault("f_vec", getattr(model, "output_given_inputs", None))
     return solve_inverse(
         model.output_given_input, model.output_derivative, v, u0, u_min, u_max, **kwargs
     )

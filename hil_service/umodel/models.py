@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from operator import mul
 from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -82,7 +83,7 @@ class Estimate:
     """
 
     model: str
-    status: str
+    status: Status
     y: float
     y_hat: float
     error: float
@@ -111,8 +112,7 @@ class OneStepModel(Protocol):
     def reset(self) -> None: ...
 
 
-def _isfinite(x: float) -> bool:
-    return math.isfinite(x)
+_isfinite = math.isfinite
 
 
 class _ModelBase:
@@ -170,7 +170,11 @@ class _ModelBase:
         return self._frozen
 
     def predict(self, u_prev: float) -> float:
-        """A-priori ŷ for input ``u_prev`` given the current history; never NaN, no mutation."""
+        """A-priori ŷ for input ``u_prev`` given the current history; never NaN, no mutation.
+
+        An invalid ``u_prev`` (non-finite or beyond ``input_limit``) is replaced by the last
+        accepted input; a non-finite result by the last accepted output.
+        """
         if not (_isfinite(u_prev) and abs(u_prev) <= self.guard.input_limit):
             u_prev = self._u_last
         y_hat = self._predict(u_prev)
@@ -198,7 +202,7 @@ class _ModelBase:
             return self._finish(u_prev, y, y_hat, error, alpha, weights, "diverged")
 
         alpha, weights = self._coefficients(u_prev, y_hat)
-        status = "frozen" if self._frozen else "ok"
+        status: Status = "frozen" if self._frozen else "ok"
         if not self._frozen:
             self._adapt(error)
             if not self._params_ok():
@@ -255,7 +259,7 @@ class _ModelBase:
         error: float,
         alpha: tuple[float, ...],
         weights: tuple[float, ...],
-        status: str,
+        status: Status,
     ) -> Estimate:
         self._push(u, y)
         self._y_last = y
@@ -273,14 +277,17 @@ class _ModelBase:
             self._frozen = True
 
 
-def _theta_ok(theta: np.ndarray, limit: float) -> bool:
-    # max|θ| ≤ limit  ⇐ θᵀθ ≤ limit²  is too strict for long vectors, so test the max; the
-    # comparison is False for NaN, hence also catches non-finite parameters.
-    return bool(np.max(np.abs(theta)) <= limit)
+def _norm_ok(sq_norm: float, limit: float) -> bool:
+    # ‖θ‖₂ ≤ limit; the comparison is False for NaN, so it also catches non-finite θ.
+    return sq_norm <= limit * limit
 
 
 class _UModelCore(_ModelBase):
-    """Shared RBF + polynomial machinery of ``paper`` and ``dynamic``."""
+    """Shared RBF + polynomial machinery of ``paper`` and ``dynamic``.
+
+    θ layout: [w_1..w_J (RBF), α_1..α_M, extra...]; φ is built in the same order. Plain
+    Python lists are used on the per-sample path (see :mod:`.nlms`).
+    """
 
     def __init__(
         self,
@@ -294,8 +301,12 @@ class _UModelCore(_ModelBase):
         seed: int,
         n_extra: int,
         guard: GuardConfig | dict[str, Any] | None,
+        poly_scale: float = 1.0,
     ) -> None:
         super().__init__(guard)
+        if not (math.isfinite(poly_scale) and poly_scale > 0.0):
+            raise ValueError("poly_scale must be finite and > 0")
+        self.poly_scale = float(poly_scale)
         if int(degree) != degree or degree < 1:
             raise ValueError("degree M must be an integer >= 1")
         if not (math.isfinite(init_scale) and init_scale >= 0.0):
@@ -313,31 +324,35 @@ class _UModelCore(_ModelBase):
         self._np = self._nr + self.degree  # end of the polynomial block
         n = self._np + n_extra
         rng = np.random.default_rng(self.seed)
-        self._theta0 = rng.uniform(-self.init_scale, self.init_scale, size=n)
-        self._theta = self._theta0.copy()
-        self._phi = np.zeros(n)
-        self._phi_rbf = self._phi[: self._nr]
+        self._theta0: tuple[float, ...] = tuple(
+            rng.uniform(-self.init_scale, self.init_scale, size=n).tolist()
+        )
+        self._theta: list[float] = list(self._theta0)
+        self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
+        self._lin: list[float] = []  # history tail of φ (dynamic model only)
         self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
         self._eval: tuple[float, float, float] | None = None
+        self._design: tuple[tuple[int, float, float] | None, np.ndarray, np.ndarray] | None = None
 
-    def _linear_const(self) -> float:
-        return 0.0
-
-    def _fill(self, u: float) -> None:
-        phi = self._phi
-        self.rbf.values_into(u, self._phi_rbf)
+    def _fill(self, u: float) -> list[float]:
+        phi = self.rbf.values_list(u)
         p = 1.0
-        for i in range(self._nr, self._np):
-            p *= u
-            phi[i] = p
+        x = u * self.poly_scale
+        for _ in range(self.degree):
+            p *= x
+            phi.append(p)
+        phi += self._lin
+        return phi
 
     def _predict(self, u: float) -> float:
-        self._fill(u)
-        return float(np.dot(self._theta, self._phi))
+        phi = self._fill(u)
+        self._phi = phi
+        return sum(map(mul, self._theta, phi))
 
     def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
-        th = self._theta.tolist()
-        poly = th[self._nr : self._np]
+        th = self._theta
+        scale = self.poly_scale
+        poly = [a * scale ** (i + 1) for i, a in enumerate(th[self._nr : self._np])]
         # α₀ collects everything that is not a power of u(t−1): keeps y_hat = α₀ + Σα_i u^i.
         a0 = y_hat
         p = 1.0
@@ -347,17 +362,21 @@ class _UModelCore(_ModelBase):
         return (a0, *poly), tuple(th[: self._nr] + th[self._np :])
 
     def _adapt(self, error: float) -> None:
-        self.nlms.update_(self._theta, self._phi, error)
+        self._theta = self.nlms.update(self._theta, self._phi, error)
         self._cache = None
         self._eval = None
 
     def _params_ok(self) -> bool:
-        return _theta_ok(self._theta, self.guard.param_limit)
+        th = self._theta
+        return _norm_ok(sum(map(mul, th, th)), self.guard.param_limit)
 
     def _reset_params(self) -> None:
-        self._theta[:] = self._theta0
+        self._theta = list(self._theta0)
         self._cache = None
         self._eval = None
+
+    def _linear_const(self) -> float:
+        return sum(map(mul, self._theta[self._np :], self._lin))
 
     def _eval_both(self, u: float) -> tuple[float, float]:
         ev = self._eval
@@ -365,22 +384,24 @@ class _UModelCore(_ModelBase):
             return ev[1], ev[2]
         cache = self._cache
         if cache is None:
-            th = self._theta.tolist()
+            th = self._theta
             cache = (tuple(th[: self._nr]), tuple(th[self._nr : self._np]), self._linear_const())
             self._cache = cache
         w, alphas, c = cache
         s, ds = self.rbf.weighted(u, w)
-        # Horner for Σ α_i u^i and its derivative.
+        # Horner for Σ θ_i x^i, x = poly_scale·u, and its derivative.
+        x = u * self.poly_scale
         f = 0.0
         df = 0.0
         for a in reversed(alphas):
-            df = df * u + f
-            f = f * u + a
-        df = df * u + f
-        f = f * u
-        out = (c + s + f, ds + df)
-        self._eval = (u, out[0], out[1])
-        return out
+            df = df * x + f
+            f = f * x + a
+        df = df * x + f
+        f = f * x
+        val = c + s + f
+        der = ds + df * self.poly_scale
+        self._eval = (u, val, der)
+        return val, der
 
     def output_given_input(self, u: float) -> float:
         """ŷ(t+1) as a function of the next input u(t) (fast scalar path, ≈ ``predict``)."""
@@ -391,6 +412,32 @@ class _UModelCore(_ModelBase):
         """Analytic d ŷ(t+1)/d u(t), RBF term included."""
         d = self._eval_both(u)[1]
         return d if _isfinite(d) else 0.0
+
+    def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
+        """Vectorised ``output_given_input`` for dense grids (inverse fallback).
+
+        The design matrix [Φ(u_k), u_k, …, u_k^M] depends only on the grid, which the solver
+        reuses from step to step, so it is cached and each call is a single mat-vec.
+        """
+        us = np.asarray(us, dtype=float)
+        key = (us.shape[0], float(us[0]), float(us[-1])) if us.ndim == 1 and us.size else None
+        dm = self._design
+        if (
+            key is None
+            or dm is None
+            or (dm[1] is not us and (dm[0] != key or not np.array_equal(dm[1], us)))
+        ):
+            d = np.subtract.outer(us, np.asarray(self.rbf.centres))
+            cols = [np.exp(-(d * d) / (self.rbf.beta * self.rbf.beta))]
+            xs = us * self.poly_scale
+            cols += [(xs**i)[:, None] for i in range(1, self.degree + 1)]
+            dm = (key, us if not us.flags.writeable else us.copy(), np.hstack(cols))
+            if key is not None:
+                self._design = dm
+        # θ is kept finite by the guards, so no NaN screening is needed here.
+        out = dm[2] @ np.asarray(self._theta[: self._np])
+        out += self._linear_const()
+        return out
 
     def _core_options(self) -> dict[str, Any]:
         return {
@@ -404,7 +451,7 @@ class _UModelCore(_ModelBase):
         }
 
     def _state(self) -> dict[str, Any]:
-        return {"theta": self._theta.tolist()}
+        return {"theta": list(self._theta)}
 
 
 class PaperUModel(_UModelCore):
@@ -441,22 +488,40 @@ class PaperUModel(_UModelCore):
 
 
 class DynamicUModel(_UModelCore):
-    """U-model whose α₀ also regresses on past outputs and older inputs (plus a bias)."""
+    """U-model whose α₀ also depends on past outputs and older inputs (Zhu & Guo's U-model).
+
+    Incremental form: ŷ(t) = y(t−1) + θᵀφ(t) with
+    φ = [Φ(u(t−1)), x, x², …, x^M, 1, Δy(t−1)/s_y, …, Δy(t−na)/s_y,
+         for k = 2..nb: x_k, x_k², …, x_k^L],  x = u(t−1)/s_u, x_k = u(t−k)/s_u,
+    Δy(t−i) = y(t−i) − y(t−i−1). One NLMS adapts θ. Why this shape (figures in the README):
+
+    * regressing on increments makes persistence the model at θ = 0 and keeps the
+      regressor zero-mean and weakly correlated, where output levels (≈ 15 m of depth)
+      make NLMS crawl;
+    * older inputs enter through polynomials of degree L, not linearly, because a static
+      input nonlinearity (the ``nonlinear`` scenario's pump) acts on every lag;
+    * s_u = 2 keeps the powers of a full-scale input at O(1) in φᵀφ.
+
+    Defaults (na = nb = 5, L = 3, μ = 0.5) are the best of a sweep on the emulator's
+    scenarios (``glider-hil experiment``).
+    """
 
     name: ClassVar[str] = "dynamic"
 
     def __init__(
         self,
         *,
-        na: int = 3,
-        nb: int = 3,
+        na: int = 5,
+        nb: int = 5,
+        lag_degree: int = 3,
         y_scale: float = 1.0,
+        u_scale: float = 2.0,
         degree: int = PAPER_DEGREE,
         mu: float = PAPER_MU,
         eps: float = DEFAULT_EPS,
         centres: Sequence[float] | None = None,
         beta: float = PAPER_BETA,
-        init_scale: float = PAPER_INIT_SCALE,
+        init_scale: float = 0.0,
         seed: int = 0,
         guard: GuardConfig | dict[str, Any] | None = None,
     ) -> None:
@@ -464,11 +529,17 @@ class DynamicUModel(_UModelCore):
             raise ValueError("na must be an integer >= 0")
         if int(nb) != nb or nb < 1:
             raise ValueError("nb must be an integer >= 1 (lag 1 is the U-model polynomial)")
+        if int(lag_degree) != lag_degree or lag_degree < 1:
+            raise ValueError("lag_degree must be an integer >= 1")
         if not (math.isfinite(y_scale) and y_scale > 0.0):
             raise ValueError("y_scale must be finite and > 0")
+        if not (math.isfinite(u_scale) and u_scale > 0.0):
+            raise ValueError("u_scale must be finite and > 0")
         self.na = int(na)
         self.nb = int(nb)
+        self.lag_degree = int(lag_degree)
         self.y_scale = float(y_scale)
+        self.u_scale = float(u_scale)
         self._inv_ys = 1.0 / self.y_scale
         super().__init__(
             degree=degree,
@@ -478,46 +549,80 @@ class DynamicUModel(_UModelCore):
             beta=beta,
             init_scale=init_scale,
             seed=seed,
-            n_extra=1 + self.na + (self.nb - 1),
+            n_extra=1 + self.na + (self.nb - 1) * self.lag_degree,
             guard=guard,
+            poly_scale=1.0 / self.u_scale,
         )
-        # Layout of the tail of φ: [1, y(t−1..t−na)/y_scale, u(t−2..t−nb)] — it *is* the
-        # history, updated in place by _push; the head (RBF + powers) is scratch.
-        i = self._np
-        self._i_y = i + 1
-        self._i_u = i + 1 + self.na
-        self._phi[i] = 1.0
-        self._lin = self._phi[i:]
-        self._th_lin = self._theta[i:]
+        self._reset_history()
+
+    def _predict(self, u: float) -> float:
+        return self._levels[0] + super()._predict(u)
 
     def _linear_const(self) -> float:
-        return float(np.dot(self._th_lin, self._lin))
+        return self._levels[0] + super()._linear_const()
 
     def _push(self, u: float, y: float) -> None:
-        phi = self._phi
-        iy, iu = self._i_y, self._i_u
-        if self.na:
-            phi[iy + 1 : iu] = phi[iy : iu - 1]
-            phi[iy] = y * self._inv_ys
+        # After the push, _levels = [y(t), y(t−1), …] and _inputs = [u(t−1), u(t−2), …]
+        # describe the regressor of the next sample.
+        self._levels = [y, *self._levels[:-1]]
         if self.nb > 1:
-            phi[iu + 1 :] = phi[iu:-1]
-            phi[iu] = u
+            self._inputs = [u, *self._inputs[:-1]]
+        self._rebuild_tail()
+
+    def _rebuild_tail(self) -> None:
+        levels, inv = self._levels, self._inv_ys
+        tail = [1.0]
+        tail += [(levels[i] - levels[i + 1]) * inv for i in range(self.na)]
+        for past in self._inputs:
+            x = past * self.poly_scale
+            p = 1.0
+            for _ in range(self.lag_degree):
+                p *= x
+                tail.append(p)
+        self._lin = tail
         self._cache = None
         self._eval = None
 
     def _reset_history(self) -> None:
-        self._lin[1:] = 0.0
-        self._cache = None
-        self._eval = None
+        self._levels = [0.0] * (self.na + 1)
+        self._inputs = [0.0] * (self.nb - 1)
+        self._rebuild_tail()
+
+    def lag_map(self, lag: int, u: float) -> tuple[float, float]:
+        """Contribution of u(t−lag), lag ≥ 2, to ŷ(t), and its derivative."""
+        start = self._np + 1 + self.na + (lag - 2) * self.lag_degree
+        coefficients = self._theta[start : start + self.lag_degree]
+        x = u * self.poly_scale
+        f = df = 0.0
+        for c in reversed(coefficients):
+            df = df * x + f
+            f = f * x + c
+        df = df * x + f
+        return f * x, df * self.poly_scale
+
+    def ar_coefficients(self) -> list[float]:
+        """ŷ(t) = Σ c_i·y(t−i) + … with i = 1..na+1 (the increments expanded)."""
+        a = [v * self._inv_ys for v in self._theta[self._np + 1 : self._np + 1 + self.na]]
+        c = [1.0] + [0.0] * self.na
+        for i, ai in enumerate(a):
+            c[i] += ai
+            c[i + 1] -= ai
+        return c
 
     def _options(self) -> dict[str, Any]:
-        opts = {"na": self.na, "nb": self.nb, "y_scale": self.y_scale}
+        opts = {
+            "na": self.na,
+            "nb": self.nb,
+            "lag_degree": self.lag_degree,
+            "y_scale": self.y_scale,
+            "u_scale": self.u_scale,
+        }
         opts.update(self._core_options())
         return opts
 
     def _state(self) -> dict[str, Any]:
         st = super()._state()
-        st["history"] = self._lin[1:].tolist()
+        st["history"] = {"outputs": list(self._levels), "inputs": list(self._inputs)}
         return st
 
 
@@ -544,6 +649,9 @@ class PersistenceModel(_ModelBase):
 
     def output_derivative(self, u: float) -> float:
         return 0.0
+
+    def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
+        return np.full(np.shape(us), self._y_last)
 
     def _options(self) -> dict[str, Any]:
         return {}
@@ -594,7 +702,7 @@ class RlsArxModel(_ModelBase):
         self.rls.update_(self._theta, self._phi, error)
 
     def _params_ok(self) -> bool:
-        return _theta_ok(self._theta, self.guard.param_limit)
+        return _norm_ok(float(np.dot(self._theta, self._theta)), self.guard.param_limit)
 
     def _reset_params(self) -> None:
         self._theta[:] = 0.0
@@ -633,6 +741,10 @@ class RlsArxModel(_ModelBase):
     def output_derivative(self, u: float) -> float:
         d = self._affine()[1]
         return d if _isfinite(d) else 0.0
+
+    def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
+        c, b1 = self._affine()
+        return c + b1 * np.asarray(us, dtype=float)
 
     def _options(self) -> dict[str, Any]:
         return {

@@ -11,9 +11,9 @@ default, which is negligible next to φᵀφ for the U-model regressors (the RBF
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-
-import numpy as np
+from operator import mul
 
 __all__ = ["DEFAULT_EPS", "NLMS", "nlms_gain", "nlms_update"]
 
@@ -27,22 +27,33 @@ def _check(mu: float, eps: float) -> None:
         raise ValueError(f"NLMS regulariser eps must be finite and > 0, got {eps!r}")
 
 
-def nlms_gain(phi: np.ndarray, error: float, mu: float, eps: float = DEFAULT_EPS) -> float:
+def nlms_gain(phi: Sequence[float], error: float, mu: float, eps: float = DEFAULT_EPS) -> float:
     """Scalar g such that the update is θ ← θ + g·φ."""
-    return mu * error / (eps + float(np.dot(phi, phi)))
+    return mu * error / (eps + sum(map(mul, phi, phi)))
 
 
 def nlms_update(
-    theta: np.ndarray, phi: np.ndarray, error: float, mu: float, eps: float = DEFAULT_EPS
-) -> np.ndarray:
-    """Pure NLMS update: returns a new θ, leaves the inputs untouched."""
+    theta: Sequence[float],
+    phi: Sequence[float],
+    error: float,
+    mu: float,
+    eps: float = DEFAULT_EPS,
+) -> list[float]:
+    """Pure NLMS update: returns the new θ as a list, leaves the inputs untouched.
+
+    Plain floats on purpose: for ~20-30 parameters a list comprehension beats numpy's
+    per-call overhead, and the result is bit-reproducible.
+    """
     _check(mu, eps)
-    return theta + nlms_gain(phi, error, mu, eps) * phi
+    if len(theta) != len(phi):
+        raise ValueError("theta and phi must have the same length")
+    g = mu * error / (eps + sum(map(mul, phi, phi)))
+    return [t + g * p for t, p in zip(theta, phi, strict=True)]
 
 
 @dataclass(frozen=True, slots=True)
 class NLMS:
-    """Validated (μ, ε) pair with an in-place update for the per-sample path."""
+    """Validated (μ, ε) pair; ``update`` is the unchecked per-sample path."""
 
     mu: float = 0.5
     eps: float = DEFAULT_EPS
@@ -50,7 +61,7 @@ class NLMS:
     def __post_init__(self) -> None:
         _check(self.mu, self.eps)
 
-    def update_(self, theta: np.ndarray, phi: np.ndarray, error: float) -> None:
-        """In-place θ += μ e φ / (ε + φᵀφ) (no allocation besides numpy scalars)."""
-        g = self.mu * error / (self.eps + float(np.dot(phi, phi)))
-        theta += g * phi
+    def update(self, theta: list[float], phi: list[float], error: float) -> list[float]:
+        """θ + μ e φ / (ε + φᵀφ) as a new list (lengths are the caller's responsibility)."""
+        g = self.mu * error / (self.eps + sum(map(mul, phi, phi)))
+        return [t + g * p for t, p in zip(theta, phi)]  # noqa: B905 - hot path

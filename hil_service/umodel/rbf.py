@@ -5,15 +5,18 @@ Convention (Abbasi et al. 2015, eq. 8)::
     Φ_j(u) = exp(−(u − c_j)² / β²)          (β is a width; no factor 2 in the denominator)
     dΦ_j/du = −2 (u − c_j) / β² · Φ_j(u)
 
-Two evaluation paths are provided on purpose: a numpy path that fills the regressor vector
-used by the adaptive update, and a plain-float path returning Σ w_j Φ_j(u) and its derivative,
-which is what the inverse controller evaluates several times per sample (17 ``math.exp``
-calls are cheaper than a handful of numpy dispatches).
+The per-sample paths (``values_list`` for the adaptive update, ``weighted`` for the inverse
+solver's Newton iterations) use plain floats and ``math.exp``: for 17 centres that is cheaper
+than a handful of numpy dispatches. numpy is used where many inputs are evaluated at once
+(``weighted_grid``, the inverse solver's fallback grid) and for tests (``values``,
+``derivatives``).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+from bisect import bisect_left, bisect_right
 from collections.abc import Sequence
 
 import numpy as np
@@ -35,7 +38,11 @@ def evenly_spaced_centres(n: int, lo: float, hi: float) -> tuple[float, ...]:
 class GaussianRBF:
     """Fixed-centre Gaussian basis; only the output weights are adapted (by the owner)."""
 
-    __slots__ = ("_c", "_inv_b2", "beta", "centres")
+    __slots__ = ("_c", "_cut", "_inv_b2", "_sorted", "beta", "centres")
+
+    #: Centres farther than CUTOFF·β from u are skipped in ``weighted``: their basis value is
+    #: below exp(−36) ≈ 2e-16, i.e. below double rounding of any comparable-weight term.
+    CUTOFF = 6.0
 
     def __init__(self, centres: Sequence[float], beta: float) -> None:
         cs = tuple(float(c) for c in centres)
@@ -49,6 +56,8 @@ class GaussianRBF:
         self.beta = float(beta)
         self._inv_b2 = 1.0 / (self.beta * self.beta)
         self._c = np.asarray(cs, dtype=float)
+        self._sorted = all(a <= b for a, b in itertools.pairwise(cs))
+        self._cut = self.CUTOFF * self.beta
 
     @property
     def size(self) -> int:
@@ -64,20 +73,33 @@ class GaussianRBF:
         d = u - self._c
         return -2.0 * self._inv_b2 * d * np.exp(-(d * d) * self._inv_b2)
 
-    def values_into(self, u: float, out: np.ndarray) -> None:
-        """Write Φ(u) into ``out`` (a view into the regressor) without allocating."""
-        np.subtract(u, self._c, out=out)
-        np.multiply(out, out, out=out)
-        np.multiply(out, -self._inv_b2, out=out)
-        np.exp(out, out=out)
+    def values_list(self, u: float) -> list[float]:
+        """Φ(u) as a list of floats (hot path of the adaptive update)."""
+        k = self._inv_b2
+        exp = math.exp
+        return [exp(-(u - c) * (u - c) * k) for c in self.centres]
+
+    def weighted_grid(self, us: np.ndarray, weights: Sequence[float]) -> np.ndarray:
+        """Σ w_j Φ_j(u) for every u in ``us`` at once (used for dense grids)."""
+        d = np.subtract.outer(np.asarray(us, dtype=float), self._c)
+        return np.exp(-(d * d) * self._inv_b2) @ np.asarray(weights, dtype=float)
 
     def weighted(self, u: float, weights: Sequence[float]) -> tuple[float, float]:
-        """(Σ w_j Φ_j(u), Σ w_j dΦ_j/du) with plain floats; the inverse solver's hot path."""
+        """(Σ w_j Φ_j(u), Σ w_j dΦ_j/du) with plain floats; the inverse solver's hot path.
+
+        ``weights`` must be indexable in the order of ``centres`` (tuple or list).
+        """
         k = self._inv_b2
         s = 0.0
         ds = 0.0
         exp = math.exp
-        for c, w in zip(self.centres, weights, strict=True):
+        cs = self.centres
+        if self._sorted:  # only the centres within ±CUTOFF·β matter
+            lo = bisect_left(cs, u - self._cut)
+            hi = bisect_right(cs, u + self._cut)
+            cs = cs[lo:hi]
+            weights = weights[lo:hi]
+        for c, w in zip(cs, weights, strict=True):
             d = u - c
             g = w * exp(-d * d * k)
             s += g

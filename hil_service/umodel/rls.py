@@ -6,6 +6,9 @@ then "bursts". We use the simplest robust remedy: forgetting is applied only whi
 trace(P) ≤ trace_max (default n·p0, i.e. never more uncertain than at start). Unexcited
 directions therefore stop growing at the bound, excited ones still track with factor λ.
 P is re-symmetrised each step to stop round-off from breaking positive definiteness.
+Trade-off (documented on purpose): while the bound is active the excited directions are not
+forgotten either, so tracking there slows to that of plain least squares until excitation
+returns and trace(P) drops below the bound again.
 """
 
 from __future__ import annotations

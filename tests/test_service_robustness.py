@@ -1,0 +1,118 @@
+"""Bad input on the service's MAVLink port is counted, never fatal; a killed service's log reads."""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+
+from hil_service.logreader import LogReader
+from protocols.mapping import TelemetryMapping
+from protocols.mavlink_io import MavlinkCodec, dialect
+from protocols.samples import TelemetrySample
+from tests.conftest import free_tcp_port, free_udp_port
+from tests.zenoh_peer import ZenohProbe
+
+MAPPING = TelemetryMapping()
+
+
+class FakeVehicle:
+    """Sends hand-made telemetry to the service's UDP port."""
+
+    def __init__(self, port: int, system_id: int = 1):
+        import socket
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.address = ("127.0.0.1", port)
+        self.codec = MavlinkCodec(system_id, 1)
+
+    def step(self, time_ms: int, depth: float = 15.0, pitch: float = 0.0, u: float = 0.1):
+        sample = TelemetrySample(1, time_ms, depth, pitch, u, -u)
+        for message in MAPPING.encode_telemetry(sample):
+            self.raw(self.codec.pack(message))
+
+    def raw(self, data: bytes) -> None:
+        self.sock.sendto(data, self.address)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def start_service(processes, tmp_path, *extra: str):
+    udp, zport = free_udp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    service = processes.start(
+        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+        "--log-dir", str(tmp_path / "logs"), *extra,
+    )  # fmt: skip
+    time.sleep(0.8)
+    assert service.poll() is None, service.stderr.read()
+    return service, udp, endpoint
+
+
+def test_bad_mavlink_input_is_counted_in_health(processes, tmp_path):
+    service, udp, endpoint = start_service(processes, tmp_path, "--sysid", "1")
+    probe = ZenohProbe(endpoint)
+    vehicle, stranger = FakeVehicle(udp), FakeVehicle(udp, system_id=9)
+    try:
+        for k in range(20):  # good steps
+            vehicle.step(k * 1000)
+        vehicle.raw(b"\x00\xffgarbage" * 50)
+        frame = vehicle.codec.pack(dialect.MAVLink_attitude_message(1, 0, 0.1, 0, 0, 0, 0))
+        vehicle.raw(frame[:10])  # truncated
+        vehicle.step(20_000, depth=math.nan)  # NaN depth
+        vehicle.step(21_000, depth=1e7)  # absurd depth
+        vehicle.step(5_000)  # timestamp going backwards
+        stranger.step(22_000)  # unknown system id
+        for k in range(23, 30):  # and good data again
+            vehicle.step(k * 1000)
+
+        def counters():
+            health = probe.payloads("glider/1/health")
+            return health[-1]["counters"] if health else {}
+
+        assert probe.wait_for(lambda: counters().get("samples") == 27, 10), counters()
+        c = counters()
+        assert c["invalid"] == 2
+        assert c["out_of_order"] == 1
+        assert c["unknown_system"] >= 3
+        assert c["bad_frames"] >= 1
+        health = probe.payloads("glider/1/health")[-1]
+        assert health["malformed"] >= 4
+        assert service.poll() is None
+        # The bad samples never reached the identifier.
+        ys = [e["y"] for e in probe.payloads("glider/1/umodel/depth")]
+        assert len(ys) == 27 and all(math.isfinite(y) and y < 100 for y in ys)
+    finally:
+        vehicle.close()
+        stranger.close()
+        probe.close()
+    out, err = processes.stop(service)
+    assert service.returncode == 0, err
+
+
+def test_log_of_a_killed_service_reads_up_to_the_last_flush(processes, tmp_path):
+    service, udp, _ = start_service(processes, tmp_path)
+    vehicle = FakeVehicle(udp)
+    try:
+        k = 0
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            vehicle.step(k * 1000, depth=15.0 + 0.01 * k)
+            k += 1
+            time.sleep(0.01)
+        sent_until = time.time_ns()
+        service.send_signal(signal.SIGKILL)
+        service.wait(5)
+    finally:
+        vehicle.close()
+    files = list((tmp_path / "logs").glob("*.mcap"))
+    assert len(files) == 1
+    reader = LogReader(files[0])
+    times = [m.log_time_ns for m in reader.messages() if m.topic == "mavlink/raw/in"]
+    report = reader.report
+    assert not report.complete
+    assert "recovered" in report.describe()
+    assert times, "nothing recovered"
+    lost_s = (sent_until - max(times)) / 1e9
+    assert lost_s < 1.5, f"lost {lost_s:.2f}s of data"

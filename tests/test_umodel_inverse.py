@@ -1,0 +1,204 @@
+"""Inverse solver, command shaping and IMC reference of hil_service.umodel."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hil_service.umodel import (
+    CommandShaper,
+    ImcReference,
+    InverseResult,
+    build_model,
+    imc_target,
+    invert_model,
+    solve_inverse,
+)
+
+
+def quad(u: float) -> float:  # (u − 0.5)(u + 1.5)
+    return (u - 0.5) * (u + 1.5)
+
+
+def dquad(u: float) -> float:
+    return 2.0 * u + 1.0
+
+
+@pytest.mark.parametrize(("u0", "root"), [(0.2, 0.5), (1.7, 0.5), (-1.0, -1.5), (-1.9, -1.5)])
+def test_newton_finds_known_roots_from_nearby_start(u0: float, root: float) -> None:
+    res = solve_inverse(quad, dquad, 0.0, u0, -2.0, 2.0)
+    assert isinstance(res, InverseResult)
+    assert res.path == "newton"
+    assert res.u == pytest.approx(root, abs=1e-9)
+    assert abs(res.residual) <= 1e-9
+    assert not res.saturated
+    assert 1 <= res.iterations <= 8
+
+
+def test_newton_on_cubic_with_nonzero_target() -> None:
+    f = lambda u: (u - 0.5) * (u + 1.5) * (u - 1.0)  # noqa: E731
+    df = lambda u: 3 * u * u - 1.75  # noqa: E731  d/du of u³ − 1.75u + 0.75
+    res = solve_inverse(f, df, 0.75, 0.1, -2.0, 2.0)  # u³ − 1.75u = 0 → u = 0 nearest
+    assert res.path == "newton"
+    assert res.u == pytest.approx(0.0, abs=1e-9)
+
+
+def test_start_already_on_target_takes_no_iteration() -> None:
+    res = solve_inverse(quad, dquad, 0.0, 0.5, -2.0, 2.0)
+    assert (res.path, res.iterations, res.u) == ("newton", 0, 0.5)
+
+
+def test_no_real_root_falls_back_to_minimiser() -> None:
+    # u² + 1 = 0 has no real root: the best achievable is the minimum of u² + 1 at u = 0.
+    res = solve_inverse(lambda u: u * u + 1.0, lambda u: 2.0 * u, 0.0, 0.7, -2.0, 2.0)
+    assert res.path == "fallback"
+    assert res.u == pytest.approx(0.0, abs=1e-6)
+    assert res.residual == pytest.approx(1.0, abs=1e-9)
+    assert not res.saturated
+
+
+def test_zero_slope_at_start_falls_back_deterministically() -> None:
+    # u² = 1 from u0 = 0 where f'(0) = 0: Newton cannot move; both roots are equally near,
+    # the fallback picks the lower one, every time.
+    results = {solve_inverse(lambda u: u * u, lambda u: 2.0 * u, 1.0, 0.0, -2.0, 2.0)}
+    results.add(solve_inverse(lambda u: u * u, lambda u: 2.0 * u, 1.0, 0.0, -2.0, 2.0))
+    assert len(results) == 1
+    res = results.pop()
+    assert res.path == "fallback"
+    assert res.u == pytest.approx(-1.0, abs=1e-9)
+    assert abs(res.residual) <= 1e-9
+
+
+def test_newton_cycle_falls_back_to_the_real_root() -> None:
+    # Classic 2-cycle of Newton on u³ − 2u + 2 from u0 = 0 (0 → 1 → 0 …); the root is −1.769…
+    f = lambda u: u**3 - 2 * u + 2  # noqa: E731
+    df = lambda u: 3 * u**2 - 2  # noqa: E731
+    res = solve_inverse(f, df, 0.0, 0.0, -2.0, 2.0)
+    assert res.path == "fallback"
+    assert res.u == pytest.approx(-1.7692923542386314, abs=1e-9)
+    assert abs(res.residual) <= 1e-9
+
+
+def test_unreachable_target_saturates_at_bound() -> None:
+    res = solve_inverse(lambda u: 2.0 * u, lambda u: 2.0, 10.0, 0.3, -2.0, 2.0)
+    assert res.path == "fallback"
+    assert res.u == 2.0
+    assert res.residual == pytest.approx(-6.0)
+    assert res.saturated
+    low = solve_inverse(lambda u: 2.0 * u, lambda u: 2.0, -10.0, 0.3, -2.0, 2.0)
+    assert (low.u, low.saturated) == (-2.0, True)
+
+
+def test_flat_function_keeps_previous_input() -> None:
+    res = solve_inverse(lambda u: 3.0, lambda u: 0.0, 1.0, 0.42, -2.0, 2.0)
+    assert res.path == "fallback"
+    assert res.u == 0.42
+    assert res.residual == pytest.approx(2.0)
+
+
+def test_vectorised_grid_gives_same_answer() -> None:
+    f = lambda u: u * u + 1.0  # noqa: E731
+    a = solve_inverse(f, lambda u: 2.0 * u, 0.0, 0.7, -2.0, 2.0)
+    b = solve_inverse(f, lambda u: 2.0 * u, 0.0, 0.7, -2.0, 2.0, f_vec=lambda us: us * us + 1.0)
+    assert a == b
+
+
+def test_non_finite_inputs_never_produce_nan() -> None:
+    res = solve_inverse(quad, dquad, math.nan, 5.0, -2.0, 2.0)
+    assert res.u == 2.0 and res.path == "fallback" and not math.isnan(res.residual)
+    res = solve_inverse(quad, dquad, 0.0, math.nan, -2.0, 2.0)
+    assert math.isfinite(res.u) and abs(res.residual) <= 1e-9
+    with pytest.raises(ValueError):
+        solve_inverse(quad, dquad, 0.0, 0.0, 1.0, -1.0)
+
+
+@pytest.mark.parametrize("name", ["paper", "dynamic", "rls-arx"])
+def test_invert_trained_model(name: str) -> None:
+    rng = np.random.default_rng(5)
+    model = build_model(name)
+    y1 = y2 = u = 0.0
+    for _ in range(1500):
+        y = 0.6 * y1 + 0.2 * y2 + 0.3 * u + 0.05 * u**3
+        model.step(u, y)
+        y2, y1 = y1, y
+        u = float(rng.uniform(-2, 2))
+    target = 0.9 * model.output_given_input(0.8) + 0.1 * model.output_given_input(-0.4)
+    res = invert_model(model, target, 0.0, -2.0, 2.0)
+    assert abs(model.output_given_input(res.u) - target) <= 1e-8
+    assert -2.0 <= res.u <= 2.0
+    # The fast scalar path agrees with the regressor path used by step().
+    assert model.output_given_input(res.u) == pytest.approx(model.predict(res.u), abs=1e-12)
+
+
+@pytest.mark.parametrize("name", ["paper", "dynamic", "rls-arx"])
+def test_model_derivative_matches_finite_differences(name: str) -> None:
+    rng = np.random.default_rng(11)
+    model = build_model(name)
+    for _ in range(200):
+        model.step(float(rng.uniform(-2, 2)), float(rng.normal()))
+    h = 1e-6
+    for u in (-1.7, -0.3, 0.0, 0.9, 1.95):
+        fd = (model.output_given_input(u + h) - model.output_given_input(u - h)) / (2 * h)
+        assert model.output_derivative(u) == pytest.approx(fd, rel=1e-5, abs=1e-7)
+
+
+def test_persistence_inverse_holds_input() -> None:
+    model = build_model("persistence")
+    model.step(0.0, 1.0)
+    res = invert_model(model, 3.0, 0.25, -2.0, 2.0)
+    assert (res.path, res.u) == ("fallback", 0.25)
+
+
+def test_command_shaper_rate_limit_and_saturation() -> None:
+    sh = CommandShaper(-1.0, 1.0, max_rate=0.3, u_init=0.0)
+    out = sh.shape(0.2)
+    assert (out.u, out.saturated, out.rate_limited) == (0.2, False, False)
+    out = sh.shape(5.0)
+    assert out.u == pytest.approx(0.5) and out.saturated and out.rate_limited
+    out = sh.shape(5.0)
+    assert out.u == pytest.approx(0.8) and out.saturated and out.rate_limited
+    out = sh.shape(5.0)
+    assert out.u == 1.0 and out.saturated and not out.rate_limited
+    out = sh.shape(math.nan)
+    assert out.u == 1.0 and not out.saturated
+    sh.reset(3.0)
+    assert sh.u == 1.0
+    unlimited = CommandShaper(-1.0, 1.0)
+    assert unlimited.shape(-0.9).u == -0.9
+    with pytest.raises(ValueError):
+        CommandShaper(1.0, 1.0)
+
+
+def test_imc_reference_filter_and_mismatch() -> None:
+    assert imc_target(2.0, 1.5, 1.0) == 1.5
+    assert imc_target(2.0, math.nan, 1.0) == 2.0
+    ref = ImcReference(a=0.5)
+    # First call starts the filter at the measured output (bumpless), then moves halfway.
+    v = ref.target(setpoint=4.0, y=2.0, y_hat=1.5)
+    assert ref.value == 3.0
+    assert v == 3.0 - (2.0 - 1.5)
+    v = ref.target(setpoint=4.0, y=2.5, y_hat=2.5)
+    assert v == 3.5
+    ref.target(setpoint=math.nan, y=2.5, y_hat=2.5)  # ignored setpoint keeps the filter
+    assert ref.value == 3.5
+    ref.reset(0.0)
+    assert ref.filter(1.0) == 0.5
+    assert ImcReference(a=0.0).filter(7.0) == 7.0
+    with pytest.raises(ValueError):
+        ImcReference(a=1.0)
+
+
+@pytest.mark.parametrize("name", ["paper", "dynamic", "rls-arx", "persistence"])
+def test_vectorised_model_output_matches_scalar(name: str) -> None:
+    rng = np.random.default_rng(17)
+    model = build_model(name)
+    for _ in range(100):
+        model.step(float(rng.uniform(-2, 2)), float(rng.normal()))
+    grid = np.linspace(-2.0, 2.0, 41)
+    vec = model.output_given_inputs(grid)  # type: ignore[attr-defined]
+    scalar = [model.output_given_input(float(u)) for u in grid]
+    assert np.allclose(vec, scalar, rtol=1e-12, atol=1e-12)
+    again = model.output_given_inputs(grid)  # type: ignore[attr-defined]  (cached design)
+    assert np.array_equal(vec, again)

@@ -1,0 +1,145 @@
+"""Building blocks of hil_service.umodel: NLMS, RBF layer, RLS, purity of the package."""
+
+from __future__ import annotations
+
+import ast
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_service.umodel import (
+    NLMS,
+    RLS,
+    GaussianRBF,
+    evenly_spaced_centres,
+    nlms_gain,
+    nlms_update,
+)
+
+UMODEL_DIR = Path(__file__).resolve().parents[1] / "hil_service" / "umodel"
+
+
+def test_nlms_hand_computed_example() -> None:
+    # θ = [0.5, −1], φ = [1, 2], y = 1  →  ŷ = 0.5 − 2 = −1.5, e = 2.5
+    # μ = 0.5, ε = 1  →  g = 0.5·2.5 / (1 + 1 + 4) = 1.25/6 = 0.208333…
+    # θ' = [0.5 + 0.208333…, −1 + 0.416666…] = [0.708333…, −0.583333…]
+    theta = [0.5, -1.0]
+    phi = [1.0, 2.0]
+    error = 1.0 - (0.5 * 1.0 + (-1.0) * 2.0)
+    assert error == 2.5
+    assert nlms_gain(phi, error, mu=0.5, eps=1.0) == pytest.approx(0.2083333333333333, abs=1e-15)
+    new = nlms_update(theta, phi, error, mu=0.5, eps=1.0)
+    assert new == pytest.approx([0.7083333333333334, -0.5833333333333333], abs=1e-15)
+    assert theta == [0.5, -1.0]  # pure: input untouched
+    assert NLMS(0.5, 1.0).update(theta, phi, error) == new
+    # After the update the same regressor is predicted closer: ŷ' = 0.7083 − 1.1667 = −0.4583.
+    assert sum(t * p for t, p in zip(new, phi, strict=True)) == pytest.approx(-0.4583333333333333)
+
+
+@pytest.mark.parametrize("mu", [0.0, -0.1, 2.0, 2.5, math.nan])
+def test_nlms_rejects_unstable_step_size(mu: float) -> None:
+    with pytest.raises(ValueError):
+        NLMS(mu)
+
+
+def test_evenly_spaced_centres_paper() -> None:
+    c = evenly_spaced_centres(17, -2.0, 2.0)
+    assert len(c) == 17
+    assert c[0] == -2.0 and c[-1] == 2.0
+    assert np.allclose(np.diff(c), 0.25)
+
+
+def test_rbf_values_follow_eq8_convention() -> None:
+    rbf = GaussianRBF([0.0, 1.0], beta=0.5)
+    # Φ(u) = exp(−(u − c)² / β²): at u = 0.5 both are exp(−0.25/0.25) = e^{-1}.
+    assert rbf.values(0.5) == pytest.approx([math.exp(-1.0)] * 2, rel=1e-15)
+    assert rbf.values_list(0.5) == pytest.approx([math.exp(-1.0)] * 2, rel=1e-15)
+    assert rbf.values(0.0)[0] == 1.0
+
+
+@pytest.mark.parametrize("u", [-2.3, -1.0, -0.11, 0.0, 0.37, 1.9, 3.0])
+def test_rbf_derivative_matches_finite_differences(u: float) -> None:
+    rbf = GaussianRBF(evenly_spaced_centres(17, -2.0, 2.0), beta=0.25)
+    h = 1e-6
+    fd = (rbf.values(u + h) - rbf.values(u - h)) / (2 * h)
+    assert np.allclose(rbf.derivatives(u), fd, rtol=1e-6, atol=1e-8)
+
+    w = np.random.default_rng(3).uniform(-1, 1, 17).tolist()
+    s, ds = rbf.weighted(u, w)
+    assert s == pytest.approx(float(np.dot(w, rbf.values(u))), rel=1e-12, abs=1e-14)
+    s_p, _ = rbf.weighted(u + h, w)
+    s_m, _ = rbf.weighted(u - h, w)
+    assert ds == pytest.approx((s_p - s_m) / (2 * h), rel=1e-6, abs=1e-8)
+    grid = rbf.weighted_grid(np.array([u, u + 0.1]), w)
+    assert grid[0] == pytest.approx(s, rel=1e-12, abs=1e-14)
+
+
+def test_rbf_validation() -> None:
+    with pytest.raises(ValueError):
+        GaussianRBF([0.0], beta=0.0)
+    with pytest.raises(ValueError):
+        GaussianRBF([], beta=1.0)
+    with pytest.raises(ValueError):
+        GaussianRBF([math.nan], beta=1.0)
+
+
+def test_rls_identifies_linear_map() -> None:
+    rng = np.random.default_rng(0)
+    true = np.array([0.7, -0.2, 0.3])
+    theta = np.zeros(3)
+    rls = RLS(3, lam=0.99)
+    for _ in range(300):
+        phi = np.array([rng.normal(), rng.normal(), 1.0])
+        rls.update_(theta, phi, float(true @ phi - theta @ phi))
+    assert np.allclose(theta, true, atol=1e-8)
+
+
+def test_rls_covariance_bounded_without_excitation() -> None:
+    theta = np.zeros(3)
+    rls = RLS(3, lam=0.95, p0=10.0)
+    phi = np.array([1.0, 1.0, 1.0])  # constant regressor: only one direction excited
+    for _ in range(10_000):
+        rls.update_(theta, phi, float(2.0 - theta @ phi))
+    assert np.all(np.isfinite(rls.p))
+    assert np.trace(rls.p) <= rls.trace_max / rls.lam + 1e-9
+    assert np.allclose(rls.p, rls.p.T)
+    # Forgetting is suspended while trace(P) is at the bound, so convergence along the one
+    # excited direction slows down (≈1/k) but never stalls or blows up.
+    assert float(theta @ phi) == pytest.approx(2.0, abs=1e-4)
+    assert np.all(np.abs(theta) < 10.0)
+
+
+ALLOWED_IMPORTS = {
+    "__future__",
+    "math",
+    "numpy",
+    "dataclasses",
+    "typing",
+    "collections",
+    "collections.abc",
+    "operator",
+    "functools",
+    "bisect",
+    "itertools",
+}
+
+
+def test_package_is_pure() -> None:
+    """No I/O, clocks or middleware: only numpy and side-effect-free stdlib modules."""
+    files = sorted(UMODEL_DIR.glob("*.py"))
+    assert files
+    for path in files:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:  # relative import inside the package
+                    continue
+                names = [node.module or ""]
+            else:
+                continue
+            for name in names:
+                assert name in ALLOWED_IMPORTS, f"{path.name} imports {name}"

@@ -1,0 +1,50 @@
+"""A Zenoh peer for tests: explicit loopback endpoint, no scouting, collects JSON samples."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import defaultdict
+from typing import Any
+
+from hil_service.zenoh_config import ZenohOptions, open_session
+
+
+class ZenohProbe:
+    def __init__(self, endpoint: str, key: str = "glider/**"):
+        self.session = open_session(ZenohOptions(connect=(endpoint,)))
+        self.lock = threading.Lock()
+        self.received: dict[str, list[tuple[float, Any]]] = defaultdict(list)
+        self.subscriber = self.session.declare_subscriber(key, self._on_sample)
+        connected = self.wait_for(lambda: any(True for _ in self.session.info.peers_zid()), 10)
+        assert connected, f"no Zenoh peer at {endpoint}"
+        time.sleep(0.3)  # let the subscription reach the peer before anything is published
+
+    def _on_sample(self, sample: Any) -> None:
+        payload = json.loads(sample.payload.to_bytes())
+        with self.lock:
+            self.received[str(sample.key_expr)].append((time.monotonic(), payload))
+
+    def put(self, key: str, payload: Any) -> None:
+        self.session.put(key, json.dumps(payload))
+
+    def payloads(self, key: str) -> list[Any]:
+        with self.lock:
+            return [p for _, p in self.received.get(key, [])]
+
+    def count(self, key: str) -> int:
+        with self.lock:
+            return len(self.received.get(key, []))
+
+    def wait_for(self, predicate, timeout: float, poll: float = 0.05) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(poll)
+        return predicate()
+
+    def close(self) -> None:
+        self.subscriber.undeclare()
+        self.session.close()
