@@ -11,6 +11,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "emulate": ("plant_emulator.cli", "run the emulated glider autopilot over MAVLink"),
     "serve": ("hil_service.cli.serve", "run the HIL service: MAVLink in, Zenoh out, MCAP log"),
     "demo": ("hil_service.cli.demo", "emulator + service + Zenoh peer on loopback, summary"),
+    "experiment": ("hil_service.cli.experiment", "identification and control experiments"),
 }
 
 
