@@ -39,10 +39,10 @@ DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
 
 @dataclass(frozen=True)
 class ControlSettings:
-    horizon: dict[str, int] = field(default_factory=lambda: {"depth": 40, "pitch": 8})
+    horizon: dict[str, int] = field(default_factory=lambda: {"depth": 150, "pitch": 20})
     u_limit: float = 2.0  # model units, the actuator's range
     rate_limit: float = 0.5  # model units per step, as the vehicle's actuator
-    reference_filter: float = 0.8  # first-order setpoint filter coefficient, 0..1
+    reference_filter: float = 0.5  # first-order setpoint filter coefficient, 0..1
     mismatch_filter: float = 0.9  # first-order filter on the IMC mismatch y − ŷ, 0..1
 
 

@@ -87,7 +87,7 @@ def test_bad_mavlink_input_is_counted_in_health(processes, tmp_path):
         vehicle.close()
         stranger.close()
         probe.close()
-    out, err = processes.stop(service)
+    _, err = processes.stop(service)
     assert service.returncode == 0, err
 
 

@@ -115,6 +115,7 @@ ALLOWED_IMPORTS = {
     "__future__",
     "math",
     "numpy",
+    "scipy.signal",  # IIR filtering for the horizon forecast: pure computation
     "dataclasses",
     "typing",
     "collections",

@@ -12,7 +12,7 @@ Timing: after ``step`` at sample k the model's history holds y(k) and u(k−1); 
 already been applied (the vehicle reported it), so a command sent now acts from u(k+1) on.
 The forecast runs the model from k with u(k) = ``u_applied`` and u(k+1 …) = u, and returns
 ŷ(k+H). Every U-model here is linear in its past outputs and a sum of static maps of each
-input lag, so ŷ(k+H) = offset + Σ_m gain_m·map_m(u): one pass over the horizon gives the
+input lag, so ŷ(k+H) = offset + Σ_m gain_m·map_m(u): two linear filter runs give the offset and
 gains, and Newton then needs only the maps and their analytic derivatives.
 """
 
@@ -21,6 +21,9 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
+from scipy.signal import lfilter, lfiltic
 
 from .models import DynamicUModel, PaperUModel
 
@@ -60,31 +63,34 @@ def forecast_linear(
     """ŷ(k+horizon) for ŷ(t) = bias + Σ ar_i·y(t−i) + Σ_m map_m(u(t−m)).
 
     ``outputs`` = y(k), y(k−1), …; ``past_inputs`` = u(k−1), u(k−2), …; u(k) = ``u_applied``
-    and every later input is the unknown u.
+    and every later input is the unknown u. The recursion is linear, so the answer is the
+    response to the known forcing and initial outputs plus, for each input lag L, the sum
+    of the first H−L impulse-response samples times map_L(u): two IIR filter runs.
     """
     if horizon < 2:
         raise ValueError("horizon must be >= 2: y(k+1) no longer depends on the command")
-    n_maps = len(maps)
     known_inputs = [u_applied, *past_inputs]  # u(k), u(k−1), …
-    # Known contributions are evaluated once; gains count how often each map sees u.
-    history: list[tuple[float, list[float]]] = [(y, [0.0] * n_maps) for y in outputs]
-    current = (0.0, [0.0] * n_maps)
-    for j in range(1, horizon + 1):  # predicting y(k+j)
-        const, gains = bias, [0.0] * n_maps
-        for coefficient, (past_const, past_gains) in zip(ar, history, strict=False):
-            if coefficient:
-                const += coefficient * past_const
-                for m in range(n_maps):
-                    gains[m] += coefficient * past_gains[m]
-        for m in range(n_maps):  # input u(k+j−(m+1))
-            back = m + 1 - j  # 0 → u(k), 1 → u(k−1), …; negative → a future input
-            if back < 0:
-                gains[m] += 1.0
-            elif back < len(known_inputs):
-                const += maps[m](known_inputs[back])[0]
-        current = (const, gains)
-        history = [current, *history[:-1]] if history else []
-    return Forecast(current[0], tuple(current[1]), tuple(maps))
+    forcing = np.full(horizon, float(bias))
+    for lag, input_map in enumerate(maps, start=1):
+        for j in range(1, min(lag, horizon) + 1):  # steps where lag L still sees a known input
+            back = lag - j  # 0 → u(k), 1 → u(k−1), …
+            if back < len(known_inputs):
+                forcing[j - 1] += input_map(known_inputs[back])[0]
+    denominator = np.concatenate(([1.0], -np.asarray(ar, dtype=float)))
+    n_state = len(denominator) - 1
+    if n_state:
+        initial = lfiltic([1.0], denominator, y=list(outputs)[:n_state])
+        known = lfilter([1.0], denominator, forcing, zi=initial)[0]
+    else:
+        known = forcing
+    impulse = np.zeros(horizon)
+    impulse[0] = 1.0
+    cumulative = np.cumsum(lfilter([1.0], denominator, impulse))
+    gains = tuple(
+        float(cumulative[horizon - lag - 1]) if horizon - lag - 1 >= 0 else 0.0
+        for lag in range(1, len(maps) + 1)
+    )
+    return Forecast(float(known[-1]), gains, tuple(maps))
 
 
 def forecast_model(model: Any, u_applied: float, horizon: int) -> Forecast:
