@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/glider-hil emulate --connect udpout:127.0.0.1:14550 --speed 20 --duration 60 --print-every 10
+	$(BIN)/glider-hil demo
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -171,7 +171,13 @@ class ChannelPipeline:
         prediction = forecast_model(self.model, u_applied, horizon)
         limit = self.settings.control.u_limit
         result = solve_inverse(
-            prediction.value, prediction.derivative, target, self.shaper.u, -limit, limit
+            prediction.value,
+            prediction.derivative,
+            target,
+            self.shaper.u,
+            -limit,
+            limit,
+            f_vec=prediction.values,
         )
         shaped = self.shaper.shape(result.u)
         saturated = result.saturated or shaped.saturated or shaped.rate_limited

@@ -77,6 +77,9 @@ def run(args: argparse.Namespace) -> int:
     except Exception as error:
         print(f"glider-hil serve: {error}", file=sys.stderr)
         return 2
+    # The recorder thread must not hold the GIL for the default 5 ms while a telemetry
+    # datagram waits: a short switch interval bounds the control path's wait for it.
+    sys.setswitchinterval(0.0005)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -19,7 +19,7 @@ gains, and Newton then needs only the maps and their analytic derivatives.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -35,6 +35,17 @@ class Forecast:
     offset: float
     gains: tuple[float, ...]  # one per input lag 1..nb
     maps: tuple[InputMap, ...]
+    grid_maps: Callable[[np.ndarray], list[np.ndarray]] | None = None
+
+    def values(self, us: np.ndarray) -> np.ndarray:
+        """``value`` on an array at once (the inverse solver's fallback grid)."""
+        if self.grid_maps is None:
+            return np.array([self.value(float(u)) for u in us])
+        total = np.full(len(us), self.offset)
+        for gain, column in zip(self.gains, self.grid_maps(us), strict=True):
+            if gain:
+                total += gain * column
+        return total
 
     def value(self, u: float) -> float:
         total = self.offset
@@ -106,7 +117,11 @@ def forecast_model(model: Any, u_applied: float, horizon: int) -> Forecast:
         maps += [
             (lambda u, lag=lag: model.lag_map(lag, u)) for lag in range(2, model.nb + 1)
         ]
-        return forecast_linear(
+        def grid(us: np.ndarray) -> list[np.ndarray]:
+            static_values = model.output_given_inputs(us) - model._linear_const()
+            return [static_values, *model.lag_maps_on_grid(us)]
+
+        result = forecast_linear(
             bias=theta[model._np],
             ar=model.ar_coefficients(),
             outputs=model._levels,
@@ -115,6 +130,8 @@ def forecast_model(model: Any, u_applied: float, horizon: int) -> Forecast:
             u_applied=u_applied,
             horizon=horizon,
         )
+        return replace(result, grid_maps=grid)
     if isinstance(model, PaperUModel):
-        return forecast_linear(0.0, [], [], [model._eval_both], [], u_applied, horizon)
+        result = forecast_linear(0.0, [], [], [model._eval_both], [], u_applied, horizon)
+        return replace(result, grid_maps=lambda us: [model.output_given_inputs(us)])
     raise TypeError(f"no H-step forecast for {type(model).__name__}")

@@ -600,6 +600,16 @@ class DynamicUModel(_UModelCore):
         df = df * x + f
         return f * x, df * self.poly_scale
 
+    def lag_maps_on_grid(self, us: np.ndarray) -> list[np.ndarray]:
+        """``lag_map`` values for lags 2..nb on an array of inputs (the solver's grid)."""
+        xs = np.asarray(us, dtype=float) * self.poly_scale
+        powers = [xs**i for i in range(1, self.lag_degree + 1)]
+        base = self._np + 1 + self.na
+        return [
+            sum(c * p for c, p in zip(self._theta[start : start + self.lag_degree], powers, strict=True))
+            for start in range(base, base + (self.nb - 1) * self.lag_degree, self.lag_degree)
+        ]
+
     def ar_coefficients(self) -> list[float]:
         """ŷ(t) = Σ c_i·y(t−i) + … with i = 1..na+1 (the increments expanded)."""
         a = [v * self._inv_ys for v in self._theta[self._np + 1 : self._np + 1 + self.na]]
