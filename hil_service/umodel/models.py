@@ -606,7 +606,10 @@ class DynamicUModel(_UModelCore):
         powers = [xs**i for i in range(1, self.lag_degree + 1)]
         base = self._np + 1 + self.na
         return [
-            sum(c * p for c, p in zip(self._theta[start : start + self.lag_degree], powers, strict=True))
+            sum(
+                c * p
+                for c, p in zip(self._theta[start : start + self.lag_degree], powers, strict=True)
+            )
             for start in range(base, base + (self.nb - 1) * self.lag_degree, self.lag_degree)
         ]
 
