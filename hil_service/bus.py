@@ -145,10 +145,10 @@ class ZenohBus:
                 key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
             )
             self._publishers[key] = publisher
-        data = json.dumps(payload, allow_nan=False)
+        data = json.dumps(payload, allow_nan=False).encode()
         publisher.put(data)
         if self.recorder is not None:
-            self.recorder.zenoh(key, payload, "out")
+            self.recorder.zenoh_encoded(key, data, "out")
 
     def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
         """Liveliness token and state queryable for a newly seen vehicle."""

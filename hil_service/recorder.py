@@ -97,7 +97,14 @@ class McapRecorder:
         self._put(("json_mav", direction, message, t_ns or time.time_ns()))
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
-        self._put(("zenoh", key, payload, direction, t_ns or time.time_ns()))
+        self._put(("zenoh", key, json.dumps(payload, allow_nan=False).encode(), direction,
+                   t_ns or time.time_ns()))  # fmt: skip
+
+    def zenoh_encoded(
+        self, key: str, data: bytes, direction: str, t_ns: int | None = None
+    ) -> None:
+        """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
+        self._put(("zenoh", key, data, direction, t_ns or time.time_ns()))
 
     def _put(self, item: tuple[Any, ...]) -> None:
         if self._queue.qsize() >= self.max_queue:
@@ -161,9 +168,8 @@ class McapRecorder:
             channel = self._channel_json_mav(direction, message.get_type())
             data = json.dumps(message_to_json(message)).encode()
         else:
-            _, key, payload, direction, t_ns = item
+            _, key, data, direction, t_ns = item
             channel = self._channel_zenoh(key, direction)
-            data = json.dumps(payload, allow_nan=False).encode()
         assert self._writer is not None
         self._writer.add_message(channel, log_time=t_ns, data=data, publish_time=t_ns)
 
