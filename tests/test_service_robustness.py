@@ -6,6 +6,8 @@ import math
 import signal
 import time
 
+import pytest
+
 from hil_service.logreader import LogReader
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
@@ -116,3 +118,53 @@ def test_log_of_a_killed_service_reads_up_to_the_last_flush(processes, tmp_path)
     assert times, "nothing recovered"
     lost_s = (sent_until - max(times)) / 1e9
     assert lost_s < 1.5, f"lost {lost_s:.2f}s of data"
+
+
+def test_vehicles_split_by_system_id_with_state_and_liveliness(processes, tmp_path):
+    import json as _json
+
+    service, udp, endpoint = start_service(processes, tmp_path)
+    probe = ZenohProbe(endpoint)
+    first, second = FakeVehicle(udp, system_id=1), FakeVehicle(udp, system_id=2)
+    try:
+        for k in range(30):
+            first.step(k * 1000, depth=15.0 + 0.1 * k)
+            second.step(k * 1000, depth=40.0 - 0.1 * k)
+        assert probe.wait_for(
+            lambda: probe.count("glider/1/umodel/depth") == 30
+            and probe.count("glider/2/umodel/depth") == 30,
+            10,
+        )
+        assert probe.payloads("glider/1/telemetry")[-1]["depth"] == pytest.approx(17.9, abs=1e-3)
+        assert probe.payloads("glider/2/telemetry")[-1]["depth"] == pytest.approx(37.1, abs=1e-3)
+        # Each vehicle's identifier saw only its own outputs.
+        assert max(e["y"] for e in probe.payloads("glider/1/umodel/depth")) < 20
+        assert min(e["y"] for e in probe.payloads("glider/2/umodel/depth")) > 30
+
+        replies = list(probe.session.get("glider/2/state", timeout=5.0))
+        state = _json.loads(replies[0].ok.payload.to_bytes())
+        assert state["telemetry"]["depth"] == pytest.approx(37.1, abs=1e-3)
+        assert set(state["umodel"]) == {"depth", "pitch"}
+        assert state["control_reason"] == "control disabled"
+
+        tokens = list(probe.session.liveliness().get("glider/*/service", timeout=5.0))
+        assert {str(t.ok.key_expr) for t in tokens} == {"glider/1/service", "glider/2/service"}
+    finally:
+        first.close()
+        second.close()
+        probe.close()
+    _, err = processes.stop(service)
+    assert service.returncode == 0, err
+
+
+def test_bad_config_file_and_connection_string_are_clear_errors(processes, tmp_path):
+    bad = tmp_path / "zenoh.json5"
+    bad.write_text("{ this is not json5 ")
+    process = processes.start("serve", "--zenoh-config", str(bad), "--log-dir", str(tmp_path))
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 2
+    assert "glider-hil serve:" in err and "Traceback" not in err
+    process = processes.start("serve", "--mavlink", "udpin:nonsense", "--no-log")
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 2
+    assert "cannot open udpin:nonsense" in err and "Traceback" not in err

@@ -1,0 +1,101 @@
+"""The MCAP recorder: rotation, flushing, disk trouble, and the reader on damaged files."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from hil_service.logreader import LogError, LogReader
+from hil_service.recorder import McapRecorder
+from protocols.mavlink_io import MavlinkCodec, dialect
+
+
+def frames(n: int) -> list[bytes]:
+    codec = MavlinkCodec(1, 1)
+    return [codec.pack(dialect.MAVLink_attitude_message(k, 0, 0.1, 0, 0, 0, 0)) for k in range(n)]
+
+
+def read_all(path) -> tuple[list, LogReader]:
+    reader = LogReader(path)
+    return list(reader.messages()), reader
+
+
+def test_rotates_by_size_and_every_file_is_complete(tmp_path):
+    recorder = McapRecorder(tmp_path, {"k": "1"}, max_bytes=20_000, flush_interval=0.05).start()
+    for frame in frames(5000):
+        recorder.raw("in", frame)
+        time.sleep(0.0001)
+    recorder.close()
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert len(files) >= 2, "no rotation"
+    total = 0
+    for path in files:
+        messages, reader = read_all(path)
+        assert reader.report.complete
+        assert reader.report.metadata["glider-hil.config"] == {"k": "1"}
+        total += len(messages)
+    assert total == 5000 and recorder.status.dropped == 0
+
+
+def test_unwritable_directory_is_reported_and_recording_resumes(tmp_path):
+    if os.geteuid() == 0:
+        target = tmp_path / "not-a-dir"
+        target.write_text("a file where the log directory should be")
+    else:
+        target = tmp_path / "ro"
+        target.mkdir(mode=0o500)
+    recorder = McapRecorder(target, flush_interval=0.05).start()
+    recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out")
+    deadline = time.monotonic() + 5
+    while not recorder.status.error and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert recorder.status.error, "the failure was not reported"
+    assert recorder.status.dropped >= 1
+    # The disk comes back: the next records go to a new file.
+    if target.is_file():
+        target.unlink()
+    else:
+        target.chmod(0o700)
+    time.sleep(2.1)  # the recorder retries every 2 s
+    recorder.zenoh("glider/1/telemetry", {"t": 1.0}, "out")
+    recorder.close()
+    files = list(target.glob("*.mcap"))
+    assert len(files) == 1
+    messages, _ = read_all(files[0])
+    assert [m.json() for m in messages] == [{"t": 1.0}]
+
+
+def test_reader_reports_truncation_and_corruption_with_offsets(tmp_path):
+    recorder = McapRecorder(tmp_path, flush_interval=0.02).start()
+    for k, frame in enumerate(frames(3000)):
+        recorder.raw("in", frame)
+        if k % 500 == 0:
+            time.sleep(0.05)  # let the writer finish a chunk: several chunks in the file
+    recorder.close()
+    path = next(tmp_path.glob("*.mcap"))
+    data = path.read_bytes()
+    whole, _ = read_all(path)
+
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 3])
+    recovered, reader = read_all(cut)
+    assert not reader.report.complete
+    assert 0 < len(recovered) < len(whole)
+    assert [m.data for m in recovered] == [m.data for m in whole[: len(recovered)]]
+    assert reader.report.error_offset is not None
+    assert "recovered" in reader.report.describe()
+
+    damaged = bytearray(data)
+    damaged[len(data) // 2] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(damaged))
+    recovered, reader = read_all(bad)
+    assert len(recovered) < len(whole)
+    assert reader.report.error and reader.report.error_offset is not None
+
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    with pytest.raises(LogError):
+        read_all(junk)
