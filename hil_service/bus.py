@@ -18,6 +18,7 @@ import zenoh
 
 from hil_service.recorder import McapRecorder
 from protocols import keys
+from protocols.samples import TelemetrySample
 from protocols.schemas import validation_errors
 
 
@@ -37,6 +38,7 @@ class ControlInputs:
         default_factory=lambda: {"depth": None, "pitch": None}
     )
     enabled: bool | None = None  # None: nothing received, use the configured default
+    reset: bool = False  # replay only: controllers were re-armed before this sample
 
 
 class Inbox:
@@ -47,6 +49,10 @@ class Inbox:
         self._inputs: dict[int, ControlInputs] = {}
         self.rejected = 0
         self.last_rejection = ""
+
+    def inputs_for(self, sample: TelemetrySample) -> ControlInputs:
+        """The inputs in force for ``sample``: live, simply the latest received."""
+        return self.get(sample.system_id)
 
     def get(self, system_id: int) -> ControlInputs:
         with self._lock:

@@ -126,6 +126,12 @@ class LogReader:
                 elif isinstance(record, Footer):
                     report.complete = True
 
+    def metadata_only(self) -> dict[str, Any]:
+        """The stored configuration, reading only up to the first message."""
+        for _ in self.messages():
+            break
+        return self.config()
+
     def config(self) -> dict[str, Any]:
         """The service configuration stored in the log (read the messages first)."""
         stored = self.report.metadata.get(CONFIG_METADATA, {})

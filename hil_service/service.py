@@ -25,6 +25,11 @@ from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
 from protocols.samples import TelemetrySample
 
 
+def decision_inputs_topic(system_id: int) -> str:
+    """MCAP channel of the control inputs each decision used (recorded on change)."""
+    return f"glider-hil/{system_id}/decision-inputs"
+
+
 @dataclass(frozen=True)
 class ServiceConfig:
     system_ids: tuple[int, ...] = ()  # empty: every vehicle on the link
@@ -56,6 +61,8 @@ class VehicleRuntime:
     control_reason: str = "no sample yet"
     commands_sent: int = 0
     acks: dict[str, int] = field(default_factory=lambda: {"accepted": 0, "refused": 0})
+    last_applied: dict[str, Any] | None = None
+    reset_pending: bool = False
 
 
 class HilService:
@@ -119,8 +126,23 @@ class HilService:
         estimates = vehicle.pipeline.observe(sample)
         for channel, payload in estimates.items():
             self.bus.publish(keys.umodel(system_id, channel), payload)
-        inputs = self.inbox.get(system_id)
+        inputs = self.inbox.inputs_for(sample)
         enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
+        reset = vehicle.reset_pending or inputs.reset
+        if reset:
+            vehicle.pipeline.mark_stale()
+            vehicle.reset_pending = False
+        applied = {"setpoints": inputs.setpoints, "enabled": enabled}
+        if applied != vehicle.last_applied or reset:
+            # What the decision below used, stamped with the sample: replay applies exactly
+            # this at exactly this sample, so recomputed commands match bit for bit.
+            vehicle.last_applied = applied
+            if self.recorder is not None:
+                self.recorder.zenoh(
+                    decision_inputs_topic(system_id),
+                    {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
+                    "internal",
+                )
         decision = vehicle.pipeline.decide(sample, inputs.setpoints, enabled)
         with self._lock:
             vehicle.last_sample = sample
@@ -179,7 +201,7 @@ class HilService:
         enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
         reason = "telemetry stale" if stale else vehicle.control_reason
         if stale:
-            vehicle.pipeline.mark_stale()
+            vehicle.reset_pending = True  # controllers re-arm before the next decision
         counters = {
             **self.assembler.counters.as_dict(),
             **self.codec.counters.as_dict(),

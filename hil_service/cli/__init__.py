@@ -12,6 +12,8 @@ VERBS: dict[str, tuple[str, str]] = {
     "serve": ("hil_service.cli.serve", "run the HIL service: MAVLink in, Zenoh out, MCAP log"),
     "demo": ("hil_service.cli.demo", "emulator + service + Zenoh peer on loopback, summary"),
     "experiment": ("hil_service.cli.experiment", "identification and control experiments"),
+    "replay": ("hil_service.cli.replay", "replay a log through the service path (--check)"),
+    "info": ("hil_service.cli.info", "duration, channels and configuration of a log"),
 }
 
 

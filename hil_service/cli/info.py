@@ -1,0 +1,59 @@
+"""``glider-hil info``: what an MCAP log holds: duration, channels, stored configuration."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from hil_service.logreader import LogError, LogReader
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", help="an MCAP log written by glider-hil serve")
+    parser.add_argument("--json", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    reader = LogReader(args.log)
+    first = last = None
+    try:
+        for message in reader.messages():
+            first = message.log_time_ns if first is None else first
+            last = message.log_time_ns
+    except (LogError, OSError) as error:
+        print(f"glider-hil info: {error}", file=sys.stderr)
+        return 2
+    report = reader.report
+    info = {
+        "path": report.path,
+        "complete": report.complete,
+        "messages": report.messages,
+        "duration_s": 0.0 if first is None else (last - first) / 1e9,
+        "channels": {
+            topic: {"count": c["count"], "encoding": c["encoding"], "schema": c["schema"]}
+            for topic, c in sorted(report.channels.items())
+        },
+        "config": reader.config(),
+    }
+    if not report.complete:
+        info["recovery"] = report.describe()
+    try:
+        _print(info, args.json)
+    except BrokenPipeError:  # `glider-hil info LOG | head`
+        sys.stderr.close()
+    return 0
+
+
+def _print(info: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(info, indent=2))
+        return
+    print(f"{info['path']}: {info['messages']} messages over {info['duration_s']:.1f} s")
+    if "recovery" in info:
+        print(f"  {info['recovery']}")
+    print(f"  {'channel':48} {'count':>8}  encoding  schema")
+    for topic, channel in info["channels"].items():
+        print(f"  {topic:48} {channel['count']:>8}  {channel['encoding']:8}  {channel['schema']}")
+    print("  configuration:")
+    print("    " + json.dumps(info["config"], indent=2).replace("\n", "\n    "))

@@ -1,0 +1,92 @@
+"""``glider-hil replay``: feed a log's MAVLink frames through the service path again."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from hil_service.bus import Inbox, ZenohBus
+from hil_service.logreader import LogError
+from hil_service.replay import ReplayError, ReplayOptions, replay
+from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", help="an MCAP log written by glider-hil serve")
+    pace = parser.add_mutually_exclusive_group()
+    pace.add_argument("--speed", type=float, default=1.0, help="x the recorded pace")
+    pace.add_argument("--fast", action="store_true", help="as fast as possible")
+    parser.add_argument("--loop", action="store_true", help="start again at the end")
+    parser.add_argument("--publish", action="store_true", help="republish on Zenoh")
+    parser.add_argument(
+        "--check", action="store_true", help="recomputed estimates and commands must match"
+    )
+    parser.add_argument("--model", choices=("paper", "dynamic"), default=None)
+    parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_zenoh_arguments(parser)
+
+
+def _progress(done: int, total: int) -> None:
+    if total:
+        print(f"\r{100 * done / total:5.1f} %", end="", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.check and args.model is not None:
+        print("glider-hil replay: --check replays the stored model; drop --model", file=sys.stderr)
+        return 2
+    if not args.fast and not args.speed > 0:
+        print("glider-hil replay: --speed must be positive", file=sys.stderr)
+        return 2
+    options = ReplayOptions(
+        speed=None if args.fast else args.speed,
+        check=args.check,
+        model=args.model,
+        progress=_progress if args.fast and sys.stderr.isatty() else None,
+    )
+    session = bus = None
+    try:
+        if args.publish:
+            session = open_session(options_from_args(args))
+            bus = ZenohBus(session, Inbox())
+        while True:
+            result = replay(args.log, options, bus)
+            if options.progress is not None:
+                print(file=sys.stderr)
+            if result.recovered:
+                print(f"glider-hil replay: {result.recovered}", file=sys.stderr)
+            if result.mismatch is not None or not args.loop:
+                break
+    except (LogError, ReplayError, OSError) as error:
+        print(f"glider-hil replay: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if bus is not None:
+            bus.close()
+        if session is not None:
+            session.close()
+    report = {
+        "samples": result.samples,
+        "frames": result.frames,
+        "compared": result.compared,
+        "complete": result.complete,
+        "wall_s": round(result.wall_s, 3),
+        "max_lag_s": round(result.lag_s, 4),
+        "identifier": {
+            sid: v["identifier"] for sid, v in result.summary.get("vehicles", {}).items()
+        },
+    }
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(
+            f"replayed {result.samples} samples ({result.frames} frames) in "
+            f"{result.wall_s:.2f} s; {result.compared} recorded estimates/commands compared"
+        )
+    if result.mismatch is not None:
+        print(f"glider-hil replay: check failed: {result.mismatch.describe()}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,102 @@
+"""Recorded logs replay through the service path: bit-for-bit checks, timing, damaged files."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import Writer
+
+from hil_service.cli import main
+from tests.conftest import DATA
+
+SCENARIOS = ("paper", "disturbed", "nonlinear")
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_fixtures_replay_bit_for_bit(replay_log, scenario):
+    result = replay_log(DATA / f"{scenario}.mcap", check=True)
+    assert result.mismatch is None, result.mismatch.describe()
+    assert result.samples == 2000
+    assert result.compared > 4000  # both channels' estimates and the commands
+
+
+def copy_with_changed_estimate(source, target, index: int) -> float:
+    """Rewrite ``source`` with one byte of the index-th depth estimate changed."""
+    changed_t = None
+    with open(source, "rb") as src, open(target, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="glider-hil", library="test")
+        seen = 0
+        topics = {}
+        for record in StreamReader(src).records:
+            if isinstance(record, Schema):
+                writer.register_schema(record.name, record.encoding, record.data)
+            elif isinstance(record, Channel):
+                topics[record.id] = record.topic
+                writer.register_channel(
+                    record.topic, record.message_encoding, record.schema_id, record.metadata
+                )
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, record.metadata)
+            elif isinstance(record, Message):
+                data = record.data
+                if topics[record.channel_id] == "glider/1/umodel/depth":
+                    if seen == index:
+                        payload = json.loads(data)
+                        changed_t = payload["t"]
+                        text = data.decode()
+                        at = text.index('"y_hat": ') + len('"y_hat": ') + 3
+                        digit = "1" if text[at] != "1" else "2"
+                        data = (text[:at] + digit + text[at + 1 :]).encode()
+                    seen += 1
+                writer.add_message(record.channel_id, record.log_time, data, record.publish_time)
+        writer.finish()
+    assert changed_t is not None
+    return changed_t
+
+
+def test_check_fails_naming_the_first_changed_estimate(tmp_path, capsys):
+    changed = tmp_path / "changed.mcap"
+    t = copy_with_changed_estimate(DATA / "paper.mcap", changed, index=1234)
+    assert main(["replay", "--fast", "--check", str(changed)]) == 1
+    err = capsys.readouterr().err
+    assert "glider/1/umodel/depth" in err
+    assert f"message #1234 (t = {t:g} s)" in err
+
+
+def test_truncated_fixture_replays_up_to_the_cut(tmp_path, replay_log):
+    data = (DATA / "disturbed.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    result = replay_log(cut, check=True)
+    assert not result.complete
+    assert "recovered" in result.recovered
+    assert 200 < result.samples < 2000
+    assert result.mismatch is None
+
+
+def test_timed_replay_keeps_its_schedule_and_equals_fast_replay(replay_log):
+    path = DATA / "paper.mcap"
+    fast = replay_log(path)
+    started = time.monotonic()
+    timed = replay_log(path, speed=5.0)
+    elapsed = time.monotonic() - started
+    log_span = 20.0  # the fixture covers 20 s of wall time (2000 samples at 100x)
+    assert elapsed == pytest.approx(log_span / 5.0, abs=0.6)
+    assert timed.lag_s < 0.25
+    assert timed.summary == fast.summary
+
+
+def test_info_and_cli_errors(capsys, tmp_path):
+    assert main(["info", "--json", str(DATA / "nonlinear.mcap")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["complete"] and info["channels"]["mavlink/raw/in"]["count"] > 8000
+    assert info["config"]["service"]["pipeline"]["model"] == "dynamic"
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x00" * 100)
+    assert main(["replay", "--fast", str(junk)]) == 2
+    assert "not an MCAP file" in capsys.readouterr().err
