@@ -14,6 +14,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "experiment": ("hil_service.cli.experiment", "identification and control experiments"),
     "replay": ("hil_service.cli.replay", "replay a log through the service path (--check)"),
     "info": ("hil_service.cli.info", "duration, channels and configuration of a log"),
+    "report": ("hil_service.cli.report", "figures and a Markdown summary from a log"),
 }
 
 
