@@ -101,12 +101,13 @@ class ReplayInbox(Inbox):
 class RecordingBus(NullBus):
     """Keeps what the replayed service publishes, as the bytes the live bus would send."""
 
-    def __init__(self, inner: Bus | None = None):
+    def __init__(self, inner: Bus | None = None, capture: bool = True):
         self.inner = inner
+        self.capture = capture
         self.published: dict[str, deque[bytes]] = defaultdict(deque)
 
     def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        if _kind(key) in CHECKED_KINDS:
+        if self.capture and _kind(key) in CHECKED_KINDS:
             self.published[key].append(json.dumps(payload, allow_nan=False).encode())
         if self.inner is not None:
             self.inner.publish(key, payload, reliable)
@@ -174,7 +175,7 @@ def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> 
             stale_timeout=config.stale_timeout,
             pipeline=config.pipeline.replace(model=options.model),
         )
-    recording = RecordingBus(bus)
+    recording = RecordingBus(bus, capture=options.check)
     mapping = stored_mapping(LogReader(path).metadata_only())
     service = HilService(
         config, recording, ReplayInbox(events), mapping=mapping, send_commands=False

@@ -19,7 +19,7 @@ gains, and Newton then needs only the maps and their analytic derivatives.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -30,12 +30,33 @@ from .models import DynamicUModel, PaperUModel
 InputMap = Callable[[float], tuple[float, float]]
 
 
-@dataclass(frozen=True)
+@dataclass
 class Forecast:
     offset: float
     gains: tuple[float, ...]  # one per input lag 1..nb
     maps: tuple[InputMap, ...]
     grid_maps: Callable[[np.ndarray], list[np.ndarray]] | None = None
+    _last: tuple[float, float, float] | None = field(default=None, repr=False)
+
+    def _evaluate(self, u: float) -> tuple[float, float]:
+        # Newton asks for the value and the slope at the same u: evaluate the maps once.
+        last = self._last
+        if last is not None and last[0] == u:
+            return last[1], last[2]
+        total, slope = self.offset, 0.0
+        for gain, input_map in zip(self.gains, self.maps, strict=True):
+            if gain:
+                value, derivative = input_map(u)
+                total += gain * value
+                slope += gain * derivative
+        self._last = (u, total, slope)
+        return total, slope
+
+    def value(self, u: float) -> float:
+        return self._evaluate(u)[0]
+
+    def derivative(self, u: float) -> float:
+        return self._evaluate(u)[1]
 
     def values(self, us: np.ndarray) -> np.ndarray:
         """``value`` on an array at once (the inverse solver's fallback grid)."""
@@ -45,20 +66,6 @@ class Forecast:
         for gain, column in zip(self.gains, self.grid_maps(us), strict=True):
             if gain:
                 total += gain * column
-        return total
-
-    def value(self, u: float) -> float:
-        total = self.offset
-        for gain, input_map in zip(self.gains, self.maps, strict=True):
-            if gain:
-                total += gain * input_map(u)[0]
-        return total
-
-    def derivative(self, u: float) -> float:
-        total = 0.0
-        for gain, input_map in zip(self.gains, self.maps, strict=True):
-            if gain:
-                total += gain * input_map(u)[1]
         return total
 
 
