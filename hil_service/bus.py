@@ -41,10 +41,31 @@ class ControlInputs:
     reset: bool = False  # replay only: controllers were re-armed before this sample
 
 
+@dataclass(frozen=True)
+class SetpointLimits:
+    """Limits a vehicle owner sets: setpoints outside them are refused, never clipped."""
+
+    min_depth: float | None = None  # m
+    max_depth: float | None = None  # m
+    max_abs_pitch: float | None = None  # rad
+
+    def violation(self, channel: str, value: float) -> str:
+        """Why ``value`` is refused for ``channel``, or "" when it is acceptable."""
+        if channel == "depth":
+            if self.max_depth is not None and value > self.max_depth:
+                return f"depth setpoint {value:g} m below the maximum depth {self.max_depth:g} m"
+            if self.min_depth is not None and value < self.min_depth:
+                return f"depth setpoint {value:g} m above the minimum depth {self.min_depth:g} m"
+        elif self.max_abs_pitch is not None and abs(value) > self.max_abs_pitch:
+            return f"pitch setpoint {value:g} rad beyond ±{self.max_abs_pitch:g} rad"
+        return ""
+
+
 class Inbox:
     """Thread-safe store of control inputs, written by Zenoh callbacks, read per sample."""
 
-    def __init__(self) -> None:
+    def __init__(self, limits: SetpointLimits | None = None) -> None:
+        self.limits = limits or SetpointLimits()
         self._lock = threading.Lock()
         self._inputs: dict[int, ControlInputs] = {}
         self.rejected = 0
@@ -91,6 +112,10 @@ class Inbox:
             value = payload["value"]
             if value is not None and not math.isfinite(value):
                 self.reject(f"{key}: non-finite setpoint")
+                return
+            violation = "" if value is None else self.limits.violation(parts[3], value)
+            if violation:
+                self.reject(f"{key}: refused: {violation}")
                 return
             self.set_setpoint(system_id, parts[3], value)
         elif kind == "control" and len(parts) == 3:

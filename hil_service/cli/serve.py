@@ -8,8 +8,9 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import replace
 
-from hil_service.bus import Inbox, ZenohBus
+from hil_service.bus import Inbox, SetpointLimits, ZenohBus
 from hil_service.recorder import McapRecorder
 from hil_service.service import HilService, ServiceConfig
 from hil_service.vehicle import MODEL_CHOICES, PipelineSettings
@@ -50,6 +51,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
     parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
     parser.add_argument("--duration", type=float, default=None, help="wall s, then exit")
+    limits = parser.add_argument_group("limits (setpoints outside them are refused)")
+    limits.add_argument("--min-depth", type=float, default=None, help="shallowest setpoint, m")
+    limits.add_argument("--max-depth", type=float, default=None, help="deepest setpoint, m")
+    limits.add_argument("--max-pitch", type=float, default=None, help="largest |pitch|, rad")
+    limits.add_argument(
+        "--max-ballast-rate",
+        type=float,
+        default=None,
+        help="largest command change per step, model units (default: the actuator's 0.5)",
+    )
     add_zenoh_arguments(parser)
 
 
@@ -57,6 +68,11 @@ def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
     settings = PipelineSettings(model=args.model, seed=args.seed)
     if args.burn_in is not None:
         settings = settings.replace(burn_in=args.burn_in)
+    if args.max_ballast_rate is not None:
+        if not args.max_ballast_rate > 0:
+            raise ValueError("--max-ballast-rate must be positive")
+        control = replace(settings.control, rate_limit=args.max_ballast_rate)
+        settings = settings.replace(control=control)
     return settings
 
 
@@ -109,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.close()
         return 2
-    inbox = Inbox()
+    inbox = Inbox(SetpointLimits(args.min_depth, args.max_depth, args.max_pitch))
     bus = ZenohBus(session, inbox, recorder)
     service = HilService(config, bus, inbox, link=link, recorder=recorder, mapping=mapping)
     print(f"glider-hil serve: {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)

@@ -1,0 +1,52 @@
+"""Control inputs received over Zenoh: validation and the owner's setpoint limits."""
+
+from __future__ import annotations
+
+import json
+
+from hil_service.bus import Inbox, SetpointLimits
+
+
+def put(inbox: Inbox, key: str, payload: object) -> None:
+    inbox.accept(key, json.dumps(payload).encode())
+
+
+def test_valid_inputs_are_stored_per_vehicle():
+    inbox = Inbox()
+    put(inbox, "glider/1/setpoint/depth", {"value": 20.0})
+    put(inbox, "glider/2/setpoint/pitch", {"value": -0.1})
+    put(inbox, "glider/1/control", {"enabled": True})
+    assert inbox.get(1).setpoints == {"depth": 20.0, "pitch": None}
+    assert inbox.get(1).enabled is True
+    assert inbox.get(2).setpoints == {"depth": None, "pitch": -0.1}
+    assert inbox.get(2).enabled is None
+    put(inbox, "glider/1/setpoint/depth", {"value": None})  # clears it
+    assert inbox.get(1).setpoints["depth"] is None
+    assert inbox.rejected == 0
+
+
+def test_setpoints_outside_the_limits_are_refused_with_a_reason_not_clipped():
+    inbox = Inbox(SetpointLimits(min_depth=2.0, max_depth=100.0, max_abs_pitch=0.4))
+    put(inbox, "glider/1/setpoint/depth", {"value": 50.0})
+    put(inbox, "glider/1/setpoint/depth", {"value": 150.0})
+    assert inbox.get(1).setpoints["depth"] == 50.0, "a refused setpoint must not replace one"
+    assert "maximum depth 100 m" in inbox.last_rejection
+    put(inbox, "glider/1/setpoint/depth", {"value": 0.5})
+    assert "minimum depth 2 m" in inbox.last_rejection
+    put(inbox, "glider/1/setpoint/pitch", {"value": -0.5})
+    assert "±0.4 rad" in inbox.last_rejection
+    assert inbox.get(1).setpoints == {"depth": 50.0, "pitch": None}
+    assert inbox.rejected == 3
+
+
+def test_malformed_inputs_are_counted():
+    inbox = Inbox()
+    inbox.accept("glider/1/setpoint/depth", b"{not json")
+    put(inbox, "glider/1/setpoint/depth", {"value": "deep"})
+    put(inbox, "glider/1/setpoint/roll", {"value": 1.0})
+    put(inbox, "glider/x/control", {"enabled": True})
+    put(inbox, "glider/1/control", {"enabled": "yes"})
+    inbox.accept("glider/1/setpoint/depth", b'{"value": NaN}')
+    assert inbox.rejected == 6
+    assert inbox.get(1).setpoints == {"depth": None, "pitch": None}
+    assert inbox.get(1).enabled is None
