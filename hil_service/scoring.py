@@ -45,19 +45,19 @@ class ErrorStats:
         self._sum_y += y
         self._sum_y2 += y * y
 
-    def nmse(self) -> float | None:
+    def _normalised(self, sum_squares: float) -> float | None:
+        """Mean square over the variance of y, both after burn-in."""
         if self._n < 2:
             return None
         mean = self._sum_y / self._n
-        var = max(self._sum_y2 / self._n - mean * mean, 1e-300)
-        return (self._sum_e2 / self._n) / var
+        variance = max(self._sum_y2 / self._n - mean * mean, 1e-300)
+        return (sum_squares / self._n) / variance
+
+    def nmse(self) -> float | None:
+        return self._normalised(self._sum_e2)
 
     def persistence_nmse(self) -> float | None:
-        if self._n < 2:
-            return None
-        mean = self._sum_y / self._n
-        var = max(self._sum_y2 / self._n - mean * mean, 1e-300)
-        return (self._sum_p2 / self._n) / var
+        return self._normalised(self._sum_p2)
 
     def skill(self) -> float | None:
         if self._n < 2 or self._sum_p2 <= 0:
