@@ -1,13 +1,243 @@
-"""``glider-hil experiment``: placeholder until the experiment module lands."""
+"""``glider-hil experiment``: the paper's identification experiment, closed loop, speed.
+
+Runs the emulator's plant models in-process (no sockets). By default: every model
+(``paper``, ``dynamic``, ``rls-arx``, ``persistence``) on the same samples, scored on the
+a-priori one-step prediction after a burn-in. ``--closed-loop`` tracks setpoint steps with
+the inverse controller and compares with the reference-only plant; ``--bench`` prints how
+many samples per second one channel identifies and inverts on one core.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_service.experiment.closed_loop import ClosedLoopResult, ClosedLoopSettings, run_closed_loop
+from hil_service.experiment.identification import (
+    IdentificationResult,
+    IdentificationSettings,
+    run_identification,
+)
+from hil_service.experiment.speed import measure_all
+from hil_service.plots import prediction_figure, tracking_figure
+from plant_emulator.excitation import EXCITATIONS
+from plant_emulator.models import CHANNELS
+from plant_emulator.scenarios import SCENARIOS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    pass
+    parser.add_argument("--scenario", choices=(*SCENARIOS, "all"), default="paper")
+    parser.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
+    parser.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--burn-in", type=int, default=None, help="samples not scored (default: a fifth)"
+    )
+    parser.add_argument("--excitation", choices=EXCITATIONS, default="steps")
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print JSON: one object, or a list of objects for 'all'",
+    )
+    parser.add_argument("--plots", type=Path, metavar="DIR", help="write PNG figures here")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--closed-loop",
+        action="store_true",
+        help="track depth and pitch setpoint steps with the inverse controller",
+    )
+    mode.add_argument(
+        "--bench", action="store_true", help="samples/s of identifier + inverse per channel"
+    )
+    parser.add_argument(
+        "--identify",
+        type=int,
+        default=1500,
+        help="closed loop: open-loop samples before control starts (default 1500)",
+    )
+    parser.add_argument(
+        "--step-every", type=int, default=800, help="closed loop: samples between setpoint steps"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("glider-hil experiment: not available yet")
+    try:
+        if args.bench:
+            return _bench(args)
+        if args.closed_loop:
+            return _closed_loop(args)
+        return _identification(args)
+    except ValueError as error:
+        print(f"glider-hil experiment: {error}", file=sys.stderr)
+        return 2
+
+
+def _choices(value: str, options: tuple[str, ...]) -> tuple[str, ...]:
+    return options if value == "all" else (value,)
+
+
+# ---- identification ----------------------------------------------------------------------
+def _identification(args: argparse.Namespace) -> int:
+    results = []
+    for scenario in _choices(args.scenario, SCENARIOS):
+        for channel in _choices(args.channel, CHANNELS):
+            settings = IdentificationSettings(
+                scenario=scenario,
+                channel=channel,
+                samples=args.samples,
+                seed=args.seed,
+                burn_in=args.burn_in,
+                excitation=args.excitation,
+            )
+            result = run_identification(settings)
+            results.append(result)
+            if args.plots:
+                _identification_plots(result, args.plots)
+    if args.json:
+        objects = [r.as_json() for r in results]
+        print(json.dumps(objects[0] if len(objects) == 1 else objects))
+    else:
+        print(identification_table(results))
+        if args.plots:
+            print(f"figures in {args.plots}")
+    return 0
+
+
+def identification_table(results: list[IdentificationResult]) -> str:
+    first = results[0].settings
+    lines = [
+        f"one-step a-priori prediction, {first.samples} samples, burn-in "
+        f"{first.effective_burn_in}, seed {first.seed}, excitation {first.excitation}",
+        f"{'scenario':10s} {'channel':7s} {'model':12s} {'NMSE':>10s} {'skill':>8s} "
+        f"{'converged_at':>12s}",
+    ]
+    for result in results:
+        for name, trace in result.models.items():
+            lines.append(
+                f"{result.settings.scenario:10s} {result.settings.channel:7s} {name:12s} "
+                f"{_fmt(trace.nmse, '.5f'):>10s} {_fmt(trace.skill, '.3f'):>8s} "
+                f"{_fmt(trace.converged_at, 'd', 'never'):>12s}"
+            )
+    return "\n".join(lines)
+
+
+def _identification_plots(result: IdentificationResult, directory: Path) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    s = result.settings
+    t = np.arange(s.samples, dtype=float)
+    for name, trace in result.models.items():
+        prediction_figure(
+            directory / f"{s.scenario}_{s.channel}_{name}.png",
+            f"{name} model, {s.channel}, scenario {s.scenario}: NMSE {_fmt(trace.nmse, '.5f')},"
+            f" skill {_fmt(trace.skill, '.3f')}",
+            s.channel,
+            t,
+            result.y,
+            trace.y_hat,
+            None if name == "persistence" else trace.alpha,
+        )
+
+
+# ---- closed loop -------------------------------------------------------------------------
+def _closed_loop(args: argparse.Namespace) -> int:
+    scenarios = _choices(args.scenario, SCENARIOS)
+    results = []
+    for scenario in scenarios:
+        settings = ClosedLoopSettings(
+            scenario=scenario,
+            samples=args.samples,
+            seed=args.seed,
+            identify=args.identify,
+            step_every=args.step_every,
+            excitation=args.excitation,
+        )
+        result = run_closed_loop(settings)
+        results.append(result)
+        if args.plots:
+            _closed_loop_plots(result, args.plots)
+    if args.json:
+        objects = [r.as_json() for r in results]
+        print(json.dumps(objects[0] if len(objects) == 1 else objects))
+    else:
+        print("\n\n".join(closed_loop_table(r) for r in results))
+    return 0
+
+
+def closed_loop_table(result: ClosedLoopResult) -> str:
+    s = result.settings
+    data = result.as_json()
+    lines = [
+        f"closed loop, scenario {s.scenario}, {s.samples} samples ({s.identify} identifying, "
+        f"then a setpoint step every {s.step_every}), seed {s.seed}",
+        f"{'channel':7s} {'run':15s} {'IAE':>10s} {'overshoot%':>10s} {'settling s':>10s} "
+        f"{'settled':>8s}",
+    ]
+    for ch in CHANNELS:
+        for run_name in ("inverse", "reference_only"):
+            m = data["channels"][ch][run_name]
+            lines.append(
+                f"{ch:7s} {run_name:15s} {m['iae']:10.2f} {_fmt(m['overshoot_pct'], '.1f'):>10s}"
+                f" {_fmt(m['settling_s'], '.0f'):>10s} {m['settled_steps']:>4d}/{m['steps']:<3d}"
+            )
+        entry = data["channels"][ch]
+        bound = entry["iae_lower_bound"]
+        if bound is not None:
+            lines.append(
+                f"{ch:7s} {'bound':15s} {bound:10.2f}   (non-minimum-phase zero: no causal "
+                f"controller does better on these steps)"
+            )
+        lines.append(f"{ch:7s} IAE inverse / reference-only = {_fmt(entry['iae_ratio'], '.3f')}")
+    lines.append(
+        f"solver paths {data['solver_paths']}; blocked steps {data['blocked_steps']}; "
+        f"identifier divergences {data['divergences']}"
+    )
+    return "\n".join(lines)
+
+
+def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    t = np.arange(result.settings.samples, dtype=float)
+    for ch in CHANNELS:
+        tracking_figure(
+            directory / f"closed_loop_{result.settings.scenario}_{ch}.png",
+            f"{ch} setpoint steps, scenario {result.settings.scenario}",
+            ch,
+            t,
+            [
+                ("inverse control", result.inverse.y[ch]),
+                ("reference only", result.reference_only.y[ch]),
+            ],
+            result.inverse.setpoint[ch],
+            [
+                ("inverse control", result.inverse.u[ch]),
+                ("reference only", result.reference_only.u[ch]),
+            ],
+        )
+
+
+# ---- speed -------------------------------------------------------------------------------
+def _bench(args: argparse.Namespace) -> int:
+    scenario = "paper" if args.scenario == "all" else args.scenario
+    figures = measure_all(args.samples, scenario, args.seed)
+    if args.json:
+        print(json.dumps([f.__dict__ for f in figures]))
+        return 0
+    print(f"one channel on one core, {args.samples} samples, scenario {scenario}")
+    print(
+        f"{'channel':7s} {'model':8s} {'update/s':>10s} {'update+inverse/s':>17s} {'fallback':>9s}"
+    )
+    for f in figures:
+        print(
+            f"{f.channel:7s} {f.model:8s} {f.update_per_s:10.0f} {f.control_per_s:17.0f} "
+            f"{f.fallback_share:9.1%}"
+        )
+    return 0
+
+
+def _fmt(value: Any, spec: str, missing: str = "-") -> str:
+    return missing if value is None else format(value, spec)

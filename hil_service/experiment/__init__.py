@@ -1,0 +1,1 @@
+"""In-process experiments on the emulator's plant: identification, closed loop, speed."""

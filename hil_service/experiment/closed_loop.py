@@ -1,0 +1,270 @@
+"""Closed-loop experiment: setpoint steps tracked by the inverse controller.
+
+Two runs on identical plants (same scenario and seed, so the same disturbance): the
+service's pipeline (``dynamic`` U-model identified online, then IMC inverse control), and
+the stabilised plant driven by its reference alone (the ballast input set to the setpoint
+divided by the inner loop's DC gain). Both start from the same excitation phase, so the
+identifier has something to learn from before control starts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import control
+import numpy as np
+
+from hil_service.vehicle import PipelineSettings, VehiclePipeline
+from plant_emulator.excitation import build_channel_excitations
+from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS, open_loop_plant
+from plant_emulator.plant import GliderPlant, PlantConfig
+
+#: Setpoint sequences cycled through, one step every ``step_every`` samples. Depth in
+#: metres (the trim depth is 15 m), pitch in radians.
+DEPTH_SETPOINTS = (17.0, 14.0, 16.0, 15.0)
+PITCH_SETPOINTS = (0.15, -0.1, 0.0, 0.1)
+
+
+@dataclass(frozen=True)
+class ClosedLoopSettings:
+    scenario: str = "disturbed"
+    samples: int = 5000
+    seed: int = 0
+    identify: int = 1500  # samples of open-loop excitation before control starts
+    step_every: int = 800
+    settle_band: float = 0.1  # settled once |error| stays within this share of the step
+    excitation: str = "steps"
+
+    def __post_init__(self) -> None:
+        if self.identify < 1 or self.samples <= self.identify + 1:
+            raise ValueError(
+                f"need 1 <= identify < samples - 1, got identify={self.identify}, "
+                f"samples={self.samples}"
+            )
+        if self.step_every < 2:
+            raise ValueError(f"step_every must be at least 2, got {self.step_every}")
+
+
+@dataclass
+class StepMetrics:
+    """Tracking of one channel over the controlled part of a run."""
+
+    iae: float  # Σ|y − r|·period over the controlled samples, unit·s
+    overshoot: float | None  # worst overshoot over the steps, % of the step size
+    settling_median: float | None  # s, over the steps that settled
+    settled: int
+    steps: int
+    step_total: float  # Σ|step size| over the steps, unit
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "iae": round(self.iae, 4),
+            "overshoot_pct": None if self.overshoot is None else round(self.overshoot, 2),
+            "settling_s": None if self.settling_median is None else round(self.settling_median, 1),
+            "settled_steps": self.settled,
+            "steps": self.steps,
+            "step_total": round(self.step_total, 4),
+        }
+
+
+@dataclass
+class RunTrace:
+    """One run's time series (outputs, setpoints, inputs) over the whole experiment."""
+
+    y: dict[str, np.ndarray]
+    setpoint: dict[str, np.ndarray]
+    u: dict[str, np.ndarray]
+    metrics: dict[str, StepMetrics] = field(default_factory=dict)
+
+
+@dataclass
+class ClosedLoopResult:
+    settings: ClosedLoopSettings
+    inverse: RunTrace
+    reference_only: RunTrace
+    solver_paths: dict[str, int]
+    blocked: int
+    divergences: dict[str, int]
+    nmp_bound: dict[str, float | None]
+    identifier: dict[str, Any]
+
+    def iae_lower_bound(self, channel: str) -> float | None:
+        """The least IAE any causal controller could reach on the inverse run's steps."""
+        per_unit = self.nmp_bound[channel]
+        if per_unit is None:
+            return None
+        return _round(per_unit * self.inverse.metrics[channel].step_total)
+
+    def as_json(self) -> dict[str, Any]:
+        channels = {}
+        for ch in CHANNELS:
+            inv = self.inverse.metrics[ch]
+            ref = self.reference_only.metrics[ch]
+            channels[ch] = {
+                "inverse": inv.as_json(),
+                "reference_only": ref.as_json(),
+                "iae_ratio": round(inv.iae / ref.iae, 4) if ref.iae > 0 else None,
+                "iae_lower_bound": self.iae_lower_bound(ch),
+                "iae_bound_per_unit_step": _round(self.nmp_bound[ch]),
+            }
+        return {
+            "scenario": self.settings.scenario,
+            "samples": self.settings.samples,
+            "seed": self.settings.seed,
+            "identify": self.settings.identify,
+            "channels": channels,
+            "solver_paths": self.solver_paths,
+            "blocked_steps": self.blocked,
+            "divergences": self.divergences,
+            "identifier": self.identifier,
+        }
+
+
+def _round(value: float | None, digits: int = 4) -> float | None:
+    return None if value is None else round(value, digits)
+
+
+def setpoint_schedule(settings: ClosedLoopSettings) -> dict[str, np.ndarray]:
+    """Setpoints per sample: NaN while identifying, then a step every ``step_every``."""
+    schedules = {}
+    for ch, levels in (("depth", DEPTH_SETPOINTS), ("pitch", PITCH_SETPOINTS)):
+        values = np.full(settings.samples, np.nan)
+        for k in range(settings.identify, settings.samples):
+            index = (k - settings.identify) // settings.step_every
+            values[k] = levels[index % len(levels)]
+        schedules[ch] = values
+    return schedules
+
+
+def nmp_iae_bound(channel: str, period: float = 1.0) -> float | None:
+    """Lower bound on IAE per unit step for *any* stabilising controller, or None.
+
+    A real plant zero z₀ > 1 stays a zero of every closed loop (no stable controller can
+    cancel it), so E(z₀) = R(z₀) = z₀/(z₀ − 1) for a unit step, and since z₀⁻ᵏ ≤ 1,
+    Σ|e(k)| ≥ |Σ e(k) z₀⁻ᵏ| = z₀/(z₀ − 1). The nearest such zero to 1 gives the bound
+    (unit·samples; multiplied by the period for unit·s).
+    """
+    zeros = np.asarray(control.zeros(open_loop_plant(channel, period)), dtype=complex)
+    real = [z.real for z in zeros if abs(z.imag) < 1e-9 and z.real > 1.0]
+    if not real:
+        return None
+    z0 = min(real)
+    return z0 / (z0 - 1.0) * period
+
+
+def step_metrics(
+    y: np.ndarray, setpoint: np.ndarray, start: int, band: float, period: float
+) -> StepMetrics:
+    """IAE, worst overshoot and median settling time over the steps after ``start``."""
+    iae = float(np.sum(np.abs(y[start:] - setpoint[start:]))) * period
+    changes = [k for k in range(start + 1, y.size) if setpoint[k] != setpoint[k - 1]]
+    overshoots: list[float] = []
+    settling: list[float] = []
+    step_total = 0.0
+    # The first segment starts from wherever identification left the output.
+    starts = [start, *changes]
+    ends = [*changes, y.size]
+    for k0, k1 in zip(starts, ends, strict=True):
+        target = setpoint[k0]
+        initial = y[k0 - 1] if k0 > 0 else y[k0]
+        size = target - initial
+        if abs(size) < 1e-9:
+            continue
+        step_total += abs(size)
+        segment = y[k0:k1]
+        beyond = (segment - target) * math.copysign(1.0, size)
+        overshoots.append(max(0.0, float(np.max(beyond))) / abs(size) * 100.0)
+        outside = np.flatnonzero(np.abs(segment - target) > band * abs(size))
+        if outside.size == 0:
+            settling.append(0.0)
+        elif outside[-1] < segment.size - 1:
+            settling.append(float(outside[-1] + 1) * period)
+    return StepMetrics(
+        iae=iae,
+        overshoot=max(overshoots) if overshoots else None,
+        settling_median=float(np.median(settling)) if settling else None,
+        settled=len(settling),
+        steps=len(overshoots),
+        step_total=step_total,
+    )
+
+
+def _new_trace(n: int) -> RunTrace:
+    return RunTrace(
+        y={ch: np.empty(n) for ch in CHANNELS},
+        setpoint={ch: np.empty(n) for ch in CHANNELS},
+        u={ch: np.empty(n) for ch in CHANNELS},
+    )
+
+
+def run_closed_loop(
+    settings: ClosedLoopSettings, pipeline_settings: PipelineSettings | None = None
+) -> ClosedLoopResult:
+    schedule = setpoint_schedule(settings)
+    n = settings.samples
+    plant_config = PlantConfig(scenario=settings.scenario, seed=settings.seed)
+    period = plant_config.period
+    pipeline = VehiclePipeline(pipeline_settings or PipelineSettings(seed=settings.seed))
+    trim = plant_config.trim_depth
+
+    inverse = _new_trace(n)
+    plant = GliderPlant(plant_config)
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    command = (0.0, 0.0)
+    paths: dict[str, int] = {}
+    blocked = 0
+    for k in range(n):
+        sample = plant.step(*command)
+        pipeline.observe(sample)
+        for ch in CHANNELS:
+            inverse.y[ch][k] = sample.output(ch)
+            inverse.setpoint[ch][k] = schedule[ch][k]
+            inverse.u[ch][k] = sample.input(ch)
+        if k < settings.identify:
+            command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+            continue
+        setpoints = {ch: float(schedule[ch][k]) for ch in CHANNELS}
+        decision = pipeline.decide(sample, setpoints, True)
+        if decision.command is None or decision.payload is None:
+            blocked += 1  # the vehicle holds its last input, as it would on a silent link
+            continue
+        command = (decision.command.u_depth, decision.command.u_pitch)
+        mode = decision.payload["mode"]
+        paths[mode] = paths.get(mode, 0) + 1
+
+    reference_only = _new_trace(n)
+    plant = GliderPlant(plant_config)
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    command = (0.0, 0.0)
+    gains = {ch: DEFAULT_DESIGNS[ch].dc_gain for ch in CHANNELS}
+    for k in range(n):
+        sample = plant.step(*command)
+        for ch in CHANNELS:
+            reference_only.y[ch][k] = sample.output(ch)
+            reference_only.setpoint[ch][k] = schedule[ch][k]
+            reference_only.u[ch][k] = sample.input(ch)
+        if k < settings.identify:
+            command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+        else:
+            command = (
+                (float(schedule["depth"][k]) - trim) / gains["depth"],
+                float(schedule["pitch"][k]) / gains["pitch"],
+            )
+
+    for run in (inverse, reference_only):
+        for ch in CHANNELS:
+            run.metrics[ch] = step_metrics(
+                run.y[ch], run.setpoint[ch], settings.identify, settings.settle_band, period
+            )
+    return ClosedLoopResult(
+        settings=settings,
+        inverse=inverse,
+        reference_only=reference_only,
+        solver_paths=paths,
+        blocked=blocked,
+        divergences={ch: p.divergences for ch, p in pipeline.channels.items()},
+        nmp_bound={ch: nmp_iae_bound(ch, period) for ch in CHANNELS},
+        identifier=pipeline.identifier_health(),
+    )

@@ -1,0 +1,151 @@
+"""Open-loop identification experiment: every model on the same plant samples.
+
+The emulator's plant runs in-process (no sockets) under its own excitation; each model of
+``MODEL_NAMES`` sees the same (u(t−1), y(t)) pairs and is scored on its a-priori one-step
+prediction. This is the paper's experiment (figures 9–12) with the baselines beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hil_service.scoring import ErrorStats
+from hil_service.umodel import MODEL_NAMES, build_model, paper_preset
+from hil_service.vehicle import DEFAULT_MODEL_OPTIONS
+from plant_emulator.excitation import build_channel_excitations
+from plant_emulator.models import CHANNELS
+from plant_emulator.plant import GliderPlant, PlantConfig
+
+#: An error that stays within this share of the output's range counts as converged.
+CONVERGENCE_BAND = 0.05
+
+
+@dataclass(frozen=True)
+class IdentificationSettings:
+    scenario: str = "paper"
+    channel: str = "depth"
+    samples: int = 5000
+    seed: int = 0
+    burn_in: int | None = None  # default: a fifth of the samples
+    excitation: str = "steps"
+
+    def __post_init__(self) -> None:
+        if self.channel not in CHANNELS:
+            raise ValueError(f"channel must be one of {CHANNELS}, got {self.channel!r}")
+        if self.samples < 10:
+            raise ValueError(f"samples must be at least 10, got {self.samples}")
+        if self.burn_in is not None and not 0 <= self.burn_in < self.samples - 1:
+            raise ValueError(f"burn_in must be in 0..{self.samples - 2}, got {self.burn_in}")
+
+    @property
+    def effective_burn_in(self) -> int:
+        return self.samples // 5 if self.burn_in is None else self.burn_in
+
+
+@dataclass
+class ModelTrace:
+    """One model's run: scores and, per sample, prediction, error and U-model coefficients."""
+
+    name: str
+    config: dict[str, Any]
+    y_hat: np.ndarray
+    error: np.ndarray
+    alpha: np.ndarray  # samples × (M+1): α₀, α₁, … as used for the prediction
+    statuses: dict[str, int]
+    nmse: float | None = None
+    skill: float | None = None
+    converged_at: int | None = None
+
+    def scores(self) -> dict[str, float | int | None]:
+        return {"nmse": self.nmse, "skill": self.skill, "converged_at": self.converged_at}
+
+
+@dataclass
+class IdentificationResult:
+    settings: IdentificationSettings
+    y: np.ndarray
+    u: np.ndarray  # the input applied at each sample (u(t)); models see u(t−1)
+    models: dict[str, ModelTrace] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "scenario": self.settings.scenario,
+            "channel": self.settings.channel,
+            "samples": self.settings.samples,
+            "seed": self.settings.seed,
+            "burn_in": self.settings.effective_burn_in,
+            "models": {name: trace.scores() for name, trace in self.models.items()},
+        }
+
+
+def experiment_models(channel: str, seed: int) -> dict[str, Any]:
+    """The four models, configured as the service would run them on ``channel``."""
+    return {
+        "paper": paper_preset(seed=seed),
+        "dynamic": build_model("dynamic", seed=seed, **DEFAULT_MODEL_OPTIONS["dynamic"][channel]),
+        "rls-arx": build_model("rls-arx"),
+        "persistence": build_model("persistence"),
+    }
+
+
+def converged_at(error: np.ndarray, y: np.ndarray, band: float = CONVERGENCE_BAND) -> int | None:
+    """First sample after which |error| stays within ``band`` × range(y); None if never."""
+    span = float(np.max(y) - np.min(y)) if y.size else 0.0
+    outside = np.flatnonzero(np.abs(error) > band * span)
+    if outside.size == 0:
+        return 0
+    last = int(outside[-1])
+    return None if last == error.size - 1 else last + 1
+
+
+def run_identification(settings: IdentificationSettings) -> IdentificationResult:
+    plant = GliderPlant(PlantConfig(scenario=settings.scenario, seed=settings.seed))
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    models = experiment_models(settings.channel, settings.seed)
+    assert tuple(models) == MODEL_NAMES
+    n, ch = settings.samples, settings.channel
+    ys = np.empty(n)
+    us = np.empty(n)
+    y_hat = {name: np.empty(n) for name in models}
+    errors = {name: np.empty(n) for name in models}
+    alphas: dict[str, list[tuple[float, ...]]] = {name: [] for name in models}
+    statuses: dict[str, dict[str, int]] = {name: {} for name in models}
+    stats = {name: ErrorStats(burn_in=settings.effective_burn_in) for name in models}
+    command = (0.0, 0.0)
+    u_prev: float | None = None
+    for k in range(n):
+        sample = plant.step(*command)
+        y, u_now = sample.output(ch), sample.input(ch)
+        u_in = u_now if u_prev is None else u_prev
+        estimates = {name: model.step(u_in, y) for name, model in models.items()}
+        persistence_error = estimates["persistence"].error
+        for name, estimate in estimates.items():
+            y_hat[name][k] = estimate.y_hat
+            errors[name][k] = estimate.error
+            alphas[name].append(estimate.alpha)
+            statuses[name][estimate.status] = statuses[name].get(estimate.status, 0) + 1
+            stats[name].add(y, estimate.error, persistence_error)
+        ys[k], us[k] = y, u_now
+        u_prev = u_now
+        command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+    result = IdentificationResult(settings=settings, y=ys, u=us)
+    for name, model in models.items():
+        width = max(len(a) for a in alphas[name])
+        alpha = np.full((n, width), np.nan)
+        for k, a in enumerate(alphas[name]):
+            alpha[k, : len(a)] = a
+        result.models[name] = ModelTrace(
+            name=name,
+            config=model.config(),
+            y_hat=y_hat[name],
+            error=errors[name],
+            alpha=alpha,
+            statuses=statuses[name],
+            nmse=stats[name].nmse(),
+            skill=stats[name].skill(),
+            converged_at=converged_at(errors[name], ys),
+        )
+    return result

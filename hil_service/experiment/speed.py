@@ -1,0 +1,92 @@
+"""How fast one channel identifies and inverts, on the emulator's plant, on one core.
+
+Two figures per channel and model: the identifier update alone (``model.step`` on recorded
+samples), and the service's control step (identifier update + IMC target + forecast +
+inverse solve + command shaping, ``ChannelPipeline.observe`` and ``solve``) in closed loop
+with the plant. The plant's own cost is excluded from both timings.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from hil_service.vehicle import ChannelPipeline, PipelineSettings
+from plant_emulator.excitation import build_channel_excitations
+from plant_emulator.models import CHANNELS
+from plant_emulator.plant import GliderPlant, PlantConfig
+
+#: Setpoints cycled through in the control timing, per channel (metres, radians).
+_SETPOINTS = {"depth": (17.0, 14.0, 16.0), "pitch": (0.15, -0.1, 0.05)}
+
+
+@dataclass(frozen=True)
+class SpeedFigure:
+    channel: str
+    model: str
+    update_per_s: float
+    control_per_s: float
+    fallback_share: float
+
+
+def _recorded(scenario: str, n: int, seed: int) -> list[tuple[float, float, float, float]]:
+    plant = GliderPlant(PlantConfig(scenario=scenario, seed=seed))
+    excitation = build_channel_excitations("steps", seed)
+    rows = []
+    command = (0.0, 0.0)
+    for k in range(n):
+        s = plant.step(*command)
+        rows.append((s.depth, s.u_depth, s.pitch, s.u_pitch))
+        command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+    return rows
+
+
+def measure(
+    channel: str, model: str, samples: int, scenario: str = "paper", seed: int = 0
+) -> SpeedFigure:
+    settings = PipelineSettings(model=model, seed=seed, burn_in=min(300, samples // 4))
+    rows = _recorded(scenario, samples, seed)
+    col = 0 if channel == "depth" else 2
+    pipeline = ChannelPipeline(channel, settings, seed)
+    start = time.perf_counter()
+    for k, row in enumerate(rows):
+        pipeline.observe(float(k), row[col], row[col + 1])
+    update = time.perf_counter() - start
+
+    # Closed loop: the plant is stepped outside the timed sections.
+    pipeline = ChannelPipeline(channel, settings, seed)
+    plant = GliderPlant(PlantConfig(scenario=scenario, seed=seed))
+    excitation = build_channel_excitations("steps", seed)[channel]
+    warm = settings.burn_in
+    u = 0.0
+    timed = 0.0
+    fallbacks = 0
+    levels = _SETPOINTS[channel]
+    for k in range(samples + warm):
+        sample = plant.step(u, 0.0) if channel == "depth" else plant.step(0.0, u)
+        y, u_now = sample.output(channel), sample.input(channel)
+        if k < warm:
+            pipeline.observe(float(k), y, u_now)
+            u = excitation.value(k)
+            continue
+        setpoint = levels[(k // 200) % len(levels)]
+        t0 = time.perf_counter()
+        pipeline.observe(float(k), y, u_now)
+        u, path, _ = pipeline.solve(setpoint, y, u_now)
+        timed += time.perf_counter() - t0
+        fallbacks += path == "fallback"
+    return SpeedFigure(
+        channel=channel,
+        model=model,
+        update_per_s=samples / update,
+        control_per_s=samples / timed,
+        fallback_share=fallbacks / samples,
+    )
+
+
+def measure_all(samples: int, scenario: str = "paper", seed: int = 0) -> list[SpeedFigure]:
+    return [
+        measure(channel, model, samples, scenario, seed)
+        for channel in CHANNELS
+        for model in ("paper", "dynamic")
+    ]
