@@ -169,9 +169,7 @@ class ZenohBus:
     def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
         publisher = self._publishers.get(key)
         if publisher is None:
-            congestion = (
-                zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-            )
+            congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
             publisher = self.session.declare_publisher(
                 key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
             )

@@ -75,9 +75,7 @@ class LogReader:
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}
         with open(self.path, "rb") as stream:
-            reader = StreamReader(
-                stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT
-            )
+            reader = StreamReader(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT)
             records = reader.records
             while True:
                 offset = stream.tell()
@@ -136,4 +134,3 @@ class LogReader:
         """The service configuration stored in the log (read the messages first)."""
         stored = self.report.metadata.get(CONFIG_METADATA, {})
         return {key: json.loads(value) for key, value in stored.items()}
-

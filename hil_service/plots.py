@@ -87,9 +87,15 @@ def tracking_figure(
     if channel == "depth":
         top.invert_yaxis()
     top.legend(loc="upper right")
-    for label, values in inputs:
+    for i, (label, values) in enumerate(inputs):
+        # Later series dashed so that one drawn over an identical one stays visible.
         bottom.step(
-            t if input_t is None else input_t, values, where="post", linewidth=0.9, label=label
+            t if input_t is None else input_t,
+            values,
+            where="post",
+            linewidth=0.9,
+            linestyle="-" if i == 0 else "--",
+            label=label,
         )
     bottom.set_ylabel("ballast input [model units]")
     bottom.set_xlabel(f"time [{time_unit}]")

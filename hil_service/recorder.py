@@ -100,9 +100,7 @@ class McapRecorder:
         self._put(("zenoh", key, json.dumps(payload, allow_nan=False).encode(), direction,
                    t_ns or time.time_ns()))  # fmt: skip
 
-    def zenoh_encoded(
-        self, key: str, data: bytes, direction: str, t_ns: int | None = None
-    ) -> None:
+    def zenoh_encoded(self, key: str, data: bytes, direction: str, t_ns: int | None = None) -> None:
         """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
         self._put(("zenoh", key, data, direction, t_ns or time.time_ns()))
 
@@ -259,5 +257,3 @@ class McapRecorder:
         if stream is not None:
             with contextlib.suppress(OSError):
                 stream.close()
-
-

@@ -189,8 +189,12 @@ def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> 
         if message.topic == RAW_IN:
             if options.speed is not None:
                 first_log_ns = first_log_ns or message.log_time_ns
-                result.lag_s = max(result.lag_s, _wait_until(
-                    started + (message.log_time_ns - first_log_ns) / 1e9 / options.speed))
+                result.lag_s = max(
+                    result.lag_s,
+                    _wait_until(
+                        started + (message.log_time_ns - first_log_ns) / 1e9 / options.speed
+                    ),
+                )
             service.process_datagram(message.data)
             result.frames += 1
         elif options.check and _kind(message.topic) in CHECKED_KINDS:

@@ -222,9 +222,7 @@ class VehiclePipeline:
         elif not active:
             reason = "no setpoint"
         else:
-            reason = next(
-                (r for ch in active if (r := self.channels[ch].blocked_reason())), ""
-            )
+            reason = next((r for ch in active if (r := self.channels[ch].blocked_reason())), "")
         if reason:
             for pipeline in self.channels.values():
                 pipeline.deactivate()

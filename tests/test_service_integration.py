@@ -47,9 +47,9 @@ def rig(processes, tmp_path):
 
 def test_identify_command_disable_and_stale(rig, processes):
     probe: ZenohProbe = rig["probe"]
-    assert probe.wait_for(
-        lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 200, 40
-    ), {k: len(v) for k, v in probe.received.items()}
+    assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 200, 40), {
+        k: len(v) for k, v in probe.received.items()
+    }
 
     # A-priori predictions beat persistence on depth after burn-in.
     estimates = probe.payloads("glider/1/umodel/depth")[BURN_IN:]

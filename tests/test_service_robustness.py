@@ -131,8 +131,10 @@ def test_vehicles_split_by_system_id_with_state_and_liveliness(processes, tmp_pa
             first.step(k * 1000, depth=15.0 + 0.1 * k)
             second.step(k * 1000, depth=40.0 - 0.1 * k)
         assert probe.wait_for(
-            lambda: probe.count("glider/1/umodel/depth") == 30
-            and probe.count("glider/2/umodel/depth") == 30,
+            lambda: (
+                probe.count("glider/1/umodel/depth") == 30
+                and probe.count("glider/2/umodel/depth") == 30
+            ),
             10,
         )
         assert probe.payloads("glider/1/telemetry")[-1]["depth"] == pytest.approx(17.9, abs=1e-3)

@@ -1,14 +1,39 @@
-"""``glider-hil report``: placeholder until the report module lands."""
+"""``glider-hil report``: figures and a Markdown summary from a service log.
+
+Per vehicle and channel: actual vs a-priori predicted output with the error and the U-model
+coefficients (like the paper's figures 9–12), the setpoints, outputs and ballast commands
+when control ran, and ``report.md`` with NMSE, skill versus persistence, convergence,
+tracking error and the link's packet loss, embedding the figures.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
+
+from hil_service.log_report import write_report
+from hil_service.logreader import LogError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log")
-    parser.add_argument("-o", "--output", default="report")
+    parser.add_argument("log", type=Path, help="an MCAP log written by glider-hil serve")
+    parser.add_argument(
+        "-o", "--output", type=Path, default=Path("report"), help="directory (default: report)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("glider-hil report: not available yet")
+    try:
+        report = write_report(args.log, args.output)
+    except (LogError, OSError) as error:
+        print(f"glider-hil report: {error}", file=sys.stderr)
+        return 2
+    if not report.summaries:
+        print(f"glider-hil report: {args.log} holds no identifier publications", file=sys.stderr)
+        return 1
+    for s in report.summaries:
+        skill = "-" if s.skill is None else f"{s.skill:.3f}"
+        print(f"glider {s.system_id} {s.channel}: {s.samples} samples, skill {skill}")
+    print(f"wrote {report.markdown} and {len(report.figures)} figures")
+    return 0

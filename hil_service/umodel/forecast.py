@@ -121,9 +121,8 @@ def forecast_model(model: Any, u_applied: float, horizon: int) -> Forecast:
             return value - model._linear_const(), slope
 
         maps: list[InputMap] = [static]
-        maps += [
-            (lambda u, lag=lag: model.lag_map(lag, u)) for lag in range(2, model.nb + 1)
-        ]
+        maps += [(lambda u, lag=lag: model.lag_map(lag, u)) for lag in range(2, model.nb + 1)]
+
         def grid(us: np.ndarray) -> list[np.ndarray]:
             static_values = model.output_given_inputs(us) - model._linear_const()
             return [static_values, *model.lag_maps_on_grid(us)]

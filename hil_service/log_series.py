@@ -1,0 +1,130 @@
+"""Time series per vehicle from a service log: what ``report`` draws and scores.
+
+Reads the decoded Zenoh publications the service recorded (``glider/{id}/telemetry``,
+``umodel/{channel}``, ``command/ballast``, ``health``), not the raw MAVLink: a report shows
+what the service computed at the time, under the configuration stored in the log.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_service.logreader import LogReader, ReadReport
+
+CHANNELS = ("depth", "pitch")
+_TOPIC = re.compile(r"^glider/(\d+)/(telemetry|umodel/(depth|pitch)|command/ballast|health)$")
+
+
+@dataclass
+class ChannelSeries:
+    t: list[float] = field(default_factory=list)
+    y: list[float] = field(default_factory=list)
+    y_hat: list[float] = field(default_factory=list)
+    baseline_y_hat: list[float] = field(default_factory=list)
+    alpha: list[list[float]] = field(default_factory=list)
+    status: list[str] = field(default_factory=list)
+    model: str = ""
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        width = max((len(a) for a in self.alpha), default=0)
+        alpha = np.full((len(self.alpha), width), np.nan)
+        for k, a in enumerate(self.alpha):
+            alpha[k, : len(a)] = a
+        return {
+            "t": np.asarray(self.t, dtype=float),
+            "y": np.asarray(self.y, dtype=float),
+            "y_hat": np.asarray(self.y_hat, dtype=float),
+            "baseline_y_hat": np.asarray(self.baseline_y_hat, dtype=float),
+            "alpha": alpha,
+        }
+
+
+@dataclass
+class CommandSeries:
+    t: list[float] = field(default_factory=list)
+    u: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
+    setpoint: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
+    saturated: int = 0
+
+
+@dataclass
+class VehicleSeries:
+    system_id: int
+    telemetry_t: list[float] = field(default_factory=list)
+    applied: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
+    channels: dict[str, ChannelSeries] = field(
+        default_factory=lambda: {ch: ChannelSeries() for ch in CHANNELS}
+    )
+    commands: CommandSeries = field(default_factory=CommandSeries)
+    last_health: dict[str, Any] | None = None
+
+
+@dataclass
+class LogSeries:
+    path: Path
+    read: ReadReport
+    config: dict[str, Any]
+    vehicles: dict[int, VehicleSeries]
+    skipped: int  # publications that could not be used (bad JSON, missing fields)
+
+
+def _number(value: Any) -> float:
+    return float(value) if isinstance(value, (int, float)) else math.nan
+
+
+def load_series(path: str | Path) -> LogSeries:
+    """All vehicles' series; a log cut short is read up to its last complete chunk."""
+    reader = LogReader(path)
+    vehicles: dict[int, VehicleSeries] = {}
+    skipped = 0
+    for message in reader.messages():
+        match = _TOPIC.match(message.topic)
+        if not match:
+            continue
+        system_id = int(match.group(1))
+        vehicle = vehicles.setdefault(system_id, VehicleSeries(system_id))
+        try:
+            payload = message.json()
+            _add(vehicle, match.group(2), match.group(3), payload)
+        except (ValueError, TypeError, KeyError, AttributeError):
+            skipped += 1
+    return LogSeries(Path(path), reader.report, reader.config(), vehicles, skipped)
+
+
+def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[str, Any]) -> None:
+    if kind == "telemetry":
+        t = _number(payload["t"])
+        applied = {ch: _number(payload[f"u_{ch}"]) for ch in CHANNELS}
+        vehicle.telemetry_t.append(t)
+        for ch in CHANNELS:
+            vehicle.applied[ch].append(applied[ch])
+    elif kind == "health":
+        vehicle.last_health = dict(payload)
+    elif kind == "command/ballast":
+        commands = vehicle.commands
+        t = _number(payload["t"])
+        setpoints = payload.get("setpoints") or {}
+        values = {ch: payload.get(f"u_{ch}") for ch in CHANNELS}
+        commands.t.append(t)
+        for ch in CHANNELS:
+            commands.u[ch].append(_number(values[ch]))
+            commands.setpoint[ch].append(_number(setpoints.get(ch)))
+        commands.saturated += bool(payload.get("saturated"))
+    elif channel is not None:
+        series = vehicle.channels[channel]
+        alpha = [float(a) for a in payload.get("alpha", [])]
+        t, y, y_hat = (_number(payload[k]) for k in ("t", "y", "y_hat"))
+        baseline = _number(payload.get("baseline_y_hat"))
+        series.t.append(t)
+        series.y.append(y)
+        series.y_hat.append(y_hat)
+        series.baseline_y_hat.append(baseline)
+        series.alpha.append(alpha)
+        series.status.append(str(payload.get("status", "ok")))
+        series.model = str(payload.get("model", series.model))
