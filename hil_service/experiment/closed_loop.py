@@ -168,7 +168,9 @@ def step_metrics(
     ends = [*changes, y.size]
     for k0, k1 in zip(starts, ends, strict=True):
         target = setpoint[k0]
-        initial = y[k0 - 1] if k0 > 0 else y[k0]
+        # A step's size is the setpoint change; the first one starts from the output.
+        before = setpoint[k0 - 1] if k0 > 0 else math.nan
+        initial = before if math.isfinite(before) else (y[k0 - 1] if k0 > 0 else y[k0])
         size = target - initial
         if abs(size) < 1e-9:
             continue
