@@ -23,11 +23,24 @@ from protocols import keys
 from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
 from protocols.samples import TelemetrySample
+from protocols.signing import FrameVerifier
 
 
 def decision_inputs_topic(system_id: int) -> str:
     """MCAP channel of the control inputs each decision used (recorded on change)."""
     return f"glider-hil/{system_id}/decision-inputs"
+
+
+@dataclass(frozen=True)
+class LinkSecurity:
+    """MAVLink 2 signing on the vehicle link. The key itself is never logged or published."""
+
+    key: bytes | None = field(default=None, repr=False)
+    #: With a key: still accept unsigned telemetry (counted), e.g. while a fleet migrates.
+    accept_unsigned: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return {"signed": self.key is not None, "accept_unsigned": self.accept_unsigned}
 
 
 @dataclass(frozen=True)
@@ -38,6 +51,7 @@ class ServiceConfig:
     stale_timeout: float = 3.0  # wall s without a sample → no commands
     health_period: float = 1.0  # wall s
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
+    security: LinkSecurity = field(default_factory=LinkSecurity)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -45,6 +59,7 @@ class ServiceConfig:
             "control_default": self.control_default,
             "stale_timeout": self.stale_timeout,
             "pipeline": self.pipeline.to_json(),
+            "signing": self.security.to_json(),
         }
 
 
@@ -85,7 +100,18 @@ class HilService:
         self.mapping = mapping or TelemetryMapping()
         self.clock = clock
         self.send_commands = send_commands and link is not None
-        self.codec = MavlinkCodec(config.service_system_id, SERVICE_COMPONENT)
+        security = config.security
+        self.verifier = (
+            None
+            if security.key is None
+            else FrameVerifier(security.key, accept_unsigned=security.accept_unsigned)
+        )
+        self.codec = MavlinkCodec(
+            config.service_system_id,
+            SERVICE_COMPONENT,
+            signing_key=security.key,
+            verifier=self.verifier,
+        )
         self.assembler = SampleAssembler(self.mapping, config.system_ids or None)
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}
@@ -96,7 +122,12 @@ class HilService:
     def process_datagram(self, data: bytes, datagram: bool = True) -> list[TelemetrySample]:
         now_ns = time.time_ns()
         samples = []
-        for message in self.codec.parse(data, datagram=datagram):
+        messages = self.codec.parse(data, datagram=datagram)
+        if self.recorder is not None:
+            # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
+            for frame in self.codec.last_rejected:
+                self.recorder.raw("rejected", frame, now_ns)
+        for message in messages:
             if self.recorder is not None:
                 self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
                 self.recorder.mavlink("in", message, now_ns)
@@ -210,6 +241,8 @@ class HilService:
             "acks_accepted": vehicle.acks["accepted"],
             "acks_refused": vehicle.acks["refused"],
         }
+        if self.verifier is not None:
+            counters.update(self.verifier.counters.as_dict())
         if self.recorder is not None:
             counters["log_records"] = self.recorder.status.records
             counters["log_dropped"] = self.recorder.status.dropped
@@ -239,6 +272,11 @@ class HilService:
             if vehicle.last_sample_wall is None
             else now - vehicle.last_sample_wall,
         }
+        payload["signing"] = {
+            **self.config.security.to_json(),
+            "rejected": 0 if self.verifier is None else self.verifier.counters.rejected,
+            "last_rejection": "" if self.verifier is None else self.verifier.last_reason,
+        }
         if self.recorder is not None:
             payload["logging"] = self.recorder.status.as_dict()
         if self.inbox.last_rejection:
@@ -261,7 +299,11 @@ class HilService:
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
-            "counters": {**self.assembler.counters.as_dict(), **self.codec.counters.as_dict()},
+            "counters": {
+                **self.assembler.counters.as_dict(),
+                **self.codec.counters.as_dict(),
+                **({} if self.verifier is None else self.verifier.counters.as_dict()),
+            },
             "link": self.sequence.as_dict(),
             "vehicles": {
                 str(system_id): {

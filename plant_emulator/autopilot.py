@@ -23,6 +23,16 @@ from plant_emulator.plant import GliderPlant
 from protocols.mapping import CommandRejected, TelemetryMapping, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
+from protocols.signing import FrameVerifier
+
+#: Messages that change the vehicle: never accepted unsigned when a key is set.
+COMMAND_MESSAGE_IDS = frozenset(
+    {
+        dialect.MAVLINK_MSG_ID_COMMAND_LONG,
+        dialect.MAVLINK_MSG_ID_COMMAND_INT,
+        dialect.MAVLINK_MSG_ID_SETUP_SIGNING,
+    }
+)
 
 FALLBACKS = ("excitation", "hold")
 HEARTBEAT_PERIOD = 1.0  # s, wall clock
@@ -35,6 +45,10 @@ class AutopilotConfig:
     duration: float | None = None  # simulated seconds; None runs until stopped
     command_timeout: float = 10.0  # simulated seconds without a command → fallback
     fallback: str = "excitation"
+    #: MAVLink 2 signing key: sign everything sent, accept only correctly signed frames.
+    signing_key: bytes | None = field(default=None, repr=False)
+    #: With a key: still accept unsigned frames that are not commands (a GCS heartbeat).
+    accept_unsigned_non_commands: bool = False
 
     def __post_init__(self) -> None:
         if not (self.speed > 0 and math.isfinite(self.speed)):
@@ -43,6 +57,8 @@ class AutopilotConfig:
             raise ValueError(f"fallback must be one of {FALLBACKS}, got {self.fallback!r}")
         if not 1 <= self.system_id <= 255:
             raise ValueError(f"system id must be 1..255, got {self.system_id}")
+        if self.accept_unsigned_non_commands and self.signing_key is None:
+            raise ValueError("accepting unsigned non-commands needs a signing key")
 
 
 @dataclass
@@ -62,6 +78,8 @@ class AutopilotStats:
             key: value for key, value in self.__dict__.items() if key != "last_sample"
         }
         summary.update({f"rx_{k}": v for k, v in codec.counters.as_dict().items()})
+        if codec.verifier is not None:
+            summary.update({f"rx_{k}": v for k, v in codec.verifier.counters.as_dict().items()})
         if self.last_sample is not None:
             summary["last_sample"] = self.last_sample.to_payload()
         return summary
@@ -87,7 +105,20 @@ class Autopilot:
         self.mapping = mapping or TelemetryMapping()
         self.clock = clock
         self.on_step = on_step
-        self.codec = MavlinkCodec(self.config.system_id, dialect.MAV_COMP_ID_AUTOPILOT1)
+        key = self.config.signing_key
+        verifier = None
+        if key is not None:
+            verifier = FrameVerifier(
+                key,
+                accept_unsigned=self.config.accept_unsigned_non_commands,
+                always_signed=COMMAND_MESSAGE_IDS,
+            )
+        self.codec = MavlinkCodec(
+            self.config.system_id,
+            dialect.MAV_COMP_ID_AUTOPILOT1,
+            signing_key=key,
+            verifier=verifier,
+        )
         self.stats = AutopilotStats()
         self._external = {"depth": math.nan, "pitch": math.nan}
         self._last_command_t: float | None = None  # simulated time of the last command

@@ -14,6 +14,7 @@ from plant_emulator.plant import GliderPlant, PlantConfig
 from plant_emulator.scenarios import SCENARIOS
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
+from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
 
@@ -41,6 +42,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="simulated s without a command before falling back (default 10)",
     )
     parser.add_argument("--fallback", choices=FALLBACKS, default="excitation")
+    parser.add_argument(
+        "--signing-key",
+        metavar="FILE",
+        help="MAVLink 2 signing key file (32 bytes or 64 hex digits, mode 600): sign all "
+        "frames, accept only signed ones",
+    )
+    parser.add_argument(
+        "--accept-unsigned-non-commands",
+        action="store_true",
+        help="with --signing-key: also accept unsigned frames that are not commands",
+    )
     parser.add_argument("--full-scale", type=float, default=2.0, help="model units at wire 1.0")
     parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
     parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
@@ -67,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
             duration=args.duration,
             command_timeout=args.command_timeout,
             fallback=args.fallback,
+            signing_key=None if args.signing_key is None else load_key(args.signing_key),
+            accept_unsigned_non_commands=args.accept_unsigned_non_commands,
         )
         mapping = TelemetryMapping(
             pressure=PressureDepth(args.water_density, args.surface_pressure),

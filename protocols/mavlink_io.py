@@ -20,6 +20,8 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as dialect
 
+from protocols.signing import FrameVerifier, signing_timestamp
+
 DIALECT_NAME = "common"
 MAVLINK_VERSION = 2
 
@@ -53,19 +55,35 @@ class MavlinkCodec:
     system_id: int
     component_id: int
     counters: ParseCounters = field(default_factory=ParseCounters)
+    #: Sign every outgoing frame with this 32-byte key (MAVLink 2 signing), link id 0.
+    signing_key: bytes | None = None
+    #: Check incoming frames' signatures; frames it refuses are not decoded further.
+    verifier: FrameVerifier | None = None
+    #: Frames the verifier refused during the last ``parse`` call (for the log).
+    last_rejected: list[bytes] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        # Decoding never checks signatures itself (see protocols.signing for why); a second
+        # instance with the key does the signing of what we send.
         self._mav = dialect.MAVLink(None, srcSystem=self.system_id, srcComponent=self.component_id)
         self._mav.robust_parsing = True
-
-    @property
-    def signing(self) -> Any:
-        return self._mav.signing
+        self._packer = self._mav
+        if self.signing_key is not None:
+            self._packer = dialect.MAVLink(
+                None, srcSystem=self.system_id, srcComponent=self.component_id
+            )
+            self._packer.signing.secret_key = self.signing_key
+            self._packer.signing.sign_outgoing = True
+            self._packer.signing.link_id = 0
 
     def pack(self, message: MavMessage) -> bytes:
-        """Frame ``message`` with our identity and the next sequence number."""
-        frame = bytes(message.pack(self._mav))
-        self._mav.seq = (self._mav.seq + 1) % 256  # pymavlink advances it only in send()
+        """Frame ``message`` with our identity and the next sequence number (signed if keyed)."""
+        packer = self._packer
+        if self.signing_key is not None:
+            # Never behind the wall clock, always increasing: receivers reject anything else.
+            packer.signing.timestamp = max(packer.signing.timestamp, signing_timestamp())
+        frame = bytes(message.pack(packer))
+        packer.seq = (packer.seq + 1) % 256  # pymavlink advances it only in send()
         return frame
 
     def parse(self, data: bytes, datagram: bool = False) -> list[MavMessage]:
@@ -87,6 +105,7 @@ class MavlinkCodec:
             self.counters.bad_frames += 1
             self._reset_parser()
         good = []
+        self.last_rejected = []
         for message in messages:
             kind = message.get_type()
             if kind == "BAD_DATA":
@@ -97,6 +116,11 @@ class MavlinkCodec:
                 # as likely garbage as a foreign dialect, and carry nothing we use.
                 self.counters.unknown_frames += 1
                 continue
+            if self.verifier is not None:
+                frame = bytes(message.get_msgbuf())
+                if not self.verifier.accept(frame):
+                    self.last_rejected.append(frame)
+                    continue
             self.counters.frames += 1
             good.append(message)
         return good

@@ -14,6 +14,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,6 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-dir", default="logs")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument(
+        "--signing",
+        action="store_true",
+        help="sign the MAVLink link both ways with a fresh key (kept in a private temp dir)",
+    )
 
 
 def free_port(kind: int) -> int:
@@ -116,10 +122,17 @@ def run(args: argparse.Namespace) -> int:
     sim_total = args.duration * args.speed
     t_control, t_second = 0.4 * sim_total, 0.7 * sim_total
     Path(args.log_dir).mkdir(parents=True, exist_ok=True)
+    key_dir = tempfile.TemporaryDirectory(prefix="glider-hil-demo-")
+    signing: list[str] = []
+    if args.signing:
+        key_path = Path(key_dir.name) / "mavlink.key"
+        key_path.touch(mode=0o600)
+        key_path.write_bytes(os.urandom(32))
+        signing = ["--signing-key", str(key_path)]
     service = _start(
         "serve", "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
         "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
-        "--burn-in", str(int(0.25 * sim_total)),
+        "--burn-in", str(int(0.25 * sim_total)), *signing,
     )  # fmt: skip
     emulator = None
     session = None
@@ -135,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
             "emulate", "--connect", f"udpout:127.0.0.1:{udp_port}", "--speed", str(args.speed),
             "--duration", str(sim_total), "--scenario", args.scenario, "--seed", str(args.seed),
             "--trim-depth", str(TRIM_DEPTH), "--command-timeout", "5", "--fallback", "hold",
+            *signing,
         )  # fmt: skip
         plan = [
             (t_control, {"depth": TRIM_DEPTH + 2.0, "pitch": 0.15}),
@@ -162,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         service_out, service_err = _stop(service)
         if session is not None:
             session.close()
+        key_dir.cleanup()
     summary = _last_json(service_out, "service")
     if not summary:
         print(f"demo: the service printed no summary\n{service_err}", file=sys.stderr)
@@ -191,6 +206,9 @@ def run(args: argparse.Namespace) -> int:
         "control_reason_at_end": health.get("control", {}).get("reason"),
         "log": summary.get("log", {}).get("file"),
         "emulator": _last_json(emulator_out, "emulator").get("steps"),
+        "signing": {
+            k: v for k, v in summary.get("counters", {}).items() if k.startswith("signing_")
+        },
     }
     if args.json:
         print(json.dumps(result, indent=2))
@@ -218,4 +236,6 @@ def print_summary(result: dict[str, Any]) -> None:
         f"commands: {result['commands_sent']} sent, acks {result['acks']}; "
         f"control at end: {result['control_reason_at_end'] or 'commanding'}"
     )
+    if result["signing"]:
+        print(f"signing: {result['signing']}")
     print(f"log: {result['log']}")

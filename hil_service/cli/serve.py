@@ -12,11 +12,12 @@ from dataclasses import replace
 
 from hil_service.bus import Inbox, SetpointLimits, ZenohBus
 from hil_service.recorder import McapRecorder
-from hil_service.service import HilService, ServiceConfig
+from hil_service.service import HilService, LinkSecurity, ServiceConfig
 from hil_service.vehicle import MODEL_CHOICES, PipelineSettings
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
+from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
 
@@ -61,6 +62,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="largest command change per step, model units (default: the actuator's 0.5)",
     )
+    security = parser.add_argument_group("MAVLink 2 signing")
+    security.add_argument(
+        "--signing-key",
+        metavar="FILE",
+        help="key file (32 bytes or 64 hex digits, mode 600): sign commands, require signed "
+        "telemetry",
+    )
+    security.add_argument(
+        "--accept-unsigned",
+        action="store_true",
+        help="with --signing-key: accept unsigned telemetry too (counted in health)",
+    )
     add_zenoh_arguments(parser)
 
 
@@ -76,6 +89,14 @@ def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
     return settings
 
 
+def security_from_args(args: argparse.Namespace) -> LinkSecurity:
+    if args.signing_key is None:
+        if args.accept_unsigned:
+            raise ValueError("--accept-unsigned needs --signing-key")
+        return LinkSecurity()
+    return LinkSecurity(load_key(args.signing_key), accept_unsigned=args.accept_unsigned)
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         mapping = TelemetryMapping(
@@ -87,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
             control_default=args.control,
             stale_timeout=args.stale_timeout,
             pipeline=settings_from_args(args),
+            security=security_from_args(args),
         )
         zenoh_options = options_from_args(args)
         zenoh_options.to_config()  # a bad config file is reported here, before anything opens
