@@ -4,7 +4,10 @@ A step is complete when its ATTITUDE, SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATU
 stamped with the same time, have arrived (VFR_HUD carries no timestamp and is not needed).
 A step with a missing piece is counted when a later step supersedes it, never guessed;
 a timestamp at or before the last emitted one is counted as out of order and dropped;
-non-finite or physically absurd values are counted as invalid and dropped.
+non-finite or physically absurd values are counted as invalid and dropped. A vehicle whose
+clock starts again from a lower value and keeps advancing for ``REBOOT_STEPS`` steps has
+rebooted (its ``time_boot_ms`` restarts): that is counted in ``restarts`` and assembly
+starts afresh rather than dropping it forever.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from protocols.mavlink_io import MavMessage
 from protocols.samples import TelemetrySample
 
 MAX_PENDING_STEPS = 4
+REBOOT_STEPS = 3
 DEPTH_RANGE = (-50.0, 11_000.0)  # m: above the surface by a wave crest .. the deepest trench
 
 
@@ -33,6 +37,7 @@ class AssemblyCounters:
     out_of_order: int = 0
     invalid: int = 0
     unknown_system: int = 0
+    restarts: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -53,6 +58,7 @@ class _VehicleState:
     pending: dict[int, _Pending] = field(default_factory=dict)
     last_emitted_ms: int | None = None
     last_late_ms: int | None = None
+    late_run: int = 0  # distinct, increasing late timestamps in a row
 
 
 class SampleAssembler:
@@ -88,9 +94,19 @@ class SampleAssembler:
             return None
         if vehicle.last_emitted_ms is not None and stamp <= vehicle.last_emitted_ms:
             if stamp != vehicle.last_late_ms:  # count a late step once, not per message
-                self.counters.out_of_order += 1
+                advancing = vehicle.last_late_ms is not None and stamp > vehicle.last_late_ms
+                vehicle.late_run = vehicle.late_run + 1 if advancing else 1
                 vehicle.last_late_ms = stamp
+                if vehicle.late_run >= REBOOT_STEPS:
+                    self.counters.restarts += 1
+                    vehicle.pending.clear()
+                    vehicle.last_emitted_ms = None
+                    vehicle.last_late_ms = None
+                    vehicle.late_run = 0
+                    return self.add(message)
+                self.counters.out_of_order += 1
             return None
+        vehicle.late_run = 0
         pending = vehicle.pending.get(stamp)
         if pending is None:
             pending = vehicle.pending[stamp] = _Pending()

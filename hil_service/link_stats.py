@@ -12,11 +12,13 @@ MAX_FORWARD_GAP = 128
 
 @dataclass
 class SequenceTracker:
-    """Counts frames lost per sender (system, component) from gaps in the 8-bit sequence.
+    """Counts frames lost, duplicated and reordered per sender (system, component).
 
-    A duplicate (same seq again) or a frame that arrives behind the latest (reordering) is
-    counted separately and does not count as loss; the duplicate's predecessor gap is not
-    reopened either, so loss is never counted twice.
+    The 8-bit sequence number is unwrapped against the sender's latest frame. A forward gap
+    marks the skipped numbers missing (counted as lost); a frame arriving behind the latest
+    fills its hole if it was missing (reordered: no longer lost) and is a duplicate
+    otherwise, so late copies are never mistaken for late originals and nothing is counted
+    twice. Holes older than ``MAX_FORWARD_GAP`` frames stay lost.
     """
 
     received: int = 0
@@ -24,6 +26,7 @@ class SequenceTracker:
     duplicates: int = 0
     reordered: int = 0
     _last: dict[tuple[int, int], int] = field(default_factory=dict)
+    _missing: dict[tuple[int, int], set[int]] = field(default_factory=dict)
 
     def observe(self, system_id: int, component_id: int, seq: int) -> None:
         self.received += 1
@@ -31,17 +34,26 @@ class SequenceTracker:
         last = self._last.get(key)
         if last is None:
             self._last[key] = seq
+            self._missing[key] = set()
             return
+        missing = self._missing[key]
         gap = (seq - last) % SEQ_MODULO
         if gap == 0:
             self.duplicates += 1
         elif gap <= MAX_FORWARD_GAP:
             self.lost += gap - 1
+            for skipped in range(1, gap):
+                missing.add((last + skipped) % SEQ_MODULO)
             self._last[key] = seq
-        else:
+            # Forget holes so old that their numbers will come round again.
+            for stale in [m for m in missing if (seq - m) % SEQ_MODULO > MAX_FORWARD_GAP]:
+                missing.discard(stale)
+        elif seq in missing:
+            missing.discard(seq)
             self.reordered += 1
-            # a late frame fills a hole counted as lost before
-            self.lost = max(self.lost - 1, 0)
+            self.lost -= 1
+        else:
+            self.duplicates += 1
 
     @property
     def loss_fraction(self) -> float:

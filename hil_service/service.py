@@ -240,6 +240,7 @@ class HilService:
             "commands_sent": vehicle.commands_sent,
             "acks_accepted": vehicle.acks["accepted"],
             "acks_refused": vehicle.acks["refused"],
+            "step_gaps": vehicle.pipeline.gaps.gaps,
         }
         if self.verifier is not None:
             counters.update(self.verifier.counters.as_dict())
@@ -310,6 +311,7 @@ class HilService:
                     "identifier": vehicle.pipeline.identifier_health(),
                     "commands_sent": vehicle.commands_sent,
                     "acks": dict(vehicle.acks),
+                    "step_gaps": vehicle.pipeline.gaps.gaps,
                 }
                 for system_id, vehicle in self.vehicles.items()
             },

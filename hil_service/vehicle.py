@@ -79,6 +79,36 @@ class PipelineSettings:
         return cls(control=control, **data)
 
 
+@dataclass
+class StepContinuity:
+    """Tells whether a sample directly follows the previous one.
+
+    The plant period is learnt as the smallest positive timestamp step seen (the vehicle
+    does not announce it); a step longer than ``tolerance`` periods means samples are
+    missing in between.
+    """
+
+    tolerance: float = 1.5
+    period_ms: int | None = None
+    last_ms: int | None = None
+    gaps: int = 0
+
+    def follows(self, time_ms: int) -> bool:
+        last, self.last_ms = self.last_ms, time_ms
+        if last is None:
+            return False
+        step = time_ms - last
+        if step <= 0:
+            self.gaps += 1
+            return False
+        if self.period_ms is None or step < self.period_ms:
+            self.period_ms = step
+        if step > self.tolerance * self.period_ms:
+            self.gaps += 1
+            return False
+        return True
+
+
 @dataclass(frozen=True)
 class Decision:
     command: BallastCommand | None
@@ -104,13 +134,33 @@ class ChannelPipeline:
         self.rejected = 0
         self.active = False
         self.mismatch = 0.0
+        self.resync = 0  # samples still to refill the model's history after a gap
+        self.skipped = 0
 
     def config(self) -> dict[str, Any]:
         return self.model.config()
 
-    def observe(self, t: float, y: float, u_now: float) -> dict[str, Any]:
-        # The first sample has no u(t−1): its own applied input is the best available guess.
-        u_prev = u_now if self.u_prev is None else self.u_prev
+    def observe(
+        self, t: float, y: float, u_now: float, follows_previous: bool = True
+    ) -> dict[str, Any] | None:
+        """Learn from one sample; None when the sample only refills the history.
+
+        After a gap (``follows_previous`` False; also the very first sample) the input
+        applied one step before ``y`` is unknown and the model's lags hold pre-gap values,
+        so the next ``history_length`` samples enter the history without training the model
+        (counted as ``skipped``): a missing step is skipped, never mis-aligned.
+        """
+        if not follows_previous or self.u_prev is None:
+            self.resync = self.model.history_length
+        if self.resync > 0:
+            u_prev = u_now if self.u_prev is None else self.u_prev
+            self.model.observe_only(u_prev, y)
+            self.persistence.observe_only(u_prev, y)
+            self.u_prev = u_now
+            self.resync -= 1
+            self.skipped += 1
+            return None
+        u_prev = self.u_prev
         estimate = self.model.step(u_prev, y)
         baseline = self.persistence.step(u_prev, y)
         self.u_prev = u_now
@@ -143,7 +193,9 @@ class ChannelPipeline:
         }
 
     def blocked_reason(self) -> str:
-        if self.last is not None and self.last.status == "diverged":
+        if self.resync > 0 or self.last is None:
+            return f"identifier resynchronising after a telemetry gap ({self.channel})"
+        if self.last.status == "diverged":
             return f"identifier diverged ({self.channel})"
         if not self.converged:
             return (
@@ -193,6 +245,7 @@ class ChannelPipeline:
             "converged": self.converged,
             "divergences": self.divergences,
             "rejected": self.rejected,
+            "skipped": self.skipped,
             **self.stats.summary(),
         }
 
@@ -204,12 +257,17 @@ class VehiclePipeline:
             ch: ChannelPipeline(ch, self.settings, self.settings.seed * 2 + i)
             for i, ch in enumerate(CHANNELS)
         }
+        self.gaps = StepContinuity()
 
     def observe(self, sample: TelemetrySample) -> dict[str, dict[str, Any]]:
-        return {
-            ch: pipeline.observe(sample.t, sample.output(ch), sample.input(ch))
-            for ch, pipeline in self.channels.items()
-        }
+        """Estimates per channel (a channel refilling its history after a gap has none)."""
+        follows = self.gaps.follows(sample.time_boot_ms)
+        estimates = {}
+        for ch, pipeline in self.channels.items():
+            estimate = pipeline.observe(sample.t, sample.output(ch), sample.input(ch), follows)
+            if estimate is not None:
+                estimates[ch] = estimate
+        return estimates
 
     def decide(
         self, sample: TelemetrySample, setpoints: dict[str, float | None], enabled: bool

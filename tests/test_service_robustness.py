@@ -9,6 +9,7 @@ import time
 import pytest
 
 from hil_service.logreader import LogReader
+from hil_service.umodel import build_model
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.samples import TelemetrySample
@@ -38,6 +39,10 @@ class FakeVehicle:
 
     def close(self) -> None:
         self.sock.close()
+
+
+#: Samples the default identifier spends refilling its lags after the start or a gap.
+HISTORY = build_model("dynamic").history_length
 
 
 def start_service(processes, tmp_path, *extra: str):
@@ -82,9 +87,13 @@ def test_bad_mavlink_input_is_counted_in_health(processes, tmp_path):
         health = probe.payloads("glider/1/health")[-1]
         assert health["malformed"] >= 4
         assert service.poll() is None
-        # The bad samples never reached the identifier.
+        # The bad samples never reached the identifier, and around the hole they left (t = 20,
+        # 21, 22 s) it refilled its history instead of pairing y(23) with u(19).
         ys = [e["y"] for e in probe.payloads("glider/1/umodel/depth")]
-        assert len(ys) == 27 and all(math.isfinite(y) and y < 100 for y in ys)
+        assert all(math.isfinite(y) and y < 100 for y in ys)
+        assert len(ys) == 27 - 2 * HISTORY
+        assert health["identifier"]["depth"]["skipped"] == 2 * HISTORY
+        assert c["step_gaps"] == 1
     finally:
         vehicle.close()
         stranger.close()
@@ -132,8 +141,8 @@ def test_vehicles_split_by_system_id_with_state_and_liveliness(processes, tmp_pa
             second.step(k * 1000, depth=40.0 - 0.1 * k)
         assert probe.wait_for(
             lambda: (
-                probe.count("glider/1/umodel/depth") == 30
-                and probe.count("glider/2/umodel/depth") == 30
+                probe.count("glider/1/umodel/depth") == 30 - HISTORY
+                and probe.count("glider/2/umodel/depth") == 30 - HISTORY
             ),
             10,
         )

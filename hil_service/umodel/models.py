@@ -169,6 +169,38 @@ class _ModelBase:
     def frozen(self) -> bool:
         return self._frozen
 
+    @property
+    def history_length(self) -> int:
+        """Contiguous samples needed before the regressor holds no pre-gap value again.
+
+        One for u(t−1) plus the model's own lags; ``observe_only`` that many samples after
+        a gap in the telemetry and learning resumes on a correctly aligned regressor.
+        """
+        return 1 + self._lags()
+
+    def _lags(self) -> int:
+        return 0
+
+    def observe_only(self, u_prev: float, y: float) -> bool:
+        """Advance the history by one sample without predicting or learning from it.
+
+        For the samples after a gap: ``u_prev`` may not be the input really applied one step
+        before ``y``, so the pair must not train the model, but ``y`` must enter the history.
+        Non-finite or out-of-range values are ignored (False).
+        """
+        g = self.guard
+        ok = (
+            _isfinite(u_prev)
+            and abs(u_prev) <= g.input_limit
+            and _isfinite(y)
+            and abs(y) <= g.output_limit
+        )
+        if ok:
+            self._push(u_prev, y)
+            self._y_last = y
+            self._u_last = u_prev
+        return ok
+
     def predict(self, u_prev: float) -> float:
         """A-priori ŷ for input ``u_prev`` given the current history; never NaN, no mutation.
 
@@ -561,6 +593,11 @@ class DynamicUModel(_UModelCore):
     def _linear_const(self) -> float:
         return self._levels[0] + super()._linear_const()
 
+    def _lags(self) -> int:
+        # Δy regressors need na + 1 post-gap levels; the guessed u(t−1) of the first sample
+        # leaves the input lags after nb − 1 more pushes.
+        return max(self.na, self.nb - 1)
+
     def _push(self, u: float, y: float) -> None:
         # After the push, _levels = [y(t), y(t−1), …] and _inputs = [u(t−1), u(t−2), …]
         # describe the regressor of the next sample.
@@ -721,6 +758,9 @@ class RlsArxModel(_ModelBase):
         self._theta[:] = 0.0
         self.rls.reset()
         self._cache = None
+
+    def _lags(self) -> int:
+        return max(self.na - 1, self.nb - 1)
 
     def _push(self, u: float, y: float) -> None:
         phi = self._phi
