@@ -1,0 +1,179 @@
+"""The service outlives its peers: the vehicle link dropping and returning, the Zenoh router
+going away and coming back. Real processes, real UDP and Zenoh on loopback."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from hil_service.logreader import LogReader
+from tests.conftest import ROOT, free_tcp_port, free_udp_port
+from tests.test_service_robustness import FakeVehicle
+from tests.zenoh_peer import ZenohProbe
+
+STALE = 1.0
+
+
+def _emulator(processes, udp: int):
+    return processes.start(
+        "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--speed", "50",
+        "--duration", "100000", "--scenario", "disturbed", "--seed", "5",
+        "--command-timeout", "5",
+    )  # fmt: skip
+
+
+def _latest_health(probe: ZenohProbe) -> dict:
+    health = probe.payloads("glider/1/health")
+    return health[-1] if health else {}
+
+
+@pytest.mark.timeout(90)
+def test_vehicle_link_lost_and_recovered(processes, tmp_path):
+    udp, zport = free_udp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    processes.start(
+        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+        "--log-dir", str(tmp_path / "logs"), "--stale-timeout", str(STALE), "--burn-in", "100",
+    )  # fmt: skip
+    time.sleep(0.8)
+    probe = ZenohProbe(endpoint)
+    try:
+        first = _emulator(processes, udp)
+        assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > 150, 30)
+        depth = probe.payloads("glider/1/telemetry")[-1]["depth"]
+        probe.put("glider/1/setpoint/depth", {"value": depth + 1.0})
+        probe.put("glider/1/control", {"enabled": True})
+        assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > 30, 20)
+
+        processes.stop(first)
+        lost_at = time.monotonic()
+        assert probe.wait_for(
+            lambda: _latest_health(probe).get("control", {}).get("reason") == "telemetry stale",
+            STALE + 3,
+        ), _latest_health(probe).get("control")
+        stale_after = time.monotonic() - lost_at
+        commands_while_down = probe.count("glider/1/command/ballast")
+        before = _latest_health(probe)["identifier"]["depth"]
+        time.sleep(1.5)
+        assert probe.count("glider/1/command/ballast") == commands_while_down
+        assert stale_after < STALE + 2.0
+
+        down_for = time.monotonic() - lost_at
+        _emulator(processes, udp)  # a rebooted autopilot: its clock starts again at 0
+        assert probe.wait_for(
+            lambda: probe.count("glider/1/command/ballast") > commands_while_down + 20, 30
+        ), _latest_health(probe).get("control")
+        # The identifier kept what it learnt: no second burn-in, its count carried on.
+        assert probe.wait_for(
+            lambda: (
+                _latest_health(probe)["identifier"]["depth"]["samples"] > before["samples"]
+                and _latest_health(probe)["control"]["reason"] == ""
+            ),
+            5,
+        )
+        after = _latest_health(probe)
+        assert after["identifier"]["depth"]["converged"]
+        assert after["counters"]["restarts"] == 1
+    finally:
+        probe.close()
+        processes.stop_all()
+
+    [log] = (tmp_path / "logs").glob("*.mcap")
+    times = [m.log_time_ns / 1e9 for m in LogReader(log).messages({"glider/1/telemetry"})]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert max(gaps) > 0.8 * down_for  # the outage is visible in the log
+    assert sorted(gaps)[-2] < 1.0  # and it is the only one
+
+
+def _router(endpoint: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.zenoh_router", endpoint],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def _received(router: subprocess.Popen[str], until: float) -> int:
+    """Read the router's count lines until ``until`` (monotonic) or it reports > 0."""
+    assert router.stdout is not None
+    latest = 0
+    while time.monotonic() < until:
+        line = router.stdout.readline()
+        if not line:
+            break
+        latest = json.loads(line)["received"]
+        if latest > 0:
+            break
+    return latest
+
+
+def _stop(router: subprocess.Popen[str]) -> None:
+    if router.poll() is None:
+        router.terminate()
+    try:
+        router.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        router.kill()
+        router.communicate(timeout=5)
+
+
+@pytest.mark.timeout(90)
+def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_path):
+    zport, udp = free_tcp_port(), free_udp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    router = _router(endpoint)
+    service = None
+    stop = threading.Event()
+    try:
+        time.sleep(1.0)
+        service = processes.start(
+            "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-connect", endpoint,
+            "--log-dir", str(tmp_path / "logs"),
+        )  # fmt: skip
+        time.sleep(0.8)
+        vehicle = FakeVehicle(udp)
+
+        def stream() -> None:
+            k = 0
+            while not stop.is_set():
+                vehicle.step(k * 1000, depth=15.0 + 0.01 * (k % 100))
+                k += 1
+                time.sleep(0.02)
+
+        sender = threading.Thread(target=stream, daemon=True)
+        sender.start()
+        assert _received(router, time.monotonic() + 15) > 0, "router never heard the service"
+
+        _stop(router)
+        outage_start = time.time()
+        time.sleep(3.0)
+        outage_end = time.time()
+        router = _router(endpoint)
+        assert _received(router, time.monotonic() + 30) > 0, "publications did not resume"
+        assert service.poll() is None
+    finally:
+        stop.set()
+        _stop(router)
+        if service is not None:
+            out, _ = processes.stop(service)
+    vehicle.close()
+    summary = json.loads(out.strip().splitlines()[-1])["service"]
+    [log] = (tmp_path / "logs").glob("*.mcap")
+    during = [
+        m
+        for m in LogReader(log).messages({"mavlink/raw/in", "glider/1/telemetry"})
+        if outage_start + 0.5 < m.log_time_ns / 1e9 < outage_end - 0.5
+    ]
+    # 2 s of outage at 50 steps/s: MAVLink decoding and logging went on throughout.
+    assert sum(m.topic == "glider/1/telemetry" for m in during) > 50
+    assert sum(m.topic == "mavlink/raw/in" for m in during) > 150
+    assert summary["counters"]["samples"] > 200
