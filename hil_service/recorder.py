@@ -49,6 +49,7 @@ class RecorderStatus:
 
     def as_dict(self) -> dict[str, Any]:
         return {
+            "state": "failed" if self.error else "ok",
             "file": self.files[-1] if self.files else None,
             "files": len(self.files),
             "records": self.records,

@@ -1,0 +1,85 @@
+"""A full disk mid-run: the service keeps controlling, says so in health, and logs again
+into a new file once space returns. The "full disk" is the running service's file-size
+limit (RLIMIT_FSIZE, set from outside with prlimit), so writes really fail with EFBIG."""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+
+import pytest
+
+from hil_service.logreader import LogReader
+from tests.conftest import free_tcp_port, free_udp_port
+from tests.zenoh_peer import ZenohProbe
+
+pytestmark = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="prlimit on another process is Linux-only"
+)
+
+
+def _health(probe: ZenohProbe) -> dict:
+    payloads = probe.payloads("glider/1/health")
+    return payloads[-1] if payloads else {}
+
+
+@pytest.mark.timeout(90)
+def test_disk_full_mid_run_keeps_control_and_logging_resumes(processes, tmp_path):
+    udp, zport = free_udp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    logs = tmp_path / "logs"
+    service = processes.start(
+        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+        "--log-dir", str(logs), "--burn-in", "100",
+    )  # fmt: skip
+    time.sleep(0.8)
+    probe = ZenohProbe(endpoint)
+    try:
+        processes.start(
+            "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--speed", "50",
+            "--duration", "100000", "--scenario", "disturbed", "--seed", "2",
+        )  # fmt: skip
+        assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > 150, 30)
+        depth = probe.payloads("glider/1/telemetry")[-1]["depth"]
+        probe.put("glider/1/setpoint/depth", {"value": depth - 1.0})
+        probe.put("glider/1/control", {"enabled": True})
+        assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > 20, 20)
+
+        # The disk fills up: no file of the service may grow any more.
+        _, hard = resource.prlimit(service.pid, resource.RLIMIT_FSIZE)
+        resource.prlimit(service.pid, resource.RLIMIT_FSIZE, (1, hard))
+        assert probe.wait_for(
+            lambda: _health(probe).get("logging", {}).get("state") == "failed", 10
+        ), _health(probe).get("logging")
+        failed = _health(probe)["logging"]
+        assert "File too large" in failed["error"] or "EFBIG" in failed["error"], failed
+        commands = probe.count("glider/1/command/ballast")
+        time.sleep(2.0)
+        assert probe.count("glider/1/command/ballast") > commands + 30, "control stopped"
+        assert _health(probe)["control"]["reason"] == ""
+        assert _health(probe)["logging"]["dropped"] > failed["dropped"]
+
+        # Space again: within the retry period a new file takes the records.
+        resource.prlimit(service.pid, resource.RLIMIT_FSIZE, (hard, hard))
+        restored = time.time()
+        assert probe.wait_for(
+            lambda: (
+                _health(probe).get("logging", {}).get("state") == "ok"
+                and _health(probe)["logging"]["files"] > failed["files"]
+            ),
+            10,
+        ), _health(probe).get("logging")
+        time.sleep(1.0)
+    finally:
+        probe.close()
+        processes.stop_all()
+    assert service.returncode == 0
+    files = sorted(logs.glob("*.mcap"))
+    assert len(files) >= 2
+    newest = LogReader(files[-1])
+    telemetry = [m for m in newest.messages({"glider/1/telemetry"})]
+    assert newest.report.complete
+    assert telemetry and all(m.log_time_ns / 1e9 > restored - 0.5 for m in telemetry)
+    commands = list(newest.messages({"glider/1/command/ballast"}))
+    assert commands, "commands after the disk recovered are missing from the new file"
