@@ -92,9 +92,9 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
     assert sorted(gaps)[-2] < 1.0  # and it is the only one
 
 
-def _router(endpoint: str) -> subprocess.Popen[str]:
+def _router(endpoint: str, config_file: str | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, "-m", "tests.zenoh_router", endpoint],
+        [sys.executable, "-m", "tests.zenoh_router", endpoint, *filter(None, [config_file])],
         stdout=subprocess.PIPE,
         text=True,
         cwd=ROOT,

@@ -1,6 +1,7 @@
 """A Zenoh router in its own process, for tests that kill and restart it.
 
-Run: python -m tests.zenoh_router ENDPOINT. It subscribes to ``glider/**`` and prints one
+Run: python -m tests.zenoh_router ENDPOINT [CONFIG.json5]. It subscribes to ``glider/**``
+and prints one
 JSON line per 0.2 s with the number of samples received so far; it exits on SIGTERM/SIGINT.
 """
 
@@ -15,11 +16,11 @@ import time
 from hil_service.zenoh_config import ZenohOptions, open_session
 
 
-def main(endpoint: str) -> int:
+def main(endpoint: str, config_file: str | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    session = open_session(ZenohOptions(listen=(endpoint,), mode="router"))
+    session = open_session(ZenohOptions(config_file, mode="router", listen=(endpoint,)))
     received = [0]
 
     def count(_sample: object) -> None:
@@ -34,4 +35,4 @@ def main(endpoint: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1]))
+    sys.exit(main(*sys.argv[1:3]))

@@ -1,0 +1,153 @@
+"""The documented secure Zenoh set-up (config/zenoh/), really started: a TLS router with
+user/password authentication and access control, the service connected as "service".
+
+Certificates are made in the test with config/zenoh/make-certs.sh (the openssl CLI).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from hil_service.zenoh_config import ZenohOptions, open_session
+from tests.conftest import ROOT, free_tcp_port, free_udp_port
+from tests.test_recovery import _router, _stop
+
+CONFIGS = ROOT / "config" / "zenoh"
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI")
+
+
+def _install_configs(directory: Path) -> dict[str, Path]:
+    """Certificates and the example configs, with their relative paths made absolute."""
+    subprocess.run(["sh", str(CONFIGS / "make-certs.sh"), str(directory / "certs")],
+                   check=True, capture_output=True, timeout=60)  # fmt: skip
+    shutil.copy(CONFIGS / "credentials.txt", directory / "credentials.txt")
+    paths = {}
+    for name in ("router", "service", "operator", "observer"):
+        text = (CONFIGS / f"{name}.json5").read_text()
+        text = text.replace('"certs/', f'"{directory}/certs/')
+        text = text.replace('"credentials.txt"', f'"{directory}/credentials.txt"')
+        paths[name] = directory / f"{name}.json5"
+        paths[name].write_text(text)
+    return paths
+
+
+class Watcher:
+    """An authenticated session that records what it receives under glider/**."""
+
+    def __init__(self, config: Path, endpoint: str):
+        self.session = open_session(ZenohOptions(str(config), connect=(endpoint,)))
+        self.lock = threading.Lock()
+        self.received: dict[str, list[Any]] = {}
+        self.subscriber = self.session.declare_subscriber("glider/**", self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        with self.lock:
+            key = str(sample.key_expr)
+            self.received.setdefault(key, []).append(json.loads(sample.payload.to_bytes()))
+
+    def latest(self, key: str) -> Any:
+        with self.lock:
+            values = self.received.get(key)
+            return values[-1] if values else None
+
+    def count(self, key: str) -> int:
+        with self.lock:
+            return len(self.received.get(key, []))
+
+    def put(self, key: str, payload: Any) -> None:
+        self.session.put(key, json.dumps(payload))
+
+    def close(self) -> None:
+        self.subscriber.undeclare()
+        self.session.close()
+
+
+def wait_for(predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+def _anonymous(endpoint: str, ca: Path, password: str | None = None) -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    config.insert_json5("connect/timeout_ms", "2000")
+    config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
+    if password is not None:
+        config.insert_json5("transport/auth/usrpwd/user", '"operator"')
+        config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    return zenoh.open(config)
+
+
+@pytest.mark.timeout(120)
+def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_path):
+    configs = _install_configs(tmp_path)
+    endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
+    udp = free_udp_port()
+    router = _router(endpoint, str(configs["router"]))
+    observer = operator = None
+    try:
+        time.sleep(1.5)
+        assert router.poll() is None, "the secured router did not start"
+        service = processes.start(
+            "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-config",
+            str(configs["service"]), "--zenoh-connect", endpoint,
+            "--log-dir", str(tmp_path / "logs"), "--burn-in", "60",
+        )  # fmt: skip
+        processes.start(
+            "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--speed", "50",
+            "--duration", "100000", "--scenario", "paper", "--seed", "3",
+        )  # fmt: skip
+        observer = Watcher(configs["observer"], endpoint)
+        assert wait_for(lambda: observer.count("glider/1/umodel/depth") > 80, 30), (
+            "an authenticated observer should read the service's publications"
+        )
+
+        # Without credentials, or with a wrong password, there is no session at all.
+        for password in (None, "guessed"):
+            with pytest.raises(zenoh.ZError):
+                _anonymous(endpoint, tmp_path / "certs" / "ca.pem", password).close()
+
+        # The observer is authenticated but not allowed to command: the router neither tells
+        # it that anyone listens on the command keys nor accepts its puts there.
+        observer.put("glider/1/setpoint/depth", {"value": 18.0})
+        observer.put("glider/1/control", {"enabled": True})
+        time.sleep(2.5)
+        health = observer.latest("glider/1/health")
+        assert health["control"]["setpoints"]["depth"] is None
+        assert health["control"]["enabled"] is False
+        assert observer.count("glider/1/command/ballast") == 0
+
+        # The operator is: the same messages make the service command the vehicle.
+        operator = Watcher(configs["operator"], endpoint)
+        operator.put("glider/1/setpoint/depth", {"value": 16.0})
+        operator.put("glider/1/control", {"enabled": True})
+        assert wait_for(lambda: observer.count("glider/1/command/ballast") > 10, 20)
+        assert wait_for(
+            lambda: observer.latest("glider/1/health")["control"]["setpoints"]["depth"] == 16.0,
+            3,
+        )
+        commands = [c["setpoints"]["depth"] for c in observer.received["glider/1/command/ballast"]]
+        assert set(commands) == {16.0}
+        assert service.poll() is None
+    finally:
+        for watcher in (observer, operator):
+            if watcher is not None:
+                watcher.close()
+        processes.stop_all()
+        _stop(router)
