@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 
 import pytest
@@ -78,7 +79,10 @@ def test_identify_command_disable_and_stale(rig, processes):
     ]
     assert len(echoed) > 50 and sum(echoed) >= 0.95 * len(echoed)
     recent = [s["depth"] for s in probe.payloads("glider/1/telemetry")[-50:]]
-    assert abs(sum(recent) / len(recent) - target) < abs(start_depth - target)
+    # Depth has moved toward the setpoint by at least half the step (it may overshoot: the
+    # disturbed plant's depth channel is slow and non-minimum-phase, see the README).
+    moved = (sum(recent) / len(recent) - start_depth) * math.copysign(1.0, target - start_depth)
+    assert moved >= 0.5 * abs(target - start_depth), (start_depth, target, recent[-5:])
 
     # Disabling control stops the commands.
     probe.put("glider/1/control", {"enabled": False})
