@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -26,14 +24,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hil_service.cli.processes import free_port, last_json, start_verb, stop_process  # noqa: E402
 from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from tests.udp_relay import FaultyRelay  # noqa: E402
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def memory_kib(pid: int) -> dict[str, int]:
@@ -47,37 +40,6 @@ def memory_kib(pid: int) -> dict[str, int]:
     except OSError:
         pass
     return values
-
-
-def start(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "hil_service.cli", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-
-
-def stop(process: subprocess.Popen[str], sig: int = 2) -> str:
-    if process.poll() is None:
-        process.send_signal(sig)
-    try:
-        out, _ = process.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        out, _ = process.communicate(timeout=5)
-    return out
-
-
-def last_json(text: str, key: str) -> dict:
-    for line in reversed(text.strip().splitlines()):
-        if line.startswith("{"):
-            data = json.loads(line)
-            if key in data:
-                return data[key]
-    return {}
 
 
 def main() -> int:
@@ -96,14 +58,14 @@ def main() -> int:
     log_dir = args.log_dir or tmp.name
     udp, zport = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     endpoint = f"tcp/127.0.0.1:{zport}"
-    service = start(
+    service = start_verb(
         "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
         "--log-dir", log_dir, "--stale-timeout", "1.0", "--burn-in", "500",
     )  # fmt: skip
     relay = FaultyRelay(("127.0.0.1", udp), args.drop, args.duplicate, args.reorder, seed=1).start()
     time.sleep(1.0)
     session = open_session(ZenohOptions(connect=(endpoint,)))
-    emulator = start(
+    emulator = start_verb(
         "emulate", "--connect", f"udpout:127.0.0.1:{relay.port}", "--speed", str(args.rate),
         "--duration", str(args.samples), "--scenario", "disturbed", "--seed", "1",
         "--command-timeout", "50",
@@ -133,8 +95,8 @@ def main() -> int:
         time.sleep(2.0)  # let the service drain
         memory_end = memory_kib(service.pid)
     finally:
-        emulator_out = stop(emulator)
-        service_out = stop(service)
+        emulator_out = stop_process(emulator, 30)[0]
+        service_out = stop_process(service, 30)[0]
         relay.stop()
         session.close()
     wall = time.monotonic() - started

@@ -45,9 +45,10 @@ class SequenceTracker:
             for skipped in range(1, gap):
                 missing.add((last + skipped) % SEQ_MODULO)
             self._last[key] = seq
-            # Forget holes so old that their numbers will come round again.
-            for stale in [m for m in missing if (seq - m) % SEQ_MODULO > MAX_FORWARD_GAP]:
-                missing.discard(stale)
+            # Forget holes so old that their numbers will come round again (the set is
+            # empty on a clean link, so this costs nothing per frame there).
+            if missing:
+                missing -= {m for m in missing if (seq - m) % SEQ_MODULO > MAX_FORWARD_GAP}
         elif seq in missing:
             missing.discard(seq)
             self.reordered += 1

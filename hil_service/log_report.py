@@ -94,45 +94,34 @@ def _figures(vehicle: VehicleSeries, channel: str, out: Path) -> list[Path]:
             data["alpha"],
         )
     ]
-    commands = vehicle.commands
-    if any(math.isfinite(u) for u in commands.u[channel]):
-        t = np.asarray(vehicle.telemetry_t)
-        index = {v: k for k, v in enumerate(vehicle.telemetry_t)}
-        setpoint = np.full(t.size, np.nan)
-        for tc, sp in zip(commands.t, commands.setpoint[channel], strict=True):
-            if tc in index:
-                setpoint[index[tc]] = sp
-        outputs = dict(zip(series.t, series.y, strict=True))
-        y = np.asarray([outputs.get(tt, np.nan) for tt in vehicle.telemetry_t])
-        paths.append(_control_figure(out / f"{name}_control.png", vehicle, channel, t, y, setpoint))
+    if any(math.isfinite(u) for u in vehicle.commands.u[channel]):
+        paths.append(_control_figure(out / f"{name}_control.png", vehicle, channel))
     return paths
 
 
-def _control_figure(
-    path: Path,
-    vehicle: VehicleSeries,
-    channel: str,
-    t: np.ndarray,
-    y: np.ndarray,
-    setpoint: np.ndarray,
-) -> Path:
+def _control_figure(path: Path, vehicle: VehicleSeries, channel: str) -> Path:
     """Setpoint and output on the telemetry clock; commanded and applied ballast below."""
-    commands = vehicle.commands
-    commanded = np.full(t.size, np.nan)
-    index = {v: k for k, v in enumerate(vehicle.telemetry_t)}
-    for tc, u in zip(commands.t, commands.u[channel], strict=True):
-        if tc in index:
-            commanded[index[tc]] = u
+    index = {t: k for k, t in enumerate(vehicle.telemetry_t)}
+
+    def on_telemetry_clock(times: list[float], values: list[float]) -> np.ndarray:
+        aligned = np.full(len(index), np.nan)
+        for t, value in zip(times, values, strict=True):
+            k = index.get(t)
+            if k is not None:
+                aligned[k] = value
+        return aligned
+
+    series, commands = vehicle.channels[channel], vehicle.commands
     return tracking_figure(
         path,
         f"glider {vehicle.system_id} {channel}: setpoint, output and ballast",
         channel,
-        t,
-        [(f"measured {channel}", y)],
-        setpoint,
+        np.asarray(vehicle.telemetry_t),
+        [(f"measured {channel}", on_telemetry_clock(series.t, series.y))],
+        on_telemetry_clock(commands.t, commands.setpoint[channel]),
         [
             ("applied (telemetry)", np.asarray(vehicle.applied[channel])),
-            ("commanded", commanded),
+            ("commanded", on_telemetry_clock(commands.t, commands.u[channel])),
         ],
     )
 

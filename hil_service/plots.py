@@ -72,7 +72,6 @@ def tracking_figure(
     series: Sequence[tuple[str, np.ndarray]],
     setpoint: np.ndarray | None,
     inputs: Sequence[tuple[str, np.ndarray]],
-    input_t: np.ndarray | None = None,
     time_unit: str = "s",
 ) -> Path:
     """Outputs against the setpoint (top) and the ballast inputs (bottom, model units)."""
@@ -90,7 +89,7 @@ def tracking_figure(
     for i, (label, values) in enumerate(inputs):
         # Later series dashed so that one drawn over an identical one stays visible.
         bottom.step(
-            t if input_t is None else input_t,
+            t,
             values,
             where="post",
             linewidth=0.9,

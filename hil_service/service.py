@@ -23,7 +23,6 @@ from protocols import keys
 from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
 from protocols.samples import TelemetrySample
-from protocols.signing import FrameVerifier
 
 
 def decision_inputs_topic(system_id: int) -> str:
@@ -100,18 +99,13 @@ class HilService:
         self.mapping = mapping or TelemetryMapping()
         self.clock = clock
         self.send_commands = send_commands and link is not None
-        security = config.security
-        self.verifier = (
-            None
-            if security.key is None
-            else FrameVerifier(security.key, accept_unsigned=security.accept_unsigned)
-        )
-        self.codec = MavlinkCodec(
+        self.codec = MavlinkCodec.for_link(
             config.service_system_id,
             SERVICE_COMPONENT,
-            signing_key=security.key,
-            verifier=self.verifier,
+            config.security.key,
+            accept_unsigned=config.security.accept_unsigned,
         )
+        self.verifier = self.codec.verifier
         self.assembler = SampleAssembler(self.mapping, config.system_ids or None)
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}

@@ -23,7 +23,6 @@ from plant_emulator.plant import GliderPlant
 from protocols.mapping import CommandRejected, TelemetryMapping, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
-from protocols.signing import FrameVerifier
 
 #: Messages that change the vehicle: never accepted unsigned when a key is set.
 COMMAND_MESSAGE_IDS = frozenset(
@@ -105,19 +104,12 @@ class Autopilot:
         self.mapping = mapping or TelemetryMapping()
         self.clock = clock
         self.on_step = on_step
-        key = self.config.signing_key
-        verifier = None
-        if key is not None:
-            verifier = FrameVerifier(
-                key,
-                accept_unsigned=self.config.accept_unsigned_non_commands,
-                always_signed=COMMAND_MESSAGE_IDS,
-            )
-        self.codec = MavlinkCodec(
+        self.codec = MavlinkCodec.for_link(
             self.config.system_id,
             dialect.MAV_COMP_ID_AUTOPILOT1,
-            signing_key=key,
-            verifier=verifier,
+            self.config.signing_key,
+            accept_unsigned=self.config.accept_unsigned_non_commands,
+            always_signed=COMMAND_MESSAGE_IDS,
         )
         self.stats = AutopilotStats()
         self._external = {"depth": math.nan, "pitch": math.nan}

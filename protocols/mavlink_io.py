@@ -76,6 +76,25 @@ class MavlinkCodec:
             self._packer.signing.sign_outgoing = True
             self._packer.signing.link_id = 0
 
+    @classmethod
+    def for_link(
+        cls,
+        system_id: int,
+        component_id: int,
+        signing_key: bytes | None = None,
+        *,
+        accept_unsigned: bool = False,
+        always_signed: frozenset[int] = frozenset(),
+    ) -> MavlinkCodec:
+        """A codec for one end of a link: with a key it signs what it sends and verifies
+        what it receives (see ``FrameVerifier`` for the unsigned-frame options)."""
+        verifier = None
+        if signing_key is not None:
+            verifier = FrameVerifier(
+                signing_key, accept_unsigned=accept_unsigned, always_signed=always_signed
+            )
+        return cls(system_id, component_id, signing_key=signing_key, verifier=verifier)
+
     def pack(self, message: MavMessage) -> bytes:
         """Frame ``message`` with our identity and the next sequence number (signed if keyed)."""
         packer = self._packer

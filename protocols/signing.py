@@ -79,7 +79,6 @@ def sign_frame(frame: bytes, key: bytes) -> bytes:
 @dataclass
 class SigningCounters:
     signed_accepted: int = 0
-    signed_unverified: int = 0  # signed frames passed on without a key (replay)
     unsigned_accepted: int = 0
     unsigned_rejected: int = 0
     bad_signature: int = 0
@@ -97,17 +96,15 @@ class SigningCounters:
 class FrameVerifier:
     """Decides whether an incoming MAVLink 2 frame is accepted, and counts why not.
 
-    ``key`` None means signatures cannot be checked (replaying a log without its key):
-    signed frames pass as unverified. ``accept_unsigned`` lets unsigned frames through,
-    except the message ids in ``always_signed`` (a vehicle that takes unsigned heartbeats
-    from a ground station must still refuse unsigned commands). ``check_clock`` False skips
-    the "new stream too far in the past" test, for replaying old logs.
+    ``accept_unsigned`` lets unsigned frames through, except the message ids in
+    ``always_signed`` (a vehicle that takes unsigned heartbeats from a ground station must
+    still refuse unsigned commands). Replay does not verify at all: it reads only the frames
+    the live service accepted (``mavlink/raw/in``), so old timestamps never matter there.
     """
 
-    key: bytes | None
+    key: bytes
     accept_unsigned: bool = False
     always_signed: frozenset[int] = frozenset()
-    check_clock: bool = True
     clock: Callable[[], float] = time.time
     counters: SigningCounters = field(default_factory=SigningCounters)
     last_reason: str = ""
@@ -119,9 +116,6 @@ class FrameVerifier:
         msg_id = frame[7] | frame[8] << 8 | frame[9] << 16
         if not frame[2] & IFLAG_SIGNED or len(frame) < 12 + SIGNATURE_BLOCK:
             return self._reject_unsigned(msg_id)
-        if self.key is None:
-            self.counters.signed_unverified += 1
-            return True
         signed_part, signature = frame[:-6], frame[-6:]
         if not hmac.compare_digest(sign_frame(signed_part, self.key), signature):
             self.counters.bad_signature += 1
@@ -134,8 +128,7 @@ class FrameVerifier:
             self.counters.replayed += 1
             self.last_reason = f"replayed timestamp on stream {stream}"
             return False
-        too_old = timestamp + NEW_STREAM_SLACK < signing_timestamp(self.clock())
-        if last is None and self.check_clock and too_old:
+        if last is None and timestamp + NEW_STREAM_SLACK < signing_timestamp(self.clock()):
             self.counters.replayed += 1
             self.last_reason = f"stream {stream} starts more than 60 s in the past"
             return False

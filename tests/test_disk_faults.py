@@ -19,11 +19,6 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-def _health(probe: ZenohProbe) -> dict:
-    payloads = probe.payloads("glider/1/health")
-    return payloads[-1] if payloads else {}
-
-
 @pytest.mark.timeout(90)
 def test_disk_full_mid_run_keeps_control_and_logging_resumes(processes, tmp_path):
     udp, zport = free_udp_port(), free_tcp_port()
@@ -35,6 +30,10 @@ def test_disk_full_mid_run_keeps_control_and_logging_resumes(processes, tmp_path
     )  # fmt: skip
     time.sleep(0.8)
     probe = ZenohProbe(endpoint)
+
+    def health() -> dict:
+        return probe.latest("glider/1/health", {})
+
     try:
         processes.start(
             "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--speed", "50",
@@ -50,26 +49,27 @@ def test_disk_full_mid_run_keeps_control_and_logging_resumes(processes, tmp_path
         _, hard = resource.prlimit(service.pid, resource.RLIMIT_FSIZE)
         resource.prlimit(service.pid, resource.RLIMIT_FSIZE, (1, hard))
         assert probe.wait_for(
-            lambda: _health(probe).get("logging", {}).get("state") == "failed", 10
-        ), _health(probe).get("logging")
-        failed = _health(probe)["logging"]
+            lambda: health().get("logging", {}).get("state") == "failed",
+            10,
+        ), health().get("logging")
+        failed = health()["logging"]
         assert "File too large" in failed["error"] or "EFBIG" in failed["error"], failed
         commands = probe.count("glider/1/command/ballast")
         time.sleep(2.0)
         assert probe.count("glider/1/command/ballast") > commands + 30, "control stopped"
-        assert _health(probe)["control"]["reason"] == ""
-        assert _health(probe)["logging"]["dropped"] > failed["dropped"]
+        assert health()["control"]["reason"] == ""
+        assert health()["logging"]["dropped"] > failed["dropped"]
 
         # Space again: within the retry period a new file takes the records.
         resource.prlimit(service.pid, resource.RLIMIT_FSIZE, (hard, hard))
         restored = time.time()
         assert probe.wait_for(
             lambda: (
-                _health(probe).get("logging", {}).get("state") == "ok"
-                and _health(probe)["logging"]["files"] > failed["files"]
+                health().get("logging", {}).get("state") == "ok"
+                and health()["logging"]["files"] > failed["files"]
             ),
             10,
-        ), _health(probe).get("logging")
+        ), health().get("logging")
         time.sleep(1.0)
     finally:
         probe.close()

@@ -5,18 +5,16 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import subprocess
-import sys
 import threading
 import time
 
 import pytest
 
 from hil_service.logreader import LogReader
-from tests.conftest import ROOT, free_tcp_port, free_udp_port
+from tests.conftest import free_tcp_port, free_udp_port
 from tests.test_service_robustness import FakeVehicle
 from tests.zenoh_peer import ZenohProbe
+from tests.zenoh_router import first_received, start_router, stop_router
 
 STALE = 1.0
 
@@ -29,11 +27,6 @@ def _emulator(processes, udp: int):
     )  # fmt: skip
 
 
-def _latest_health(probe: ZenohProbe) -> dict:
-    health = probe.payloads("glider/1/health")
-    return health[-1] if health else {}
-
-
 @pytest.mark.timeout(90)
 def test_vehicle_link_lost_and_recovered(processes, tmp_path):
     udp, zport = free_udp_port(), free_tcp_port()
@@ -44,6 +37,10 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
     )  # fmt: skip
     time.sleep(0.8)
     probe = ZenohProbe(endpoint)
+
+    def health() -> dict:
+        return probe.latest("glider/1/health", {})
+
     try:
         first = _emulator(processes, udp)
         assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > 150, 30)
@@ -55,12 +52,12 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
         processes.stop(first)
         lost_at = time.monotonic()
         assert probe.wait_for(
-            lambda: _latest_health(probe).get("control", {}).get("reason") == "telemetry stale",
+            lambda: health().get("control", {}).get("reason") == "telemetry stale",
             STALE + 3,
-        ), _latest_health(probe).get("control")
+        ), health().get("control")
         stale_after = time.monotonic() - lost_at
         commands_while_down = probe.count("glider/1/command/ballast")
-        before = _latest_health(probe)["identifier"]["depth"]
+        before = health()["identifier"]["depth"]
         time.sleep(1.5)
         assert probe.count("glider/1/command/ballast") == commands_while_down
         assert stale_after < STALE + 2.0
@@ -69,16 +66,16 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
         _emulator(processes, udp)  # a rebooted autopilot: its clock starts again at 0
         assert probe.wait_for(
             lambda: probe.count("glider/1/command/ballast") > commands_while_down + 20, 30
-        ), _latest_health(probe).get("control")
+        ), health().get("control")
         # The identifier kept what it learnt: no second burn-in, its count carried on.
         assert probe.wait_for(
             lambda: (
-                _latest_health(probe)["identifier"]["depth"]["samples"] > before["samples"]
-                and _latest_health(probe)["control"]["reason"] == ""
+                health()["identifier"]["depth"]["samples"] > before["samples"]
+                and health()["control"]["reason"] == ""
             ),
             5,
         )
-        after = _latest_health(probe)
+        after = health()
         assert after["identifier"]["depth"]["converged"]
         assert after["counters"]["restarts"] == 1
     finally:
@@ -92,45 +89,11 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
     assert sorted(gaps)[-2] < 1.0  # and it is the only one
 
 
-def _router(endpoint: str, config_file: str | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "tests.zenoh_router", endpoint, *filter(None, [config_file])],
-        stdout=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-
-
-def _received(router: subprocess.Popen[str], until: float) -> int:
-    """Read the router's count lines until ``until`` (monotonic) or it reports > 0."""
-    assert router.stdout is not None
-    latest = 0
-    while time.monotonic() < until:
-        line = router.stdout.readline()
-        if not line:
-            break
-        latest = json.loads(line)["received"]
-        if latest > 0:
-            break
-    return latest
-
-
-def _stop(router: subprocess.Popen[str]) -> None:
-    if router.poll() is None:
-        router.terminate()
-    try:
-        router.communicate(timeout=10)
-    except subprocess.TimeoutExpired:
-        router.kill()
-        router.communicate(timeout=5)
-
-
 @pytest.mark.timeout(90)
 def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_path):
     zport, udp = free_tcp_port(), free_udp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    router = _router(endpoint)
+    router = start_router(endpoint)
     service = None
     stop = threading.Event()
     try:
@@ -151,18 +114,18 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
 
         sender = threading.Thread(target=stream, daemon=True)
         sender.start()
-        assert _received(router, time.monotonic() + 15) > 0, "router never heard the service"
+        assert first_received(router, time.monotonic() + 15) > 0, "router never heard the service"
 
-        _stop(router)
+        stop_router(router)
         outage_start = time.time()
         time.sleep(3.0)
         outage_end = time.time()
-        router = _router(endpoint)
-        assert _received(router, time.monotonic() + 30) > 0, "publications did not resume"
+        router = start_router(endpoint)
+        assert first_received(router, time.monotonic() + 30) > 0, "publications did not resume"
         assert service.poll() is None
     finally:
         stop.set()
-        _stop(router)
+        stop_router(router)
         if service is not None:
             out, _ = processes.stop(service)
     vehicle.close()

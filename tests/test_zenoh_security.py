@@ -9,17 +9,15 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 import zenoh
 
-from hil_service.zenoh_config import ZenohOptions, open_session
 from tests.conftest import ROOT, free_tcp_port, free_udp_port
-from tests.test_recovery import _router, _stop
+from tests.zenoh_peer import ZenohProbe
+from tests.zenoh_router import start_router, stop_router
 
 CONFIGS = ROOT / "config" / "zenoh"
 
@@ -41,46 +39,6 @@ def _install_configs(directory: Path) -> dict[str, Path]:
     return paths
 
 
-class Watcher:
-    """An authenticated session that records what it receives under glider/**."""
-
-    def __init__(self, config: Path, endpoint: str):
-        self.session = open_session(ZenohOptions(str(config), connect=(endpoint,)))
-        self.lock = threading.Lock()
-        self.received: dict[str, list[Any]] = {}
-        self.subscriber = self.session.declare_subscriber("glider/**", self._on_sample)
-
-    def _on_sample(self, sample: Any) -> None:
-        with self.lock:
-            key = str(sample.key_expr)
-            self.received.setdefault(key, []).append(json.loads(sample.payload.to_bytes()))
-
-    def latest(self, key: str) -> Any:
-        with self.lock:
-            values = self.received.get(key)
-            return values[-1] if values else None
-
-    def count(self, key: str) -> int:
-        with self.lock:
-            return len(self.received.get(key, []))
-
-    def put(self, key: str, payload: Any) -> None:
-        self.session.put(key, json.dumps(payload))
-
-    def close(self) -> None:
-        self.subscriber.undeclare()
-        self.session.close()
-
-
-def wait_for(predicate, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return predicate()
-
-
 def _anonymous(endpoint: str, ca: Path, password: str | None = None) -> zenoh.Session:
     config = zenoh.Config()
     config.insert_json5("mode", '"client"')
@@ -99,7 +57,7 @@ def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_
     configs = _install_configs(tmp_path)
     endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
     udp = free_udp_port()
-    router = _router(endpoint, str(configs["router"]))
+    router = start_router(endpoint, str(configs["router"]))
     observer = operator = None
     try:
         time.sleep(1.5)
@@ -113,8 +71,8 @@ def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_
             "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--speed", "50",
             "--duration", "100000", "--scenario", "paper", "--seed", "3",
         )  # fmt: skip
-        observer = Watcher(configs["observer"], endpoint)
-        assert wait_for(lambda: observer.count("glider/1/umodel/depth") > 80, 30), (
+        observer = ZenohProbe(endpoint, config_file=str(configs["observer"]))
+        assert observer.wait_for(lambda: observer.count("glider/1/umodel/depth") > 80, 30), (
             "an authenticated observer should read the service's publications"
         )
 
@@ -134,20 +92,20 @@ def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_
         assert observer.count("glider/1/command/ballast") == 0
 
         # The operator is: the same messages make the service command the vehicle.
-        operator = Watcher(configs["operator"], endpoint)
+        operator = ZenohProbe(endpoint, config_file=str(configs["operator"]))
         operator.put("glider/1/setpoint/depth", {"value": 16.0})
         operator.put("glider/1/control", {"enabled": True})
-        assert wait_for(lambda: observer.count("glider/1/command/ballast") > 10, 20)
-        assert wait_for(
+        assert observer.wait_for(lambda: observer.count("glider/1/command/ballast") > 10, 20)
+        assert observer.wait_for(
             lambda: observer.latest("glider/1/health")["control"]["setpoints"]["depth"] == 16.0,
             3,
         )
-        commands = [c["setpoints"]["depth"] for c in observer.received["glider/1/command/ballast"]]
+        commands = [c["setpoints"]["depth"] for c in observer.payloads("glider/1/command/ballast")]
         assert set(commands) == {16.0}
         assert service.poll() is None
     finally:
-        for watcher in (observer, operator):
-            if watcher is not None:
-                watcher.close()
+        for probe in (observer, operator):
+            if probe is not None:
+                probe.close()
         processes.stop_all()
-        _stop(router)
+        stop_router(router)

@@ -12,12 +12,19 @@ from hil_service.zenoh_config import ZenohOptions, open_session
 
 
 class ZenohProbe:
-    def __init__(self, endpoint: str, key: str = "glider/**"):
-        self.session = open_session(ZenohOptions(connect=(endpoint,)))
+    """Connects to ``endpoint`` (with ``config_file``'s settings, e.g. TLS and credentials,
+    when given) and records every JSON sample under ``key``."""
+
+    def __init__(self, endpoint: str, key: str = "glider/**", config_file: str | None = None):
+        self.session = open_session(ZenohOptions(config_file, connect=(endpoint,)))
         self.lock = threading.Lock()
         self.received: dict[str, list[tuple[float, Any]]] = defaultdict(list)
         self.subscriber = self.session.declare_subscriber(key, self._on_sample)
-        connected = self.wait_for(lambda: any(True for _ in self.session.info.peers_zid()), 10)
+        info = self.session.info
+        connected = self.wait_for(
+            lambda: any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid()),
+            10,
+        )
         assert connected, f"no Zenoh peer at {endpoint}"
         time.sleep(0.3)  # let the subscription reach the peer before anything is published
 
@@ -32,6 +39,12 @@ class ZenohProbe:
     def payloads(self, key: str) -> list[Any]:
         with self.lock:
             return [p for _, p in self.received.get(key, [])]
+
+    def latest(self, key: str, default: Any = None) -> Any:
+        """The last payload received on ``key``, or ``default`` before the first."""
+        with self.lock:
+            samples = self.received.get(key)
+            return samples[-1][1] if samples else default
 
     def count(self, key: str) -> int:
         with self.lock:

@@ -1,19 +1,58 @@
 """A Zenoh router in its own process, for tests that kill and restart it.
 
 Run: python -m tests.zenoh_router ENDPOINT [CONFIG.json5]. It subscribes to ``glider/**``
-and prints one
-JSON line per 0.2 s with the number of samples received so far; it exits on SIGTERM/SIGINT.
+and prints one JSON line per 0.2 s with the number of samples received so far; it exits on
+SIGTERM/SIGINT. ``start_router``, ``first_received`` and ``stop_router`` drive it from a test.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import signal
+import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 from hil_service.zenoh_config import ZenohOptions, open_session
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def start_router(endpoint: str, config_file: str | None = None) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.zenoh_router", endpoint, *filter(None, [config_file])],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def first_received(router: subprocess.Popen[str], until: float) -> int:
+    """Read the router's count lines until ``until`` (monotonic) or it reports > 0."""
+    assert router.stdout is not None
+    latest = 0
+    while time.monotonic() < until:
+        line = router.stdout.readline()
+        if not line:
+            break
+        latest = json.loads(line)["received"]
+        if latest > 0:
+            break
+    return latest
+
+
+def stop_router(router: subprocess.Popen[str]) -> None:
+    if router.poll() is None:
+        router.terminate()
+    try:
+        router.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        router.kill()
+        router.communicate(timeout=5)
 
 
 def main(endpoint: str, config_file: str | None = None) -> int:

@@ -10,9 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -21,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hil_service.cli.processes import free_port, last_json, start_verb, stop_process
 from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 
@@ -41,12 +40,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="sign the MAVLink link both ways with a fresh key (kept in a private temp dir)",
     )
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 @dataclass
@@ -74,37 +67,6 @@ class Observations:
             return self.telemetry[-1]["t"] if self.telemetry else -1.0
 
 
-def _start(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "hil_service.cli", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-
-
-def _stop(process: subprocess.Popen[str]) -> tuple[str, str]:
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        return process.communicate(timeout=15)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        return process.communicate(timeout=5)
-
-
-def _last_json(text: str, key: str) -> dict[str, Any]:
-    for line in reversed(text.strip().splitlines()):
-        try:
-            data = json.loads(line)
-        except ValueError:
-            continue
-        if key in data:
-            return data[key]
-    return {}
-
-
 def tracking_error(
     telemetry: list[dict[str, Any]], channel: str, segments: list[tuple[float, float, float]]
 ) -> float | None:
@@ -129,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         key_path.touch(mode=0o600)
         key_path.write_bytes(os.urandom(32))
         signing = ["--signing-key", str(key_path)]
-    service = _start(
+    service = start_verb(
         "serve", "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
         "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
         "--burn-in", str(int(0.25 * sim_total)), *signing,
@@ -144,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
             return 1
         session = open_session(ZenohOptions(connect=(endpoint,)))
         subscriber = session.declare_subscriber(f"glider/{SYSTEM_ID}/**", observations.on_sample)
-        emulator = _start(
+        emulator = start_verb(
             "emulate", "--connect", f"udpout:127.0.0.1:{udp_port}", "--speed", str(args.speed),
             "--duration", str(sim_total), "--scenario", args.scenario, "--seed", str(args.seed),
             "--trim-depth", str(TRIM_DEPTH), "--command-timeout", "5", "--fallback", "hold",
@@ -172,12 +134,12 @@ def run(args: argparse.Namespace) -> int:
             time.sleep(0.05)
         subscriber.undeclare()
     finally:
-        emulator_out = _stop(emulator)[0] if emulator is not None else ""
-        service_out, service_err = _stop(service)
+        emulator_out = stop_process(emulator)[0] if emulator is not None else ""
+        service_out, service_err = stop_process(service)
         if session is not None:
             session.close()
         key_dir.cleanup()
-    summary = _last_json(service_out, "service")
+    summary = last_json(service_out, "service")
     if not summary:
         print(f"demo: the service printed no summary\n{service_err}", file=sys.stderr)
         return 1
@@ -205,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
         "acks": vehicle.get("acks", {}),
         "control_reason_at_end": health.get("control", {}).get("reason"),
         "log": summary.get("log", {}).get("file"),
-        "emulator": _last_json(emulator_out, "emulator").get("steps"),
+        "emulator": last_json(emulator_out, "emulator").get("steps"),
         "signing": {
             k: v for k, v in summary.get("counters", {}).items() if k.startswith("signing_")
         },

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -98,14 +99,19 @@ def _identification(args: argparse.Namespace) -> int:
             results.append(result)
             if args.plots:
                 _identification_plots(result, args.plots)
-    if args.json:
+    _emit(results, args.json, identification_table)
+    if args.plots and not args.json:
+        print(f"figures in {args.plots}")
+    return 0
+
+
+def _emit(results: list[Any], as_json: bool, table: Callable[[list[Any]], str]) -> None:
+    """One JSON object per result (one object alone when there is one), or the table."""
+    if as_json:
         objects = [r.as_json() for r in results]
         print(json.dumps(objects[0] if len(objects) == 1 else objects))
     else:
-        print(identification_table(results))
-        if args.plots:
-            print(f"figures in {args.plots}")
-    return 0
+        print(table(results))
 
 
 def identification_table(results: list[IdentificationResult]) -> str:
@@ -160,11 +166,7 @@ def _closed_loop(args: argparse.Namespace) -> int:
         results.append(result)
         if args.plots:
             _closed_loop_plots(result, args.plots)
-    if args.json:
-        objects = [r.as_json() for r in results]
-        print(json.dumps(objects[0] if len(objects) == 1 else objects))
-    else:
-        print("\n\n".join(closed_loop_table(r) for r in results))
+    _emit(results, args.json, lambda rs: "\n\n".join(closed_loop_table(r) for r in rs))
     return 0
 
 

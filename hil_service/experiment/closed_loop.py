@@ -10,6 +10,7 @@ identifier has something to learn from before control starts.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,6 +21,7 @@ from hil_service.vehicle import PipelineSettings, VehiclePipeline
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS, open_loop_plant
 from plant_emulator.plant import GliderPlant, PlantConfig
+from protocols.samples import TelemetrySample
 
 #: Setpoint sequences cycled through, one step every ``step_every`` samples. Depth in
 #: metres (the trim depth is 15 m), pitch in radians.
@@ -193,67 +195,78 @@ def step_metrics(
     )
 
 
-def _new_trace(n: int) -> RunTrace:
-    return RunTrace(
+#: Given the step index and the sample, the command for the next step, or None to hold.
+Controller = Callable[[int, TelemetrySample], tuple[float, float] | None]
+
+
+def _drive(
+    settings: ClosedLoopSettings,
+    plant_config: PlantConfig,
+    schedule: dict[str, np.ndarray],
+    controller: Controller,
+) -> RunTrace:
+    """Run one plant: its excitation while identifying, then the controller's commands.
+
+    The controller sees every sample, identification phase included (so an identifier can
+    learn from it); its answer is used from ``settings.identify`` on.
+    """
+    n = settings.samples
+    trace = RunTrace(
         y={ch: np.empty(n) for ch in CHANNELS},
-        setpoint={ch: np.empty(n) for ch in CHANNELS},
+        setpoint=schedule,
         u={ch: np.empty(n) for ch in CHANNELS},
     )
+    plant = GliderPlant(plant_config)
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    command = (0.0, 0.0)
+    for k in range(n):
+        sample = plant.step(*command)
+        for ch in CHANNELS:
+            trace.y[ch][k] = sample.output(ch)
+            trace.u[ch][k] = sample.input(ch)
+        requested = controller(k, sample)
+        if k < settings.identify:
+            command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+        elif requested is not None:
+            command = requested
+    return trace
 
 
 def run_closed_loop(
     settings: ClosedLoopSettings, pipeline_settings: PipelineSettings | None = None
 ) -> ClosedLoopResult:
     schedule = setpoint_schedule(settings)
-    n = settings.samples
     plant_config = PlantConfig(scenario=settings.scenario, seed=settings.seed)
     period = plant_config.period
     pipeline = VehiclePipeline(pipeline_settings or PipelineSettings(seed=settings.seed))
-    trim = plant_config.trim_depth
-
-    inverse = _new_trace(n)
-    plant = GliderPlant(plant_config)
-    excitation = build_channel_excitations(settings.excitation, settings.seed)
-    command = (0.0, 0.0)
     paths: dict[str, int] = {}
     blocked = 0
-    for k in range(n):
-        sample = plant.step(*command)
+
+    def inverse_control(k: int, sample: TelemetrySample) -> tuple[float, float] | None:
+        nonlocal blocked
         pipeline.observe(sample)
-        for ch in CHANNELS:
-            inverse.y[ch][k] = sample.output(ch)
-            inverse.setpoint[ch][k] = schedule[ch][k]
-            inverse.u[ch][k] = sample.input(ch)
         if k < settings.identify:
-            command = (excitation["depth"].value(k), excitation["pitch"].value(k))
-            continue
+            return None
         setpoints = {ch: float(schedule[ch][k]) for ch in CHANNELS}
         decision = pipeline.decide(sample, setpoints, True)
         if decision.command is None or decision.payload is None:
             blocked += 1  # the vehicle holds its last input, as it would on a silent link
-            continue
-        command = (decision.command.u_depth, decision.command.u_pitch)
+            return None
         mode = decision.payload["mode"]
         paths[mode] = paths.get(mode, 0) + 1
+        return decision.command.u_depth, decision.command.u_pitch
 
-    reference_only = _new_trace(n)
-    plant = GliderPlant(plant_config)
-    excitation = build_channel_excitations(settings.excitation, settings.seed)
-    command = (0.0, 0.0)
+    trim = plant_config.trim_depth
     gains = {ch: DEFAULT_DESIGNS[ch].dc_gain for ch in CHANNELS}
-    for k in range(n):
-        sample = plant.step(*command)
-        for ch in CHANNELS:
-            reference_only.y[ch][k] = sample.output(ch)
-            reference_only.setpoint[ch][k] = schedule[ch][k]
-            reference_only.u[ch][k] = sample.input(ch)
-        if k < settings.identify:
-            command = (excitation["depth"].value(k), excitation["pitch"].value(k))
-        else:
-            command = (
-                (float(schedule["depth"][k]) - trim) / gains["depth"],
-                float(schedule["pitch"][k]) / gains["pitch"],
-            )
+
+    def reference_only_control(k: int, sample: TelemetrySample) -> tuple[float, float]:
+        return (
+            (float(schedule["depth"][k]) - trim) / gains["depth"],
+            float(schedule["pitch"][k]) / gains["pitch"],
+        )
+
+    inverse = _drive(settings, plant_config, schedule, inverse_control)
+    reference_only = _drive(settings, plant_config, schedule, reference_only_control)
 
     for run in (inverse, reference_only):
         for ch in CHANNELS:

@@ -29,7 +29,10 @@ class SpeedFigure:
     fallback_share: float
 
 
-def _recorded(scenario: str, n: int, seed: int) -> list[tuple[float, float, float, float]]:
+Recorded = list[tuple[float, float, float, float]]  # depth, u_depth, pitch, u_pitch
+
+
+def _recorded(scenario: str, n: int, seed: int) -> Recorded:
     plant = GliderPlant(PlantConfig(scenario=scenario, seed=seed))
     excitation = build_channel_excitations("steps", seed)
     rows = []
@@ -42,10 +45,16 @@ def _recorded(scenario: str, n: int, seed: int) -> list[tuple[float, float, floa
 
 
 def measure(
-    channel: str, model: str, samples: int, scenario: str = "paper", seed: int = 0
+    channel: str,
+    model: str,
+    samples: int,
+    scenario: str = "paper",
+    seed: int = 0,
+    rows: Recorded | None = None,
 ) -> SpeedFigure:
+    """``rows``: the open-loop recording to time the update on (made here when not given)."""
     settings = PipelineSettings(model=model, seed=seed, burn_in=min(300, samples // 4))
-    rows = _recorded(scenario, samples, seed)
+    rows = rows if rows is not None else _recorded(scenario, samples, seed)
     col = 0 if channel == "depth" else 2
     pipeline = ChannelPipeline(channel, settings, seed)
     start = time.perf_counter()
@@ -85,8 +94,9 @@ def measure(
 
 
 def measure_all(samples: int, scenario: str = "paper", seed: int = 0) -> list[SpeedFigure]:
+    rows = _recorded(scenario, samples, seed)  # one recording serves every case
     return [
-        measure(channel, model, samples, scenario, seed)
+        measure(channel, model, samples, scenario, seed, rows)
         for channel in CHANNELS
         for model in ("paper", "dynamic")
     ]
