@@ -144,3 +144,46 @@ def test_package_is_pure() -> None:
                 continue
             for name in names:
                 assert name in ALLOWED_IMPORTS, f"{path.name} imports {name}"
+
+
+def test_grid_path_gives_the_same_bits_as_plain_python() -> None:
+    """The inverse solver's grid evaluation must not depend on the CPU it runs on.
+
+    ``replay --check`` compares commands bit for bit with a log that may come from another
+    machine. numpy's exp/power and BLAS pick kernels per CPU and differ in the last place
+    (on AVX-512 machines among others), so the grid path is built from operations that do
+    not: scalar ``math.exp`` and element-wise sums in a fixed order. This reference is that
+    definition written out in plain Python.
+    """
+    from hil_service.umodel import build_model
+
+    model = build_model("dynamic", seed=4, init_scale=0.3)
+    for k in range(40):  # a history and non-trivial weights
+        model.step(math.sin(0.3 * k), 0.1 * k + math.cos(0.7 * k))
+    grid = np.linspace(-2.0, 2.0, 101)
+    got = model.output_given_inputs(grid)
+    lags = model.lag_maps_on_grid(grid)
+    theta = model._theta
+    k_inv = 1.0 / (model.rbf.beta * model.rbf.beta)
+    for i, u in enumerate(grid.tolist()):
+        columns = [math.exp(-(u - c) * (u - c) * k_inv) for c in model.rbf.centres]
+        x, p = u * model.poly_scale, 1.0
+        for _ in range(model.degree):
+            p *= x
+            columns.append(p)
+        expected = model._linear_const()
+        for coefficient, column in zip(theta[: model._np], columns, strict=True):
+            expected += coefficient * column
+        assert got[i] == expected, f"grid point {i} (u = {u})"
+        xl, powers, q = u * model.poly_scale, [], 1.0
+        for _ in range(model.lag_degree):
+            q *= xl
+            powers.append(q)
+        for lag, values in enumerate(lags, start=2):
+            start = model._np + 1 + model.na + (lag - 2) * model.lag_degree
+            lag_expected = 0.0
+            for coefficient, power in zip(
+                theta[start : start + model.lag_degree], powers, strict=True
+            ):
+                lag_expected += coefficient * power
+            assert values[i] == lag_expected, f"lag {lag} at grid point {i}"

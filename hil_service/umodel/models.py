@@ -40,6 +40,7 @@ import numpy as np
 from .guards import DivergenceMonitor, GuardConfig
 from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
+from .reproducible import gaussian_columns, linear_combination, power_columns
 from .rls import RLS
 
 __all__ = [
@@ -309,6 +310,10 @@ class _ModelBase:
             self._frozen = True
 
 
+#: Cached grid design: (grid key, grid, columns [Φ_1..Φ_J, x, …, x^M]).
+_GridDesign = tuple[tuple[int, float, float] | None, np.ndarray, list[np.ndarray]]
+
+
 def _norm_ok(sq_norm: float, limit: float) -> bool:
     # ‖θ‖₂ ≤ limit; the comparison is False for NaN, so it also catches non-finite θ.
     return sq_norm <= limit * limit
@@ -364,7 +369,7 @@ class _UModelCore(_ModelBase):
         self._lin: list[float] = []  # history tail of φ (dynamic model only)
         self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
         self._eval: tuple[float, float, float] | None = None
-        self._design: tuple[tuple[int, float, float] | None, np.ndarray, np.ndarray] | None = None
+        self._design: _GridDesign | None = None
 
     def _fill(self, u: float) -> list[float]:
         phi = self.rbf.values_list(u)
@@ -448,8 +453,9 @@ class _UModelCore(_ModelBase):
     def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
         """Vectorised ``output_given_input`` for dense grids (inverse fallback).
 
-        The design matrix [Φ(u_k), u_k, …, u_k^M] depends only on the grid, which the solver
-        reuses from step to step, so it is cached and each call is a single mat-vec.
+        The design columns [Φ(u_k), x_k, …, x_k^M] depend only on the grid, which the
+        solver reuses from step to step, so they are cached; each call is then M + J scaled
+        column additions, the same bits on every machine (see :mod:`.reproducible`).
         """
         us = np.asarray(us, dtype=float)
         key = (us.shape[0], float(us[0]), float(us[-1])) if us.ndim == 1 and us.size else None
@@ -459,17 +465,13 @@ class _UModelCore(_ModelBase):
             or dm is None
             or (dm[1] is not us and (dm[0] != key or not np.array_equal(dm[1], us)))
         ):
-            d = np.subtract.outer(us, np.asarray(self.rbf.centres))
-            cols = [np.exp(-(d * d) / (self.rbf.beta * self.rbf.beta))]
-            xs = us * self.poly_scale
-            cols += [(xs**i)[:, None] for i in range(1, self.degree + 1)]
-            dm = (key, us if not us.flags.writeable else us.copy(), np.hstack(cols))
+            columns = gaussian_columns(us, self.rbf.centres, self.rbf.beta)
+            columns += power_columns(us * self.poly_scale, self.degree)
+            dm = (key, us if not us.flags.writeable else us.copy(), columns)
             if key is not None:
                 self._design = dm
         # θ is kept finite by the guards, so no NaN screening is needed here.
-        out = dm[2] @ np.asarray(self._theta[: self._np])
-        out += self._linear_const()
-        return out
+        return linear_combination(dm[2], self._theta[: self._np], self._linear_const())
 
     def _core_options(self) -> dict[str, Any]:
         return {
@@ -639,14 +641,11 @@ class DynamicUModel(_UModelCore):
 
     def lag_maps_on_grid(self, us: np.ndarray) -> list[np.ndarray]:
         """``lag_map`` values for lags 2..nb on an array of inputs (the solver's grid)."""
-        xs = np.asarray(us, dtype=float) * self.poly_scale
-        powers = [xs**i for i in range(1, self.lag_degree + 1)]
+        powers = power_columns(np.asarray(us, dtype=float) * self.poly_scale, self.lag_degree)
         base = self._np + 1 + self.na
+        theta = self._theta
         return [
-            sum(
-                c * p
-                for c, p in zip(self._theta[start : start + self.lag_degree], powers, strict=True)
-            )
+            linear_combination(powers, theta[start : start + self.lag_degree])
             for start in range(base, base + (self.nb - 1) * self.lag_degree, self.lag_degree)
         ]
 

@@ -21,6 +21,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .reproducible import gaussian_columns, linear_combination
+
 __all__ = ["GaussianRBF", "evenly_spaced_centres"]
 
 
@@ -81,8 +83,7 @@ class GaussianRBF:
 
     def weighted_grid(self, us: np.ndarray, weights: Sequence[float]) -> np.ndarray:
         """Σ w_j Φ_j(u) for every u in ``us`` at once (used for dense grids)."""
-        d = np.subtract.outer(np.asarray(us, dtype=float), self._c)
-        return np.exp(-(d * d) * self._inv_b2) @ np.asarray(weights, dtype=float)
+        return linear_combination(gaussian_columns(us, self.centres, self.beta), weights)
 
     def weighted(self, u: float, weights: Sequence[float]) -> tuple[float, float]:
         """(Σ w_j Φ_j(u), Σ w_j dΦ_j/du) with plain floats; the inverse solver's hot path.

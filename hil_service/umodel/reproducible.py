@@ -1,0 +1,50 @@
+"""Array arithmetic that gives the same bits on every x86-64 machine.
+
+``--check`` replays a log recorded on one computer on another and compares commands bit
+for bit, so the inverse controller's grid path must not depend on the CPU it runs on.
+numpy picks its ``exp`` and ``power`` kernels at run time (AVX-512, AVX2 or baseline) and
+OpenBLAS does the same for a mat-vec, and these kernels round differently in the last
+place. Element-wise ``+`` and ``*`` are exactly rounded IEEE operations and so do not
+vary. This module uses those, plus ``math.exp`` (glibc) for values that are cached per grid.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = ["gaussian_columns", "linear_combination", "power_columns"]
+
+
+def power_columns(xs: np.ndarray, degree: int) -> list[np.ndarray]:
+    """[x, x², …, x^degree] by repeated multiplication (``xs**3`` would call ``pow``)."""
+    columns = []
+    p = np.ones_like(xs, dtype=float)
+    for _ in range(degree):
+        p = p * xs
+        columns.append(p)
+    return columns
+
+
+def gaussian_columns(us: np.ndarray, centres: Sequence[float], beta: float) -> list[np.ndarray]:
+    """Φ_j(u) = exp(−(u − c_j)²/β²) for every grid point, one column per centre.
+
+    Computed with the same scalar expression as the per-sample path
+    (:meth:`GaussianRBF.values_list`), so that grid and Newton agree to the bit.
+    """
+    k = 1.0 / (beta * beta)
+    exp = math.exp
+    points = [float(u) for u in us]
+    return [np.array([exp(-(u - c) * (u - c) * k) for u in points]) for c in centres]
+
+
+def linear_combination(
+    columns: Sequence[np.ndarray], coefficients: Sequence[float], start: float = 0.0
+) -> np.ndarray:
+    """start + Σ_j coefficients_j · columns_j, summed in column order (no BLAS)."""
+    out = np.full(len(columns[0]), float(start)) if columns else np.array([float(start)])
+    for coefficient, column in zip(coefficients, columns, strict=True):
+        out += coefficient * column
+    return out
