@@ -43,6 +43,9 @@ class ReadReport:
 
     path: str
     complete: bool = False
+    #: The reader got to the end of what it could read (EOF, footer or a damaged record);
+    #: False while a consumer stopped early, when nothing can be said about the file's end.
+    ended: bool = False
     messages: int = 0
     bytes_read: int = 0
     file_size: int = 0
@@ -82,12 +85,14 @@ class LogReader:
                 try:
                     record = next(records)
                 except StopIteration:
+                    report.ended = True
                     break
                 except Exception as error:  # truncated or corrupted: stop, say where
                     if offset == 0:
                         raise LogError(f"{self.path}: not an MCAP file ({error})") from error
                     report.error = f"{type(error).__name__}: {error}".strip()
                     report.error_offset = offset  # the start of the first bad record
+                    report.ended = True
                     break
                 report.bytes_read = stream.tell()
                 if isinstance(record, Schema):

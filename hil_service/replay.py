@@ -205,7 +205,8 @@ def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> 
                 break
     result.samples = service.assembler.counters.samples
     result.complete = reader.report.complete
-    if not reader.report.complete:
+    if reader.report.ended and not reader.report.complete:
+        # Only a read that reached the end can tell a damaged file (--check stops early).
         result.recovered = reader.report.describe()
     result.wall_s = time.monotonic() - started
     result.summary = service.summary()

@@ -66,6 +66,8 @@ def test_check_fails_naming_the_first_changed_estimate(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "glider/1/umodel/depth" in err
     assert f"message #1234 (t = {t:g} s)" in err
+    # The check stopped reading early; the file itself is whole and must not be called damaged.
+    assert "not finished" not in err and "recovered" not in err
 
 
 def test_truncated_fixture_replays_up_to_the_cut(tmp_path, replay_log):
