@@ -17,7 +17,7 @@ from typing import Any, Protocol
 import zenoh
 
 from hil_service.recorder import McapRecorder
-from protocols import keys
+from protocols import keys, payload_json
 from protocols.samples import TelemetrySample
 from protocols.schemas import validation_errors
 
@@ -174,7 +174,7 @@ class ZenohBus:
                 key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
             )
             self._publishers[key] = publisher
-        data = json.dumps(payload, allow_nan=False).encode()
+        data = payload_json.encode(payload)
         publisher.put(data)
         if self.recorder is not None:
             self.recorder.zenoh_encoded(key, data, "out")
@@ -185,7 +185,7 @@ class ZenohBus:
             return
 
         def answer(query: zenoh.Query) -> None:
-            query.reply(keys.state(system_id), json.dumps(state(), allow_nan=False))
+            query.reply(keys.state(system_id), payload_json.encode(state()))
 
         self._declared[system_id] = [
             self.session.liveliness().declare_token(keys.service(system_id)),

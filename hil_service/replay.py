@@ -23,6 +23,7 @@ from hil_service.bus import Bus, ControlInputs, Inbox, NullBus
 from hil_service.logreader import LogMessage, LogReader
 from hil_service.service import HilService, ServiceConfig
 from hil_service.vehicle import PipelineSettings
+from protocols import payload_json
 from protocols.mapping import TelemetryMapping
 from protocols.samples import TelemetrySample
 from protocols.units import InputScale, PressureDepth
@@ -108,7 +109,7 @@ class RecordingBus(NullBus):
 
     def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
         if self.capture and _kind(key) in CHECKED_KINDS:
-            self.published[key].append(json.dumps(payload, allow_nan=False).encode())
+            self.published[key].append(payload_json.encode(payload))
         if self.inner is not None:
             self.inner.publish(key, payload, reliable)
 
@@ -247,9 +248,18 @@ def _compare(
     if not queue:
         return Mismatch(key, index, _t(message.data), message.data.decode(), "<nothing>")
     recomputed = queue.popleft()
-    if recomputed != message.data:
+    if recomputed != message.data and not _same_values(recomputed, message.data):
         return Mismatch(key, index, _t(message.data), message.data.decode(), recomputed.decode())
     return None
+
+
+def _same_values(recomputed: bytes, recorded: bytes) -> bool:
+    """Equal once both are in one canonical encoding: a log written by another JSON encoder
+    (other spacing or float spelling) still checks bit for bit, since floats round-trip."""
+    try:
+        return payload_json.encode(payload_json.decode(recorded)) == recomputed
+    except ValueError:
+        return False
 
 
 def _t(data: bytes) -> float | None:

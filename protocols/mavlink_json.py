@@ -1,12 +1,12 @@
 """Decoded MAVLink as JSON, with a JSON Schema per message type (for MCAP ``json`` channels).
 
-Non-finite floats (MAVLink uses NaN for "unset" parameters) become ``null``, so every
-payload is strict JSON that any reader, Foxglove included, can parse.
+Encoded with ``protocols.payload_json``, which writes non-finite floats (MAVLink uses NaN
+for "unset" parameters) as ``null``, so every payload is strict JSON that any reader,
+Foxglove included, can parse.
 """
 
 from __future__ import annotations
 
-import math
 from functools import cache
 from typing import Any
 
@@ -16,24 +16,31 @@ _INTEGER_TYPES = {"int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32
                   "int64_t", "uint64_t", "uint8_t_mavlink_version"}  # fmt: skip
 
 
-def _finite(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value
+@cache
+def _char_fields(message_class: type) -> tuple[str, ...]:
+    return tuple(
+        name
+        for name, ftype in zip(message_class.fieldnames, message_class.fieldtypes, strict=True)
+        if ftype == "char"
+    )
 
 
 def message_to_json(message: MavMessage) -> dict[str, Any]:
-    """Fields of ``message`` plus its header: type, source system and component, sequence."""
-    payload = {name: _finite(getattr(message, name)) for name in message.fieldnames}
-    if isinstance(payload.get("text"), bytes):
-        payload["text"] = payload["text"].decode("utf-8", "replace")
+    """Fields of ``message`` plus its header: type, source system and component, sequence.
+
+    Floats are left as they are: ``payload_json.encode`` writes NaN (MAVLink's "unset") as
+    ``null``. Text fields that are not valid UTF-8 come back from pymavlink as bytes; they
+    are decoded with replacement so that every message can be encoded.
+    """
+    payload = {name: getattr(message, name) for name in message.fieldnames}
+    for name in _char_fields(type(message)):
+        if isinstance(payload[name], bytes):
+            payload[name] = payload[name].decode("utf-8", "replace")
     header = message.get_header()
     payload["_header"] = {
         "type": message.get_type(),
-        "system_id": message.get_srcSystem(),
-        "component_id": message.get_srcComponent(),
+        "system_id": header.srcSystem,
+        "component_id": header.srcComponent,
         "seq": header.seq,
     }
     return payload
