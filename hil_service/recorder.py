@@ -24,8 +24,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType
 
+from hil_service.mcap_writer import McapWriter
+from protocols import payload_json
 from protocols.keys import schema_for_key
 from protocols.mavlink_io import DIALECT_NAME, MAVLINK_VERSION, MavMessage
 from protocols.mavlink_json import message_schema, message_to_json
@@ -37,6 +39,8 @@ RAW_ENCODING = "mavlink2"
 CONFIG_METADATA = "glider-hil.config"
 PROFILE = "glider-hil"
 _STOP = object()
+POLL_INTERVAL = 0.02  # s between two drains of the queue by the writer thread
+WRITE_BATCH = 256  # records written between two looks at the flush clock
 
 
 @dataclass
@@ -45,6 +49,7 @@ class RecorderStatus:
     records: int = 0
     dropped: int = 0
     error: str = ""
+    last_drop: str = ""  # why the last record that could not be encoded was dropped
     queue_depth: int = 0
 
     def as_dict(self) -> dict[str, Any]:
@@ -55,6 +60,7 @@ class RecorderStatus:
             "records": self.records,
             "dropped": self.dropped,
             "error": self.error,
+            "last_drop": self.last_drop,
             "queue_depth": self.queue_depth,
         }
 
@@ -80,9 +86,9 @@ class McapRecorder:
         self.status = RecorderStatus()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
-        self._writer: Writer | None = None
+        self._writer: McapWriter | None = None
         self._stream: Any = None
-        self._channels: dict[str, int] = {}
+        self._channels: dict[tuple[str, ...], int] = {}
         self._opened_at = 0.0
         self._retry_at = 0.0
 
@@ -91,19 +97,22 @@ class McapRecorder:
         self._thread.start()
         return self
 
+    # An item is (route, payload, t_ns); the route is also the writer's channel key, so the
+    # writer needs one dict lookup per record and formats a topic only for a new channel.
     def raw(self, direction: str, frame: bytes, t_ns: int | None = None) -> None:
-        self._put(("raw", direction, frame, t_ns or time.time_ns()))
+        self._put((("raw", direction), frame, t_ns or time.time_ns()))
 
     def mavlink(self, direction: str, message: MavMessage, t_ns: int | None = None) -> None:
-        self._put(("json_mav", direction, message, t_ns or time.time_ns()))
+        """A decoded message; encoded to JSON on the writer thread, off the control path."""
+        route = ("json_mav", direction, message.get_type())
+        self._put((route, message, t_ns or time.time_ns()))
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
-        self._put(("zenoh", key, json.dumps(payload, allow_nan=False).encode(), direction,
-                   t_ns or time.time_ns()))  # fmt: skip
+        self.zenoh_encoded(key, payload_json.encode(payload), direction, t_ns)
 
     def zenoh_encoded(self, key: str, data: bytes, direction: str, t_ns: int | None = None) -> None:
         """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
-        self._put(("zenoh", key, data, direction, t_ns or time.time_ns()))
+        self._put((("zenoh", key, direction), data, t_ns or time.time_ns()))
 
     def _put(self, item: tuple[Any, ...]) -> None:
         if self._queue.qsize() >= self.max_queue:
@@ -118,16 +127,30 @@ class McapRecorder:
 
     # ---- writer thread ----------------------------------------------------------------
     def _run(self) -> None:
+        """Wake every ``POLL_INTERVAL`` and write what has queued since.
+
+        Not a blocking ``get`` per record: each put would then wake this thread, and it
+        would take the GIL from the control path once per record (measured: more CPU in
+        thread switches than in writing).
+        """
+        get_nowait = self._queue.get_nowait
         next_flush = time.monotonic() + self.flush_interval
-        while True:
-            try:
-                item = self._queue.get(timeout=max(next_flush - time.monotonic(), 0.0))
-            except queue.Empty:
-                item = None
-            if item is _STOP:
-                break
-            if item is not None:
+        stopping = False
+        while not stopping:
+            time.sleep(POLL_INTERVAL)
+            written = 0
+            while True:
+                try:
+                    item = get_nowait()
+                except queue.Empty:
+                    break
+                if item is _STOP:
+                    stopping = True
+                    break
                 self._write(item)
+                written += 1
+                if written % WRITE_BATCH == 0 and time.monotonic() >= next_flush:
+                    break  # a long backlog: flush on time, then go on
             if time.monotonic() >= next_flush:
                 next_flush = time.monotonic() + self.flush_interval
                 self.status.queue_depth = self._queue.qsize()
@@ -139,82 +162,71 @@ class McapRecorder:
             action(*args)
             return True
         except (OSError, ValueError) as error:
-            self.status.error = f"{type(error).__name__}: {error}"
-            self._abandon_file()
-            self._retry_at = time.monotonic() + 2.0
+            self._failed(error)
             return False
 
+    def _failed(self, error: Exception) -> None:
+        """Disk trouble: report it, drop the file, try a new one in two seconds."""
+        self.status.error = f"{type(error).__name__}: {error}"
+        self._abandon_file()
+        self._retry_at = time.monotonic() + 2.0
+
     def _write(self, item: tuple[Any, ...]) -> None:
-        cannot_open = self._writer is None and (
-            time.monotonic() < self._retry_at or not self._guarded(self._open)
-        )
-        if cannot_open:
+        writer = self._writer
+        if writer is None:
+            if time.monotonic() < self._retry_at or not self._guarded(self._open):
+                self.status.dropped += 1
+                return
+            writer = self._writer
+            assert writer is not None
+        route, payload, t_ns = item
+        try:
+            channel = self._channels.get(route)
+            if channel is None:
+                channel = self._channels[route] = self._register(writer, route)
+            if route[0] == "json_mav":
+                payload = payload_json.encode(message_to_json(payload))
+            writer.add_message(channel, t_ns, payload)
+        except (OSError, ValueError) as error:  # disk trouble: a new file when possible
+            self._failed(error)
             self.status.dropped += 1
-            return
-        if self._guarded(self._write_item, item):
+        except Exception as error:  # an unencodable record must not end all logging
+            self.status.last_drop = f"{type(error).__name__}: {error}"
+            self.status.dropped += 1
+        else:
             self.status.records += 1
-        else:
-            self.status.dropped += 1
 
-    def _write_item(self, item: tuple[Any, ...]) -> None:
-        kind = item[0]
+    def _register(self, writer: McapWriter, route: tuple[str, ...]) -> int:
+        """The channel (and its schema) for a route seen for the first time in this file."""
+        kind, name = route[0], route[1]
         if kind == "raw":
-            _, direction, frame, t_ns = item
-            channel = self._channel_raw(direction)
-            data = frame
-        elif kind == "json_mav":
-            _, direction, message, t_ns = item
-            channel = self._channel_json_mav(direction, message.get_type())
-            data = json.dumps(message_to_json(message)).encode()
-        else:
-            _, key, data, direction, t_ns = item
-            channel = self._channel_zenoh(key, direction)
-        assert self._writer is not None
-        self._writer.add_message(channel, log_time=t_ns, data=data, publish_time=t_ns)
-
-    def _channel_raw(self, direction: str) -> int:
-        topic = RAW_TOPIC.format(direction=direction)
-        if topic not in self._channels:
-            assert self._writer is not None
-            self._channels[topic] = self._writer.register_channel(
-                topic,
-                RAW_ENCODING,
-                schema_id=0,
-                metadata={
-                    "dialect": DIALECT_NAME,
-                    "mavlink_version": str(MAVLINK_VERSION),
-                    "direction": direction,
-                },
+            metadata = {
+                "dialect": DIALECT_NAME,
+                "mavlink_version": str(MAVLINK_VERSION),
+                "direction": name,
+            }
+            return writer.register_channel(
+                RAW_TOPIC.format(direction=name), RAW_ENCODING, 0, metadata
             )
-        return self._channels[topic]
-
-    def _channel_json_mav(self, direction: str, kind: str) -> int:
-        topic = JSON_TOPIC.format(direction=direction, kind=kind)
-        if topic not in self._channels:
-            assert self._writer is not None
-            schema_id = self._writer.register_schema(
-                f"mavlink.{kind}", "jsonschema", json.dumps(message_schema(kind)).encode()
+        if kind == "json_mav":
+            message_type = route[2]
+            schema_id = writer.register_schema(
+                f"mavlink.{message_type}",
+                "jsonschema",
+                json.dumps(message_schema(message_type)).encode(),
             )
-            self._channels[topic] = self._writer.register_channel(
-                topic, "json", schema_id, metadata={"direction": direction}
+            topic = JSON_TOPIC.format(direction=name, kind=message_type)
+            return writer.register_channel(topic, "json", schema_id, {"direction": name})
+        schema_name = schema_for_key(name)
+        schema_id = 0
+        if schema_name is not None:
+            schema_id = writer.register_schema(
+                f"glider-hil.{schema_name}",
+                "jsonschema",
+                json.dumps(load_schema(schema_name)).encode(),
             )
-        return self._channels[topic]
-
-    def _channel_zenoh(self, key: str, direction: str) -> int:
-        if key not in self._channels:
-            assert self._writer is not None
-            schema_name = schema_for_key(key)
-            schema_id = 0
-            if schema_name is not None:
-                schema_id = self._writer.register_schema(
-                    f"glider-hil.{schema_name}",
-                    "jsonschema",
-                    json.dumps(load_schema(schema_name)).encode(),
-                )
-            self._channels[key] = self._writer.register_channel(
-                key, "json", schema_id, metadata={"direction": direction, "transport": "zenoh"}
-            )
-        return self._channels[key]
+        metadata = {"direction": route[2], "transport": "zenoh"}
+        return writer.register_channel(name, "json", schema_id, metadata)
 
     def _open(self) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -225,7 +237,7 @@ class McapRecorder:
             path = self.log_dir / f"glider-hil_{stamp}_{index:03d}.mcap"
             index += 1
         self._stream = open(path, "wb")  # noqa: SIM115 - owned by the writer until _finish
-        self._writer = Writer(self._stream, compression=self.compression, chunk_size=1 << 20)
+        self._writer = McapWriter(self._stream, compression=self.compression)
         self._writer.start(profile=PROFILE, library="glider-hil")
         self._writer.add_metadata(CONFIG_METADATA, self.metadata)
         self._channels = {}

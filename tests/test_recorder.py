@@ -99,3 +99,60 @@ def test_reader_reports_truncation_and_corruption_with_offsets(tmp_path):
     junk.write_bytes(b"not an mcap file at all")
     with pytest.raises(LogError):
         read_all(junk)
+
+
+class _Unencodable:
+    """A decoded message whose field cannot be JSON-encoded (as a buggy dialect might give)."""
+
+    fieldnames = ("value",)
+    fieldtypes = ("float",)
+    value = object()
+
+    def get_type(self) -> str:
+        return "ATTITUDE"
+
+    def get_header(self) -> dialect.MAVLink_header:
+        return dialect.MAVLink_header(30, seq=0, srcSystem=1, srcComponent=1)
+
+
+def test_an_unencodable_record_is_counted_and_logging_goes_on(tmp_path):
+    recorder = McapRecorder(tmp_path, flush_interval=0.05).start()
+    recorder.mavlink("in", _Unencodable())
+    for frame in frames(10):
+        recorder.raw("in", frame)
+    recorder.close()
+    assert recorder.status.dropped == 1
+    assert "TypeError" in recorder.status.last_drop
+    assert recorder.status.as_dict()["state"] == "ok"  # a bad record is not a disk failure
+    messages, reader = read_all(next(tmp_path.glob("*.mcap")))
+    assert reader.report.complete and len(messages) == 10
+
+
+def test_files_open_in_the_mcap_librarys_indexed_reader(tmp_path):
+    """Our writer's summary, chunk and message indexes, as another MCAP tool uses them."""
+    from mcap.reader import make_reader
+
+    recorder = McapRecorder(tmp_path, {"k": "1"}, flush_interval=0.05).start()
+    sent = frames(3000)
+    for k, frame in enumerate(sent):
+        recorder.raw("in", frame, t_ns=1_000_000 * (k + 1))
+        recorder.zenoh("glider/1/telemetry", {"t": float(k)}, "out", t_ns=1_000_000 * (k + 1))
+        if k == 1500:
+            time.sleep(0.1)  # a flush in the middle: more than one chunk
+    recorder.close()
+    (path,) = tmp_path.glob("*.mcap")
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None
+        assert summary.statistics.message_count == 6000
+        assert len(summary.chunk_indexes) >= 2
+        topics = {channel.topic for channel in summary.channels.values()}
+        assert topics == {"mavlink/raw/in", "glider/1/telemetry"}
+        raw = [m.data for _, c, m in reader.iter_messages(topics=["mavlink/raw/in"])]
+        assert raw == sent
+        window = list(reader.iter_messages(starting_at=1_000_000_000, ending_before=1_100_000_000))
+        assert len(window) == 2 * 100  # 1000 ms ≤ t < 1100 ms, found through the indexes
+        assert {m.name: m.metadata for m in reader.iter_metadata()}["glider-hil.config"] == {
+            "k": "1"
+        }
