@@ -20,9 +20,14 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as dialect
 
+from protocols.frame_decoder import FrameDecoder
 from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
+V2_MARKER = 0xFD
+V2_SIGNED = 0x01  # incompat flag: a 13-byte signature follows the checksum
+V2_SIGNATURE = 13
+V2_MIN_FRAME = 12  # header 10 + checksum 2, empty payload
 MAVLINK_VERSION = 2
 
 MavMessage = Any  # pymavlink generates one class per message; they share MAVLink_message
@@ -67,6 +72,7 @@ class MavlinkCodec:
         # instance with the key does the signing of what we send.
         self._mav = dialect.MAVLink(None, srcSystem=self.system_id, srcComponent=self.component_id)
         self._mav.robust_parsing = True
+        self._frames = FrameDecoder(dialect)
         self._packer = self._mav
         if self.signing_key is not None:
             self._packer = dialect.MAVLink(
@@ -114,6 +120,10 @@ class MavlinkCodec:
         """
         if not data:
             return []
+        if datagram:
+            whole = self._decode_whole_frames(data)
+            if whole is not None:
+                return self._accept(whole)
         try:
             messages = self._mav.parse_buffer(data) or []
         except Exception:  # pymavlink raises on some malformed payloads; count, never crash
@@ -123,6 +133,46 @@ class MavlinkCodec:
         if datagram and self._mav.buf_len() > 0:
             self.counters.bad_frames += 1
             self._reset_parser()
+        return self._accept(messages)
+
+    def _decode_whole_frames(self, data: bytes) -> list[MavMessage] | None:
+        """The messages of a datagram made of nothing but whole, valid MAVLink 2 frames.
+
+        The common case, decoded frame by frame with pymavlink's own ``decode`` and without
+        its byte-at-a-time parser state machine. Anything else (garbage, MAVLink 1, a
+        truncated or corrupt frame, an unknown message id) gives None, and the caller
+        parses the datagram the general way, which counts what it drops.
+        """
+        frames = []
+        end = len(data)
+        position = 0
+        while position < end:
+            if end - position < V2_MIN_FRAME or data[position] != V2_MARKER:
+                return None
+            flags = data[position + 2]
+            if flags & ~V2_SIGNED:
+                return None  # pymavlink's parser refuses unknown incompat flags
+            size = V2_MIN_FRAME + data[position + 1] + (V2_SIGNATURE if flags else 0)
+            if position + size > end:
+                return None
+            frames.append(data[position : position + size])
+            position += size
+        fast, decode = self._frames.decode, self._mav.decode
+        messages = []
+        for frame in frames:
+            message = fast(frame)
+            if message is None:  # a type with text fields, or something wrong with it
+                try:
+                    message = decode(bytearray(frame))
+                except Exception:  # CRC or length error: let the general path count it
+                    return None
+                if message.get_type().startswith("UNKNOWN_"):
+                    return None
+            messages.append(message)
+        return messages
+
+    def _accept(self, messages: list[MavMessage]) -> list[MavMessage]:
+        """Count and drop bad, unknown and (with a verifier) refused frames."""
         good = []
         self.last_rejected = []
         for message in messages:

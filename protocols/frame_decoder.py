@@ -1,0 +1,133 @@
+"""MAVLink 2 frame decoding for the per-sample path: pymavlink's result, about twice as fast.
+
+pymavlink's ``MAVLink.decode`` is generic: it re-derives each message type's field layout
+from its tables on every frame and builds the message through the generated ``__init__``.
+At four frames per plant step and 10,000 steps/s that is a third of the service's time.
+Here each message type gets a plan once (payload size, CRC extra, how the wire-order
+tuple maps to the declared fields), and a frame costs one header unpack, one CRC, one
+payload unpack and a dictionary update on a new instance of pymavlink's own class.
+
+The result is the object pymavlink's ``decode`` returns, attribute for attribute (a test
+checks every message type of the dialect against it). Types with text fields are left to
+pymavlink: their generated ``__init__`` turns bytes into text, and that is not repeated
+here. Anything unusual (bad CRC, bad length, unknown id) gives None, so that the caller
+falls back to pymavlink, which counts it.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+MavMessage = Any  # an instance of one of the dialect's generated message classes
+
+_HEADER = struct.Struct("<BBBBBBBHB")  # magic, len, incompat, compat, seq, sys, comp, id lo/hi
+_HEADER_LEN = 10
+_SIGNATURE_LEN = 13
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """How to turn one message type's payload into pymavlink's message object."""
+
+    message_class: type
+    crc_extra: bytes
+    unpacker: struct.Struct
+    fields: tuple[str, ...]
+    #: (start, length) in the unpacked wire-order tuple for each field in declared order;
+    #: length 0 marks a scalar.
+    layout: tuple[tuple[int, int], ...]
+    prototype: dict[str, Any]
+
+    def values(self, unpacked: tuple[Any, ...]) -> list[Any]:
+        return [
+            unpacked[start] if length == 0 else list(unpacked[start : start + length])
+            for start, length in self.layout
+        ]
+
+
+def _plan_for(message_class: Any) -> _Plan | None:
+    if "char" in message_class.fieldtypes:
+        return None  # text fields are converted by the generated __init__
+    lengths = message_class.lengths
+    layout = []
+    for order in message_class.orders:
+        length = lengths[order]
+        layout.append((sum(lengths[:order]), 0 if length == 1 else length))
+    # An instance made by pymavlink itself supplies every bookkeeping attribute.
+    zeros = message_class.unpacker.unpack(bytes(message_class.unpacker.size))
+    placeholder = message_class(
+        *[
+            zeros[start] if length == 0 else list(zeros[start : start + length])
+            for start, length in layout
+        ]
+    )
+    return _Plan(
+        message_class=message_class,
+        crc_extra=bytes((message_class.crc_extra,)),
+        unpacker=message_class.unpacker,
+        fields=tuple(message_class.fieldnames),
+        layout=tuple(layout),
+        prototype=dict(vars(placeholder)),
+    )
+
+
+class FrameDecoder:
+    """Decodes single MAVLink 2 frames (header, checksum, payload; signature not checked).
+
+    ``dialect`` is the pymavlink dialect module (``protocols.mavlink_io`` passes it, so that
+    pymavlink stays imported in one place).
+    """
+
+    def __init__(self, dialect: ModuleType) -> None:
+        self._dialect = dialect
+        self._plans: dict[int, _Plan | None] = {}
+
+    def _plan(self, message_id: int) -> _Plan | None:
+        try:
+            return self._plans[message_id]
+        except KeyError:
+            message_class = self._dialect.mavlink_map.get(message_id)
+            plan = None if message_class is None else _plan_for(message_class)
+            self._plans[message_id] = plan
+            return plan
+
+    def decode(self, frame: bytes) -> MavMessage | None:
+        """pymavlink's message for ``frame``, or None where pymavlink must decide."""
+        try:
+            _, length, incompat, compat, seq, system, component, low, high = _HEADER.unpack_from(
+                frame
+            )
+        except struct.error:
+            return None
+        message_id = low | high << 16
+        plan = self._plan(message_id)
+        if plan is None:
+            return None
+        dialect = self._dialect
+        signature = _SIGNATURE_LEN if incompat & dialect.MAVLINK_IFLAG_SIGNED else 0
+        end = _HEADER_LEN + length
+        if len(frame) != end + 2 + signature:
+            return None
+        crc = frame[end] | frame[end + 1] << 8
+        if dialect.x25crc(frame[1:end] + plan.crc_extra).crc != crc:
+            return None
+        payload = frame[_HEADER_LEN:end]
+        size = plan.unpacker.size
+        if length < size:
+            payload += bytes(size - length)  # MAVLink 2 drops trailing zero bytes
+        message = plan.message_class.__new__(plan.message_class)
+        attributes = message.__dict__
+        attributes.update(plan.prototype)
+        values = plan.values(plan.unpacker.unpack(payload[:size]))
+        attributes.update(zip(plan.fields, values, strict=True))
+        buffer = bytearray(frame)
+        attributes["_msgbuf"] = buffer
+        attributes["_payload"] = buffer[6:end]  # pymavlink's slice, kept as it is
+        attributes["_crc"] = crc
+        attributes["_header"] = dialect.MAVLink_header(
+            message_id, incompat, compat, length, seq, system, component
+        )
+        return message
