@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.logreader import LogReader  # noqa: E402
+from hil_service.process_tuning import tune_for_service  # noqa: E402
 from hil_service.recorder import McapRecorder  # noqa: E402
 from hil_service.replay import ReplayOptions, replay  # noqa: E402
 from hil_service.service import ServiceConfig  # noqa: E402
@@ -57,6 +58,7 @@ def main() -> None:
         started = time.perf_counter()
         messages = sum(1 for _ in LogReader(path).messages())
         reader_s = time.perf_counter() - started
+        tune_for_service()  # as `glider-hil replay` does
         started = time.perf_counter()
         result = replay(path, ReplayOptions())
         replay_s = time.perf_counter() - started

@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.bus import Inbox, ZenohBus  # noqa: E402
+from hil_service.process_tuning import tune_for_service  # noqa: E402
 from hil_service.recorder import McapRecorder  # noqa: E402
 from hil_service.service import HilService, ServiceConfig  # noqa: E402
 from hil_service.vehicle import PipelineSettings  # noqa: E402
@@ -55,6 +56,7 @@ def rss_mib() -> float:
 
 
 def build_service(log_dir: str) -> tuple[HilService, McapRecorder, object]:
+    """The service as ``serve`` builds it (interpreter tuning included), minus the link."""
     session = open_session(ZenohOptions())  # no peers: publications go nowhere, as fast as can be
     recorder = McapRecorder(log_dir, {"bench": "1"}).start()
     inbox = Inbox()
@@ -62,6 +64,7 @@ def build_service(log_dir: str) -> tuple[HilService, McapRecorder, object]:
         ServiceConfig(pipeline=PipelineSettings()), ZenohBus(session, inbox, recorder), inbox,
         recorder=recorder,
     )  # fmt: skip
+    tune_for_service()
     return service, recorder, session
 
 

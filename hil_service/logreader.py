@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from mcap.records import Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 
+from hil_service.mcap_records import read_records
 from hil_service.recorder import CONFIG_METADATA
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
@@ -78,8 +78,7 @@ class LogReader:
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}
         with open(self.path, "rb") as stream:
-            reader = StreamReader(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT)
-            records = reader.records
+            records = read_records(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT)
             while True:
                 offset = stream.tell()
                 try:

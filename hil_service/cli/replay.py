@@ -8,6 +8,7 @@ import sys
 
 from hil_service.bus import Inbox, ZenohBus
 from hil_service.logreader import LogError
+from hil_service.process_tuning import tune_for_service
 from hil_service.replay import ReplayError, ReplayOptions, replay
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 
@@ -50,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
         if args.publish:
             session = open_session(options_from_args(args))
             bus = ZenohBus(session, Inbox())
+        tune_for_service()
         while True:
             result = replay(args.log, options, bus)
             if options.progress is not None:

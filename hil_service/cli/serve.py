@@ -11,6 +11,7 @@ import time
 from dataclasses import replace
 
 from hil_service.bus import Inbox, SetpointLimits, ZenohBus
+from hil_service.process_tuning import tune_for_service
 from hil_service.recorder import McapRecorder
 from hil_service.service import HilService, LinkSecurity, ServiceConfig
 from hil_service.vehicle import MODEL_CHOICES, PipelineSettings
@@ -115,9 +116,6 @@ def run(args: argparse.Namespace) -> int:
     except Exception as error:
         print(f"glider-hil serve: {error}", file=sys.stderr)
         return 2
-    # The recorder thread must not hold the GIL for the default 5 ms while a telemetry
-    # datagram waits: a short switch interval bounds the control path's wait for it.
-    sys.setswitchinterval(0.0005)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -150,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
     inbox = Inbox(SetpointLimits(args.min_depth, args.max_depth, args.max_pitch))
     bus = ZenohBus(session, inbox, recorder)
     service = HilService(config, bus, inbox, link=link, recorder=recorder, mapping=mapping)
+    tune_for_service()
     print(f"glider-hil serve: {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)
     if args.duration is not None:
         timer = threading.Timer(args.duration, stop.set)
