@@ -43,7 +43,7 @@ def write_log(log_dir: str, samples: int) -> Path:
             recorder.raw("in", codec.pack(message), t_ns)
         t_ns += 20_000_000  # 50 samples/s
         if k % 5000 == 4999:
-            while recorder._queue.qsize() > 20_000:
+            while recorder.backlog > 20_000:
                 time.sleep(0.01)
     recorder.close(timeout=600)
     return Path(recorder.status.files[-1])

@@ -113,7 +113,7 @@ def bench_memory(n: int) -> dict[str, float]:
             for message in mapping.encode_telemetry(sample):
                 service.process_datagram(codec.pack(message))
             if k % 2000 == 1999:
-                while recorder._queue.qsize() > 5000:
+                while recorder.backlog > 5000:
                     time.sleep(0.01)
             if k + 1 in (50_000, n):
                 marks[k + 1] = rss_mib()

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import contextlib
 import json
-import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -84,7 +84,9 @@ class McapRecorder:
         self.max_queue = max_queue
         self.compression = compression
         self.status = RecorderStatus()
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        # A deque, not a queue.Queue: append and popleft are atomic in CPython and take no
+        # lock, and the writer thread polls it rather than blocking on it (see _run).
+        self._queue: deque[Any] = deque()
         self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
         self._writer: McapWriter | None = None
         self._stream: Any = None
@@ -115,14 +117,19 @@ class McapRecorder:
         self._put((("zenoh", key, direction), data, t_ns or time.time_ns()))
 
     def _put(self, item: tuple[Any, ...]) -> None:
-        if self._queue.qsize() >= self.max_queue:
+        if len(self._queue) >= self.max_queue:
             self.status.dropped += 1
             return
-        self._queue.put(item)
+        self._queue.append(item)
+
+    @property
+    def backlog(self) -> int:
+        """Records queued and not yet written."""
+        return len(self._queue)
 
     def close(self, timeout: float = 10.0) -> None:
         if self._thread.is_alive():
-            self._queue.put(_STOP)
+            self._queue.append(_STOP)
             self._thread.join(timeout)
 
     # ---- writer thread ----------------------------------------------------------------
@@ -133,27 +140,24 @@ class McapRecorder:
         would take the GIL from the control path once per record (measured: more CPU in
         thread switches than in writing).
         """
-        get_nowait = self._queue.get_nowait
+        pending, write = self._queue, self._write
         next_flush = time.monotonic() + self.flush_interval
         stopping = False
         while not stopping:
             time.sleep(POLL_INTERVAL)
             written = 0
-            while True:
-                try:
-                    item = get_nowait()
-                except queue.Empty:
-                    break
+            while pending:
+                item = pending.popleft()
                 if item is _STOP:
                     stopping = True
                     break
-                self._write(item)
+                write(item)
                 written += 1
                 if written % WRITE_BATCH == 0 and time.monotonic() >= next_flush:
                     break  # a long backlog: flush on time, then go on
             if time.monotonic() >= next_flush:
                 next_flush = time.monotonic() + self.flush_interval
-                self.status.queue_depth = self._queue.qsize()
+                self.status.queue_depth = len(pending)
                 self._guarded(self._flush_and_rotate)
         self._guarded(self._finish)
 

@@ -84,6 +84,13 @@ class FrameDecoder:
     def __init__(self, dialect: ModuleType) -> None:
         self._dialect = dialect
         self._plans: dict[int, _Plan | None] = {}
+        # pymavlink's own CRC-16/MCRF4XX: fastcrc's C function when installed (one call,
+        # not an object), its pure-Python class otherwise.
+        fast_crc = getattr(dialect, "mcrf4xx", None)
+        if fast_crc is not None:
+            self._crc = lambda data: fast_crc(data, 0xFFFF)
+        else:
+            self._crc = lambda data: dialect.x25crc(data).crc
 
     def _plan(self, message_id: int) -> _Plan | None:
         try:
@@ -112,7 +119,7 @@ class FrameDecoder:
         if len(frame) != end + 2 + signature:
             return None
         crc = frame[end] | frame[end + 1] << 8
-        if dialect.x25crc(frame[1:end] + plan.crc_extra).crc != crc:
+        if self._crc(frame[1:end] + plan.crc_extra) != crc:
             return None
         payload = frame[_HEADER_LEN:end]
         size = plan.unpacker.size
