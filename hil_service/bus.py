@@ -41,6 +41,10 @@ class ControlInputs:
     reset: bool = False  # replay only: controllers were re-armed before this sample
 
 
+#: What a vehicle with no input received yet is given (never modified).
+_NO_INPUTS = ControlInputs()
+
+
 @dataclass(frozen=True)
 class SetpointLimits:
     """Limits a vehicle owner sets: setpoints outside them are refused, never clipped."""
@@ -62,7 +66,11 @@ class SetpointLimits:
 
 
 class Inbox:
-    """Thread-safe store of control inputs, written by Zenoh callbacks, read per sample."""
+    """Thread-safe store of control inputs, written by Zenoh callbacks, read per sample.
+
+    Writers replace a vehicle's ``ControlInputs`` with a new object under the lock and never
+    change a published one, so the per-sample read is a plain dictionary lookup.
+    """
 
     def __init__(self, limits: SetpointLimits | None = None) -> None:
         self.limits = limits or SetpointLimits()
@@ -72,21 +80,24 @@ class Inbox:
         self.last_rejection = ""
 
     def inputs_for(self, sample: TelemetrySample) -> ControlInputs:
-        """The inputs in force for ``sample``: live, simply the latest received."""
-        return self.get(sample.system_id)
+        """The inputs in force for ``sample`` (live: the latest received). Read-only."""
+        return self._inputs.get(sample.system_id) or _NO_INPUTS
 
     def get(self, system_id: int) -> ControlInputs:
-        with self._lock:
-            current = self._inputs.get(system_id, ControlInputs())
-            return ControlInputs(dict(current.setpoints), current.enabled)
+        """A copy of the latest inputs for ``system_id``, free to change."""
+        current = self._inputs.get(system_id) or _NO_INPUTS
+        return ControlInputs(dict(current.setpoints), current.enabled)
 
     def set_setpoint(self, system_id: int, channel: str, value: float | None) -> None:
         with self._lock:
-            self._inputs.setdefault(system_id, ControlInputs()).setpoints[channel] = value
+            current = self._inputs.get(system_id) or _NO_INPUTS
+            setpoints = {**current.setpoints, channel: value}
+            self._inputs[system_id] = ControlInputs(setpoints, current.enabled)
 
     def set_enabled(self, system_id: int, enabled: bool) -> None:
         with self._lock:
-            self._inputs.setdefault(system_id, ControlInputs()).enabled = enabled
+            current = self._inputs.get(system_id) or _NO_INPUTS
+            self._inputs[system_id] = ControlInputs(dict(current.setpoints), enabled)
 
     def reject(self, reason: str) -> None:
         with self._lock:

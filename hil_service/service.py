@@ -67,6 +67,7 @@ class VehicleRuntime:
     """What the runtime keeps per vehicle beside its pure pipeline."""
 
     pipeline: VehiclePipeline
+    keys: keys.VehicleKeys
     rate: RateMeter = field(default_factory=RateMeter)
     last_sample_wall: float | None = None
     last_sample: TelemetrySample | None = None
@@ -147,10 +148,11 @@ class HilService:
         vehicle.rate.tick(now)
         vehicle.last_sample_wall = now
         system_id = sample.system_id
-        self.bus.publish(keys.telemetry(system_id), sample.to_payload())
+        topics = vehicle.keys
+        self.bus.publish(topics.telemetry, sample.to_payload())
         estimates = vehicle.pipeline.observe(sample)
         for channel, payload in estimates.items():
-            self.bus.publish(keys.umodel(system_id, channel), payload)
+            self.bus.publish(topics.umodel[channel], payload)
         inputs = self.inbox.inputs_for(sample)
         enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
         reset = vehicle.reset_pending or inputs.reset
@@ -176,7 +178,7 @@ class HilService:
             if decision.payload is not None:
                 vehicle.last_command = decision.payload
         if decision.command is not None and decision.payload is not None:
-            self.bus.publish(keys.command_ballast(system_id), decision.payload, reliable=True)
+            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             if self.send_commands:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
             vehicle.commands_sent += 1
@@ -201,7 +203,8 @@ class HilService:
         vehicle = self.vehicles.get(system_id)
         if vehicle is None:
             pipeline = VehiclePipeline(self.config.pipeline)
-            vehicle = self.vehicles[system_id] = VehicleRuntime(pipeline)
+            vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
+            self.vehicles[system_id] = vehicle
             self.bus.declare_vehicle(system_id, lambda: self.state(system_id))
         return vehicle
 
@@ -213,7 +216,7 @@ class HilService:
             return
         self._next_health = now + self.config.health_period
         for system_id in self.vehicles:
-            self.bus.publish(keys.health(system_id), self.health(system_id, now))
+            self.bus.publish(self.vehicles[system_id].keys.health, self.health(system_id, now))
 
     def health(self, system_id: int, now: float | None = None) -> dict[str, Any]:
         now = self.clock() if now is None else now

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 CHANNELS = ("depth", "pitch")
 ROOT = "glider"
 
@@ -53,6 +55,25 @@ def state(system_id: int) -> str:
     """Queryable answering the latest sample, estimates and command."""
     _check(system_id)
     return f"{ROOT}/{system_id}/state"
+
+
+@dataclass(frozen=True)
+class VehicleKeys:
+    """One vehicle's output keys, formatted once: the per-sample path publishes on them."""
+
+    telemetry: str
+    umodel: dict[str, str]
+    command_ballast: str
+    health: str
+
+    @classmethod
+    def of(cls, system_id: int) -> VehicleKeys:
+        return cls(
+            telemetry=telemetry(system_id),
+            umodel={channel: umodel(system_id, channel) for channel in CHANNELS},
+            command_ballast=command_ballast(system_id),
+            health=health(system_id),
+        )
 
 
 #: Schema name for each key kind, used to validate payloads and label MCAP channels.
