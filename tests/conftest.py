@@ -2,29 +2,24 @@
 
 from __future__ import annotations
 
-import os
-import signal
 import socket
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from hil_service.cli.processes import free_port, start_verb, stop_process
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    return free_port(socket.SOCK_DGRAM)
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    return free_port(socket.SOCK_STREAM)
 
 
 class ProcessGroup:
@@ -34,27 +29,14 @@ class ProcessGroup:
         self.processes: list[subprocess.Popen[str]] = []
 
     def start(self, *args: str) -> subprocess.Popen[str]:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "hil_service.cli", *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
+        process = start_verb(*args)
         self.processes.append(process)
         return process
 
     @staticmethod
     def stop(process: subprocess.Popen[str], timeout: float = 10.0) -> tuple[str, str]:
         """SIGINT (a clean stop, like Ctrl-C), then SIGKILL if it does not exit in time."""
-        if process.poll() is None:
-            process.send_signal(signal.SIGINT)
-        try:
-            return process.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            return process.communicate(timeout=5)
+        return stop_process(process, timeout)
 
     def stop_all(self) -> None:
         for process in self.processes:
