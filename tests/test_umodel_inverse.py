@@ -242,3 +242,23 @@ def test_curvature_refinement_never_leaves_the_bracket() -> None:
 def test_curvature_is_ignored_when_a_root_exists() -> None:
     res = solve_inverse(quad, dquad, 0.0, 0.2, -2.0, 2.0, d2f=lambda u: 2.0)
     assert res.path == "newton" and res.u == pytest.approx(0.5, abs=1e-9)
+
+
+def test_warm_start_refinement_matches_the_bracketed_search() -> None:
+    """The stationary-point search started at u0 gives what the bracketed search gives, and
+    a warm start that lands on a maximum of |f − v| is not accepted."""
+    from hil_service.umodel.inverse import _extremum
+
+    xtol = 4e-7
+    # Minimum of |f − v| at u = 0 (f − v = u² + 1 > 0): warm start accepted.
+    f, df, d2f = (lambda u: u * u), (lambda u: 2.0 * u), (lambda u: 2.0)
+    plain = _extremum(f, df, -1.0, -0.04, 0.04, xtol, 60)
+    warm = _extremum(f, df, -1.0, -0.04, 0.04, xtol, 60, d2f, 0.013)
+    assert warm[0] == pytest.approx(plain[0], abs=xtol) and warm[1] <= plain[1] + 1e-15
+    # u = 0 is a maximum of |f − v| for f = −u², v = −5: the warm point is refused and the
+    # bracketed search runs as without a start.
+    g, dg, d2g = (lambda u: -u * u), (lambda u: -2.0 * u), (lambda u: -2.0)
+    plain = _extremum(g, dg, -5.0, -0.04, 0.04, xtol, 60)
+    warm = _extremum(g, dg, -5.0, -0.04, 0.04, xtol, 60, d2g, 0.013)
+    assert warm[0] == pytest.approx(plain[0], abs=xtol)
+    assert warm[1] == pytest.approx(plain[1])

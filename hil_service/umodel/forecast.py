@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from operator import mul
+from operator import mul, sub
 from typing import Any
 
 import numpy as np
@@ -285,12 +285,21 @@ def _horizon_response(
         tail = [0.0] + [1.0] * (horizon - first)
     # s(i) = tail[i − first + 1]; tail[0] = s(first − 1), only ever read as s(−1) = 0.
     end = horizon - first  # position of s(H − 1)
-    known = bias * tail[end]
-    for i, e in enumerate(extra[:end]):
-        known += e * (tail[end - i] - tail[end - i - 1])
+    # h(H−1−i) = s(H−1−i) − s(H−2−i) for i = 0, 1, … (map stops with the shorter list).
+    known = bias * tail[end] + sum(map(mul, extra, map(sub, tail[end:0:-1], tail[end - 1 :: -1])))
     if n_gains < horizon:  # s(H−1−L) for L = 1..n_gains
         return known, tail[end - 1 : end - 1 - n_gains : -1]
     return known, [tail[end - lag] if lag < horizon else 0.0 for lag in range(1, n_gains + 1)]
+
+
+def _ar_coefficients(model: DynamicUModel) -> list[float]:
+    """``model.ar_coefficients()`` written out: c = [1 + a_1, a_2 − a_1, …, −a_na], the
+    same operations (0 − a + b = b − a exactly), so the same bits."""
+    start = model._np + 1
+    a = [t * model._inv_ys for t in model._theta[start : start + model.na]]
+    if not a:
+        return [1.0]
+    return [1.0 + a[0], *map(sub, a[1:], a), -a[-1]]
 
 
 def _dynamic_horizon_map(model: DynamicUModel, u_applied: float, horizon: int) -> HorizonMap:
@@ -321,7 +330,7 @@ def _dynamic_horizon_map(model: DynamicUModel, u_applied: float, horizon: int) -
         impulses.append(sum(map(mul, theta[base + (j - 2) * ld : end], known)))
     # AR form of the increments: ŷ(t) = Σ_{i=1..na+1} c_i·y(t−i) + … (see ar_coefficients).
     offset, gains = _horizon_response(
-        model.ar_coefficients(), model._levels, impulses, theta[npoly], horizon, nb
+        _ar_coefficients(model), model._levels, impulses, theta[npoly], horizon, nb
     )
     g1 = gains[0]
     poly = [g1 * a for a in alphas]

@@ -126,6 +126,10 @@ def _extremum(
     target): the minimiser is a stationary point of f, found by Illinois regula falsi on f'
     when f' changes sign over [a, b] (bracketed Newton on f' when f'' is given), else by
     golden-section search."""
+    if d2f is not None and start is not None and a < start < b:
+        warm = _warm_stationary(f, df, d2f, v, a, b, start, xtol, max_iter)
+        if warm is not None:
+            return warm
     da, db = df(a), df(b)
     it = 0
     if math.isfinite(da) and math.isfinite(db) and da * db < 0.0:
@@ -165,6 +169,41 @@ def _extremum(
             d = a + _GOLDEN * (b - a)
             fd = _abs_res(f, d, v)
     return (c, fc, it) if fc <= fd else (d, fd, it)
+
+
+def _warm_stationary(
+    f: Callable[[float], float],
+    df: Callable[[float], float],
+    d2f: Callable[[float], float],
+    v: float,
+    a: float,
+    b: float,
+    start: float,
+    xtol: float,
+    max_iter: int,
+) -> tuple[float, float, int] | None:
+    """Newton on f' from ``start`` (the previous command, usually last step's answer), for
+    the common case where the unreachable target's best point has barely moved.
+
+    Accepted only if every iterate stays inside (a, b), a step shorter than ``xtol`` is
+    reached and the point is a minimum of |f − v| (f − v and f'' of the same sign), i.e.
+    the stationary point the bracketed search would find; saves evaluating f' at both
+    cell ends. None means "run the bracketed search".
+    """
+    u = start
+    for it in range(1, min(max_iter, 8) + 1):
+        h = d2f(u)
+        du = df(u)
+        if not (math.isfinite(du) and math.isfinite(h)) or h == 0.0:
+            return None
+        u_new = u - du / h
+        if not a < u_new < b:
+            return None
+        if abs(u_new - u) <= xtol:
+            r = f(u_new) - v
+            return (u_new, abs(r), it) if math.isfinite(r) and r * h > 0.0 else None
+        u = u_new
+    return None
 
 
 def _stationary_newton(
@@ -239,15 +278,30 @@ def _fallback(
     else:
         vals = np.array([f(u) for u in grid.tolist()], dtype=float)
     r = vals - v
-    finite = np.isfinite(r)
-    all_finite = bool(finite.all())
     iters = 0
-    # 1) A sign change on the grid means an exact solution exists: take the one nearest u0.
-    change = r[:-1] * r[1:] <= 0.0
-    if not all_finite:
-        change &= finite[:-1] & finite[1:]
-    cells = np.flatnonzero(change)
-    if cells.size:
+    low, high = float(r.min()), float(r.max())  # NaN anywhere → NaN → the general scan
+    if low > 0.0 or high < 0.0:
+        # Common case, fast: f − v keeps one sign on the whole grid (no root, nothing NaN).
+        i = int(r.argmin()) if low > 0.0 else int(r.argmax())  # lowest u among ties
+        best = low if low > 0.0 else -high
+        cells = None
+        if np.count_nonzero(r == r[i]) > 1:
+            ties = np.flatnonzero(r == r[i])
+            i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
+        ri = float(r[i]) if math.isfinite(best) else 0.0
+    else:
+        finite = np.isfinite(r)
+        # 1) A sign change on the grid means an exact solution exists: the one nearest u0.
+        cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
+        if not cells.size:
+            # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u)
+            a = np.where(finite, np.abs(r), np.inf)
+            ties = np.flatnonzero(a == a.min())
+            i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
+            best = float(a[i])
+            ri = float(r[i]) if finite[i] else 0.0
+            cells = None
+    if cells is not None:
         if cells.size == 1:
             i = int(cells[0])
         else:
@@ -265,17 +319,9 @@ def _fallback(
             refine_iter,
         )
     else:
-        # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u) ...
-        a = np.abs(r) if all_finite else np.where(finite, np.abs(r), np.inf)
-        i = int(a.argmin())  # the lowest u among ties
-        best = float(a[i])
-        ties = np.flatnonzero(a == best)
-        if ties.size > 1:
-            i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
         u = float(grid[i])
         # ... refined inside the neighbouring cells unless a bound is a one-sided minimum.
         last = grid_points - 1
-        ri = float(r[i]) if finite[i] else 0.0
         refine = 0 < i < last
         if i in (0, last) and best > tol:
             slope = df(u)
