@@ -172,14 +172,10 @@ class ChannelPipeline:
             self.converged = False
         else:
             self.stats.add(y, estimate.error, baseline.error)
-            skill = self.stats.recent_skill()
-            if (
-                not self.converged
-                and self.stats.count >= self.settings.burn_in
-                and skill is not None
-                and skill >= self.settings.min_skill
-            ):
-                self.converged = True
+            if not self.converged and self.stats.count >= self.settings.burn_in:
+                skill = self.stats.recent_skill()  # only needed until convergence
+                if skill is not None and skill >= self.settings.min_skill:
+                    self.converged = True
         return {
             "t": t,
             "y": estimate.y,

@@ -12,8 +12,19 @@ Timing: after ``step`` at sample k the model's history holds y(k) and u(k−1); 
 already been applied (the vehicle reported it), so a command sent now acts from u(k+1) on.
 The forecast runs the model from k with u(k) = ``u_applied`` and u(k+1 …) = u, and returns
 ŷ(k+H). Every U-model here is linear in its past outputs and a sum of static maps of each
-input lag, so ŷ(k+H) = offset + Σ_m gain_m·map_m(u): two linear filter runs give the offset and
-gains, and Newton then needs only the maps and their analytic derivatives.
+input lag, so ŷ(k+H) = offset + Σ_m gain_m·map_m(u). ``forecast_linear`` is that formula for
+any such model (two filter runs). ``forecast_model`` (the controller's path) uses the shape of
+the package's U-models: every map is a polynomial in the same scaled input plus, for lag 1, the
+RBF layer, so the sum collapses into one ``HorizonMap`` (offset + gain·RBF + one polynomial)
+built from a single lfilter run per sample; Newton then costs one RBF pass per iterate.
+
+Why the fallback began so often (``experiment --bench``: pitch/dynamic 39 %, depth/paper 92 %):
+in about 89 % (pitch) and 99 % (depth/paper) of those samples f(u) − v has no root in the
+actuator range: the H-step map is non-monotone in u and the target lies beyond its interior
+extremum (the paper model cannot represent the depth integrator; the pitch model after a
+300-sample burn-in is strongly non-monotone). The answer is then that extremum, which Newton
+on f − v cannot reach; where a root exists Newton fails only on steps that leave the range
+or on slow convergence (~4 % of samples). So the fallback was made cheap instead.
 """
 
 from __future__ import annotations

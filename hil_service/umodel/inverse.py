@@ -14,6 +14,10 @@ polynomials and used with any identifier through ``invert_model``.
   out of reach) is refined by a stationary-point search (regula falsi on f', golden section
   as backup) in its neighbouring cells. Ties go to u0 (then the lower u), which avoids
   needless jumps when f is flat (e.g. the persistence model).
+* With f'' (``d2f``, optional) the stationary-point search takes Newton steps on f': first
+  from u0 when u0 lies in those cells (the previous answer is usually next to the new one),
+  accepted only if it stays in the cells and lands on a minimum of |f − v|; else kept inside
+  the bracket. Same point as regula falsi within its tolerance, in a few evaluations.
 """
 
 from __future__ import annotations
