@@ -101,21 +101,49 @@ def test_forecast_rejects_short_horizon_and_unknown_models() -> None:
         forecast_model(build_model("persistence"), 0.0, 5)
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 5, 7, 20, 33])
-def test_row_sum_is_the_documented_halving_order(n: int) -> None:
-    rows = np.random.default_rng(n).normal(size=(n, 11))
-    got = row_sum(rows)
-    assert np.allclose(got, rows.sum(axis=0), rtol=1e-13, atol=1e-13)
-    # Plain-Python reference of the same order: the bits are fixed by the shape.
-    level = [r.tolist() for r in rows]
+def halving_sum(rows: list[list[float]]) -> list[float]:
+    """Plain-Python statement of ``row_sum``'s order: the bits are fixed by the shape."""
+    level = rows
     while len(level) > 1:
         half = len(level) // 2
         nxt = [[a + b for a, b in zip(level[i], level[half + i], strict=True)] for i in range(half)]
         if len(level) % 2:
             nxt[0] = [a + b for a, b in zip(nxt[0], level[-1], strict=True)]
         level = nxt
-    assert got.tolist() == level[0]
+    return level[0]
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 7, 20, 33])
+def test_row_sum_is_the_documented_halving_order(n: int) -> None:
+    rows = np.random.default_rng(n).normal(size=(n, 11))
+    got = row_sum(rows)
+    assert np.allclose(got, rows.sum(axis=0), rtol=1e-13, atol=1e-13)
+    assert got.tolist() == halving_sum([r.tolist() for r in rows])
     assert not np.shares_memory(got, rows)  # a fresh array, never a view of the input
+
+
+@pytest.mark.parametrize("name", ["dynamic", "paper"])
+def test_forecast_grid_gives_the_same_bits_as_plain_python(name: str) -> None:
+    """The fallback grid of the forecast uses element-wise IEEE operations only (no numpy
+    exp/power, no BLAS): written out in plain Python it gives the same bits."""
+    model = trained(name, seed=4)
+    forecast = forecast_model(model, 0.6, 20)
+    grid = np.linspace(-2.0, 2.0, 101)
+    grid.flags.writeable = False
+    got = forecast.values(grid).tolist()
+    k = 1.0 / (model.rbf.beta * model.rbf.beta)  # type: ignore[attr-defined]
+    coefficients = [forecast.rbf_gain * w for w in forecast._weights] + list(forecast.poly)
+    products = []
+    for u in grid.tolist():
+        column = [math.exp(-(u - c) * (u - c) * k) for c in model.rbf.centres]  # type: ignore[attr-defined]
+        x, p = u * model.poly_scale, 1.0  # type: ignore[attr-defined]
+        for _ in forecast.poly:
+            p *= x
+            column.append(p)
+        products.append([c * v for c, v in zip(coefficients, column, strict=True)])
+    rows = [list(r) for r in zip(*products, strict=True)]
+    expected = [t + forecast.offset for t in halving_sum(rows)]
+    assert got == expected
 
 
 @pytest.mark.parametrize("name", ["dynamic", "paper"])
@@ -167,3 +195,27 @@ def test_inline_ar_coefficients_equal_the_models_bit_for_bit(na: int) -> None:
 
     model = DynamicUModel(na=na, seed=3, init_scale=0.4, y_scale=0.1)
     assert _ar_coefficients(model) == model.ar_coefficients()
+
+
+def test_overflowing_forecast_never_gives_a_nan_command() -> None:
+    """An explosive identified AR part overflows ŷ(k+150): the solver still returns a finite
+    input on the fallback path with an infinite residual, never NaN."""
+    from hil_service.umodel import solve_inverse
+
+    model = trained("dynamic", seed=6)
+    theta = model._theta  # type: ignore[attr-defined]
+    theta[model._np + 1] = 1e5  # a_1 huge: the output recursion grows without bound  # type: ignore[attr-defined]
+    forecast = forecast_model(model, 0.1, 150)
+    res = solve_inverse(
+        forecast.value,
+        forecast.derivative,
+        0.5,
+        0.2,
+        -2.0,
+        2.0,
+        f_vec=forecast.values,
+        d2f=forecast.curvature,
+    )
+    assert math.isfinite(res.u) and -2.0 <= res.u <= 2.0
+    assert not math.isnan(res.residual)
+    assert res.path == "fallback"
