@@ -172,14 +172,10 @@ class ChannelPipeline:
             self.converged = False
         else:
             self.stats.add(y, estimate.error, baseline.error)
-            skill = self.stats.recent_skill()
-            if (
-                not self.converged
-                and self.stats.count >= self.settings.burn_in
-                and skill is not None
-                and skill >= self.settings.min_skill
-            ):
-                self.converged = True
+            if not self.converged and self.stats.count >= self.settings.burn_in:
+                skill = self.stats.recent_skill()  # only needed until convergence
+                if skill is not None and skill >= self.settings.min_skill:
+                    self.converged = True
         return {
             "t": t,
             "y": estimate.y,
@@ -219,9 +215,8 @@ class ChannelPipeline:
         a = control.mismatch_filter
         self.mismatch = a * self.mismatch + (1.0 - a) * (y - self.last.y_hat)
         target = self.reference.filter(setpoint, start=y) - self.mismatch
-        horizon = self.settings.control.horizon[self.channel]
-        prediction = forecast_model(self.model, u_applied, horizon)
-        limit = self.settings.control.u_limit
+        prediction = forecast_model(self.model, u_applied, control.horizon[self.channel])
+        limit = control.u_limit
         result = solve_inverse(
             prediction.value,
             prediction.derivative,
@@ -230,6 +225,7 @@ class ChannelPipeline:
             -limit,
             limit,
             f_vec=prediction.values,
+            d2f=prediction.curvature,
         )
         shaped = self.shaper.shape(result.u)
         saturated = result.saturated or shaped.saturated or shaped.rate_limited

@@ -327,3 +327,26 @@ def test_rls_constant_input_stays_bounded() -> None:
         y1 = y
         u_prev = float(rng.uniform(-2, 2))
     assert max(abs(e) for e in errs[-100:]) < 1e-3
+
+
+def test_dynamic_history_tail_shift_equals_a_rebuild_bit_for_bit() -> None:
+    """``_push`` shifts the regressor tail; it must equal rebuilding it from the history."""
+    for na, nb in [(5, 5), (0, 3), (2, 1), (1, 2)]:
+        model = DynamicUModel(na=na, nb=nb, y_scale=0.1, seed=2, init_scale=0.1)
+        u = random_steps(200, seed=na + nb)
+        for k, y in enumerate(simulate(u)):
+            model.step(u[k - 1] if k else 0.0, y)
+            shifted = list(model._lin)
+            model._rebuild_tail()
+            assert model._lin == shifted
+
+
+def test_rbf_values_list_memo_returns_fresh_equal_lists() -> None:
+    model = build_model("paper", seed=1)
+    rbf = model.rbf  # type: ignore[attr-defined]
+    first = rbf.values_list(0.3)
+    first.append(99.0)  # the caller owns the list: the memo must not see this
+    again = rbf.values_list(0.3)
+    assert again == rbf.values(0.3).tolist() or again == pytest.approx(rbf.values(0.3))
+    assert len(again) == 17
+    assert rbf.values_list(-1.1) == pytest.approx(rbf.values(-1.1), rel=1e-15)

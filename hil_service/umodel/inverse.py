@@ -14,6 +14,10 @@ polynomials and used with any identifier through ``invert_model``.
   out of reach) is refined by a stationary-point search (regula falsi on f', golden section
   as backup) in its neighbouring cells. Ties go to u0 (then the lower u), which avoids
   needless jumps when f is flat (e.g. the persistence model).
+* With f'' (``d2f``, optional) the stationary-point search takes Newton steps on f': first
+  from u0 when u0 lies in those cells (the previous answer is usually next to the new one),
+  accepted only if it stays in the cells and lands on a minimum of |f − v|; else kept inside
+  the bracket. Same point as regula falsi within its tolerance, in a few evaluations.
 """
 
 from __future__ import annotations
@@ -119,13 +123,23 @@ def _extremum(
     b: float,
     xtol: float,
     max_iter: int,
+    d2f: Callable[[float], float] | None = None,
+    start: float | None = None,
 ) -> tuple[float, float, int]:
     """Minimise |f − v| on [a, b] when f − v keeps its sign there (touching or unreachable
     target): the minimiser is a stationary point of f, found by Illinois regula falsi on f'
-    when f' changes sign over [a, b], else by golden-section search."""
+    when f' changes sign over [a, b] (bracketed Newton on f' when f'' is given), else by
+    golden-section search."""
+    if d2f is not None and start is not None and a < start < b:
+        warm = _warm_stationary(f, df, d2f, v, a, b, start, xtol, max_iter)
+        if warm is not None:
+            return warm
     da, db = df(a), df(b)
     it = 0
     if math.isfinite(da) and math.isfinite(db) and da * db < 0.0:
+        if d2f is not None:
+            u, it = _stationary_newton(df, d2f, a, b, da, db, xtol, max_iter, start)
+            return u, _abs_res(f, u, v), it
         side = 0
         u = a
         while it < max_iter and (b - a) > xtol:
@@ -161,6 +175,87 @@ def _extremum(
     return (c, fc, it) if fc <= fd else (d, fd, it)
 
 
+def _warm_stationary(
+    f: Callable[[float], float],
+    df: Callable[[float], float],
+    d2f: Callable[[float], float],
+    v: float,
+    a: float,
+    b: float,
+    start: float,
+    xtol: float,
+    max_iter: int,
+) -> tuple[float, float, int] | None:
+    """Newton on f' from ``start`` (the previous command, usually last step's answer), for
+    the common case where the unreachable target's best point has barely moved.
+
+    Accepted only if every iterate stays inside (a, b), a step shorter than ``xtol`` is
+    reached and the point is a minimum of |f − v| (f − v and f'' of the same sign), i.e.
+    the stationary point the bracketed search would find; saves evaluating f' at both
+    cell ends. None means "run the bracketed search".
+    """
+    u = start
+    for it in range(1, min(max_iter, 8) + 1):
+        h = d2f(u)
+        du = df(u)
+        if not (math.isfinite(du) and math.isfinite(h)) or h == 0.0:
+            return None
+        u_new = u - du / h
+        if not a < u_new < b:
+            return None
+        if abs(u_new - u) <= xtol:
+            r = f(u_new) - v
+            return (u_new, abs(r), it) if math.isfinite(r) and r * h > 0.0 else None
+        u = u_new
+    return None
+
+
+def _stationary_newton(
+    df: Callable[[float], float],
+    d2f: Callable[[float], float],
+    a: float,
+    b: float,
+    da: float,
+    db: float,
+    xtol: float,
+    max_iter: int,
+    start: float | None,
+) -> tuple[float, int]:
+    """Zero of f' in [a, b] (f'(a)·f'(b) < 0) by Newton on f', kept inside the bracket.
+
+    Converges quadratically where Illinois regula falsi needs many one-sided steps, and a
+    warm ``start`` (the previous command, often the previous step's stationary point) is
+    usually a step or two from the answer. A step that would leave the shrinking bracket
+    is replaced by a regula falsi step, so the iteration can never leave [a, b]. Stops when
+    a Newton step moves less than ``xtol`` (then the error is far below ``xtol``) or the
+    bracket is narrower than ``xtol``.
+    """
+    u = start if start is not None and a < start < b else (a * db - b * da) / (db - da)
+    it = 0
+    while it < max_iter:
+        it += 1
+        h = d2f(u)  # first: a model may compute f' in the same pass
+        du = df(u)
+        if not math.isfinite(du) or du == 0.0:
+            break
+        if (du < 0.0) == (da < 0.0):
+            a, da = u, du
+        else:
+            b, db = u, du
+        u_new = u - du / h if math.isfinite(h) and h != 0.0 else math.nan
+        if a < u_new < b:
+            if abs(u_new - u) <= xtol:
+                return u_new, it
+        else:
+            u_new = (a * db - b * da) / (db - da)
+            if not a < u_new < b:
+                u_new = 0.5 * (a + b)
+        u = u_new
+        if b - a <= xtol:
+            break
+    return u, it
+
+
 @lru_cache(maxsize=32)
 def _grid(lo: float, hi: float, n: int) -> np.ndarray:
     g = np.linspace(lo, hi, n)
@@ -179,6 +274,7 @@ def _fallback(
     tol: float,
     grid_points: int,
     refine_iter: int,
+    d2f: Callable[[float], float] | None = None,
 ) -> InverseResult:
     grid = _grid(lo, hi, grid_points)
     if f_vec is not None:
@@ -186,13 +282,35 @@ def _fallback(
     else:
         vals = np.array([f(u) for u in grid.tolist()], dtype=float)
     r = vals - v
-    finite = np.isfinite(r)
     iters = 0
-    # 1) A sign change on the grid means an exact solution exists: take the one nearest u0.
-    cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
-    if cells.size:
-        mids = 0.5 * (grid[cells] + grid[cells + 1])
-        i = int(cells[int(np.argmin(np.abs(mids - u0)))])
+    low, high = float(r.min()), float(r.max())  # NaN anywhere → NaN → the general scan
+    if low > 0.0 or high < 0.0:
+        # Common case, fast: f − v keeps one sign on the whole grid (no root, nothing NaN).
+        i = int(r.argmin()) if low > 0.0 else int(r.argmax())  # lowest u among ties
+        best = low if low > 0.0 else -high
+        cells = None
+        if np.count_nonzero(r == r[i]) > 1:
+            ties = np.flatnonzero(r == r[i])
+            i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
+        ri = float(r[i]) if math.isfinite(best) else 0.0
+    else:
+        finite = np.isfinite(r)
+        # 1) A sign change on the grid means an exact solution exists: the one nearest u0.
+        cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
+        if not cells.size:
+            # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u)
+            a = np.where(finite, np.abs(r), np.inf)
+            ties = np.flatnonzero(a == a.min())
+            i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
+            best = float(a[i])
+            ri = float(r[i]) if finite[i] else 0.0
+            cells = None
+    if cells is not None:
+        if cells.size == 1:
+            i = int(cells[0])
+        else:
+            mids = 0.5 * (grid[cells] + grid[cells + 1])
+            i = int(cells[int(np.argmin(np.abs(mids - u0)))])
         u, iters = _bracketed_root(
             f,
             df,
@@ -205,15 +323,9 @@ def _fallback(
             refine_iter,
         )
     else:
-        # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u) ...
-        a = np.where(finite, np.abs(r), np.inf)
-        ties = np.flatnonzero(a == a.min())
-        i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
         u = float(grid[i])
-        best = float(a[i])
         # ... refined inside the neighbouring cells unless a bound is a one-sided minimum.
         last = grid_points - 1
-        ri = float(r[i]) if finite[i] else 0.0
         refine = 0 < i < last
         if i in (0, last) and best > tol:
             slope = df(u)
@@ -224,7 +336,7 @@ def _fallback(
             ga = float(grid[max(i - 1, 0)])
             gb = float(grid[min(i + 1, last)])
             # |f − v| is flat at a stationary point: 1e-7 of the range in u is plenty.
-            uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter)
+            uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter, d2f, u0)
             if rc < best:
                 u = uc
     # u0 itself wins ties: no needless move when f is flat there.
@@ -249,6 +361,7 @@ def solve_inverse(
     u_max: float,
     *,
     f_vec: Callable[[np.ndarray], np.ndarray] | None = None,
+    d2f: Callable[[float], float] | None = None,
     tol: float = 1e-9,
     max_iter: int = 12,
     min_slope: float = 1e-12,
@@ -257,7 +370,8 @@ def solve_inverse(
 ) -> InverseResult:
     """Find u ∈ [u_min, u_max] with f(u) = v (|f − v| ≤ tol·max(1, |v|)); see module doc.
 
-    ``f_vec`` (optional) evaluates f on a numpy array at once to speed up the fallback grid.
+    ``f_vec`` (optional) evaluates f on a numpy array at once to speed up the fallback grid;
+    ``d2f`` (optional, f'') lets the fallback's stationary-point search take Newton steps.
     A non-finite ``v`` cannot be met: the clamped u0 is returned on the fallback path with
     an infinite residual. A non-finite ``u0`` is replaced by the range midpoint.
     """
@@ -294,7 +408,7 @@ def solve_inverse(
         if not (u_min <= u_new <= u_max):
             break
         u = u_new
-    return _fallback(f, df, f_vec, v, start, u_min, u_max, tol_abs, grid_points, refine_iter)
+    return _fallback(f, df, f_vec, v, start, u_min, u_max, tol_abs, grid_points, refine_iter, d2f)
 
 
 def invert_model(

@@ -354,6 +354,8 @@ class _UModelCore(_ModelBase):
             centres = evenly_spaced_centres(PAPER_N_CENTRES, *PAPER_CENTRE_RANGE)
         self.rbf = GaussianRBF(centres, beta)
         self.degree = int(degree)
+        #: poly_scale^i for α_i in ``_coefficients`` (the same ``**`` as per sample before).
+        self._scale_powers = [self.poly_scale ** (i + 1) for i in range(self.degree)]
         self.nlms = NLMS(float(mu), float(eps))
         self.init_scale = float(init_scale)
         self.seed = int(seed)
@@ -370,6 +372,7 @@ class _UModelCore(_ModelBase):
         self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
         self._eval: tuple[float, float, float] | None = None
         self._design: _GridDesign | None = None
+        self._stacked: tuple[np.ndarray, int, np.ndarray] | None = None
 
     def _fill(self, u: float) -> list[float]:
         phi = self.rbf.values_list(u)
@@ -388,8 +391,7 @@ class _UModelCore(_ModelBase):
 
     def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
         th = self._theta
-        scale = self.poly_scale
-        poly = [a * scale ** (i + 1) for i, a in enumerate(th[self._nr : self._np])]
+        poly = list(map(mul, th[self._nr : self._np], self._scale_powers))
         # α₀ collects everything that is not a power of u(t−1): keeps y_hat = α₀ + Σα_i u^i.
         a0 = y_hat
         p = 1.0
@@ -472,6 +474,25 @@ class _UModelCore(_ModelBase):
                 self._design = dm
         # θ is kept finite by the guards, so no NaN screening is needed here.
         return linear_combination(dm[2], self._theta[: self._np], self._linear_const())
+
+    def design_rows(self, us: np.ndarray, degree: int) -> np.ndarray:
+        """[Φ_1(u)…Φ_J(u), x, x², …, x^degree] (x = poly_scale·u) as the rows of one array.
+
+        Depends on the grid only, so it is cached for the last grid (the inverse solver
+        passes the same read-only array every step); the same bits as
+        ``output_given_inputs``'s columns (see :mod:`.reproducible`).
+        """
+        cached = self._stacked
+        if cached is not None and cached[1] == degree and cached[0] is us:
+            return cached[2]
+        us = np.asarray(us, dtype=float)
+        columns = gaussian_columns(us, self.rbf.centres, self.rbf.beta)
+        columns += power_columns(us * self.poly_scale, degree)
+        rows = np.array(columns, dtype=float).reshape(len(columns), us.shape[0])
+        rows.flags.writeable = False
+        if not us.flags.writeable:  # only a frozen grid can be recognised by identity
+            self._stacked = (us, degree, rows)
+        return rows
 
     def _core_options(self) -> dict[str, Any]:
         return {
@@ -603,10 +624,28 @@ class DynamicUModel(_UModelCore):
     def _push(self, u: float, y: float) -> None:
         # After the push, _levels = [y(t), y(t−1), …] and _inputs = [u(t−1), u(t−2), …]
         # describe the regressor of the next sample.
-        self._levels = [y, *self._levels[:-1]]
+        levels = self._levels
+        self._levels = [y, *levels[:-1]]
         if self.nb > 1:
             self._inputs = [u, *self._inputs[:-1]]
-        self._rebuild_tail()
+        # The tail shifts by one sample: only the newest increment and the newest input's
+        # powers are new (the same operations as a rebuild, so the same bits).
+        na, ld = self.na, self.lag_degree
+        tail = self._lin
+        new = [1.0]
+        if na:
+            new.append((y - levels[0]) * self._inv_ys)
+            new += tail[1:na]
+        if self.nb > 1:
+            x = u * self.poly_scale
+            p = 1.0
+            for _ in range(ld):
+                p *= x
+                new.append(p)
+            new += tail[1 + na : len(tail) - ld]
+        self._lin = new
+        self._cache = None
+        self._eval = None
 
     def _rebuild_tail(self) -> None:
         levels, inv = self._levels, self._inv_ys

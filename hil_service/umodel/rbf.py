@@ -40,7 +40,7 @@ def evenly_spaced_centres(n: int, lo: float, hi: float) -> tuple[float, ...]:
 class GaussianRBF:
     """Fixed-centre Gaussian basis; only the output weights are adapted (by the owner)."""
 
-    __slots__ = ("_c", "_cut", "_inv_b2", "_sorted", "beta", "centres")
+    __slots__ = ("_c", "_cut", "_inv_b2", "_last", "_sorted", "beta", "centres")
 
     #: Centres farther than CUTOFF·β from u are skipped in ``weighted``: their basis value is
     #: below exp(−36) ≈ 2e-16, i.e. below double rounding of any comparable-weight term.
@@ -60,6 +60,7 @@ class GaussianRBF:
         self._c = np.asarray(cs, dtype=float)
         self._sorted = all(a <= b for a, b in itertools.pairwise(cs))
         self._cut = self.CUTOFF * self.beta
+        self._last: tuple[float, tuple[float, ...]] = (math.nan, ())
 
     @property
     def size(self) -> int:
@@ -76,10 +77,19 @@ class GaussianRBF:
         return -2.0 * self._inv_b2 * d * np.exp(-(d * d) * self._inv_b2)
 
     def values_list(self, u: float) -> list[float]:
-        """Φ(u) as a list of floats (hot path of the adaptive update)."""
+        """Φ(u) as a new list of floats (hot path of the adaptive update).
+
+        The last input's values are kept: the controller's forecast evaluates Φ(u(k)) and
+        the identifier's next step needs the same Φ(u(k)) for its regressor.
+        """
+        last = self._last
+        if last[0] == u:
+            return list(last[1])
         k = self._inv_b2
         exp = math.exp
-        return [exp(-(u - c) * (u - c) * k) for c in self.centres]
+        values = [exp(-(u - c) * (u - c) * k) for c in self.centres]
+        self._last = (u, tuple(values))
+        return values
 
     def weighted_grid(self, us: np.ndarray, weights: Sequence[float]) -> np.ndarray:
         """Σ w_j Φ_j(u) for every u in ``us`` at once (used for dense grids)."""
@@ -106,3 +116,26 @@ class GaussianRBF:
             s += g
             ds += d * g
         return s, -2.0 * k * ds
+
+    def weighted_curvature(self, u: float, weights: Sequence[float]) -> tuple[float, float, float]:
+        """(Σ w_j Φ_j, Σ w_j dΦ_j/du, Σ w_j d²Φ_j/du²) in one pass (same cut-off as
+        ``weighted``); d²Φ_j/du² = (4k²(u − c_j)² − 2k)·Φ_j(u), k = 1/β²."""
+        k = self._inv_b2
+        s = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        exp = math.exp
+        cs = self.centres
+        if self._sorted:
+            lo = bisect_left(cs, u - self._cut)
+            hi = bisect_right(cs, u + self._cut)
+            cs = cs[lo:hi]
+            weights = weights[lo:hi]
+        for c, w in zip(cs, weights, strict=True):
+            d = u - c
+            d2 = d * d
+            g = w * exp(-d2 * k)
+            s += g
+            s1 += d * g
+            s2 += d2 * g
+        return s, -2.0 * k * s1, 4.0 * k * k * s2 - 2.0 * k * s

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["gaussian_columns", "linear_combination", "power_columns"]
+__all__ = ["gaussian_columns", "linear_combination", "power_columns", "row_sum"]
 
 
 def power_columns(xs: np.ndarray, degree: int) -> list[np.ndarray]:
@@ -48,3 +48,25 @@ def linear_combination(
     for coefficient, column in zip(coefficients, columns, strict=True):
         out += coefficient * column
     return out
+
+
+def row_sum(rows: np.ndarray) -> np.ndarray:
+    """Σ_i rows[i] of a 2-D array by halving: rows[:h] + rows[h:2h], an odd last row into
+    the first, until one row is left.
+
+    Each level is one element-wise ``+`` on slices, so the order of the additions is fixed
+    by the shape alone (no ``np.sum``, whose reduction order is numpy's business): the same
+    bits on every machine, in log₂(rows) numpy calls instead of one per row.
+    """
+    n = rows.shape[0]
+    if n == 0:
+        return np.zeros(rows.shape[1:])
+    if n == 1:
+        return rows[0].copy()
+    while n > 1:
+        half = n // 2
+        summed = rows[:half] + rows[half : 2 * half]
+        if n % 2:
+            summed[0] += rows[n - 1]
+        rows, n = summed, half
+    return rows[0]
