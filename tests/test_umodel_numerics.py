@@ -187,3 +187,20 @@ def test_grid_path_gives_the_same_bits_as_plain_python() -> None:
             ):
                 lag_expected += coefficient * power
             assert values[i] == lag_expected, f"lag {lag} at grid point {i}"
+
+
+def test_no_builtin_sum_on_the_identification_and_control_path() -> None:
+    """``sum`` of floats changed in Python 3.12 (compensated summation): a log recorded under
+    one version would not replay bit for bit under another. ``reproducible.dot`` (fsum) or
+    element-wise array sums are used instead."""
+    sources = [*sorted(UMODEL_DIR.glob("*.py")), UMODEL_DIR.parent / "vehicle.py"]
+    offenders = []
+    for path in sources:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id == "sum"
+            ):
+                offenders.append(f"{path.name}:{node.lineno}")
+    assert offenders == []

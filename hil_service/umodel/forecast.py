@@ -32,14 +32,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from operator import mul, sub
+from operator import sub
 from typing import Any
 
 import numpy as np
 from scipy.signal import lfilter, lfiltic
 
 from .models import DynamicUModel, PaperUModel
-from .reproducible import row_sum
+from .reproducible import dot, row_sum
 
 InputMap = Callable[[float], tuple[float, float]]
 
@@ -284,7 +284,7 @@ def _horizon_response(
         if len(past) < n:
             past += [0.0] * (n - len(past))
         for m in range(n):
-            extra[m] += sum(map(mul, ar[m:], past))
+            extra[m] += dot(ar[m:], past)
         denominator = np.array([1.0, *[-c for c in ar]])
     # Only the end of s is needed: h(H−1−n) for n < len(extra) and s(H−1−L) for the gains.
     first = horizon - 1 - max(len(extra), n_gains)
@@ -297,7 +297,7 @@ def _horizon_response(
     # s(i) = tail[i − first + 1]; tail[0] = s(first − 1), only ever read as s(−1) = 0.
     end = horizon - first  # position of s(H − 1)
     # h(H−1−i) = s(H−1−i) − s(H−2−i) for i = 0, 1, … (map stops with the shorter list).
-    known = bias * tail[end] + sum(map(mul, extra, map(sub, tail[end:0:-1], tail[end - 1 :: -1])))
+    known = bias * tail[end] + dot(extra, map(sub, tail[end:0:-1], tail[end - 1 :: -1]))
     if n_gains < horizon:  # s(H−1−L) for L = 1..n_gains
         return known, tail[end - 1 : end - 1 - n_gains : -1]
     return known, [tail[end - lag] if lag < horizon else 0.0 for lag in range(1, n_gains + 1)]
@@ -333,12 +333,12 @@ def _dynamic_horizon_map(model: DynamicUModel, u_applied: float, horizon: int) -
     # in θ and the known inputs in ``known``, so each step is one scalar product. Φ(u(k))
     # is the identifier's next regressor too (values_list keeps it).
     impulses = [
-        sum(map(mul, theta[base:end], past_powers))
-        + sum(map(mul, model.rbf.values_list(u_applied), weights))
-        + sum(map(mul, alphas, powers0))
+        dot(theta[base:end], past_powers)
+        + dot(model.rbf.values_list(u_applied), weights)
+        + dot(alphas, powers0)
     ]
     for j in range(2, min(nb, horizon) + 1):
-        impulses.append(sum(map(mul, theta[base + (j - 2) * ld : end], known)))
+        impulses.append(dot(theta[base + (j - 2) * ld : end], known))
     # AR form of the increments: ŷ(t) = Σ_{i=1..na+1} c_i·y(t−i) + … (see ar_coefficients).
     offset, gains = _horizon_response(
         _ar_coefficients(model), model._levels, impulses, theta[npoly], horizon, nb
@@ -350,7 +350,7 @@ def _dynamic_horizon_map(model: DynamicUModel, u_applied: float, horizon: int) -
     lag_gains = gains[1:]
     if lag_gains:
         for i in range(ld):
-            poly[i] += sum(map(mul, lag_gains, theta[base + i : end : ld]))
+            poly[i] += dot(lag_gains, theta[base + i : end : ld])
     return HorizonMap(model, offset, g1, weights, poly)
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from .guards import DivergenceMonitor, GuardConfig
 from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
-from .reproducible import gaussian_columns, linear_combination, power_columns
+from .reproducible import dot, gaussian_columns, linear_combination, power_columns
 from .rls import RLS
 
 __all__ = [
@@ -387,7 +387,7 @@ class _UModelCore(_ModelBase):
     def _predict(self, u: float) -> float:
         phi = self._fill(u)
         self._phi = phi
-        return sum(map(mul, self._theta, phi))
+        return dot(self._theta, phi)
 
     def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
         th = self._theta
@@ -407,7 +407,7 @@ class _UModelCore(_ModelBase):
 
     def _params_ok(self) -> bool:
         th = self._theta
-        return _norm_ok(sum(map(mul, th, th)), self.guard.param_limit)
+        return _norm_ok(dot(th, th), self.guard.param_limit)
 
     def _reset_params(self) -> None:
         self._theta = list(self._theta0)
@@ -415,7 +415,7 @@ class _UModelCore(_ModelBase):
         self._eval = None
 
     def _linear_const(self) -> float:
-        return sum(map(mul, self._theta[self._np :], self._lin))
+        return dot(self._theta[self._np :], self._lin)
 
     def _eval_both(self, u: float) -> tuple[float, float]:
         ev = self._eval

@@ -13,7 +13,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from operator import mul
+
+from .reproducible import dot
 
 __all__ = ["DEFAULT_EPS", "NLMS", "nlms_gain", "nlms_update"]
 
@@ -29,7 +30,7 @@ def _check(mu: float, eps: float) -> None:
 
 def nlms_gain(phi: Sequence[float], error: float, mu: float, eps: float = DEFAULT_EPS) -> float:
     """Scalar g such that the update is θ ← θ + g·φ."""
-    return mu * error / (eps + sum(map(mul, phi, phi)))
+    return mu * error / (eps + dot(phi, phi))
 
 
 def nlms_update(
@@ -47,7 +48,7 @@ def nlms_update(
     _check(mu, eps)
     if len(theta) != len(phi):
         raise ValueError("theta and phi must have the same length")
-    g = mu * error / (eps + sum(map(mul, phi, phi)))
+    g = mu * error / (eps + dot(phi, phi))
     return [t + g * p for t, p in zip(theta, phi, strict=True)]
 
 
@@ -63,5 +64,5 @@ class NLMS:
 
     def update(self, theta: list[float], phi: list[float], error: float) -> list[float]:
         """θ + μ e φ / (ε + φᵀφ) as a new list (lengths are the caller's responsibility)."""
-        g = self.mu * error / (self.eps + sum(map(mul, phi, phi)))
+        g = self.mu * error / (self.eps + dot(phi, phi))
         return [t + g * p for t, p in zip(theta, phi)]  # noqa: B905 - hot path

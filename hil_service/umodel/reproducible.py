@@ -11,11 +11,13 @@ vary. This module uses those, plus ``math.exp`` (glibc) for values that are cach
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from math import fsum
+from operator import mul
 
 import numpy as np
 
-__all__ = ["gaussian_columns", "linear_combination", "power_columns", "row_sum"]
+__all__ = ["dot", "gaussian_columns", "linear_combination", "power_columns", "row_sum"]
 
 
 def power_columns(xs: np.ndarray, degree: int) -> list[np.ndarray]:
@@ -70,3 +72,13 @@ def row_sum(rows: np.ndarray) -> np.ndarray:
             summed[0] += rows[n - 1]
         rows, n = summed, half
     return rows[0]
+
+
+def dot(a: Iterable[float], b: Iterable[float]) -> float:
+    """Σ a_i·b_i, correctly rounded (``math.fsum``), so the same on every Python version.
+
+    Not ``sum``: from Python 3.12 ``sum`` of floats uses compensated summation, so a log
+    recorded under 3.11 would not replay bit for bit under 3.12 (and the other way round).
+    ``fsum`` rounds once, exactly, whatever the version or platform.
+    """
+    return fsum(map(mul, a, b))
