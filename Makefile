@@ -23,7 +23,9 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_umodel.py
+	$(BIN)/glider-hil experiment --bench --samples 5000
+	$(BIN)/python benchmarks/bench_replay.py --samples 20000
+	$(BIN)/python benchmarks/bench_service.py --samples 20000 --latency-samples 1500 --memory-samples 500000
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -118,7 +118,7 @@ class McapWriter:
         schema_id: int,
         metadata: dict[str, str] | None = None,
     ) -> int:
-        channel_id = len(self._channels)
+        channel_id = len(self._channels) + 1  # from 1, as the mcap package's writer does
         channel = Channel(
             id=channel_id,
             topic=topic,

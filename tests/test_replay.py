@@ -31,14 +31,20 @@ def copy_with_changed_estimate(source, target, index: int) -> float:
         writer = Writer(out)
         writer.start(profile="glider-hil", library="test")
         seen = 0
-        topics = {}
+        topics, schema_ids, channel_ids = {}, {0: 0}, {}
         for record in StreamReader(src).records:
-            if isinstance(record, Schema):
-                writer.register_schema(record.name, record.encoding, record.data)
-            elif isinstance(record, Channel):
+            # Definitions are repeated in the summary: register each id once, map old to new.
+            if isinstance(record, Schema) and record.id not in schema_ids:
+                schema_ids[record.id] = writer.register_schema(
+                    record.name, record.encoding, record.data
+                )
+            elif isinstance(record, Channel) and record.id not in channel_ids:
                 topics[record.id] = record.topic
-                writer.register_channel(
-                    record.topic, record.message_encoding, record.schema_id, record.metadata
+                channel_ids[record.id] = writer.register_channel(
+                    record.topic,
+                    record.message_encoding,
+                    schema_ids[record.schema_id],
+                    record.metadata,
                 )
             elif isinstance(record, Metadata):
                 writer.add_metadata(record.name, record.metadata)
@@ -49,11 +55,14 @@ def copy_with_changed_estimate(source, target, index: int) -> float:
                         payload = json.loads(data)
                         changed_t = payload["t"]
                         text = data.decode()
-                        at = text.index('"y_hat": ') + len('"y_hat": ') + 3
+                        at = text.index('"y_hat":') + len('"y_hat":')
+                        at += len(text[at:]) - len(text[at:].lstrip()) + 3  # a digit of the value
                         digit = "1" if text[at] != "1" else "2"
                         data = (text[:at] + digit + text[at + 1 :]).encode()
                     seen += 1
-                writer.add_message(record.channel_id, record.log_time, data, record.publish_time)
+                writer.add_message(
+                    channel_ids[record.channel_id], record.log_time, data, record.publish_time
+                )
         writer.finish()
     assert changed_t is not None
     return changed_t
