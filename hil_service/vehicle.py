@@ -37,13 +37,51 @@ DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 
+#: Before ``trajectory`` existed the controller aimed ŷ(k+H) at the setpoint itself: a log
+#: recorded then carries no ``trajectory`` and replays with this one.
+NO_TRAJECTORY: dict[str, float] = {"depth": 0.0, "pitch": 0.0}
+
+
 @dataclass(frozen=True)
 class ControlSettings:
-    horizon: dict[str, int] = field(default_factory=lambda: {"depth": 150, "pitch": 20})
+    """Inverse-control settings; horizon and trajectory per channel.
+
+    Why pitch looks 3 steps ahead on a trajectory (``experiment --closed-loop``): the
+    identified pitch model's ŷ(k+H) under a held input is close to the plant's step response
+    for H ≲ 5 and non-monotone in u for H ≳ 8 (its increment form integrates every small
+    input-map error over the horizon), so at H = 20 a quarter of the solves had no root and
+    the answer jumped to the map's extremum (overshoot 300–500 %). At H = 3 the map is
+    monotone but aiming ŷ(k+3) at the setpoint is a deadbeat, high-gain demand; the
+    reference trajectory (pole ``trajectory``) asks for a share 1 − λ^H of the remaining
+    error instead. The trajectory starts at each sample from the measured output, so the
+    setpoint filter is redundant and off by default. Depth keeps H = 150 and λ = 0: no
+    trajectory or horizon we tried made its identified long-horizon map trustworthy.
+    """
+
+    horizon: dict[str, int] = field(default_factory=lambda: {"depth": 150, "pitch": 3})
     u_limit: float = 2.0  # model units, the actuator's range
     rate_limit: float = 0.5  # model units per step, as the vehicle's actuator
-    reference_filter: float = 0.5  # first-order setpoint filter coefficient, 0..1
+    reference_filter: float = 0.0  # first-order setpoint filter coefficient, 0..1
     mismatch_filter: float = 0.9  # first-order filter on the IMC mismatch y − ŷ, 0..1
+    # Reference-trajectory pole per channel, 0..1: ŷ(k+H) is aimed at r − λ^H·(r − y(k));
+    # 0 aims at the (filtered) setpoint r itself.
+    trajectory: dict[str, float] = field(default_factory=lambda: {"depth": 0.0, "pitch": 0.7})
+
+    def __post_init__(self) -> None:
+        for ch, pole in self.trajectory.items():
+            if not (math.isfinite(pole) and 0.0 <= pole < 1.0):
+                raise ValueError(f"trajectory pole for {ch} must be in [0, 1), got {pole}")
+
+    def remaining_share(self, channel: str) -> float:
+        """λ^H: the share of the error r − y(k) the target still leaves at k + H.
+
+        Repeated products, not ``**``: the same bits on every platform.
+        """
+        pole = self.trajectory.get(channel, 0.0)
+        share = 1.0
+        for _ in range(self.horizon[channel]):
+            share *= pole
+        return share
 
 
 @dataclass(frozen=True)
@@ -75,7 +113,9 @@ class PipelineSettings:
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> PipelineSettings:
         data = dict(data)
-        control = ControlSettings(**data.pop("control", {}))
+        control_data = dict(data.pop("control", {}))
+        control_data.setdefault("trajectory", dict(NO_TRAJECTORY))
+        control = ControlSettings(**control_data)
         return cls(control=control, **data)
 
 
@@ -126,6 +166,7 @@ class ChannelPipeline:
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
         control = settings.control
         self.reference = ImcReference(a=control.reference_filter)
+        self.remaining = control.remaining_share(channel)
         self.shaper = CommandShaper(-control.u_limit, control.u_limit, control.rate_limit)
         self.u_prev: float | None = None
         self.last: Estimate | None = None
@@ -214,7 +255,10 @@ class ChannelPipeline:
         # prediction noise does not become input chatter.
         a = control.mismatch_filter
         self.mismatch = a * self.mismatch + (1.0 - a) * (y - self.last.y_hat)
-        target = self.reference.filter(setpoint, start=y) - self.mismatch
+        reference = self.reference.filter(setpoint, start=y)
+        # Reference trajectory from the measured output: at k + H only a share λ^H of the
+        # current error may remain (λ = 0: the setpoint itself).
+        target = reference - self.remaining * (reference - y) - self.mismatch
         prediction = forecast_model(self.model, u_applied, control.horizon[self.channel])
         limit = control.u_limit
         result = solve_inverse(
