@@ -191,7 +191,7 @@ def test_grid_path_gives_the_same_bits_as_plain_python() -> None:
 
 def test_no_builtin_sum_on_the_identification_and_control_path() -> None:
     """``sum`` of floats changed in Python 3.12 (compensated summation): a log recorded under
-    one version would not replay bit for bit under another. ``reproducible.dot`` (fsum) or
+    one version would not replay bit for bit under another. ``reproducible.dot`` (a loop) or
     element-wise array sums are used instead."""
     sources = [*sorted(UMODEL_DIR.glob("*.py")), UMODEL_DIR.parent / "vehicle.py"]
     offenders = []
