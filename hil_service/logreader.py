@@ -8,10 +8,10 @@ file stops at the first bad record with the byte offset reported, never an excep
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 
@@ -25,8 +25,9 @@ class LogError(Exception):
     """The file is not an MCAP log at all (missing or wrong magic)."""
 
 
-@dataclass(frozen=True)
-class LogMessage:
+class LogMessage(NamedTuple):
+    """One logged message (a named tuple: replay builds tens of thousands per second)."""
+
     topic: str
     log_time_ns: int
     data: bytes
@@ -65,6 +66,10 @@ class ReadReport:
         )
 
 
+def _every_topic(topic: str) -> bool:
+    return True
+
+
 class LogReader:
     """Iterate a log's messages in file order; ``report`` is filled in as it goes."""
 
@@ -72,7 +77,20 @@ class LogReader:
         self.path = Path(path)
         self.report = ReadReport(path=str(self.path))
 
-    def messages(self, topics: set[str] | None = None) -> Iterator[LogMessage]:
+    def messages(
+        self, topics: set[str] | Callable[[str], bool] | None = None
+    ) -> Iterator[LogMessage]:
+        """Messages in file order, only on ``topics`` (a set, or a test on the topic) if given.
+
+        Every message is counted in ``report`` whether it is yielded or not.
+        """
+        if topics is None:
+            wanted: Callable[[str], bool] = _every_topic
+        elif callable(topics):
+            wanted = topics
+        else:
+            wanted = topics.__contains__
+        yielded: dict[int, bool] = {}  # channel id → whether its messages are wanted
         report = self.report
         report.file_size = self.path.stat().st_size
         channels: dict[int, Channel] = {}
@@ -117,7 +135,10 @@ class LogReader:
                         continue
                     report.messages += 1
                     report.channels[channel.topic]["count"] += 1
-                    if topics is None or channel.topic in topics:
+                    wanted_here = yielded.get(record.channel_id)
+                    if wanted_here is None:
+                        wanted_here = yielded[record.channel_id] = wanted(channel.topic)
+                    if wanted_here:
                         yield LogMessage(
                             channel.topic,
                             record.log_time,
@@ -127,12 +148,6 @@ class LogReader:
                         )
                 elif isinstance(record, Footer):
                     report.complete = True
-
-    def metadata_only(self) -> dict[str, Any]:
-        """The stored configuration, reading only up to the first message."""
-        for _ in self.messages():
-            break
-        return self.config()
 
     def config(self) -> dict[str, Any]:
         """The service configuration stored in the log (read the messages first)."""

@@ -74,25 +74,29 @@ class ReplayResult:
 
 
 class ReplayInbox(Inbox):
-    """Control inputs as the live service applied them, looked up by sample time."""
+    """Control inputs as the live service applied them, each at the sample it was stamped with.
 
-    def __init__(self, events: dict[int, list[dict[str, Any]]]):
+    Events arrive in file order while the log is read (see ``replay``), always before the
+    sample they apply to is processed.
+    """
+
+    def __init__(self) -> None:
         super().__init__()
-        self._events = {sid: sorted(evs, key=lambda e: e["time_boot_ms"]) for sid, evs in
-                        events.items()}  # fmt: skip
-        self._cursor: dict[int, int] = defaultdict(int)
+        self._events: dict[int, deque[dict[str, Any]]] = defaultdict(deque)
         self._current: dict[int, dict[str, Any]] = {}
 
+    def add_event(self, system_id: int, event: dict[str, Any]) -> None:
+        self._events[system_id].append(event)
+
     def inputs_for(self, sample: TelemetrySample) -> ControlInputs:
-        events = self._events.get(sample.system_id, [])
-        i = self._cursor[sample.system_id]
+        events = self._events.get(sample.system_id)
         reset = False
-        while i < len(events) and events[i]["time_boot_ms"] <= sample.time_boot_ms:
-            self._current[sample.system_id] = events[i]
-            reset = reset or (events[i]["time_boot_ms"] == sample.time_boot_ms
-                              and events[i].get("reset", False))  # fmt: skip
-            i += 1
-        self._cursor[sample.system_id] = i
+        while events and events[0]["time_boot_ms"] <= sample.time_boot_ms:
+            event = events.popleft()
+            self._current[sample.system_id] = event
+            reset = reset or (
+                event["time_boot_ms"] == sample.time_boot_ms and event.get("reset", False)
+            )
         current = self._current.get(sample.system_id)
         if current is None:
             return ControlInputs()
@@ -138,88 +142,131 @@ def stored_mapping(stored: dict[str, Any]) -> TelemetryMapping:
     )
 
 
-def stored_config(path: Path) -> tuple[ServiceConfig, dict[int, list[dict[str, Any]]], bool]:
-    """First pass: the service configuration and the decision-inputs events of a log."""
-    reader = LogReader(path)
-    events: dict[int, list[dict[str, Any]]] = defaultdict(list)
-    raw_frames = 0
-    for message in reader.messages():
-        if message.topic.startswith("glider-hil/") and message.topic.endswith("/decision-inputs"):
-            events[int(message.topic.split("/")[1])].append(message.json())
-        elif message.topic == RAW_IN:
-            raw_frames += 1
-    if raw_frames == 0:
-        raise ReplayError(f"{path}: no {RAW_IN} frames to replay")
-    config = reader.config().get("service")
-    has_config = config is not None
+def stored_config(stored: dict[str, Any]) -> ServiceConfig | None:
+    """The service configuration stored in a log's metadata, or None when there is none."""
+    config = stored.get("service")
     if config is None:
-        return ServiceConfig(), dict(events), False
-    pipeline = PipelineSettings.from_json(config["pipeline"])
-    service = ServiceConfig(
+        return None
+    return ServiceConfig(
         system_ids=tuple(config.get("system_ids", ())),
         control_default=config.get("control_default", False),
         stale_timeout=config.get("stale_timeout", 3.0),
-        pipeline=pipeline,
+        pipeline=PipelineSettings.from_json(config["pipeline"]),
     )
-    return service, dict(events), has_config
+
+
+def _is_decision_inputs(topic: str) -> bool:
+    return topic.startswith("glider-hil/") and topic.endswith("/decision-inputs")
 
 
 def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> ReplayResult:
-    path = Path(path)
-    config, events, has_config = stored_config(path)
-    if options.check and not has_config:
-        raise ReplayError(f"{path}: no stored configuration, cannot --check")
-    if options.model is not None:
-        config = ServiceConfig(
-            system_ids=config.system_ids,
-            control_default=config.control_default,
-            stale_timeout=config.stale_timeout,
-            pipeline=config.pipeline.replace(model=options.model),
-        )
-    recording = RecordingBus(bus, capture=options.check)
-    mapping = stored_mapping(LogReader(path).metadata_only())
-    service = HilService(
-        config, recording, ReplayInbox(events), mapping=mapping, send_commands=False
-    )
-    reader = LogReader(path)
-    result = ReplayResult()
-    recorded_index: dict[str, int] = defaultdict(int)
-    started = time.monotonic()
-    first_log_ns: int | None = None
-    for message in _messages(reader, options):
-        if message.topic == RAW_IN:
-            if options.speed is not None:
-                first_log_ns = first_log_ns or message.log_time_ns
-                result.lag_s = max(
-                    result.lag_s,
-                    _wait_until(
-                        started + (message.log_time_ns - first_log_ns) / 1e9 / options.speed
-                    ),
-                )
-            service.process_datagram(message.data)
-            result.frames += 1
-        elif options.check and _kind(message.topic) in CHECKED_KINDS:
-            mismatch = _compare(message, recording, recorded_index)
+    """One pass over the log: its raw frames through the service, compared if ``check``.
+
+    In file order a sample's decision inputs (and its published estimates and command)
+    follow the frame that completed the sample and precede the next sample's frames, as
+    the live service logged them. So each raw frame is held until the next one is read:
+    by then the inputs it needs are known, and the records to compare with are at hand.
+    """
+    return _Replay(Path(path), options, bus).run()
+
+
+class _Replay:
+    def __init__(self, path: Path, options: ReplayOptions, bus: Bus | None) -> None:
+        self.path = path
+        self.options = options
+        self.reader = LogReader(path)
+        self.inbox = ReplayInbox()
+        self.recording = RecordingBus(bus, capture=options.check)
+        self.service: HilService | None = None
+        self.result = ReplayResult()
+        self.recorded_index: dict[str, int] = defaultdict(int)
+        self.to_compare: list[LogMessage] = []
+        self.started = time.monotonic()
+        self.first_log_ns: int | None = None
+
+    def run(self) -> ReplayResult:
+        pending: LogMessage | None = None
+        for message in _messages(self.reader, self.options):
+            topic = message.topic
+            if topic == RAW_IN:
+                if pending is not None and not self._feed(pending):
+                    pending = None
+                    break
+                pending = message
+            elif _is_decision_inputs(topic):
+                self.inbox.add_event(int(topic.split("/")[1]), message.json())
+            elif self.options.check and _kind(topic) in CHECKED_KINDS:
+                self.to_compare.append(message)
+        if pending is not None:
+            self._feed(pending)
+        if self.service is None:
+            raise ReplayError(f"{self.path}: no {RAW_IN} frames to replay")
+        return self._finish()
+
+    def _feed(self, frame: LogMessage) -> bool:
+        """Process one raw frame, then compare what was logged since; False on a mismatch."""
+        service = self.service or self._start()
+        options, result = self.options, self.result
+        if options.speed is not None:
+            self.first_log_ns = self.first_log_ns or frame.log_time_ns
+            offset_s = (frame.log_time_ns - self.first_log_ns) / 1e9 / options.speed
+            result.lag_s = max(result.lag_s, _wait_until(self.started + offset_s))
+        service.process_datagram(frame.data)
+        result.frames += 1
+        for message in self.to_compare:
+            mismatch = _compare(message, self.recording, self.recorded_index)
             result.compared += 1
             if mismatch is not None:
                 result.mismatch = mismatch
-                break
-    result.samples = service.assembler.counters.samples
-    result.complete = reader.report.complete
-    if reader.report.ended and not reader.report.complete:
-        # Only a read that reached the end can tell a damaged file (--check stops early).
-        result.recovered = reader.report.describe()
-    result.wall_s = time.monotonic() - started
-    result.summary = service.summary()
-    if options.check and result.mismatch is None and reader.report.complete:
-        # A finished log holds every publication: anything left over was never recorded.
-        for key, queue in recording.published.items():
-            if queue:
-                result.mismatch = Mismatch(
-                    key, recorded_index[key], _t(queue[0]), "<not in the log>", queue[0].decode()
-                )
-                break
-    return result
+                return False
+        self.to_compare.clear()
+        return True
+
+    def _start(self) -> HilService:
+        """The service as the log's metadata describes it (metadata precedes all messages)."""
+        stored = self.reader.config()
+        config = stored_config(stored)
+        if config is None:
+            if self.options.check:
+                raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
+            config = ServiceConfig()
+        if self.options.model is not None:
+            config = ServiceConfig(
+                system_ids=config.system_ids,
+                control_default=config.control_default,
+                stale_timeout=config.stale_timeout,
+                pipeline=config.pipeline.replace(model=self.options.model),
+            )
+        self.service = HilService(
+            config,
+            self.recording,
+            self.inbox,
+            mapping=stored_mapping(stored),
+            send_commands=False,
+        )
+        return self.service
+
+    def _finish(self) -> ReplayResult:
+        result, report, service = self.result, self.reader.report, self.service
+        assert service is not None
+        result.samples = service.assembler.counters.samples
+        result.complete = report.complete
+        if report.ended and not report.complete:
+            # Only a read that reached the end can tell a damaged file (--check stops early).
+            result.recovered = report.describe()
+        result.wall_s = time.monotonic() - self.started
+        result.summary = service.summary()
+        if self.options.check and result.mismatch is None and report.complete:
+            # A finished log holds every publication: anything left over was never recorded.
+            for key, queue in self.recording.published.items():
+                if queue:
+                    index = self.recorded_index[key]
+                    recomputed = queue[0].decode()
+                    result.mismatch = Mismatch(
+                        key, index, _t(queue[0]), "<not in the log>", recomputed
+                    )
+                    break
+        return result
 
 
 def _messages(reader: LogReader, options: ReplayOptions) -> Iterator[LogMessage]:

@@ -7,7 +7,6 @@ identified from with the emulator's own record of that step.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
@@ -85,7 +84,7 @@ def test_assembler_follows_a_vehicle_reboot_but_not_a_single_late_step():
         out = []
         for stamp in stamps:
             sample = plant.step(0.1, 0.0)
-            sample = dataclasses.replace(sample, time_boot_ms=stamp)
+            sample = sample._replace(time_boot_ms=stamp)
             for message in MAPPING.encode_telemetry(sample):
                 decoded = codec.parse(codec.pack(message), datagram=True)
                 out += [s for m in decoded if (s := assembler.add(m)) is not None]

@@ -31,9 +31,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from operator import mul
-from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
+from typing import Any, ClassVar, Literal, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -70,9 +69,8 @@ PAPER_BETA = 0.25
 PAPER_INIT_SCALE = 0.1
 
 
-@dataclass(frozen=True, slots=True)
-class Estimate:
-    """Result of one ``step``.
+class Estimate(NamedTuple):
+    """Result of one ``step`` (immutable; a named tuple because four are made per sample).
 
     ``alpha`` = (α₀, α₁, …) are the U-model coefficients *that produced y_hat*, i.e.
     y_hat = α₀ + Σ α_i u_prev^i (up to rounding): for ``rls-arx`` α₁ is b₁ and α₀ the rest
