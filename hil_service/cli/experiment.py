@@ -229,13 +229,17 @@ def _bench(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps([f.__dict__ for f in figures]))
         return 0
-    print(f"one channel on one core, {args.samples} samples, scenario {scenario}")
     print(
-        f"{'channel':7s} {'model':8s} {'update/s':>10s} {'update+inverse/s':>17s} {'fallback':>9s}"
+        f"one channel on one core, {args.samples} samples, scenario {scenario}; "
+        f"best of {figures[0].repeats} runs (median in brackets)"
+    )
+    print(
+        f"{'channel':7s} {'model':8s} {'update/s':>10s} {'update+inverse/s':>26s} {'fallback':>9s}"
     )
     for f in figures:
+        control = f"{f.control_per_s:,.0f} ({f.control_per_s_median:,.0f})"
         print(
-            f"{f.channel:7s} {f.model:8s} {f.update_per_s:10.0f} {f.control_per_s:17.0f} "
+            f"{f.channel:7s} {f.model:8s} {f.update_per_s:10,.0f} {control:>26s} "
             f"{f.fallback_share:9.1%}"
         )
     return 0
