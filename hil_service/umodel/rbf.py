@@ -95,6 +95,16 @@ class GaussianRBF:
         """Σ w_j Φ_j(u) for every u in ``us`` at once (used for dense grids)."""
         return linear_combination(gaussian_columns(us, self.centres, self.beta), weights)
 
+    def _window(
+        self, u: float, weights: Sequence[float]
+    ) -> tuple[Sequence[float], Sequence[float]]:
+        """The centres within ±CUTOFF·β of ``u`` and their weights (all when unsorted)."""
+        if not self._sorted:
+            return self.centres, weights
+        lo = bisect_left(self.centres, u - self._cut)
+        hi = bisect_right(self.centres, u + self._cut)
+        return self.centres[lo:hi], weights[lo:hi]
+
     def weighted(self, u: float, weights: Sequence[float]) -> tuple[float, float]:
         """(Σ w_j Φ_j(u), Σ w_j dΦ_j/du) with plain floats; the inverse solver's hot path.
 
@@ -104,12 +114,7 @@ class GaussianRBF:
         s = 0.0
         ds = 0.0
         exp = math.exp
-        cs = self.centres
-        if self._sorted:  # only the centres within ±CUTOFF·β matter
-            lo = bisect_left(cs, u - self._cut)
-            hi = bisect_right(cs, u + self._cut)
-            cs = cs[lo:hi]
-            weights = weights[lo:hi]
+        cs, weights = self._window(u, weights)
         for c, w in zip(cs, weights, strict=True):
             d = u - c
             g = w * exp(-d * d * k)
@@ -125,12 +130,7 @@ class GaussianRBF:
         s1 = 0.0
         s2 = 0.0
         exp = math.exp
-        cs = self.centres
-        if self._sorted:
-            lo = bisect_left(cs, u - self._cut)
-            hi = bisect_right(cs, u + self._cut)
-            cs = cs[lo:hi]
-            weights = weights[lo:hi]
+        cs, weights = self._window(u, weights)
         for c, w in zip(cs, weights, strict=True):
             d = u - c
             d2 = d * d
