@@ -143,8 +143,11 @@ class McapRecorder:
         pending, write = self._queue, self._write
         next_flush = time.monotonic() + self.flush_interval
         stopping = False
+        drained = True
         while not stopping:
-            time.sleep(POLL_INTERVAL)
+            if drained:
+                time.sleep(POLL_INTERVAL)
+            drained = True
             written = 0
             while pending:
                 item = pending.popleft()
@@ -154,7 +157,8 @@ class McapRecorder:
                 write(item)
                 written += 1
                 if written % WRITE_BATCH == 0 and time.monotonic() >= next_flush:
-                    break  # a long backlog: flush on time, then go on
+                    drained = False  # a long backlog: flush on time, then go on at once
+                    break
             if time.monotonic() >= next_flush:
                 next_flush = time.monotonic() + self.flush_interval
                 self.status.queue_depth = len(pending)
