@@ -111,3 +111,41 @@ def test_info_and_cli_errors(capsys, tmp_path):
     junk.write_bytes(b"\x00" * 100)
     assert main(["replay", "--fast", str(junk)]) == 2
     assert "not an MCAP file" in capsys.readouterr().err
+
+
+def _log_with(tmp_path, metadata: dict[str, str], raw_frames: list[bytes]):
+    """A log written by the service's recorder with the given metadata and raw frames."""
+    from hil_service.recorder import McapRecorder
+
+    recorder = McapRecorder(tmp_path, metadata).start()
+    recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out", t_ns=1)
+    for k, frame in enumerate(raw_frames):
+        recorder.raw("in", frame, t_ns=2 + k)
+    recorder.close()
+    (path,) = tmp_path.glob("*.mcap")
+    return path
+
+
+def test_a_log_without_raw_frames_is_refused_clearly(tmp_path, capsys):
+    path = _log_with(tmp_path, {"service": "{}"}, [])
+    assert main(["replay", "--fast", str(path)]) == 2
+    assert "no mavlink/raw/in frames to replay" in capsys.readouterr().err
+
+
+def test_check_needs_the_stored_configuration(tmp_path, capsys):
+    from protocols.mapping import TelemetryMapping
+    from protocols.mavlink_io import MavlinkCodec
+    from protocols.samples import TelemetrySample
+
+    codec, mapping = MavlinkCodec(1, 1), TelemetryMapping()
+    frames = [
+        codec.pack(message)
+        for k in range(5)
+        for message in mapping.encode_telemetry(TelemetrySample(1, 1000 * k, 15.0, 0.0, 0.1, -0.1))
+    ]
+    path = _log_with(tmp_path, {}, frames)  # no "service" entry: written by another tool
+    assert main(["replay", "--fast", "--check", str(path)]) == 2
+    assert "no stored configuration, cannot --check" in capsys.readouterr().err
+    # Without --check it replays with the default configuration.
+    assert main(["replay", "--fast", str(path)]) == 0
+    assert "replayed 5 samples" in capsys.readouterr().out
