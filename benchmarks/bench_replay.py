@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import tempfile
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hil_service.experiment.speed import rates  # noqa: E402
 from hil_service.logreader import LogReader  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
 from hil_service.recorder import McapRecorder  # noqa: E402
@@ -76,12 +76,6 @@ def main() -> None:
         "replay_fast_samples_per_s": rates(result.samples, replay_s),
         "replay_fast_ratio_to_reader_best": min(reader_s) / min(replay_s),
     }, indent=2))  # fmt: skip
-
-
-def rates(count: int, seconds: list[float]) -> dict[str, float]:
-    """Best and median rate of repeated runs (the machine may be shared: the best run is
-    the one least disturbed, the median shows the spread)."""
-    return {"best": count / min(seconds), "median": count / statistics.median(seconds)}
 
 
 if __name__ == "__main__":

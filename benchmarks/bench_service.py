@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.bus import Inbox, ZenohBus  # noqa: E402
+from hil_service.experiment.speed import rates  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
 from hil_service.recorder import McapRecorder  # noqa: E402
 from hil_service.service import HilService, ServiceConfig  # noqa: E402
@@ -100,12 +101,6 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
         "ratio_to_pymavlink_best": min(parse_s) / min(total_s),
         "ratio_to_pymavlink_median": statistics.median(parse_s) / statistics.median(total_s),
     }
-
-
-def rates(count: int, seconds: list[float]) -> dict[str, float]:
-    """Best and median rate of repeated runs (the machine may be shared: the best run is
-    the one least disturbed, the median shows the spread)."""
-    return {"best": count / min(seconds), "median": count / statistics.median(seconds)}
 
 
 def bench_memory(n: int) -> dict[str, float]:

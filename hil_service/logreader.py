@@ -8,7 +8,7 @@ file stops at the first bad record with the byte offset reported, never an excep
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -66,10 +66,6 @@ class ReadReport:
         )
 
 
-def _every_topic(topic: str) -> bool:
-    return True
-
-
 class LogReader:
     """Iterate a log's messages in file order; ``report`` is filled in as it goes."""
 
@@ -77,20 +73,8 @@ class LogReader:
         self.path = Path(path)
         self.report = ReadReport(path=str(self.path))
 
-    def messages(
-        self, topics: set[str] | Callable[[str], bool] | None = None
-    ) -> Iterator[LogMessage]:
-        """Messages in file order, only on ``topics`` (a set, or a test on the topic) if given.
-
-        Every message is counted in ``report`` whether it is yielded or not.
-        """
-        if topics is None:
-            wanted: Callable[[str], bool] = _every_topic
-        elif callable(topics):
-            wanted = topics
-        else:
-            wanted = topics.__contains__
-        yielded: dict[int, bool] = {}  # channel id → whether its messages are wanted
+    def messages(self, topics: set[str] | None = None) -> Iterator[LogMessage]:
+        """Messages in file order, only on ``topics`` if given (all are counted in ``report``)."""
         report = self.report
         report.file_size = self.path.stat().st_size
         channels: dict[int, Channel] = {}
@@ -135,10 +119,7 @@ class LogReader:
                         continue
                     report.messages += 1
                     report.channels[channel.topic]["count"] += 1
-                    wanted_here = yielded.get(record.channel_id)
-                    if wanted_here is None:
-                        wanted_here = yielded[record.channel_id] = wanted(channel.topic)
-                    if wanted_here:
+                    if topics is None or channel.topic in topics:
                         yield LogMessage(
                             channel.topic,
                             record.log_time,

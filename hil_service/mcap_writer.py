@@ -37,9 +37,9 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
+from mcap.writer import MCAP0_MAGIC as MAGIC
 from mcap.writer import CompressionType
 
-MAGIC = b"\x89MCAP0\r\n"
 #: opcode, record length, channel id, sequence, log time, publish time (then the data).
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # bytes of the record body before the data

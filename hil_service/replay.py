@@ -15,7 +15,7 @@ import json
 import time
 from collections import defaultdict, deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -231,12 +231,7 @@ class _Replay:
                 raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
             config = ServiceConfig()
         if self.options.model is not None:
-            config = ServiceConfig(
-                system_ids=config.system_ids,
-                control_default=config.control_default,
-                stale_timeout=config.stale_timeout,
-                pipeline=config.pipeline.replace(model=self.options.model),
-            )
+            config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
         self.service = HilService(
             config,
             self.recording,

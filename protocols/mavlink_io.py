@@ -138,10 +138,11 @@ class MavlinkCodec:
     def _decode_whole_frames(self, data: bytes) -> list[MavMessage] | None:
         """The messages of a datagram made of nothing but whole, valid MAVLink 2 frames.
 
-        The common case, decoded frame by frame with pymavlink's own ``decode`` and without
-        its byte-at-a-time parser state machine. Anything else (garbage, MAVLink 1, a
-        truncated or corrupt frame, an unknown message id) gives None, and the caller
-        parses the datagram the general way, which counts what it drops.
+        The common case, split into frames by their length bytes and decoded one by one
+        (``FrameDecoder``, or pymavlink's own ``decode`` for types with text fields), without
+        pymavlink's byte-at-a-time parser. Anything else (garbage, MAVLink 1, a truncated or
+        corrupt frame, an unknown message id) gives None, and the caller parses the datagram
+        the general way, which counts what it drops.
         """
         frames = []
         end = len(data)

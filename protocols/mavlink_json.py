@@ -29,8 +29,8 @@ def message_to_json(message: MavMessage) -> dict[str, Any]:
     """Fields of ``message`` plus its header: type, source system and component, sequence.
 
     Floats are left as they are: ``payload_json.encode`` writes NaN (MAVLink's "unset") as
-    ``null``. Text fields that are not valid UTF-8 come back from pymavlink as bytes; they
-    are decoded with replacement so that every message can be encoded.
+    ``null``. pymavlink's decoder gives text fields as ``str``; a message built another way
+    may hold ``bytes``, which are decoded with replacement so that it can still be encoded.
     """
     payload = {name: getattr(message, name) for name in message.fieldnames}
     for name in _char_fields(type(message)):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hil_service.umodel import build_model
-from hil_service.umodel.forecast import HorizonMap, forecast_linear, forecast_model
+from hil_service.umodel.forecast import HorizonMap, forecast_model
 from hil_service.umodel.reproducible import row_sum
 
 
@@ -64,34 +64,6 @@ def test_forecast_derivative_and_grid_agree_with_the_scalar_value(name: str) -> 
     scalar = [forecast.value(u) for u in grid.tolist()]
     assert np.allclose(vec, scalar, rtol=1e-12, atol=1e-12)
     assert np.array_equal(forecast.values(grid), vec)  # cached design gives the same bits
-
-
-def test_forecast_matches_the_general_linear_forecast() -> None:
-    """The closed form equals ``forecast_linear`` on the model's lag maps (the old path)."""
-    model = trained("dynamic", seed=9)
-    theta = model._theta  # type: ignore[attr-defined]
-
-    def static(u: float) -> tuple[float, float]:
-        value, slope = model._eval_both(u)  # type: ignore[attr-defined]
-        return value - model._linear_const(), slope  # type: ignore[attr-defined]
-
-    maps = [static] + [
-        (lambda u, lag=lag: model.lag_map(lag, u))  # type: ignore[attr-defined]
-        for lag in range(2, model.nb + 1)  # type: ignore[attr-defined]
-    ]
-    general = forecast_linear(
-        theta[model._np],  # type: ignore[attr-defined]
-        model.ar_coefficients(),  # type: ignore[attr-defined]
-        model._levels,  # type: ignore[attr-defined]
-        maps,
-        model._inputs,  # type: ignore[attr-defined]
-        1.1,
-        150,
-    )
-    fast = forecast_model(model, 1.1, 150)
-    for u in np.linspace(-2.0, 2.0, 9).tolist():
-        assert fast.value(u) == pytest.approx(general.value(u), rel=1e-12)
-        assert fast.derivative(u) == pytest.approx(general.derivative(u), rel=1e-9, abs=1e-12)
 
 
 def test_forecast_rejects_short_horizon_and_unknown_models() -> None:

@@ -34,6 +34,12 @@ class SpeedFigure:
     repeats: int = 1
 
 
+def rates(count: int, seconds: list[float]) -> dict[str, float]:
+    """Best and median rate of repeated runs: on a shared machine the best run is the one
+    least disturbed, the median shows the spread."""
+    return {"best": count / min(seconds), "median": count / statistics.median(seconds)}
+
+
 Recorded = list[tuple[float, float, float, float]]  # depth, u_depth, pitch, u_pitch
 
 

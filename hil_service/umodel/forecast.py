@@ -12,11 +12,11 @@ Timing: after ``step`` at sample k the model's history holds y(k) and u(k−1); 
 already been applied (the vehicle reported it), so a command sent now acts from u(k+1) on.
 The forecast runs the model from k with u(k) = ``u_applied`` and u(k+1 …) = u, and returns
 ŷ(k+H). Every U-model here is linear in its past outputs and a sum of static maps of each
-input lag, so ŷ(k+H) = offset + Σ_m gain_m·map_m(u). ``forecast_linear`` is that formula for
-any such model (two filter runs). ``forecast_model`` (the controller's path) uses the shape of
-the package's U-models: every map is a polynomial in the same scaled input plus, for lag 1, the
-RBF layer, so the sum collapses into one ``HorizonMap`` (offset + gain·RBF + one polynomial)
-built from a single lfilter run per sample; Newton then costs one RBF pass per iterate.
+input lag, so ŷ(k+H) = offset + Σ_m gain_m·map_m(u). Every map of the package's U-models is
+a polynomial in the same scaled input plus, for lag 1, the RBF layer, so the sum collapses
+into one ``HorizonMap`` (offset + gain·RBF + one polynomial) built from a single lfilter run
+per sample; Newton then costs one RBF pass per iterate. The tests check it against a
+step-by-step simulation of the model.
 
 Why the fallback began so often (``experiment --bench``: pitch/dynamic 39 %, depth/paper 92 %):
 in about 89 % (pitch) and 99 % (depth/paper) of those samples f(u) − v has no root in the
@@ -29,103 +29,18 @@ or on slow convergence (~4 % of samples). So the fallback was made cheap instead
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
 from functools import lru_cache
 from operator import sub
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter, lfiltic
+from scipy.signal import lfilter
 
 from .models import DynamicUModel, PaperUModel
 from .reproducible import dot, row_sum
 
-InputMap = Callable[[float], tuple[float, float]]
-
-
-@dataclass
-class Forecast:
-    offset: float
-    gains: tuple[float, ...]  # one per input lag 1..nb
-    maps: tuple[InputMap, ...]
-    grid_maps: Callable[[np.ndarray], list[np.ndarray]] | None = None
-    _last: tuple[float, float, float] | None = field(default=None, repr=False)
-
-    def _evaluate(self, u: float) -> tuple[float, float]:
-        # Newton asks for the value and the slope at the same u: evaluate the maps once.
-        last = self._last
-        if last is not None and last[0] == u:
-            return last[1], last[2]
-        total, slope = self.offset, 0.0
-        for gain, input_map in zip(self.gains, self.maps, strict=True):
-            if gain:
-                value, derivative = input_map(u)
-                total += gain * value
-                slope += gain * derivative
-        self._last = (u, total, slope)
-        return total, slope
-
-    def value(self, u: float) -> float:
-        return self._evaluate(u)[0]
-
-    def derivative(self, u: float) -> float:
-        return self._evaluate(u)[1]
-
-    def values(self, us: np.ndarray) -> np.ndarray:
-        """``value`` on an array at once (the inverse solver's fallback grid)."""
-        if self.grid_maps is None:
-            return np.array([self.value(float(u)) for u in us])
-        total = np.full(len(us), self.offset)
-        for gain, column in zip(self.gains, self.grid_maps(us), strict=True):
-            if gain:
-                total += gain * column
-        return total
-
-
-def forecast_linear(
-    bias: float,
-    ar: Sequence[float],
-    outputs: Sequence[float],
-    maps: Sequence[InputMap],
-    past_inputs: Sequence[float],
-    u_applied: float,
-    horizon: int,
-) -> Forecast:
-    """ŷ(k+horizon) for ŷ(t) = bias + Σ ar_i·y(t−i) + Σ_m map_m(u(t−m)).
-
-    ``outputs`` = y(k), y(k−1), …; ``past_inputs`` = u(k−1), u(k−2), …; u(k) = ``u_applied``
-    and every later input is the unknown u. The recursion is linear, so the answer is the
-    response to the known forcing and initial outputs plus, for each input lag L, the sum
-    of the first H−L impulse-response samples times map_L(u): two IIR filter runs.
-    """
-    if horizon < 2:
-        raise ValueError("horizon must be >= 2: y(k+1) no longer depends on the command")
-    known_inputs = [u_applied, *past_inputs]  # u(k), u(k−1), …
-    forcing = np.full(horizon, float(bias))
-    for lag, input_map in enumerate(maps, start=1):
-        for j in range(1, min(lag, horizon) + 1):  # steps where lag L still sees a known input
-            back = lag - j  # 0 → u(k), 1 → u(k−1), …
-            if back < len(known_inputs):
-                forcing[j - 1] += input_map(known_inputs[back])[0]
-    denominator = np.concatenate(([1.0], -np.asarray(ar, dtype=float)))
-    n_state = len(denominator) - 1
-    if n_state:
-        initial = lfiltic([1.0], denominator, y=list(outputs)[:n_state])
-        known = lfilter([1.0], denominator, forcing, zi=initial)[0]
-    else:
-        known = forcing
-    impulse = np.zeros(horizon)
-    impulse[0] = 1.0
-    cumulative = np.cumsum(lfilter([1.0], denominator, impulse))
-    gains = tuple(
-        float(cumulative[horizon - lag - 1]) if horizon - lag - 1 >= 0 else 0.0
-        for lag in range(1, len(maps) + 1)
-    )
-    return Forecast(float(known[-1]), gains, tuple(maps))
-
-
-_ONE = np.ones(1)
+_ONE = np.ones(1)  # lfilter numerator
 
 
 class HorizonMap:
@@ -357,8 +272,7 @@ def _dynamic_horizon_map(model: DynamicUModel, u_applied: float, horizon: int) -
 def forecast_model(model: Any, u_applied: float, horizon: int) -> HorizonMap:
     """ŷ(k+``horizon``) of the package's U-models (paper and dynamic) as a ``HorizonMap``.
 
-    Same quantity as ``forecast_linear`` on the models' lag maps (the tests check both
-    against a step-by-step simulation), computed without closures or per-step objects.
+    Checked in the tests against a step-by-step simulation of the model (horizons 2–150).
     """
     if horizon < 2:
         raise ValueError("horizon must be >= 2: y(k+1) no longer depends on the command")

@@ -308,10 +308,6 @@ class _ModelBase:
             self._frozen = True
 
 
-#: Cached grid design: (grid key, grid, columns [Φ_1..Φ_J, x, …, x^M]).
-_GridDesign = tuple[tuple[int, float, float] | None, np.ndarray, list[np.ndarray]]
-
-
 def _norm_ok(sq_norm: float, limit: float) -> bool:
     # ‖θ‖₂ ≤ limit; the comparison is False for NaN, so it also catches non-finite θ.
     return sq_norm <= limit * limit
@@ -369,7 +365,6 @@ class _UModelCore(_ModelBase):
         self._lin: list[float] = []  # history tail of φ (dynamic model only)
         self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
         self._eval: tuple[float, float, float] | None = None
-        self._design: _GridDesign | None = None
         self._stacked: tuple[np.ndarray, int, np.ndarray] | None = None
 
     def _fill(self, u: float) -> list[float]:
@@ -451,27 +446,14 @@ class _UModelCore(_ModelBase):
         return d if _isfinite(d) else 0.0
 
     def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
-        """Vectorised ``output_given_input`` for dense grids (inverse fallback).
+        """Vectorised ``output_given_input`` for dense grids (``invert_model``'s fallback).
 
-        The design columns [Φ(u_k), x_k, …, x_k^M] depend only on the grid, which the
-        solver reuses from step to step, so they are cached; each call is then M + J scaled
-        column additions, the same bits on every machine (see :mod:`.reproducible`).
+        M + J scaled additions of the cached ``design_rows``, in row order: the same bits on
+        every machine (see :mod:`.reproducible`).
         """
-        us = np.asarray(us, dtype=float)
-        key = (us.shape[0], float(us[0]), float(us[-1])) if us.ndim == 1 and us.size else None
-        dm = self._design
-        if (
-            key is None
-            or dm is None
-            or (dm[1] is not us and (dm[0] != key or not np.array_equal(dm[1], us)))
-        ):
-            columns = gaussian_columns(us, self.rbf.centres, self.rbf.beta)
-            columns += power_columns(us * self.poly_scale, self.degree)
-            dm = (key, us if not us.flags.writeable else us.copy(), columns)
-            if key is not None:
-                self._design = dm
+        rows = self.design_rows(us, self.degree)
         # θ is kept finite by the guards, so no NaN screening is needed here.
-        return linear_combination(dm[2], self._theta[: self._np], self._linear_const())
+        return linear_combination(rows, self._theta[: self._np], self._linear_const())
 
     def design_rows(self, us: np.ndarray, degree: int) -> np.ndarray:
         """[Φ_1(u)…Φ_J(u), x, x², …, x^degree] (x = poly_scale·u) as the rows of one array.
@@ -663,28 +645,6 @@ class DynamicUModel(_UModelCore):
         self._levels = [0.0] * (self.na + 1)
         self._inputs = [0.0] * (self.nb - 1)
         self._rebuild_tail()
-
-    def lag_map(self, lag: int, u: float) -> tuple[float, float]:
-        """Contribution of u(t−lag), lag ≥ 2, to ŷ(t), and its derivative."""
-        start = self._np + 1 + self.na + (lag - 2) * self.lag_degree
-        coefficients = self._theta[start : start + self.lag_degree]
-        x = u * self.poly_scale
-        f = df = 0.0
-        for c in reversed(coefficients):
-            df = df * x + f
-            f = f * x + c
-        df = df * x + f
-        return f * x, df * self.poly_scale
-
-    def lag_maps_on_grid(self, us: np.ndarray) -> list[np.ndarray]:
-        """``lag_map`` values for lags 2..nb on an array of inputs (the solver's grid)."""
-        powers = power_columns(np.asarray(us, dtype=float) * self.poly_scale, self.lag_degree)
-        base = self._np + 1 + self.na
-        theta = self._theta
-        return [
-            linear_combination(powers, theta[start : start + self.lag_degree])
-            for start in range(base, base + (self.nb - 1) * self.lag_degree, self.lag_degree)
-        ]
 
     def ar_coefficients(self) -> list[float]:
         """ŷ(t) = Σ c_i·y(t−i) + … with i = 1..na+1 (the increments expanded)."""

@@ -1,11 +1,12 @@
-"""Array arithmetic that gives the same bits on every x86-64 machine.
+"""Arithmetic that gives the same bits on every x86-64 machine and every Python version.
 
 ``--check`` replays a log recorded on one computer on another and compares commands bit
 for bit, so the inverse controller's grid path must not depend on the CPU it runs on.
 numpy picks its ``exp`` and ``power`` kernels at run time (AVX-512, AVX2 or baseline) and
 OpenBLAS does the same for a mat-vec, and these kernels round differently in the last
 place. Element-wise ``+`` and ``*`` are exactly rounded IEEE operations and so do not
-vary. This module uses those, plus ``math.exp`` (glibc) for values that are cached per grid.
+vary. This module uses those, plus ``math.exp`` (glibc) for values that are cached per grid,
+and ``dot`` for scalar products (see there for why not ``sum``).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def linear_combination(
     columns: Sequence[np.ndarray], coefficients: Sequence[float], start: float = 0.0
 ) -> np.ndarray:
     """start + Σ_j coefficients_j · columns_j, summed in column order (no BLAS)."""
-    out = np.full(len(columns[0]), float(start)) if columns else np.array([float(start)])
+    out = np.full(len(columns[0]), float(start)) if len(columns) else np.array([float(start)])
     for coefficient, column in zip(coefficients, columns, strict=True):
         out += coefficient * column
     return out
