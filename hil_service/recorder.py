@@ -43,6 +43,11 @@ POLL_INTERVAL = 0.02  # s between two drains of the queue by the writer thread
 WRITE_BATCH = 256  # records written between two looks at the flush clock
 
 
+def _now_if_none(t_ns: int | None) -> int:
+    """The log time given, or now (0 is a time: a log may start there)."""
+    return time.time_ns() if t_ns is None else t_ns
+
+
 @dataclass
 class RecorderStatus:
     files: list[str] = field(default_factory=list)
@@ -102,19 +107,19 @@ class McapRecorder:
     # An item is (route, payload, t_ns); the route is also the writer's channel key, so the
     # writer needs one dict lookup per record and formats a topic only for a new channel.
     def raw(self, direction: str, frame: bytes, t_ns: int | None = None) -> None:
-        self._put((("raw", direction), frame, t_ns or time.time_ns()))
+        self._put((("raw", direction), frame, _now_if_none(t_ns)))
 
     def mavlink(self, direction: str, message: MavMessage, t_ns: int | None = None) -> None:
         """A decoded message; encoded to JSON on the writer thread, off the control path."""
         route = ("json_mav", direction, message.get_type())
-        self._put((route, message, t_ns or time.time_ns()))
+        self._put((route, message, _now_if_none(t_ns)))
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
         self.zenoh_encoded(key, payload_json.encode(payload), direction, t_ns)
 
     def zenoh_encoded(self, key: str, data: bytes, direction: str, t_ns: int | None = None) -> None:
         """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
-        self._put((("zenoh", key, direction), data, t_ns or time.time_ns()))
+        self._put((("zenoh", key, direction), data, _now_if_none(t_ns)))
 
     def _put(self, item: tuple[Any, ...]) -> None:
         if len(self._queue) >= self.max_queue:
@@ -188,18 +193,20 @@ class McapRecorder:
             writer = self._writer
             assert writer is not None
         route, payload, t_ns = item
+        if route[0] == "json_mav":
+            try:
+                payload = payload_json.encode(message_to_json(payload))
+            except Exception as error:  # an unencodable record must not end all logging
+                self.status.last_drop = f"{type(error).__name__}: {error}"
+                self.status.dropped += 1
+                return
         try:
             channel = self._channels.get(route)
             if channel is None:
                 channel = self._channels[route] = self._register(writer, route)
-            if route[0] == "json_mav":
-                payload = payload_json.encode(message_to_json(payload))
             writer.add_message(channel, t_ns, payload)
         except (OSError, ValueError) as error:  # disk trouble: a new file when possible
             self._failed(error)
-            self.status.dropped += 1
-        except Exception as error:  # an unencodable record must not end all logging
-            self.status.last_drop = f"{type(error).__name__}: {error}"
             self.status.dropped += 1
         else:
             self.status.records += 1

@@ -208,7 +208,8 @@ class _Replay:
         service = self.service or self._start()
         options, result = self.options, self.result
         if options.speed is not None:
-            self.first_log_ns = self.first_log_ns or frame.log_time_ns
+            if self.first_log_ns is None:
+                self.first_log_ns = frame.log_time_ns
             offset_s = (frame.log_time_ns - self.first_log_ns) / 1e9 / options.speed
             result.lag_s = max(result.lag_s, _wait_until(self.started + offset_s))
         service.process_datagram(frame.data)

@@ -156,3 +156,14 @@ def test_files_open_in_the_mcap_librarys_indexed_reader(tmp_path):
         assert {m.name: m.metadata for m in reader.iter_metadata()}["glider-hil.config"] == {
             "k": "1"
         }
+
+
+def test_a_log_time_of_zero_is_kept_not_replaced_by_the_clock(tmp_path):
+    """t_ns = 0 is a time (a log that starts at zero), not "no time given"."""
+    recorder = McapRecorder(tmp_path, flush_interval=0.05).start()
+    for k, frame in enumerate(frames(3)):
+        recorder.raw("in", frame, t_ns=k * 1_000_000)
+    recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out", t_ns=0)
+    recorder.close()
+    messages, _ = read_all(next(tmp_path.glob("*.mcap")))
+    assert sorted(m.log_time_ns for m in messages) == [0, 0, 1_000_000, 2_000_000]

@@ -149,3 +149,24 @@ def test_check_needs_the_stored_configuration(tmp_path, capsys):
     # Without --check it replays with the default configuration.
     assert main(["replay", "--fast", str(path)]) == 0
     assert "replayed 5 samples" in capsys.readouterr().out
+
+
+def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_path):
+    from hil_service.recorder import McapRecorder
+    from hil_service.replay import ReplayOptions, replay
+    from protocols.mapping import TelemetryMapping
+    from protocols.mavlink_io import MavlinkCodec
+    from protocols.samples import TelemetrySample
+
+    codec, mapping = MavlinkCodec(1, 1), TelemetryMapping()
+    recorder = McapRecorder(tmp_path, {}).start()
+    for k in range(3):  # three plant steps, 0.3 s apart, the first at t = 0
+        sample = TelemetrySample(1, 1000 * k, 15.0, 0.0, 0.1, -0.1)
+        for message in mapping.encode_telemetry(sample):
+            recorder.raw("in", codec.pack(message), t_ns=300_000_000 * k)
+    recorder.close()
+    (path,) = tmp_path.glob("*.mcap")
+    result = replay(path, ReplayOptions(speed=1.0))
+    assert result.samples == 3
+    # 0.6 s of log at 1x; taking t = 0 for "no start yet" lost the first 0.3 s.
+    assert 0.55 <= result.wall_s < 2.0
