@@ -1,10 +1,15 @@
-"""A chunked, indexed MCAP writer whose per-message cost is one ``struct.pack``.
+"""A chunked, indexed MCAP writer in two halves: packing records, and writing files.
 
 Why not ``mcap.writer.Writer``: the recorder logs about a dozen records per plant step and
 must keep up with 10,000 steps/s. The library's writer builds a dataclass per message and
 writes each field with its own ``struct.pack`` and seek, about 4 µs per message (more than
 the rest of the per-sample path together). Here a message record is packed in one call into
 the open chunk's ``bytearray``, and its index entry is one list append.
+
+Why two halves: :class:`ChunkBuilder` is in-memory work cheap enough for the thread that
+produces the records, and :class:`McapFile` does what may block or take long (compression,
+disk writes) on another thread, with the GIL released for most of it. The recorder hands
+sealed chunks from the first to the second.
 
 Everything written rarely (header, schemas, channels, metadata, chunks and their indexes,
 statistics, the summary and footer) uses the ``mcap`` package's own record classes, so the
@@ -18,6 +23,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from dataclasses import dataclass
 from typing import BinaryIO
 
 import lz4.frame
@@ -66,48 +72,44 @@ def _record_bytes(*records: object) -> bytes:
     return builder.end()
 
 
-class McapWriter:
-    """Writes one MCAP file to ``stream`` (which the caller opens and closes).
+@dataclass
+class SealedChunk:
+    """One chunk's records (uncompressed) and what its indexes and the statistics need."""
 
-    Call ``start``, register schemas and channels, ``add_message`` any number of times,
-    ``flush`` to end the open chunk (a reader sees everything up to the last flush), and
-    ``finish`` to write the summary and footer.
+    data: bytes
+    index: dict[int, list[int]]  # channel → [log time, offset, log time, offset, …]
+    start_time: int
+    end_time: int
+    messages: int
+    counts: dict[int, int]  # channel → messages in this chunk
+
+
+class ChunkBuilder:
+    """Packs schema, channel and message records into the open chunk; no I/O.
+
+    Channel and schema ids count from 1 in the order of registration (0 means "no schema").
+    One builder serves one file: the file's summary lists ``schemas`` and ``channels``.
     """
 
-    def __init__(
-        self,
-        stream: BinaryIO,
-        compression: CompressionType = CompressionType.ZSTD,
-        chunk_size: int = 1 << 20,
-    ) -> None:
-        self._stream = stream
-        self._compression = compression
-        self._chunk_size = chunk_size
-        # One compressor per writer: a ZstdCompressor must not be used by two threads at once.
-        self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
-        self._schemas: dict[int, Schema] = {}
-        self._channels: dict[int, Channel] = {}
+    def __init__(self) -> None:
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
         self._chunk = bytearray()
-        self._chunk_messages = 0
-        self._chunk_start = 0
-        self._chunk_end = 0
-        self._index: dict[int, list[int]] = {}  # channel → [log time, offset, log time, …]
-        self._chunk_indexes: list[ChunkIndex] = []
-        self._metadata_indexes: list[MetadataIndex] = []
+        self._index: dict[int, list[int]] = {}
         self._counts: dict[int, int] = {}
-        self._messages = 0
-        self._start_time = 0
-        self._end_time = 0
-        self._chunks = 0
+        self.messages = 0  # in the open chunk
+        self._start = 0
+        self._end = 0
 
-    # ---- setup --------------------------------------------------------------------------
-    def start(self, profile: str = "", library: str = "") -> None:
-        self._stream.write(MAGIC + _record_bytes(Header(profile=profile, library=library)))
+    @property
+    def size(self) -> int:
+        """Bytes in the open chunk."""
+        return len(self._chunk)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
-        schema_id = len(self._schemas) + 1  # 0 means "no schema"
+        schema_id = len(self.schemas) + 1
         schema = Schema(id=schema_id, name=name, encoding=encoding, data=data)
-        self._schemas[schema_id] = schema
+        self.schemas[schema_id] = schema
         self._chunk += _record_bytes(schema)
         return schema_id
 
@@ -118,7 +120,7 @@ class McapWriter:
         schema_id: int,
         metadata: dict[str, str] | None = None,
     ) -> int:
-        channel_id = len(self._channels) + 1  # from 1, as the mcap package's writer does
+        channel_id = len(self.channels) + 1  # from 1, as the mcap package's writer does
         channel = Channel(
             id=channel_id,
             topic=topic,
@@ -126,10 +128,73 @@ class McapWriter:
             schema_id=schema_id,
             metadata=dict(metadata or {}),
         )
-        self._channels[channel_id] = channel
-        self._counts[channel_id] = 0
+        self.channels[channel_id] = channel
         self._chunk += _record_bytes(channel)
         return channel_id
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
+        """One message on a registered channel; publish time is the log time."""
+        chunk = self._chunk
+        index = self._index.get(channel_id)
+        if index is None:
+            index = self._index[channel_id] = []
+            self._counts[channel_id] = 0
+        index += (log_time, len(chunk))
+        chunk += _MESSAGE_HEAD.pack(
+            Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
+        )
+        chunk += data
+        self._counts[channel_id] += 1
+        if self.messages:
+            if log_time < self._start:
+                self._start = log_time
+            elif log_time > self._end:
+                self._end = log_time
+        else:
+            self._start = self._end = log_time
+        self.messages += 1
+
+    def seal(self) -> SealedChunk | None:
+        """The open chunk, ended; None if it holds no message yet.
+
+        Schema and channel records alone wait for the chunk of their first message.
+        """
+        if not self.messages:
+            return None
+        sealed = SealedChunk(
+            bytes(self._chunk), self._index, self._start, self._end, self.messages, self._counts
+        )
+        self._chunk = bytearray()
+        self._index = {}
+        self._counts = {}
+        self.messages = 0
+        return sealed
+
+
+class McapFile:
+    """Writes one MCAP file to ``stream`` (which the caller opens and closes).
+
+    Call ``start``, then ``write_chunk`` for each sealed chunk of one :class:`ChunkBuilder`
+    (a reader sees everything up to the last chunk written and flushed), and ``finish`` with
+    that builder's schemas and channels to write the summary and footer.
+    """
+
+    def __init__(
+        self, stream: BinaryIO, compression: CompressionType = CompressionType.ZSTD
+    ) -> None:
+        self._stream = stream
+        self._compression = compression
+        # One compressor per file: a ZstdCompressor must not be used by two threads at once.
+        self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._counts: dict[int, int] = {}
+        self._messages = 0
+        self._start_time = 0
+        self._end_time = 0
+
+    def start(self, profile: str = "", library: str = "") -> None:
+        self._stream.write(MAGIC + _record_bytes(Header(profile=profile, library=library)))
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         offset = self._stream.tell()
@@ -137,39 +202,13 @@ class McapWriter:
         self._stream.write(record)
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=len(record), name=name))
 
-    # ---- the per-message path -----------------------------------------------------------
-    def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
-        """One message on a registered channel; publish time is the log time."""
-        chunk = self._chunk
-        index = self._index.get(channel_id)
-        if index is None:
-            index = self._index[channel_id] = []
-        index += (log_time, len(chunk))
-        chunk += _MESSAGE_HEAD.pack(
-            Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
-        )
-        chunk += data
-        self._counts[channel_id] += 1
-        if self._chunk_messages:
-            if log_time < self._chunk_start:
-                self._chunk_start = log_time
-            elif log_time > self._chunk_end:
-                self._chunk_end = log_time
-        else:
-            self._chunk_start = self._chunk_end = log_time
-        self._chunk_messages += 1
-        if len(chunk) > self._chunk_size:
-            self._end_chunk()
-
-    # ---- chunks, flush, finish ------------------------------------------------------------
-    def _end_chunk(self) -> None:
-        if not self._chunk_messages:
-            return  # schemas/channels alone wait for the chunk of their first message
-        data = bytes(self._chunk)
+    def write_chunk(self, sealed: SealedChunk) -> None:
+        """The chunk record and its message indexes; ``flush`` to make them readable."""
+        data = sealed.data
         compression, compressed = self._compress(data)
         chunk = Chunk(
-            message_start_time=self._chunk_start,
-            message_end_time=self._chunk_end,
+            message_start_time=sealed.start_time,
+            message_end_time=sealed.end_time,
             uncompressed_size=len(data),
             uncompressed_crc=zlib.crc32(data),
             compression=compression,
@@ -182,14 +221,14 @@ class McapWriter:
         index_offset = chunk_offset + len(chunk_record)
         offsets: dict[int, int] = {}
         index_bytes = bytearray()
-        for channel_id, pairs in self._index.items():
+        for channel_id, pairs in sealed.index.items():
             offsets[channel_id] = index_offset + len(index_bytes)
             index_bytes += _message_index(channel_id, pairs)
         stream.write(index_bytes)
         self._chunk_indexes.append(
             ChunkIndex(
-                message_start_time=self._chunk_start,
-                message_end_time=self._chunk_end,
+                message_start_time=sealed.start_time,
+                message_end_time=sealed.end_time,
                 chunk_start_offset=chunk_offset,
                 chunk_length=len(chunk_record),
                 message_index_offsets=offsets,
@@ -200,15 +239,13 @@ class McapWriter:
             )
         )
         if self._messages:
-            self._start_time = min(self._start_time, self._chunk_start)
-            self._end_time = max(self._end_time, self._chunk_end)
+            self._start_time = min(self._start_time, sealed.start_time)
+            self._end_time = max(self._end_time, sealed.end_time)
         else:
-            self._start_time, self._end_time = self._chunk_start, self._chunk_end
-        self._messages += self._chunk_messages
-        self._chunks += 1
-        self._chunk = bytearray()
-        self._chunk_messages = 0
-        self._index = {}
+            self._start_time, self._end_time = sealed.start_time, sealed.end_time
+        self._messages += sealed.messages
+        for channel_id, count in sealed.counts.items():
+            self._counts[channel_id] = self._counts.get(channel_id, 0) + count
 
     def _compress(self, data: bytes) -> tuple[str, bytes]:
         if self._compression == CompressionType.ZSTD:
@@ -218,22 +255,22 @@ class McapWriter:
         return "", data
 
     def flush(self) -> None:
-        """End the open chunk and flush the stream: a reader sees everything so far."""
-        self._end_chunk()
         self._stream.flush()
 
-    def finish(self) -> None:
-        """The last chunk, the summary (schemas, channels, statistics, indexes), the footer."""
-        self._end_chunk()
+    def tell(self) -> int:
+        return self._stream.tell()
+
+    def finish(self, schemas: dict[int, Schema], channels: dict[int, Channel]) -> None:
+        """The summary (schemas, channels, statistics, indexes) and the footer."""
         stream = self._stream
         stream.write(_record_bytes(DataEnd(data_section_crc=0)))
         summary_start = stream.tell()
         summary = bytearray()
         offsets: list[SummaryOffset] = []
         groups = (
-            (Opcode.SCHEMA, list(self._schemas.values())),
-            (Opcode.CHANNEL, list(self._channels.values())),
-            (Opcode.STATISTICS, [self._statistics()]),
+            (Opcode.SCHEMA, list(schemas.values())),
+            (Opcode.CHANNEL, list(channels.values())),
+            (Opcode.STATISTICS, [self._statistics(len(schemas), len(channels))]),
             (Opcode.CHUNK_INDEX, self._chunk_indexes),
             (Opcode.METADATA_INDEX, self._metadata_indexes),
         )
@@ -265,15 +302,15 @@ class McapWriter:
         stream.write(_record_bytes(footer) + MAGIC)
         stream.flush()
 
-    def _statistics(self) -> Statistics:
+    def _statistics(self, schema_count: int, channel_count: int) -> Statistics:
         return Statistics(
             message_count=self._messages,
-            schema_count=len(self._schemas),
-            channel_count=len(self._channels),
+            schema_count=schema_count,
+            channel_count=channel_count,
             attachment_count=0,
             metadata_count=len(self._metadata_indexes),
-            chunk_count=self._chunks,
+            chunk_count=len(self._chunk_indexes),
             message_start_time=self._start_time,
             message_end_time=self._end_time,
-            channel_message_counts={k: v for k, v in self._counts.items() if v},
+            channel_message_counts=dict(self._counts),
         )

@@ -1,10 +1,20 @@
 """MCAP recording of all traffic (DESIGN.md section 4), off the control path.
 
-Producers call ``raw``, ``mavlink`` and ``zenoh``; those only enqueue. One writer thread
-encodes and writes, finishes a chunk at least every ``flush_interval`` seconds (so a killed
-process loses about that much), rotates files by size or duration, and survives disk
-trouble: on an OSError it reports the error, drops what it cannot write (counted) and
-retries in a new file.
+Producers (the control path, Zenoh callbacks) call ``raw``, ``mavlink`` and ``zenoh``: those
+encode the record and pack it into the open chunk in memory, under a lock held for a few
+microseconds. One writer thread seals the open chunk at least every ``flush_interval``
+seconds (so a killed process loses about that much), compresses and writes sealed chunks,
+rotates files by size or duration, and survives disk trouble: on an OSError it reports the
+error, drops what it cannot write (counted) and retries in a new file. The writer takes the
+lock only to swap the open chunk out, never while it compresses or writes, so a slow disk
+cannot stall a producer.
+
+Why producers pack and the thread only compresses and writes: when the thread did the
+packing, it held the GIL for a dozen small records per sample, and every time the control
+path let the GIL go (a Zenoh put does) the two threads handed it back and forth across
+cores. Measured on the end-to-end benchmark: 170–215 µs per sample with the packing on the
+thread, 110–120 µs with it on the producer (``benchmarks/bench_service.py``). Compression
+and file writes release the GIL.
 
 Channels:
 * ``mavlink/raw/in``, ``mavlink/raw/out``: the frames exactly as they crossed the link,
@@ -26,7 +36,7 @@ from typing import Any
 
 from mcap.writer import CompressionType
 
-from hil_service.mcap_writer import McapWriter
+from hil_service.mcap_writer import ChunkBuilder, McapFile, SealedChunk
 from protocols import payload_json
 from protocols.keys import schema_for_key
 from protocols.mavlink_io import DIALECT_NAME, MAVLINK_VERSION, MavMessage
@@ -38,9 +48,8 @@ JSON_TOPIC = "mavlink/json/{direction}/{kind}"
 RAW_ENCODING = "mavlink2"
 CONFIG_METADATA = "glider-hil.config"
 PROFILE = "glider-hil"
-_STOP = object()
-POLL_INTERVAL = 0.02  # s between two drains of the queue by the writer thread
-WRITE_BATCH = 256  # records written between two looks at the flush clock
+POLL_INTERVAL = 0.02  # s between two looks at the sealed chunks by the writer thread
+CHUNK_BYTES = 1 << 20  # a producer seals the open chunk when it grows past this
 
 
 def _now_if_none(t_ns: int | None) -> int:
@@ -70,6 +79,13 @@ class RecorderStatus:
         }
 
 
+@dataclass(frozen=True)
+class _EndOfFile:
+    """Queued after a file's last chunk: what its summary lists."""
+
+    builder: ChunkBuilder
+
+
 class McapRecorder:
     def __init__(
         self,
@@ -86,89 +102,200 @@ class McapRecorder:
         self.max_bytes = max_bytes
         self.max_seconds = max_seconds
         self.flush_interval = flush_interval
-        self.max_queue = max_queue
+        self.max_queue = max_queue  # records held in memory (open and sealed chunks)
         self.compression = compression
         self.status = RecorderStatus()
-        # A deque, not a queue.Queue: append and popleft are atomic in CPython and take no
-        # lock, and the writer thread polls it rather than blocking on it (see _run).
-        self._queue: deque[Any] = deque()
+        self._lock = threading.Lock()  # guards everything below up to _closed, and status
+        self._builder = ChunkBuilder()
+        self._channels: dict[tuple[str, ...], int] = {}  # route → channel of _builder's file
+        self._sealed: deque[SealedChunk | _EndOfFile] = deque()
+        self._backlog = 0  # records in sealed chunks not yet written
+        self._closed = False
+        self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
-        self._writer: McapWriter | None = None
+        # Owned by the writer thread:
+        self._file: McapFile | None = None
         self._stream: Any = None
-        self._channels: dict[tuple[str, ...], int] = {}
         self._opened_at = 0.0
         self._retry_at = 0.0
 
-    # ---- producer side (any thread; never blocks) ----------------------------------
     def start(self) -> McapRecorder:
         self._thread.start()
         return self
 
-    # An item is (route, payload, t_ns); the route is also the writer's channel key, so the
-    # writer needs one dict lookup per record and formats a topic only for a new channel.
+    # ---- producer side (any thread; never waits for the disk) ---------------------------
+    # A route is the channel key: one dict lookup per record, a topic formatted only for a
+    # channel new to the file.
     def raw(self, direction: str, frame: bytes, t_ns: int | None = None) -> None:
-        self._put((("raw", direction), frame, _now_if_none(t_ns)))
+        self._record(("raw", direction), frame, _now_if_none(t_ns))
 
     def mavlink(self, direction: str, message: MavMessage, t_ns: int | None = None) -> None:
-        """A decoded message; encoded to JSON on the writer thread, off the control path."""
-        route = ("json_mav", direction, message.get_type())
-        self._put((route, message, _now_if_none(t_ns)))
+        """A decoded message, logged as JSON on ``mavlink/json/{direction}/{TYPE}``."""
+        try:
+            data = payload_json.encode(message_to_json(message))
+        except Exception as error:  # an unencodable record must not end all logging
+            with self._lock:
+                self.status.last_drop = f"{type(error).__name__}: {error}"
+                self.status.dropped += 1
+            return
+        self._record(("json_mav", direction, message.get_type()), data, _now_if_none(t_ns))
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
         self.zenoh_encoded(key, payload_json.encode(payload), direction, t_ns)
 
     def zenoh_encoded(self, key: str, data: bytes, direction: str, t_ns: int | None = None) -> None:
         """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
-        self._put((("zenoh", key, direction), data, _now_if_none(t_ns)))
+        self._record(("zenoh", key, direction), data, _now_if_none(t_ns))
 
-    def _put(self, item: tuple[Any, ...]) -> None:
-        if len(self._queue) >= self.max_queue:
-            self.status.dropped += 1
-            return
-        self._queue.append(item)
+    def _record(self, route: tuple[str, ...], data: bytes, t_ns: int) -> None:
+        with self._lock:
+            builder = self._builder
+            if self._closed or self._backlog + builder.messages >= self.max_queue:
+                self.status.dropped += 1
+                return
+            channel = self._channels.get(route)
+            if channel is None:
+                channel = self._channels[route] = self._register(builder, route)
+            builder.add_message(channel, t_ns, data)
+            if builder.size < CHUNK_BYTES:
+                return
+            self._seal_locked()
+        self._wake.set()
 
     @property
     def backlog(self) -> int:
-        """Records queued and not yet written."""
-        return len(self._queue)
+        """Records in sealed chunks that the writer thread has not written yet.
+
+        The open chunk is not counted: it is sealed on time or when it reaches
+        ``CHUNK_BYTES``, whichever comes first.
+        """
+        return self._backlog
 
     def close(self, timeout: float = 10.0) -> None:
+        """Write everything recorded so far, finish the file; later records are dropped."""
+        with self._lock:
+            self._closed = True
         if self._thread.is_alive():
-            self._queue.append(_STOP)
+            self._wake.set()
             self._thread.join(timeout)
+
+    # ---- hand-over (lock held) ------------------------------------------------------------
+    def _seal_locked(self) -> None:
+        sealed = self._builder.seal()
+        if sealed is not None:
+            self._sealed.append(sealed)
+            self._backlog += sealed.messages
+
+    def _end_file_locked(self) -> None:
+        """Seal the open chunk and start a builder for the next file."""
+        self._seal_locked()
+        self._sealed.append(_EndOfFile(self._builder))
+        self._builder = ChunkBuilder()
+        self._channels = {}
+
+    def _register(self, builder: ChunkBuilder, route: tuple[str, ...]) -> int:
+        """The channel (and its schema) for a route seen for the first time in this file."""
+        kind, name = route[0], route[1]
+        if kind == "raw":
+            metadata = {
+                "dialect": DIALECT_NAME,
+                "mavlink_version": str(MAVLINK_VERSION),
+                "direction": name,
+            }
+            return builder.register_channel(
+                RAW_TOPIC.format(direction=name), RAW_ENCODING, 0, metadata
+            )
+        if kind == "json_mav":
+            message_type = route[2]
+            schema_id = builder.register_schema(
+                f"mavlink.{message_type}",
+                "jsonschema",
+                json.dumps(message_schema(message_type)).encode(),
+            )
+            topic = JSON_TOPIC.format(direction=name, kind=message_type)
+            return builder.register_channel(topic, "json", schema_id, {"direction": name})
+        schema_name = schema_for_key(name)
+        schema_id = 0
+        if schema_name is not None:
+            schema_id = builder.register_schema(
+                f"glider-hil.{schema_name}",
+                "jsonschema",
+                json.dumps(load_schema(schema_name)).encode(),
+            )
+        metadata = {"direction": route[2], "transport": "zenoh"}
+        return builder.register_channel(name, "json", schema_id, metadata)
 
     # ---- writer thread ----------------------------------------------------------------
     def _run(self) -> None:
-        """Wake every ``POLL_INTERVAL`` and write what has queued since.
-
-        Not a blocking ``get`` per record: each put would then wake this thread, and it
-        would take the GIL from the control path once per record (measured: more CPU in
-        thread switches than in writing).
-        """
-        pending, write = self._queue, self._write
+        """Every ``POLL_INTERVAL`` (or when a producer seals a full chunk): write the sealed
+        chunks; every ``flush_interval``: seal the open chunk too, flush, maybe rotate."""
         next_flush = time.monotonic() + self.flush_interval
-        stopping = False
-        drained = True
-        while not stopping:
-            if drained:
-                time.sleep(POLL_INTERVAL)
-            drained = True
-            written = 0
-            while pending:
-                item = pending.popleft()
-                if item is _STOP:
-                    stopping = True
-                    break
-                write(item)
-                written += 1
-                if written % WRITE_BATCH == 0 and time.monotonic() >= next_flush:
-                    drained = False  # a long backlog: flush on time, then go on at once
-                    break
-            if time.monotonic() >= next_flush:
+        while True:
+            self._wake.wait(POLL_INTERVAL)
+            self._wake.clear()
+            closing = self._closed
+            flush_due = closing or time.monotonic() >= next_flush
+            if flush_due:
+                with self._lock:
+                    self._seal_locked()
+            self._write_sealed()
+            if closing:
+                break
+            if flush_due:
                 next_flush = time.monotonic() + self.flush_interval
-                self.status.queue_depth = len(pending)
                 self._guarded(self._flush_and_rotate)
-        self._guarded(self._finish)
+                self._write_sealed()
+                self.status.queue_depth = self._backlog
+        with self._lock:
+            self._end_file_locked()
+        self._write_sealed()
+
+    def _write_sealed(self) -> None:
+        while True:
+            with self._lock:
+                if not self._sealed:
+                    return
+                item = self._sealed.popleft()
+            if isinstance(item, _EndOfFile):
+                if self._file is not None:
+                    self._guarded(self._finish, item.builder)
+                continue
+            self._write_chunk(item)
+
+    def _write_chunk(self, sealed: SealedChunk) -> None:
+        if self._file is None and (
+            time.monotonic() < self._retry_at or not self._guarded(self._open)
+        ):
+            self._discard(sealed)
+            return
+        assert self._file is not None
+        try:
+            self._file.write_chunk(sealed)
+        except (OSError, ValueError) as error:  # disk trouble: a new file when possible
+            self._failed(error)
+            self._discard(sealed)
+            return
+        with self._lock:
+            self._backlog -= sealed.messages
+            self.status.records += sealed.messages
+
+    def _discard(self, sealed: SealedChunk) -> None:
+        """Drop a chunk that cannot be written, and everything recorded after it.
+
+        The lost chunk may hold the definitions of channels that later chunks use, so the
+        builder starts over: the next file defines its channels again.
+        """
+        with self._lock:
+            lost = sealed.messages + self._builder.messages
+            self._backlog -= sealed.messages
+            for item in self._sealed:
+                if isinstance(item, SealedChunk):
+                    lost += item.messages
+                    self._backlog -= item.messages
+            self._sealed.clear()
+            self._builder = ChunkBuilder()
+            self._channels = {}
+            self.status.dropped += lost
 
     def _guarded(self, action: Any, *args: Any) -> bool:
         try:
@@ -184,65 +311,6 @@ class McapRecorder:
         self._abandon_file()
         self._retry_at = time.monotonic() + 2.0
 
-    def _write(self, item: tuple[Any, ...]) -> None:
-        writer = self._writer
-        if writer is None:
-            if time.monotonic() < self._retry_at or not self._guarded(self._open):
-                self.status.dropped += 1
-                return
-            writer = self._writer
-            assert writer is not None
-        route, payload, t_ns = item
-        if route[0] == "json_mav":
-            try:
-                payload = payload_json.encode(message_to_json(payload))
-            except Exception as error:  # an unencodable record must not end all logging
-                self.status.last_drop = f"{type(error).__name__}: {error}"
-                self.status.dropped += 1
-                return
-        try:
-            channel = self._channels.get(route)
-            if channel is None:
-                channel = self._channels[route] = self._register(writer, route)
-            writer.add_message(channel, t_ns, payload)
-        except (OSError, ValueError) as error:  # disk trouble: a new file when possible
-            self._failed(error)
-            self.status.dropped += 1
-        else:
-            self.status.records += 1
-
-    def _register(self, writer: McapWriter, route: tuple[str, ...]) -> int:
-        """The channel (and its schema) for a route seen for the first time in this file."""
-        kind, name = route[0], route[1]
-        if kind == "raw":
-            metadata = {
-                "dialect": DIALECT_NAME,
-                "mavlink_version": str(MAVLINK_VERSION),
-                "direction": name,
-            }
-            return writer.register_channel(
-                RAW_TOPIC.format(direction=name), RAW_ENCODING, 0, metadata
-            )
-        if kind == "json_mav":
-            message_type = route[2]
-            schema_id = writer.register_schema(
-                f"mavlink.{message_type}",
-                "jsonschema",
-                json.dumps(message_schema(message_type)).encode(),
-            )
-            topic = JSON_TOPIC.format(direction=name, kind=message_type)
-            return writer.register_channel(topic, "json", schema_id, {"direction": name})
-        schema_name = schema_for_key(name)
-        schema_id = 0
-        if schema_name is not None:
-            schema_id = writer.register_schema(
-                f"glider-hil.{schema_name}",
-                "jsonschema",
-                json.dumps(load_schema(schema_name)).encode(),
-            )
-        metadata = {"direction": route[2], "transport": "zenoh"}
-        return writer.register_channel(name, "json", schema_id, metadata)
-
     def _open(self) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
@@ -252,36 +320,35 @@ class McapRecorder:
             path = self.log_dir / f"glider-hil_{stamp}_{index:03d}.mcap"
             index += 1
         self._stream = open(path, "wb")  # noqa: SIM115 - owned by the writer until _finish
-        self._writer = McapWriter(self._stream, compression=self.compression)
-        self._writer.start(profile=PROFILE, library="glider-hil")
-        self._writer.add_metadata(CONFIG_METADATA, self.metadata)
-        self._channels = {}
+        self._file = McapFile(self._stream, compression=self.compression)
+        self._file.start(profile=PROFILE, library="glider-hil")
+        self._file.add_metadata(CONFIG_METADATA, self.metadata)
         self._opened_at = time.monotonic()
         self.status.files.append(str(path))
         self.status.error = ""
 
     def _flush_and_rotate(self) -> None:
-        if self._writer is None:
+        if self._file is None:
             return
-        self._writer.flush()
-        too_big = self._stream.tell() >= self.max_bytes
+        self._file.flush()
+        too_big = self._file.tell() >= self.max_bytes
         too_old = time.monotonic() - self._opened_at >= self.max_seconds
         if too_big or too_old:
-            self._finish()
+            with self._lock:
+                self._end_file_locked()
 
-    def _finish(self) -> None:
-        if self._writer is None:
-            return
-        writer, stream = self._writer, self._stream
-        self._writer, self._stream = None, None
+    def _finish(self, builder: ChunkBuilder) -> None:
+        file, stream = self._file, self._stream
+        self._file, self._stream = None, None
+        assert file is not None
         try:
-            writer.finish()
+            file.finish(builder.schemas, builder.channels)
         finally:
             stream.close()
 
     def _abandon_file(self) -> None:
         stream = self._stream
-        self._writer, self._stream = None, None
+        self._file, self._stream = None, None
         if stream is not None:
             with contextlib.suppress(OSError):
                 stream.close()

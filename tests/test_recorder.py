@@ -167,3 +167,73 @@ def test_a_log_time_of_zero_is_kept_not_replaced_by_the_clock(tmp_path):
     recorder.close()
     messages, _ = read_all(next(tmp_path.glob("*.mcap")))
     assert sorted(m.log_time_ns for m in messages) == [0, 0, 1_000_000, 2_000_000]
+
+
+def test_producers_do_not_wait_for_a_stalled_disk(tmp_path, monkeypatch):
+    """The control path records while the writer thread is stuck in a write."""
+    import threading
+
+    from hil_service import recorder as recorder_module
+
+    entered, release = threading.Event(), threading.Event()
+    original = recorder_module.McapFile.write_chunk
+
+    def stalled(self, sealed):
+        entered.set()
+        release.wait(10)
+        original(self, sealed)
+
+    monkeypatch.setattr(recorder_module.McapFile, "write_chunk", stalled)
+    recorder = McapRecorder(tmp_path, flush_interval=0.02).start()
+    sent = frames(4000)
+    recorder.raw("in", sent[0])
+    assert entered.wait(5), "the writer never started a chunk"
+    for frame in sent[1:]:
+        recorder.raw("in", frame)  # would hang here if producers waited for the writer
+    assert not release.is_set() and recorder.status.records == 0
+    release.set()
+    recorder.close()
+    messages, reader = read_all(next(tmp_path.glob("*.mcap")))
+    assert reader.report.complete
+    assert [m.data for m in messages] == sent
+
+
+def test_after_a_failed_write_the_next_file_defines_its_channels_again(tmp_path, monkeypatch):
+    """A lost chunk may have held the channel records: the next file must not need them."""
+    from hil_service import recorder as recorder_module
+
+    original = recorder_module.McapFile.write_chunk
+    failures = []
+
+    def failing_once(self, sealed):
+        if not failures:
+            failures.append(sealed.messages)
+            raise OSError(28, "No space left on device")
+        original(self, sealed)
+
+    monkeypatch.setattr(recorder_module.McapFile, "write_chunk", failing_once)
+    recorder = McapRecorder(tmp_path, flush_interval=0.02).start()
+    recorder.raw("in", frames(1)[0])
+    recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out")
+    deadline = time.monotonic() + 5
+    while not recorder.status.error and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert "No space left" in recorder.status.error
+    assert recorder.status.dropped == 2
+    time.sleep(2.1)  # the recorder retries every 2 s
+    recorder.raw("in", frames(2)[1])
+    recorder.zenoh("glider/1/telemetry", {"t": 1.0}, "out")
+    recorder.close()
+    newest = max(tmp_path.glob("*.mcap"), key=lambda p: p.stat().st_mtime)
+    messages, reader = read_all(newest)
+    assert reader.report.complete
+    assert {m.topic for m in messages} == {"mavlink/raw/in", "glider/1/telemetry"}
+    assert recorder.status.dropped == 2 and recorder.status.records == 2
+
+
+def test_records_after_close_are_counted_as_dropped(tmp_path):
+    recorder = McapRecorder(tmp_path, flush_interval=0.05).start()
+    recorder.raw("in", frames(1)[0])
+    recorder.close()
+    recorder.raw("in", frames(1)[0])
+    assert recorder.status.records == 1 and recorder.status.dropped == 1
