@@ -191,3 +191,19 @@ def test_overflowing_forecast_never_gives_a_nan_command() -> None:
     assert math.isfinite(res.u) and -2.0 <= res.u <= 2.0
     assert not math.isnan(res.residual)
     assert res.path == "fallback"
+
+
+def test_short_horizon_step_response_has_lfilter_bits() -> None:
+    """Short horizons skip scipy; the Python loop must give lfilter's bits exactly, or a
+    log recorded with one path would not replay with the other."""
+    from scipy.signal import lfilter
+
+    from hil_service.umodel.forecast import SHORT_HORIZON, _short_step_response
+
+    rng = np.random.default_rng(11)
+    for _ in range(3000):
+        order = int(rng.integers(1, 8))
+        horizon = int(rng.integers(1, SHORT_HORIZON + 1))
+        ar = (rng.normal(0, 0.5, size=order) * rng.choice([1e-3, 0.3, 1.0])).tolist()
+        reference = lfilter(np.ones(1), np.array([1.0, *[-c for c in ar]]), np.ones(horizon))
+        assert _short_step_response(ar, horizon) == reference.tolist()

@@ -191,3 +191,22 @@ def test_no_builtin_sum_on_the_identification_and_control_path() -> None:
             ):
                 offenders.append(f"{path.name}:{node.lineno}")
     assert offenders == []
+
+
+def test_divergence_guard_sees_the_exact_parameter_norm() -> None:
+    """The guard updates ‖θ‖² from the NLMS step's own products; it must stay the norm of
+    θ itself (to rounding), or the parameter limit would fire early or late."""
+    from hil_service.umodel import DynamicUModel
+    from hil_service.umodel.reproducible import dot
+
+    rng = np.random.default_rng(4)
+    model = DynamicUModel(seed=4, init_scale=0.5)
+    y = 0.0
+    worst = 0.0
+    for k in range(20_000):
+        u = float(rng.uniform(-2, 2))
+        y = 0.95 * y + 0.3 * u + 0.2 * math.sin(0.01 * k) + float(rng.normal(0, 0.05))
+        model.step(u, y)
+        exact = dot(model._theta, model._theta)
+        worst = max(worst, abs(model._sq_norm - exact) / exact)
+    assert worst < 1e-12

@@ -162,6 +162,28 @@ class HorizonMap:
         return total
 
 
+#: Up to this horizon the step response is a Python loop: for a handful of samples scipy's
+#: call overhead (arrays in and out) costs more than the arithmetic.
+SHORT_HORIZON = 16
+
+
+def _short_step_response(ar: Sequence[float], horizon: int) -> list[float]:
+    """The unit-step response of 1 / (1 − Σ c_i z⁻ⁱ), s(0..horizon−1), with the very
+    operations of scipy's ``lfilter`` (transposed direct form II, numerator [1, 0, …]), so
+    the same bits as the long-horizon path (a test compares them)."""
+    a = [-c for c in ar]
+    last = len(a) - 1
+    z = [0.0] * len(a)
+    out = []
+    for _ in range(horizon):
+        y = z[0] + 1.0  # z₀ + b₀·x with b₀ = x = 1
+        for i in range(last):
+            z[i] = z[i + 1] + 0.0 - y * a[i]  # z_{i+1} + x·b_{i+1} − y·a_{i+1}, b_{i+1} = 0
+        z[last] = 0.0 - y * a[last]
+        out.append(y)
+    return out
+
+
 @lru_cache(maxsize=8)
 def _unit_step(horizon: int) -> np.ndarray:
     step = np.ones(horizon)
@@ -200,12 +222,14 @@ def _horizon_response(
             past += [0.0] * (n - len(past))
         for m in range(n):
             extra[m] += dot(ar[m:], past)
-        denominator = np.array([1.0, *[-c for c in ar]])
     # Only the end of s is needed: h(H−1−n) for n < len(extra) and s(H−1−L) for the gains.
     first = horizon - 1 - max(len(extra), n_gains)
     if first < 0:
         first = 0
-    if n:
+    if n and horizon <= SHORT_HORIZON:
+        tail = [0.0, *_short_step_response(ar, horizon)[first:]]
+    elif n:
+        denominator = np.array([1.0, *[-c for c in ar]])
         tail = [0.0, *lfilter(_ONE, denominator, _unit_step(horizon))[first:].tolist()]
     else:
         tail = [0.0] + [1.0] * (horizon - first)

@@ -308,6 +308,10 @@ class _ModelBase:
             self._frozen = True
 
 
+#: Samples between two exact recomputations of ‖θ‖² (updated incrementally in between).
+NORM_RESYNC_PERIOD = 4096
+
+
 def _norm_ok(sq_norm: float, limit: float) -> bool:
     # ‖θ‖₂ ≤ limit; the comparison is False for NaN, so it also catches non-finite θ.
     return sq_norm <= limit * limit
@@ -361,7 +365,9 @@ class _UModelCore(_ModelBase):
             rng.uniform(-self.init_scale, self.init_scale, size=n).tolist()
         )
         self._theta: list[float] = list(self._theta0)
+        self._sq_norm = dot(self._theta, self._theta)  # ‖θ‖², kept up to date by _adapt
         self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
+        self._theta_phi = 0.0  # scratch: θᵀφ of the last _predict
         self._lin: list[float] = []  # history tail of φ (dynamic model only)
         self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
         self._eval: tuple[float, float, float] | None = None
@@ -380,7 +386,8 @@ class _UModelCore(_ModelBase):
     def _predict(self, u: float) -> float:
         phi = self._fill(u)
         self._phi = phi
-        return dot(self._theta, phi)
+        self._theta_phi = dot(self._theta, phi)
+        return self._theta_phi
 
     def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
         th = self._theta
@@ -394,16 +401,22 @@ class _UModelCore(_ModelBase):
         return (a0, *poly), tuple(th[: self._nr] + th[self._np :])
 
     def _adapt(self, error: float) -> None:
-        self._theta = self.nlms.update(self._theta, self._phi, error)
+        self._theta, g, phi_sq = self.nlms.update_with_terms(self._theta, self._phi, error)
+        if self._n_accepted % NORM_RESYNC_PERIOD:
+            # ‖θ + gφ‖² = ‖θ‖² + g·(2θᵀφ + g·φᵀφ), from products the step already has: the
+            # guard needs no pass over θ. A non-finite θ makes it non-finite too.
+            self._sq_norm += g * (2.0 * self._theta_phi + g * phi_sq)
+        else:
+            self._sq_norm = dot(self._theta, self._theta)  # the rounding never drifts far
         self._cache = None
         self._eval = None
 
     def _params_ok(self) -> bool:
-        th = self._theta
-        return _norm_ok(dot(th, th), self.guard.param_limit)
+        return _norm_ok(self._sq_norm, self.guard.param_limit)
 
     def _reset_params(self) -> None:
         self._theta = list(self._theta0)
+        self._sq_norm = dot(self._theta, self._theta)
         self._cache = None
         self._eval = None
 

@@ -66,3 +66,11 @@ class NLMS:
         """θ + μ e φ / (ε + φᵀφ) as a new list (lengths are the caller's responsibility)."""
         g = self.mu * error / (self.eps + dot(phi, phi))
         return [t + g * p for t, p in zip(theta, phi)]  # noqa: B905 - hot path
+
+    def update_with_terms(
+        self, theta: list[float], phi: list[float], error: float
+    ) -> tuple[list[float], float, float]:
+        """``update``'s new θ (the same bits), with the gain g and φᵀφ it used."""
+        phi_sq = dot(phi, phi)
+        g = self.mu * error / (self.eps + phi_sq)
+        return [t + g * p for t, p in zip(theta, phi)], g, phi_sq  # noqa: B905 - hot path
