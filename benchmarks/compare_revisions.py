@@ -1,0 +1,105 @@
+"""Two git revisions measured in one session, interleaved, so that a speed-up is a ratio
+measured side by side and not two figures from different phases of a noisy machine.
+
+For each revision (checked out into temporary worktrees) and each of ``--rounds`` rounds:
+the end-to-end service throughput (``bench_service.bench_throughput``) pinned to one CPU and
+unpinned, and the dynamic model's control step per channel (``experiment.speed.measure``)
+pinned to one CPU. Prints the medians and the median of the paired ratios (new / old).
+
+Run: .venv/bin/python benchmarks/compare_revisions.py OLD_REV NEW_REV [--rounds N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+_THROUGHPUT = """
+import sys, json
+sys.path.insert(0, sys.argv[1] + "/benchmarks"); sys.path.insert(0, sys.argv[1])
+import bench_service
+r = bench_service.bench_throughput(int(sys.argv[2]), 1)
+print(json.dumps([r["pymavlink_parse_samples_per_s"]["best"],
+                  r["service_incl_log_drain_samples_per_s"]["best"]]))
+"""
+
+_CONTROL = """
+import sys, json
+sys.path.insert(0, sys.argv[1])
+from hil_service.experiment import speed
+print(json.dumps(speed.measure(sys.argv[3], "dynamic", int(sys.argv[2])).control_per_s))
+"""
+
+
+def _run(code: str, tree: str, args: list[str], pinned: bool) -> object:
+    cpu = min(os.sched_getaffinity(0))
+    child = subprocess.run(
+        [sys.executable, "-c", code, tree, *args], capture_output=True, text=True,
+        timeout=1800, check=True,
+        preexec_fn=(lambda: os.sched_setaffinity(0, {cpu})) if pinned else None,
+    )  # fmt: skip
+    return json.loads(child.stdout)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("old")
+    parser.add_argument("new")
+    parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--samples", type=int, default=8000, help="throughput samples")
+    parser.add_argument("--control-samples", type=int, default=4000)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as base:
+        trees = {}
+        for label, rev in (("old", args.old), ("new", args.new)):
+            trees[label] = str(Path(base) / label)
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach",
+                            trees[label], rev], check=True)  # fmt: skip
+        try:
+            results: dict[tuple[str, str], list] = {}
+            for _ in range(args.rounds):
+                for label, tree in trees.items():
+                    for pinned in (True, False):
+                        key = (label, "throughput one core" if pinned else "throughput unpinned")
+                        value = _run(_THROUGHPUT, tree, [str(args.samples)], pinned)
+                        results.setdefault(key, []).append(value)
+                    for channel in ("depth", "pitch"):
+                        value = _run(_CONTROL, tree, [str(args.control_samples), channel], True)
+                        results.setdefault((label, f"control step {channel}"), []).append(value)
+        finally:
+            for tree in trees.values():
+                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", tree],
+                               check=False)  # fmt: skip
+    report = {}
+    for figure in sorted({name for _, name in results}):
+        old, new = results[("old", figure)], results[("new", figure)]
+        if figure.startswith("throughput"):
+            report[figure] = {
+                "old_median_per_s": statistics.median(r[1] for r in old),
+                "new_median_per_s": statistics.median(r[1] for r in new),
+                "old_ratio_to_pymavlink": statistics.median(r[1] / r[0] for r in old),
+                "new_ratio_to_pymavlink": statistics.median(r[1] / r[0] for r in new),
+                "paired_gain": statistics.median(
+                    n[1] / o[1] for o, n in zip(old, new, strict=True)
+                ),
+            }
+        else:
+            report[figure] = {
+                "old_median_per_s": statistics.median(old),
+                "new_median_per_s": statistics.median(new),
+                "paired_gain": statistics.median(n / o for o, n in zip(old, new, strict=True)),
+            }
+    print(json.dumps({"old": args.old, "new": args.new, "rounds": args.rounds, **report},
+                     indent=2))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
