@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from hil_service.bus import Inbox, ZenohBus  # noqa: E402
 from hil_service.experiment.speed import rates  # noqa: E402
-from hil_service.process_tuning import tune_for_service  # noqa: E402
+from hil_service.process_tuning import one_cpu_child, tune_for_service  # noqa: E402
 from hil_service.recorder import McapRecorder  # noqa: E402
 from hil_service.service import HilService, ServiceConfig  # noqa: E402
 from hil_service.vehicle import PipelineSettings  # noqa: E402
@@ -221,12 +221,12 @@ def _measure_latency(port: int, samples: int, rate: float) -> dict[str, float]:
 
 def pinned_throughput(args: argparse.Namespace) -> dict[str, object]:
     """``bench_throughput`` in a child process pinned (all its threads) to one CPU."""
-    cpu = min(os.sched_getaffinity(0))
+    cpu, pin = one_cpu_child()
     command = [sys.executable, __file__, "--samples", str(args.samples), "--repeats",
                str(args.repeats), "--throughput-only"]  # fmt: skip
     child = subprocess.run(
         command, capture_output=True, text=True, timeout=1800, check=True,
-        preexec_fn=lambda: os.sched_setaffinity(0, {cpu}),
+        preexec_fn=pin,
     )  # fmt: skip
     return {"cpu": cpu, **json.loads(child.stdout)}
 

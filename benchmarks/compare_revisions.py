@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -21,6 +20,9 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from hil_service.process_tuning import one_cpu_child  # noqa: E402
 
 _THROUGHPUT = """
 import sys, json
@@ -40,11 +42,10 @@ print(json.dumps(speed.measure(sys.argv[3], "dynamic", int(sys.argv[2])).control
 
 
 def _run(code: str, tree: str, args: list[str], pinned: bool) -> object:
-    cpu = min(os.sched_getaffinity(0))
     child = subprocess.run(
         [sys.executable, "-c", code, tree, *args], capture_output=True, text=True,
         timeout=1800, check=True,
-        preexec_fn=(lambda: os.sched_setaffinity(0, {cpu})) if pinned else None,
+        preexec_fn=one_cpu_child()[1] if pinned else None,
     )  # fmt: skip
     return json.loads(child.stdout)
 

@@ -81,7 +81,6 @@ class SealedChunk:
     start_time: int
     end_time: int
     messages: int
-    counts: dict[int, int]  # channel → messages in this chunk
 
 
 class ChunkBuilder:
@@ -96,10 +95,7 @@ class ChunkBuilder:
         self.channels: dict[int, Channel] = {}
         self._chunk = bytearray()
         self._index: dict[int, list[int]] = {}
-        self._counts: dict[int, int] = {}
         self.messages = 0  # in the open chunk
-        self._start = 0
-        self._end = 0
 
     @property
     def size(self) -> int:
@@ -138,20 +134,11 @@ class ChunkBuilder:
         index = self._index.get(channel_id)
         if index is None:
             index = self._index[channel_id] = []
-            self._counts[channel_id] = 0
         index += (log_time, len(chunk))
         chunk += _MESSAGE_HEAD.pack(
             Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
         )
         chunk += data
-        self._counts[channel_id] += 1
-        if self.messages:
-            if log_time < self._start:
-                self._start = log_time
-            elif log_time > self._end:
-                self._end = log_time
-        else:
-            self._start = self._end = log_time
         self.messages += 1
 
     def seal(self) -> SealedChunk | None:
@@ -161,12 +148,18 @@ class ChunkBuilder:
         """
         if not self.messages:
             return None
+        # The index holds every message's log time: the chunk's time range comes from it
+        # once per chunk, not from a comparison per message.
+        times = [pairs[0::2] for pairs in self._index.values()]
         sealed = SealedChunk(
-            bytes(self._chunk), self._index, self._start, self._end, self.messages, self._counts
+            bytes(self._chunk),
+            self._index,
+            min(min(t) for t in times),
+            max(max(t) for t in times),
+            self.messages,
         )
         self._chunk = bytearray()
         self._index = {}
-        self._counts = {}
         self.messages = 0
         return sealed
 
@@ -244,8 +237,8 @@ class McapFile:
         else:
             self._start_time, self._end_time = sealed.start_time, sealed.end_time
         self._messages += sealed.messages
-        for channel_id, count in sealed.counts.items():
-            self._counts[channel_id] = self._counts.get(channel_id, 0) + count
+        for channel_id, pairs in sealed.index.items():
+            self._counts[channel_id] = self._counts.get(channel_id, 0) + len(pairs) // 2
 
     def _compress(self, data: bytes) -> tuple[str, bytes]:
         if self._compression == CompressionType.ZSTD:

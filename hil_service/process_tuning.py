@@ -17,7 +17,9 @@ call it too, so that they measure the path as those commands run it.
 from __future__ import annotations
 
 import gc
+import os
 import sys
+from collections.abc import Callable
 
 SWITCH_INTERVAL_S = 0.0005
 GC_THRESHOLDS = (10_000, 10, 10)
@@ -28,3 +30,10 @@ def tune_for_service() -> None:
     gc.collect()
     gc.freeze()
     gc.set_threshold(*GC_THRESHOLDS)
+
+
+def one_cpu_child() -> tuple[int, Callable[[], None]]:
+    """(cpu, preexec_fn) that pins a child process and every thread it will start (Zenoh's
+    runtime included) to the first CPU this process may use: "on one core", literally."""
+    cpu = min(os.sched_getaffinity(0))
+    return cpu, lambda: os.sched_setaffinity(0, {cpu})

@@ -269,10 +269,7 @@ class McapRecorder:
             self._discard(sealed)
             return
         assert self._file is not None
-        try:
-            self._file.write_chunk(sealed)
-        except (OSError, ValueError) as error:  # disk trouble: a new file when possible
-            self._failed(error)
+        if not self._guarded(self._file.write_chunk, sealed):  # disk trouble: a new file next
             self._discard(sealed)
             return
         with self._lock:

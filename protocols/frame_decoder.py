@@ -24,8 +24,6 @@ from typing import Any
 MavMessage = Any  # an instance of one of the dialect's generated message classes
 
 _HEADER = struct.Struct("<BBBBBBBHB")  # magic, len, incompat, compat, seq, sys, comp, id lo/hi
-_HEADER_LEN = 10
-_SIGNATURE_LEN = 13
 
 
 @dataclass(frozen=True)
@@ -114,14 +112,16 @@ class FrameDecoder:
         if plan is None:
             return None
         dialect = self._dialect
-        signature = _SIGNATURE_LEN if incompat & dialect.MAVLINK_IFLAG_SIGNED else 0
-        end = _HEADER_LEN + length
+        signature = (
+            dialect.MAVLINK_SIGNATURE_BLOCK_LEN if incompat & dialect.MAVLINK_IFLAG_SIGNED else 0
+        )
+        end = _HEADER.size + length
         if len(frame) != end + 2 + signature:
             return None
         crc = frame[end] | frame[end + 1] << 8
         if self._crc(frame[1:end] + plan.crc_extra) != crc:
             return None
-        payload = frame[_HEADER_LEN:end]
+        payload = frame[_HEADER.size : end]
         size = plan.unpacker.size
         if length < size:
             payload += bytes(size - length)  # MAVLink 2 drops trailing zero bytes

@@ -24,10 +24,7 @@ from protocols.frame_decoder import FrameDecoder
 from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
-V2_MARKER = 0xFD
-V2_SIGNED = 0x01  # incompat flag: a 13-byte signature follows the checksum
-V2_SIGNATURE = 13
-V2_MIN_FRAME = 12  # header 10 + checksum 2, empty payload
+V2_MIN_FRAME = dialect.HEADER_LEN_V2 + 2  # header and checksum, empty payload
 MAVLINK_VERSION = 2
 
 MavMessage = Any  # pymavlink generates one class per message; they share MAVLink_message
@@ -148,12 +145,13 @@ class MavlinkCodec:
         end = len(data)
         position = 0
         while position < end:
-            if end - position < V2_MIN_FRAME or data[position] != V2_MARKER:
+            if end - position < V2_MIN_FRAME or data[position] != dialect.PROTOCOL_MARKER_V2:
                 return None
             flags = data[position + 2]
-            if flags & ~V2_SIGNED:
+            if flags & ~dialect.MAVLINK_IFLAG_SIGNED:
                 return None  # pymavlink's parser refuses unknown incompat flags
-            size = V2_MIN_FRAME + data[position + 1] + (V2_SIGNATURE if flags else 0)
+            signature = dialect.MAVLINK_SIGNATURE_BLOCK_LEN if flags else 0
+            size = V2_MIN_FRAME + data[position + 1] + signature
             if position + size > end:
                 return None
             frames.append(data[position : position + size])

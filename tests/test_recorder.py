@@ -190,7 +190,7 @@ def test_producers_do_not_wait_for_a_stalled_disk(tmp_path, monkeypatch):
     assert entered.wait(5), "the writer never started a chunk"
     for frame in sent[1:]:
         recorder.raw("in", frame)  # would hang here if producers waited for the writer
-    assert not release.is_set() and recorder.status.records == 0
+    assert recorder.status.records == 0  # the writer is still stuck in its first chunk
     release.set()
     recorder.close()
     messages, reader = read_all(next(tmp_path.glob("*.mcap")))

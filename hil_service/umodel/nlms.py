@@ -54,7 +54,7 @@ def nlms_update(
 
 @dataclass(frozen=True, slots=True)
 class NLMS:
-    """Validated (μ, ε) pair; ``update`` is the unchecked per-sample path."""
+    """Validated (μ, ε) pair; ``update`` and ``update_with_terms`` are unchecked."""
 
     mu: float = 0.5
     eps: float = DEFAULT_EPS
@@ -64,13 +64,12 @@ class NLMS:
 
     def update(self, theta: list[float], phi: list[float], error: float) -> list[float]:
         """θ + μ e φ / (ε + φᵀφ) as a new list (lengths are the caller's responsibility)."""
-        g = self.mu * error / (self.eps + dot(phi, phi))
-        return [t + g * p for t, p in zip(theta, phi)]  # noqa: B905 - hot path
+        return self.update_with_terms(theta, phi, error)[0]
 
     def update_with_terms(
         self, theta: list[float], phi: list[float], error: float
     ) -> tuple[list[float], float, float]:
-        """``update``'s new θ (the same bits), with the gain g and φᵀφ it used."""
+        """The new θ, with the gain g and φᵀφ it used (the per-sample path)."""
         phi_sq = dot(phi, phi)
         g = self.mu * error / (self.eps + phi_sq)
         return [t + g * p for t, p in zip(theta, phi)], g, phi_sq  # noqa: B905 - hot path
