@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 from protocols.mapping import (
     MSG_ACTUATORS,
@@ -40,7 +40,7 @@ class AssemblyCounters:
     restarts: int = 0
 
     def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
+        return asdict(self)
 
 
 @dataclass
@@ -153,6 +153,9 @@ class SampleAssembler:
                 self.counters.incomplete += 1
 
     def _build(self, system_id: int, stamp: int, pending: _Pending) -> TelemetrySample | None:
+        attitude = pending.attitude
+        if attitude is None:
+            return None
         try:
             depth = self.mapping.depth_from_pressure(pending.pressure)
             u_depth, u_pitch = self.mapping.inputs_from_actuators(pending.actuators)
@@ -160,10 +163,10 @@ class SampleAssembler:
                 system_id=system_id,
                 time_boot_ms=stamp,
                 depth=depth,
-                pitch=float(pending.attitude.pitch),
+                pitch=float(attitude.pitch),
                 u_depth=u_depth,
                 u_pitch=u_pitch,
-                pitch_rate=float(pending.attitude.pitchspeed),
+                pitch_rate=float(attitude.pitchspeed),
             )
         except (TypeError, ValueError, IndexError, AttributeError):
             return None

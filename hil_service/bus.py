@@ -160,7 +160,7 @@ class ZenohBus:
         self.recorder = recorder
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._declared: dict[int, list[Any]] = {}
-        self._subscribers = [
+        self._subscribers: list[Any] = [
             session.declare_subscriber(f"{keys.ROOT}/*/setpoint/*", self._on_input),
             session.declare_subscriber(f"{keys.ROOT}/*/control", self._on_input),
         ]

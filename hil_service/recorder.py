@@ -112,7 +112,7 @@ class McapRecorder:
         self._backlog = 0  # records in sealed chunks not yet written
         self._closed = False
         self._wake = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
+        self._writer_thread = threading.Thread(target=self._run, name="mcap-recorder", daemon=True)
         # Owned by the writer thread:
         self._file: McapFile | None = None
         self._stream: Any = None
@@ -120,7 +120,7 @@ class McapRecorder:
         self._retry_at = 0.0
 
     def start(self) -> McapRecorder:
-        self._thread.start()
+        self._writer_thread.start()
         return self
 
     # ---- producer side (any thread; never waits for the disk) ---------------------------
@@ -175,9 +175,9 @@ class McapRecorder:
         """Write everything recorded so far, finish the file; later records are dropped."""
         with self._lock:
             self._closed = True
-        if self._thread.is_alive():
+        if self._writer_thread.is_alive():
             self._wake.set()
-            self._thread.join(timeout)
+            self._writer_thread.join(timeout)
 
     # ---- hand-over (lock held) ------------------------------------------------------------
     def _seal_locked(self) -> None:

@@ -194,14 +194,15 @@ class ChannelPipeline:
         if not follows_previous or self.u_prev is None:
             self.resync = self.model.history_length
         if self.resync > 0:
-            u_prev = u_now if self.u_prev is None else self.u_prev
-            self.model.observe_only(u_prev, y)
-            self.persistence.observe_only(u_prev, y)
+            u_guess = u_now if self.u_prev is None else self.u_prev
+            self.model.observe_only(u_guess, y)
+            self.persistence.observe_only(u_guess, y)
             self.u_prev = u_now
             self.resync -= 1
             self.skipped += 1
             return None
         u_prev = self.u_prev
+        assert u_prev is not None  # set by every sample, resynchronising ones included
         estimate = self.model.step(u_prev, y)
         baseline = self.persistence.step(u_prev, y)
         self.u_prev = u_now

@@ -30,7 +30,7 @@ _HEADER = struct.Struct("<BBBBBBBHB")  # magic, len, incompat, compat, seq, sys,
 class _Plan:
     """How to turn one message type's payload into pymavlink's message object."""
 
-    message_class: type
+    message_class: Any  # a pymavlink message class (pymavlink has no type hints)
     crc_extra: bytes
     unpacker: struct.Struct
     fields: tuple[str, ...]

@@ -17,7 +17,7 @@ _INTEGER_TYPES = {"int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32
 
 
 @cache
-def _char_fields(message_class: type) -> tuple[str, ...]:
+def _char_fields(message_class: Any) -> tuple[str, ...]:
     return tuple(
         name
         for name, ftype in zip(message_class.fieldnames, message_class.fieldtypes, strict=True)
@@ -33,7 +33,7 @@ def message_to_json(message: MavMessage) -> dict[str, Any]:
     may hold ``bytes``, which are decoded with replacement so that it can still be encoded.
     """
     payload = {name: getattr(message, name) for name in message.fieldnames}
-    for name in _char_fields(type(message)):
+    for name in _char_fields(message.__class__):
         if isinstance(payload[name], bytes):
             payload[name] = payload[name].decode("utf-8", "replace")
     header = message.get_header()

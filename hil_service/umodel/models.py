@@ -32,11 +32,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from operator import mul
-from typing import Any, ClassVar, Literal, NamedTuple, Protocol, runtime_checkable
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
 from .guards import DivergenceMonitor, GuardConfig
+from .interface import OneStepModel
 from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
 from .reproducible import dot, gaussian_columns, linear_combination, power_columns
@@ -88,27 +89,6 @@ class Estimate(NamedTuple):
     error: float
     alpha: tuple[float, ...]
     weights: tuple[float, ...]
-
-
-@runtime_checkable
-class OneStepModel(Protocol):
-    """What the service and the inverse controller rely on."""
-
-    name: str
-
-    def predict(self, u_prev: float) -> float: ...
-
-    def step(self, u_prev: float, y: float) -> Estimate: ...
-
-    def output_given_input(self, u: float) -> float: ...
-
-    def output_derivative(self, u: float) -> float: ...
-
-    def config(self) -> dict[str, Any]: ...
-
-    def snapshot(self) -> dict[str, Any]: ...
-
-    def reset(self) -> None: ...
 
 
 _isfinite = math.isfinite
@@ -589,6 +569,8 @@ class DynamicUModel(_UModelCore):
         self.y_scale = float(y_scale)
         self.u_scale = float(u_scale)
         self._inv_ys = 1.0 / self.y_scale
+        self._levels: list[float] = []  # y(t), y(t−1), … (filled by _reset_history)
+        self._inputs: list[float] = []  # u(t−1), u(t−2), …
         super().__init__(
             degree=degree,
             mu=mu,

@@ -42,7 +42,7 @@ def gaussian_columns(us: np.ndarray, centres: Sequence[float], beta: float) -> l
 
 
 def linear_combination(
-    columns: Sequence[np.ndarray], coefficients: Sequence[float], start: float = 0.0
+    columns: Sequence[np.ndarray] | np.ndarray, coefficients: Sequence[float], start: float = 0.0
 ) -> np.ndarray:
     """start + Σ_j coefficients_j · columns_j, summed in column order (no BLAS)."""
     out = np.full(len(columns[0]), float(start)) if len(columns) else np.array([float(start)])

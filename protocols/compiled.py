@@ -1,0 +1,113 @@
+"""Which modules are compiled with mypyc, whether this process runs them compiled, and a
+switch to run their Python sources instead.
+
+``setup.py`` compiles ``HOT_PATH`` (the modules every MAVLink sample goes through) into one
+native library. ``GLIDER_HIL_INTERPRETED=1`` in the environment makes this process import
+the ``.py`` sources of all of them, even where compiled modules are installed: for
+debugging with Python tracebacks, and for comparing the two (``tests/test_compiled.py``,
+``benchmarks/bench_service.py``). All of them or none: compiled modules call each other's
+native classes directly, so a mix would not work.
+
+This module lives in ``protocols`` because every entry point imports that package first
+(``protocols/__init__.py`` and ``hil_service/__init__.py`` both call ``apply_choice``).
+"""
+
+from __future__ import annotations
+
+import importlib.machinery
+import importlib.util
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
+
+ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"
+
+HOT_PATH: tuple[str, ...] = (
+    "hil_service.umodel.guards",
+    "hil_service.umodel.models",
+    "hil_service.umodel.nlms",
+    "hil_service.umodel.rbf",
+    "hil_service.umodel.reproducible",
+    "hil_service.assembler",
+    "hil_service.link_stats",
+    "hil_service.mcap_writer",
+    "hil_service.recorder",
+    "hil_service.scoring",
+    "hil_service.service",
+    "hil_service.vehicle",
+    "protocols.frame_decoder",
+    "protocols.mapping",
+    "protocols.mavlink_io",
+    "protocols.mavlink_json",
+    "protocols.payload_json",
+    "protocols.samples",
+)
+
+
+def source_paths() -> list[str]:
+    """HOT_PATH as the source files ``mypycify`` takes, relative to the project root."""
+    return [name.replace(".", "/") + ".py" for name in HOT_PATH]
+
+
+def interpreted_requested() -> bool:
+    return os.environ.get(ENV_INTERPRETED, "") not in ("", "0")
+
+
+class _SourceFinder:
+    """Finds the ``.py`` source of a HOT_PATH module before the extension module is found."""
+
+    def find_spec(
+        self, name: str, path: Sequence[str] | None, target: ModuleType | None = None
+    ) -> importlib.machinery.ModuleSpec | None:
+        if name not in HOT_PATH or path is None:
+            return None
+        leaf = name.rpartition(".")[2] + ".py"
+        for directory in path:
+            candidate = Path(directory) / leaf
+            if candidate.is_file():
+                return importlib.util.spec_from_file_location(name, candidate)
+        return None
+
+
+def apply_choice() -> None:
+    """Install the source finder when ``GLIDER_HIL_INTERPRETED`` asks for it (idempotent)."""
+    if not interpreted_requested():
+        return
+    if any(isinstance(finder, _SourceFinder) for finder in sys.meta_path):
+        return
+    sys.meta_path.insert(0, _SourceFinder())
+
+
+def module_kinds() -> dict[str, str]:
+    """Each HOT_PATH module as this process runs it: "compiled" or "interpreted"."""
+    kinds = {}
+    for name in HOT_PATH:
+        module = importlib.import_module(name)
+        origin = getattr(module, "__file__", "") or ""
+        kinds[name] = "interpreted" if origin.endswith(".py") else "compiled"
+    return kinds
+
+
+def stale_modules(root: Path) -> list[str]:
+    """Compiled modules under ``root`` older than their source (an editable install whose
+    sources changed after the build: run ``make build``)."""
+    stale = []
+    suffixes = importlib.machinery.EXTENSION_SUFFIXES
+    for name in HOT_PATH:
+        source = root / (name.replace(".", "/") + ".py")
+        for suffix in suffixes:
+            binary = source.with_suffix(suffix)
+            if binary.is_file() and binary.stat().st_mtime < source.stat().st_mtime:
+                stale.append(name)
+    return stale
+
+
+def summary() -> str:
+    """"compiled", "interpreted" or "mixed (…)", for reports and benchmark output."""
+    kinds = module_kinds()
+    values = set(kinds.values())
+    if len(values) == 1:
+        return values.pop()
+    return "mixed (" + ", ".join(f"{k}: {v}" for k, v in kinds.items()) + ")"
