@@ -3,29 +3,41 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# The modules setup.py compiles with mypyc (listed in protocols/compiled.py).
+HOT_SOURCES := $(shell $(PYTHON) -c "import sys; sys.path.insert(0, '.'); from protocols.compiled import source_paths; print(' '.join(source_paths()))")
+NATIVE := build/.native
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench build clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
+	mkdir -p build && touch $(NATIVE)  # the install compiled them
 
-demo: $(STAMP)
+# After a compiled module's source changed: rebuild the compiled modules in place.
+$(NATIVE): $(STAMP) $(HOT_SOURCES)
+	$(BIN)/python setup.py --quiet build_ext --inplace --force
+	touch $(NATIVE)
+
+build: $(NATIVE)
+
+demo: $(NATIVE)
 	$(BIN)/glider-hil demo
 
-test: $(STAMP)
+test: $(NATIVE)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
-bench: $(STAMP)
+bench: $(NATIVE)
 	$(BIN)/glider-hil experiment --bench --samples 5000
 	$(BIN)/python benchmarks/bench_replay.py --samples 20000
 	$(BIN)/python benchmarks/bench_service.py --samples 20000 --latency-samples 1500 --memory-samples 500000
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info glider_hil_native__mypyc*.so
+	find hil_service protocols -name '*.so' -delete

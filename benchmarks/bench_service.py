@@ -11,7 +11,10 @@
 3. Memory over many samples through the full in-process path (RSS at start and end).
 
 Run: .venv/bin/python benchmarks/bench_service.py [--samples N] [--memory-samples N]
-     [--skip memory|latency|unpinned]
+     [--skip memory|latency|unpinned|interpreted]
+
+With compiled modules installed (setup.py), the one-core throughput is measured again with
+GLIDER_HIL_INTERPRETED=1 in the same run, and the gain printed.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from hil_service.vehicle import PipelineSettings  # noqa: E402
 from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
+from protocols import compiled  # noqa: E402
 from protocols.mapping import TelemetryMapping  # noqa: E402
 from protocols.mavlink_io import MavlinkCodec, dialect  # noqa: E402
 
@@ -98,6 +102,7 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
             service.bus.close()
             session.close()
     return {
+        "modules": compiled.summary(),
         "samples": samples,
         "repeats": repeats,
         "pymavlink_parse_samples_per_s": rates(n, parse_s),
@@ -219,16 +224,28 @@ def _measure_latency(port: int, samples: int, rate: float) -> dict[str, float]:
     }
 
 
-def pinned_throughput(args: argparse.Namespace) -> dict[str, object]:
-    """``bench_throughput`` in a child process pinned (all its threads) to one CPU."""
+def pinned_throughput(args: argparse.Namespace, interpreted: bool = False) -> dict[str, object]:
+    """``bench_throughput`` in a child process pinned (all its threads) to one CPU; with
+    ``interpreted``, the child runs the Python sources of the compiled modules."""
     cpu, pin = one_cpu_child()
     command = [sys.executable, __file__, "--samples", str(args.samples), "--repeats",
                str(args.repeats), "--throughput-only"]  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k != compiled.ENV_INTERPRETED}
+    if interpreted:
+        env[compiled.ENV_INTERPRETED] = "1"
     child = subprocess.run(
         command, capture_output=True, text=True, timeout=1800, check=True,
-        preexec_fn=pin,
+        preexec_fn=pin, env=env,
     )  # fmt: skip
     return {"cpu": cpu, **json.loads(child.stdout)}
+
+
+def compiled_gain(native: dict[str, object], source: dict[str, object]) -> dict[str, float]:
+    """Compiled over interpreted end-to-end rate, best and median, from one run."""
+    a = native["service_incl_log_drain_samples_per_s"]
+    b = source["service_incl_log_drain_samples_per_s"]
+    assert isinstance(a, dict) and isinstance(b, dict)
+    return {"best": a["best"] / b["best"], "median": a["median"] / b["median"]}
 
 
 def main() -> None:
@@ -238,7 +255,8 @@ def main() -> None:
     parser.add_argument("--latency-samples", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=3, help="throughput runs (best, median)")
     parser.add_argument(
-        "--skip", action="append", default=[], choices=("memory", "latency", "unpinned")
+        "--skip", action="append", default=[],
+        choices=("memory", "latency", "unpinned", "interpreted"),
     )
     parser.add_argument("--throughput-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -247,6 +265,15 @@ def main() -> None:
         return
     results: dict[str, object] = {"throughput_one_core": pinned_throughput(args)}
     print(json.dumps(results, indent=2), flush=True)
+    if "interpreted" not in args.skip and compiled.summary() == "compiled":
+        source = pinned_throughput(args, interpreted=True)
+        results["throughput_one_core_interpreted"] = source
+        native = results["throughput_one_core"]
+        assert isinstance(native, dict)
+        results["compiled_gain_one_core"] = compiled_gain(native, source)
+        print(json.dumps({k: results[k] for k in ("throughput_one_core_interpreted",
+                                                  "compiled_gain_one_core")}, indent=2),
+              flush=True)  # fmt: skip
     if "unpinned" not in args.skip:
         results["throughput_unpinned"] = bench_throughput(args.samples, args.repeats)
         print(json.dumps({"throughput_unpinned": results["throughput_unpinned"]}, indent=2))

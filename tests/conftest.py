@@ -10,8 +10,19 @@ from pathlib import Path
 import pytest
 
 from hil_service.cli.processes import free_port, start_verb, stop_process
+from protocols.compiled import stale_modules
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Refuse to test compiled modules built from older sources (they would be what runs)."""
+    stale = stale_modules(ROOT)
+    if stale:
+        raise pytest.UsageError(
+            f"compiled modules older than their sources: {', '.join(stale)}; "
+            "run `make build` (or `make test`, which rebuilds them)"
+        )
 
 
 def free_udp_port() -> int:
