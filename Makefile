@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml setup.py
 	mkdir -p build && touch $(NATIVE)  # the install compiled them
 
 # After a compiled module's source changed: rebuild the compiled modules in place.
-$(NATIVE): $(STAMP) $(HOT_SOURCES)
+$(NATIVE): $(STAMP) $(HOT_SOURCES) protocols/compiled.py setup.py
 	$(BIN)/python setup.py --quiet build_ext --inplace --force
 	touch $(NATIVE)
 

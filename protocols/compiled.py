@@ -24,8 +24,12 @@ from types import ModuleType
 
 ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"
 
+#: Every module a MAVLink sample goes through whose own Python code is a noticeable share
+#: of the time (the forecast and inverse solver are the control step).
 HOT_PATH: tuple[str, ...] = (
+    "hil_service.umodel.forecast",
     "hil_service.umodel.guards",
+    "hil_service.umodel.inverse",
     "hil_service.umodel.models",
     "hil_service.umodel.nlms",
     "hil_service.umodel.rbf",
