@@ -6,13 +6,17 @@ the end-to-end service throughput (``bench_service.bench_throughput``) pinned to
 unpinned, and the dynamic model's control step per channel (``experiment.speed.measure``)
 pinned to one CPU. Prints the medians and the median of the paired ratios (new / old).
 
-Run: .venv/bin/python benchmarks/compare_revisions.py OLD_REV NEW_REV [--rounds N]
+A revision with a ``setup.py`` has its compiled modules built in its worktree first (as an
+install would), unless ``--interpreted``, which runs every revision's Python sources.
+
+Run: .venv/bin/python benchmarks/compare_revisions.py OLD_REV NEW_REV [--rounds N] [--interpreted]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -41,10 +45,16 @@ print(json.dumps(speed.measure(sys.argv[3], "dynamic", int(sys.argv[2])).control
 """
 
 
-def _run(code: str, tree: str, args: list[str], pinned: bool) -> object:
+_ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"  # protocols.compiled.ENV_INTERPRETED
+
+
+def _run(code: str, tree: str, args: list[str], pinned: bool, interpreted: bool) -> object:
+    env = {k: v for k, v in os.environ.items() if k != _ENV_INTERPRETED}
+    if interpreted:
+        env[_ENV_INTERPRETED] = "1"
     child = subprocess.run(
         [sys.executable, "-c", code, tree, *args], capture_output=True, text=True,
-        timeout=1800, check=True,
+        timeout=1800, check=True, env=env,
         preexec_fn=one_cpu_child()[1] if pinned else None,
     )  # fmt: skip
     return json.loads(child.stdout)
@@ -57,6 +67,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--samples", type=int, default=8000, help="throughput samples")
     parser.add_argument("--control-samples", type=int, default=4000)
+    parser.add_argument("--interpreted", action="store_true",
+                        help="run the Python sources of every revision (compile nothing)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as base:
         trees = {}
@@ -64,16 +76,21 @@ def main() -> None:
             trees[label] = str(Path(base) / label)
             subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach",
                             trees[label], rev], check=True)  # fmt: skip
+            if not args.interpreted and (Path(trees[label]) / "setup.py").exists():
+                subprocess.run([sys.executable, "setup.py", "--quiet", "build_ext", "--inplace"],
+                               cwd=trees[label], check=True, capture_output=True)  # fmt: skip
         try:
             results: dict[tuple[str, str], list] = {}
             for _ in range(args.rounds):
                 for label, tree in trees.items():
                     for pinned in (True, False):
                         key = (label, "throughput one core" if pinned else "throughput unpinned")
-                        value = _run(_THROUGHPUT, tree, [str(args.samples)], pinned)
+                        value = _run(_THROUGHPUT, tree, [str(args.samples)], pinned,
+                                     args.interpreted)  # fmt: skip
                         results.setdefault(key, []).append(value)
                     for channel in ("depth", "pitch"):
-                        value = _run(_CONTROL, tree, [str(args.control_samples), channel], True)
+                        value = _run(_CONTROL, tree, [str(args.control_samples), channel], True,
+                                     args.interpreted)  # fmt: skip
                         results.setdefault((label, f"control step {channel}"), []).append(value)
         finally:
             for tree in trees.values():
@@ -98,7 +115,8 @@ def main() -> None:
                 "new_median_per_s": statistics.median(new),
                 "paired_gain": statistics.median(n / o for o, n in zip(old, new, strict=True)),
             }
-    print(json.dumps({"old": args.old, "new": args.new, "rounds": args.rounds, **report},
+    print(json.dumps({"old": args.old, "new": args.new, "rounds": args.rounds,
+                      "interpreted": args.interpreted, **report},
                      indent=2))  # fmt: skip
 
 

@@ -29,6 +29,7 @@ from hil_service.plots import prediction_figure, tracking_figure
 from plant_emulator.excitation import EXCITATIONS
 from plant_emulator.models import CHANNELS
 from plant_emulator.scenarios import SCENARIOS
+from protocols import compiled
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -227,11 +228,11 @@ def _bench(args: argparse.Namespace) -> int:
     scenario = "paper" if args.scenario == "all" else args.scenario
     figures = measure_all(args.samples, scenario, args.seed)
     if args.json:
-        print(json.dumps([f.__dict__ for f in figures]))
+        print(json.dumps([{**f.__dict__, "modules": compiled.summary()} for f in figures]))
         return 0
     print(
         f"one channel on one core, {args.samples} samples, scenario {scenario}; "
-        f"best of {figures[0].repeats} runs (median in brackets)"
+        f"best of {figures[0].repeats} runs (median in brackets); modules {compiled.summary()}"
     )
     print(
         f"{'channel':7s} {'model':8s} {'update/s':>10s} {'update+inverse/s':>26s} {'fallback':>9s}"
