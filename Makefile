@@ -14,12 +14,12 @@ $(STAMP): pyproject.toml setup.py
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
-	mkdir -p build && touch $(NATIVE)  # the install compiled them
 
-# After a compiled module's source changed: rebuild the compiled modules in place.
+# Compile in place when a compiled module is missing or older than its source (after an
+# install that compiled them all, nothing is left to do).
 $(NATIVE): $(STAMP) $(HOT_SOURCES) protocols/compiled.py setup.py
-	$(BIN)/python setup.py --quiet build_ext --inplace --force
-	touch $(NATIVE)
+	$(BIN)/python protocols/compiled.py . || $(BIN)/python setup.py --quiet build_ext --inplace --force
+	mkdir -p build && touch $(NATIVE)
 
 build: $(NATIVE)
 

@@ -94,18 +94,27 @@ def module_kinds() -> dict[str, str]:
     return kinds
 
 
+def _binaries(root: Path, name: str) -> tuple[Path, list[Path]]:
+    source = root / (name.replace(".", "/") + ".py")
+    suffixes = importlib.machinery.EXTENSION_SUFFIXES
+    return source, [b for b in (source.with_suffix(s) for s in suffixes) if b.is_file()]
+
+
 def stale_modules(root: Path) -> list[str]:
     """Compiled modules under ``root`` older than their source (an editable install whose
     sources changed after the build: run ``make build``)."""
     stale = []
-    suffixes = importlib.machinery.EXTENSION_SUFFIXES
     for name in HOT_PATH:
-        source = root / (name.replace(".", "/") + ".py")
-        for suffix in suffixes:
-            binary = source.with_suffix(suffix)
-            if binary.is_file() and binary.stat().st_mtime < source.stat().st_mtime:
-                stale.append(name)
+        source, binaries = _binaries(root, name)
+        if any(b.stat().st_mtime < source.stat().st_mtime for b in binaries):
+            stale.append(name)
     return stale
+
+
+def unbuilt_modules(root: Path) -> list[str]:
+    """HOT_PATH modules under ``root`` with no compiled module, or a stale one."""
+    stale = set(stale_modules(root))
+    return [n for n in HOT_PATH if n in stale or not _binaries(root, n)[1]]
 
 
 def summary() -> str:
@@ -115,3 +124,13 @@ def summary() -> str:
     if len(values) == 1:
         return values.pop()
     return "mixed (" + ", ".join(f"{k}: {v}" for k, v in kinds.items()) + ")"
+
+
+if __name__ == "__main__":
+    # `python protocols/compiled.py ROOT`: exit 1 when a module under ROOT needs compiling
+    # (the Makefile's test before it runs the build; an install that compiled them all
+    # leaves nothing to do).
+    missing = unbuilt_modules(Path(sys.argv[1] if len(sys.argv) > 1 else "."))
+    if missing:
+        print("to compile: " + ", ".join(missing))
+    sys.exit(1 if missing else 0)
