@@ -18,11 +18,27 @@ import os
 import sys
 
 from setuptools import setup
+from setuptools.command.build_ext import build_ext
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from protocols.compiled import source_paths  # the list lives beside its run-time switch
 
 FLOAT_FLAGS = ["-ffp-contract=off", "-Wno-tautological-compare"]
+
+
+class BuildCompiledModules(build_ext):
+    """build_ext that says what to do when the C compiler is missing or fails."""
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except Exception as error:  # CompileError, LinkError, a missing compiler: all fatal
+            raise SystemExit(
+                f"glider-hil: compiling the per-sample path failed ({error}).\n"
+                "It needs a C compiler and the Python headers (Debian: apt-get install gcc "
+                "python3-dev). Or install without compiling: GLIDER_HIL_PURE_PYTHON=1 "
+                "pip install ... (the same code, interpreted, about 1.5x slower)."
+            ) from error
 
 
 def compiled_modules() -> list:
@@ -36,4 +52,4 @@ def compiled_modules() -> list:
     return extensions
 
 
-setup(ext_modules=compiled_modules())
+setup(ext_modules=compiled_modules(), cmdclass={"build_ext": BuildCompiledModules})
