@@ -21,7 +21,7 @@ from setuptools import setup
 from setuptools.command.build_ext import build_ext
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from protocols.compiled import source_paths  # the list lives beside its run-time switch
+from protocols.compiled import ENV_PURE_PYTHON, flag, source_paths  # beside the run-time switch
 
 FLOAT_FLAGS = ["-ffp-contract=off", "-Wno-tautological-compare"]
 
@@ -42,7 +42,7 @@ class BuildCompiledModules(build_ext):
 
 
 def compiled_modules() -> list:
-    if os.environ.get("GLIDER_HIL_PURE_PYTHON", "") not in ("", "0"):
+    if flag(ENV_PURE_PYTHON):
         return []
     from mypyc.build import mypycify
 

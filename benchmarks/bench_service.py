@@ -230,12 +230,9 @@ def pinned_throughput(args: argparse.Namespace, interpreted: bool = False) -> di
     cpu, pin = one_cpu_child()
     command = [sys.executable, __file__, "--samples", str(args.samples), "--repeats",
                str(args.repeats), "--throughput-only"]  # fmt: skip
-    env = {k: v for k, v in os.environ.items() if k != compiled.ENV_INTERPRETED}
-    if interpreted:
-        env[compiled.ENV_INTERPRETED] = "1"
     child = subprocess.run(
         command, capture_output=True, text=True, timeout=1800, check=True,
-        preexec_fn=pin, env=env,
+        preexec_fn=pin, env=compiled.child_environment(interpreted),
     )  # fmt: skip
     return {"cpu": cpu, **json.loads(child.stdout)}
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -27,6 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.process_tuning import one_cpu_child  # noqa: E402
+from protocols.compiled import child_environment  # noqa: E402
 
 _THROUGHPUT = """
 import sys, json
@@ -45,16 +45,10 @@ print(json.dumps(speed.measure(sys.argv[3], "dynamic", int(sys.argv[2])).control
 """
 
 
-_ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"  # protocols.compiled.ENV_INTERPRETED
-
-
 def _run(code: str, tree: str, args: list[str], pinned: bool, interpreted: bool) -> object:
-    env = {k: v for k, v in os.environ.items() if k != _ENV_INTERPRETED}
-    if interpreted:
-        env[_ENV_INTERPRETED] = "1"
     child = subprocess.run(
         [sys.executable, "-c", code, tree, *args], capture_output=True, text=True,
-        timeout=1800, check=True, env=env,
+        timeout=1800, check=True, env=child_environment(interpreted),
         preexec_fn=one_cpu_child()[1] if pinned else None,
     )  # fmt: skip
     return json.loads(child.stdout)

@@ -64,7 +64,6 @@ class RecorderStatus:
     dropped: int = 0
     error: str = ""
     last_drop: str = ""  # why the last record that could not be encoded was dropped
-    queue_depth: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -75,7 +74,6 @@ class RecorderStatus:
             "dropped": self.dropped,
             "error": self.error,
             "last_drop": self.last_drop,
-            "queue_depth": self.queue_depth,
         }
 
 
@@ -171,6 +169,10 @@ class McapRecorder:
         """
         return self._backlog
 
+    def report(self) -> dict[str, Any]:
+        """``status`` with ``queue_depth``, the backlog now (``health.logging``)."""
+        return {**self.status.as_dict(), "queue_depth": self._backlog}
+
     def close(self, timeout: float = 10.0) -> None:
         """Write everything recorded so far, finish the file; later records are dropped."""
         with self._lock:
@@ -245,7 +247,6 @@ class McapRecorder:
                 next_flush = time.monotonic() + self.flush_interval
                 self._guarded(self._flush_and_rotate)
                 self._write_sealed()
-                self.status.queue_depth = self._backlog
         with self._lock:
             self._end_file_locked()
         self._write_sealed()

@@ -276,7 +276,7 @@ class HilService:
             "last_rejection": "" if self.verifier is None else self.verifier.last_reason,
         }
         if self.recorder is not None:
-            payload["logging"] = self.recorder.status.as_dict()
+            payload["logging"] = self.recorder.report()
         if self.inbox.last_rejection:
             payload["last_rejected_input"] = self.inbox.last_rejection
         return payload

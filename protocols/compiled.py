@@ -22,7 +22,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 
-ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"
+ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"  # at run time: the Python sources
+ENV_PURE_PYTHON = "GLIDER_HIL_PURE_PYTHON"  # at install time: compile nothing (setup.py)
 
 #: Every module a MAVLink sample goes through whose own Python code is a noticeable share
 #: of the time (the forecast and inverse solver are the control step).
@@ -50,13 +51,27 @@ HOT_PATH: tuple[str, ...] = (
 )
 
 
+def _source(name: str) -> str:
+    return name.replace(".", "/") + ".py"
+
+
 def source_paths() -> list[str]:
     """HOT_PATH as the source files ``mypycify`` takes, relative to the project root."""
-    return [name.replace(".", "/") + ".py" for name in HOT_PATH]
+    return [_source(name) for name in HOT_PATH]
 
 
-def interpreted_requested() -> bool:
-    return os.environ.get(ENV_INTERPRETED, "") not in ("", "0")
+def flag(variable: str) -> bool:
+    """An environment switch is on when set to anything but "" or "0"."""
+    return os.environ.get(variable, "") not in ("", "0")
+
+
+def child_environment(interpreted: bool) -> dict[str, str]:
+    """This process's environment for a child that runs the compiled modules where they are
+    built (``interpreted`` False) or their Python sources (True)."""
+    env = {k: v for k, v in os.environ.items() if k != ENV_INTERPRETED}
+    if interpreted:
+        env[ENV_INTERPRETED] = "1"
+    return env
 
 
 class _SourceFinder:
@@ -77,7 +92,7 @@ class _SourceFinder:
 
 def apply_choice() -> None:
     """Install the source finder when ``GLIDER_HIL_INTERPRETED`` asks for it (idempotent)."""
-    if not interpreted_requested():
+    if not flag(ENV_INTERPRETED):
         return
     if any(isinstance(finder, _SourceFinder) for finder in sys.meta_path):
         return
@@ -94,27 +109,27 @@ def module_kinds() -> dict[str, str]:
     return kinds
 
 
-def _binaries(root: Path, name: str) -> tuple[Path, list[Path]]:
-    source = root / (name.replace(".", "/") + ".py")
+def _build_state(root: Path, name: str) -> str:
+    """"missing", "stale" (a compiled module older than its source) or "built"."""
+    source = root / _source(name)
     suffixes = importlib.machinery.EXTENSION_SUFFIXES
-    return source, [b for b in (source.with_suffix(s) for s in suffixes) if b.is_file()]
+    binaries = [b for b in (source.with_suffix(s) for s in suffixes) if b.is_file()]
+    if not binaries:
+        return "missing"
+    if any(b.stat().st_mtime < source.stat().st_mtime for b in binaries):
+        return "stale"
+    return "built"
 
 
 def stale_modules(root: Path) -> list[str]:
     """Compiled modules under ``root`` older than their source (an editable install whose
     sources changed after the build: run ``make build``)."""
-    stale = []
-    for name in HOT_PATH:
-        source, binaries = _binaries(root, name)
-        if any(b.stat().st_mtime < source.stat().st_mtime for b in binaries):
-            stale.append(name)
-    return stale
+    return [name for name in HOT_PATH if _build_state(root, name) == "stale"]
 
 
 def unbuilt_modules(root: Path) -> list[str]:
     """HOT_PATH modules under ``root`` with no compiled module, or a stale one."""
-    stale = set(stale_modules(root))
-    return [n for n in HOT_PATH if n in stale or not _binaries(root, n)[1]]
+    return [name for name in HOT_PATH if _build_state(root, name) != "built"]
 
 
 def summary() -> str:
@@ -128,9 +143,10 @@ def summary() -> str:
 
 if __name__ == "__main__":
     # `python protocols/compiled.py ROOT`: exit 1 when a module under ROOT needs compiling
-    # (the Makefile's test before it runs the build; an install that compiled them all
-    # leaves nothing to do).
-    missing = unbuilt_modules(Path(sys.argv[1] if len(sys.argv) > 1 else "."))
+    # (``make build`` asks before compiling; after an install that compiled them all there
+    # is nothing to do).
+    root = Path(sys.argv[1] if len(sys.argv) > 1 else ".")
+    missing = [] if flag(ENV_PURE_PYTHON) else unbuilt_modules(root)
     if missing:
         print("to compile: " + ", ".join(missing))
     sys.exit(1 if missing else 0)

@@ -227,12 +227,13 @@ def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
 def _bench(args: argparse.Namespace) -> int:
     scenario = "paper" if args.scenario == "all" else args.scenario
     figures = measure_all(args.samples, scenario, args.seed)
+    modules = compiled.summary()
     if args.json:
-        print(json.dumps([{**f.__dict__, "modules": compiled.summary()} for f in figures]))
+        print(json.dumps([{**f.__dict__, "modules": modules} for f in figures]))
         return 0
     print(
         f"one channel on one core, {args.samples} samples, scenario {scenario}; "
-        f"best of {figures[0].repeats} runs (median in brackets); modules {compiled.summary()}"
+        f"best of {figures[0].repeats} runs (median in brackets); modules {modules}"
     )
     print(
         f"{'channel':7s} {'model':8s} {'update/s':>10s} {'update+inverse/s':>26s} {'fallback':>9s}"

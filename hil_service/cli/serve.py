@@ -165,6 +165,6 @@ def run(args: argparse.Namespace) -> int:
         link.close()
         if recorder is not None:
             recorder.close()
-            summary["log"] = recorder.status.as_dict()
+            summary["log"] = recorder.report()
     print(json.dumps({"service": summary}), flush=True)
     return 0
