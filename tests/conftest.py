@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hil_service.cli.processes import free_port, start_verb, stop_process
+from hil_service.cli.processes import free_port, start_service, start_verb, stop_process
 from protocols.compiled import stale_modules
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,6 +41,12 @@ class ProcessGroup:
 
     def start(self, *args: str) -> subprocess.Popen[str]:
         process = start_verb(*args)
+        self.processes.append(process)
+        return process
+
+    def start_service(self, *args: str, timeout: float = 60.0) -> subprocess.Popen[str]:
+        """``serve ARGS…``, returned once it says it is ready (never a fixed sleep)."""
+        process = start_service(*args, timeout=timeout)
         self.processes.append(process)
         return process
 

@@ -24,11 +24,10 @@ def test_disk_full_mid_run_keeps_control_and_logging_resumes(processes, tmp_path
     udp, zport = free_udp_port(), free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
     logs = tmp_path / "logs"
-    service = processes.start(
-        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+    service = processes.start_service(
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
         "--log-dir", str(logs), "--burn-in", "100",
     )  # fmt: skip
-    time.sleep(0.8)
     probe = ZenohProbe(endpoint)
 
     def health() -> dict:

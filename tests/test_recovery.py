@@ -31,11 +31,10 @@ def _emulator(processes, udp: int):
 def test_vehicle_link_lost_and_recovered(processes, tmp_path):
     udp, zport = free_udp_port(), free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    processes.start(
-        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+    processes.start_service(
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
         "--log-dir", str(tmp_path / "logs"), "--stale-timeout", str(STALE), "--burn-in", "100",
     )  # fmt: skip
-    time.sleep(0.8)
     probe = ZenohProbe(endpoint)
 
     def health() -> dict:
@@ -98,11 +97,10 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
     stop = threading.Event()
     try:
         time.sleep(1.0)
-        service = processes.start(
-            "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-connect", endpoint,
+        service = processes.start_service(
+            "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-connect", endpoint,
             "--log-dir", str(tmp_path / "logs"),
         )  # fmt: skip
-        time.sleep(0.8)
         vehicle = FakeVehicle(udp)
 
         def stream() -> None:

@@ -20,13 +20,11 @@ def rig(processes, tmp_path):
     """A running service (no control yet) and emulator, and a Zenoh probe connected to both."""
     udp, zport = free_udp_port(), free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    service = processes.start(
-        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+    service = processes.start_service(
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
         "--log-dir", str(tmp_path / "logs"), "--burn-in", str(BURN_IN),
         "--stale-timeout", "1.0",
     )  # fmt: skip
-    time.sleep(0.8)
-    assert service.poll() is None, service.stderr.read()
     probe = ZenohProbe(endpoint)
     emulator = processes.start(
         "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--speed", str(SPEED),

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from hil_service.logreader import LogReader
+from hil_service.logreader import LogError, LogReader
 from hil_service.umodel import build_model
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
@@ -48,12 +48,10 @@ HISTORY = build_model("dynamic").history_length
 def start_service(processes, tmp_path, *extra: str):
     udp, zport = free_udp_port(), free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    service = processes.start(
-        "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+    service = processes.start_service(
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
         "--log-dir", str(tmp_path / "logs"), *extra,
     )  # fmt: skip
-    time.sleep(0.8)
-    assert service.poll() is None, service.stderr.read()
     return service, udp, endpoint
 
 
@@ -105,13 +103,31 @@ def test_bad_mavlink_input_is_counted_in_health(processes, tmp_path):
 def test_log_of_a_killed_service_reads_up_to_the_last_flush(processes, tmp_path):
     service, udp, _ = start_service(processes, tmp_path)
     vehicle = FakeVehicle(udp)
+    logs = tmp_path / "logs"
+
+    def flushed_records() -> int:
+        """Raw frames readable from the open log now (the recorder flushes every 0.5 s)."""
+        files = list(logs.glob("*.mcap"))
+        if not files:
+            return 0
+        try:
+            return sum(1 for _ in LogReader(files[0]).messages({"mavlink/raw/in"}))
+        except LogError:  # created, its magic not yet written
+            return 0
+
     try:
         k = 0
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline:
-            vehicle.step(k * 1000, depth=15.0 + 0.01 * k)
-            k += 1
-            time.sleep(0.01)
+        first_flush_at = None
+        # Stream until the first records are on disk (however slow the start was), then one
+        # more second: the kill must lose at most what came after the last flush.
+        while first_flush_at is None or time.monotonic() < first_flush_at + 1.0:
+            for _ in range(10):
+                vehicle.step(k * 1000, depth=15.0 + 0.01 * k)
+                k += 1
+                time.sleep(0.01)
+            if first_flush_at is None and flushed_records() > 0:
+                first_flush_at = time.monotonic()
+            assert k < 100_000, "the service never flushed a record"
         sent_until = time.time_ns()
         service.send_signal(signal.SIGKILL)
         service.wait(5)

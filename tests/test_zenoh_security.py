@@ -62,8 +62,8 @@ def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_
     try:
         time.sleep(1.5)
         assert router.poll() is None, "the secured router did not start"
-        service = processes.start(
-            "serve", "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-config",
+        service = processes.start_service(
+            "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-config",
             str(configs["service"]), "--zenoh-connect", endpoint,
             "--log-dir", str(tmp_path / "logs"), "--burn-in", "60",
         )  # fmt: skip

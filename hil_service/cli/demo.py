@@ -19,7 +19,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hil_service.cli.processes import free_port, last_json, start_verb, stop_process
+from hil_service.cli.processes import (
+    NotReady,
+    free_port,
+    last_json,
+    start_service,
+    start_verb,
+    stop_process,
+)
 from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 
@@ -91,19 +98,20 @@ def run(args: argparse.Namespace) -> int:
         key_path.touch(mode=0o600)
         key_path.write_bytes(os.urandom(32))
         signing = ["--signing-key", str(key_path)]
-    service = start_verb(
-        "serve", "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
-        "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
-        "--burn-in", str(int(0.25 * sim_total)), *signing,
-    )  # fmt: skip
+    try:
+        service = start_service(
+            "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
+            "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
+            "--burn-in", str(int(0.25 * sim_total)), *signing,
+        )  # fmt: skip
+    except NotReady as error:
+        print(f"demo: the service did not start: {error}", file=sys.stderr)
+        key_dir.cleanup()
+        return 1
     emulator = None
     session = None
     observations = Observations()
     try:
-        time.sleep(1.0)  # let the service bind its UDP port and Zenoh listener
-        if service.poll() is not None:
-            print(service.stderr.read() if service.stderr else "", file=sys.stderr)
-            return 1
         session = open_session(ZenohOptions(connect=(endpoint,)))
         subscriber = session.declare_subscriber(f"glider/{SYSTEM_ID}/**", observations.on_sample)
         emulator = start_verb(

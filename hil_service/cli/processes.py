@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import signal
 import socket
 import subprocess
 import sys
+import time
 from typing import Any
 
 
@@ -27,6 +29,55 @@ def start_verb(*args: str) -> subprocess.Popen[str]:
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
+
+
+#: What ``serve`` prints on stderr once its MAVLink link, Zenoh session and log are open.
+SERVICE_READY = "glider-hil serve: ready"
+
+
+class NotReady(RuntimeError):
+    """A child process exited, or did not say it was ready, before the timeout."""
+
+
+def wait_for_line(process: subprocess.Popen[str], marker: str, timeout: float = 60.0) -> str:
+    """Read the child's stderr until a line containing ``marker``; return what was read.
+
+    Reads the pipe's file descriptor directly (``select`` then ``os.read``) so that the wait
+    has a real timeout; the text read is returned (and kept on ``process.early_stderr``) for
+    error messages, since ``communicate()`` will not see it again.
+    """
+    assert process.stderr is not None, "start the process with stderr=PIPE"
+    fd = process.stderr.fileno()
+    seen = b""
+    deadline = time.monotonic() + timeout
+    while marker.encode() not in seen:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise NotReady(f"no {marker!r} within {timeout:g} s; stderr so far:\n{seen.decode()}")
+        ready, _, _ = select.select([fd], [], [], min(remaining, 0.5))
+        if not ready:
+            continue
+        chunk = os.read(fd, 65536)
+        if not chunk:  # end of file: the child exited
+            process.wait(5)
+            raise NotReady(
+                f"exited with {process.returncode} before {marker!r}; stderr:\n{seen.decode()}"
+            )
+        seen += chunk
+    text = seen.decode(errors="replace")
+    process.early_stderr = text  # type: ignore[attr-defined]
+    return text
+
+
+def start_service(*args: str, timeout: float = 60.0) -> subprocess.Popen[str]:
+    """``glider-hil serve ARGS…``, returned once it says it is ready (see ``SERVICE_READY``)."""
+    process = start_verb("serve", *args)
+    try:
+        wait_for_line(process, SERVICE_READY, timeout)
+    except NotReady:
+        stop_process(process)
+        raise
+    return process
 
 
 def stop_process(process: subprocess.Popen[str], timeout: float = 15.0) -> tuple[str, str]:

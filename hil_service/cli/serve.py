@@ -11,6 +11,7 @@ import time
 from dataclasses import replace
 
 from hil_service.bus import Inbox, SetpointLimits, ZenohBus
+from hil_service.cli.processes import SERVICE_READY
 from hil_service.process_tuning import tune_for_service
 from hil_service.recorder import McapRecorder
 from hil_service.service import HilService, LinkSecurity, ServiceConfig
@@ -149,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     bus = ZenohBus(session, inbox, recorder)
     service = HilService(config, bus, inbox, link=link, recorder=recorder, mapping=mapping)
     tune_for_service()
-    print(f"glider-hil serve: {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)
+    print(f"{SERVICE_READY} on {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)
     if args.duration is not None:
         timer = threading.Timer(args.duration, stop.set)
         timer.daemon = True
