@@ -19,10 +19,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.experiment.speed import rates  # noqa: E402
-from hil_service.logreader import LogReader  # noqa: E402
+from hil_service.mcap.reader import LogReader  # noqa: E402
+from hil_service.mcap.recorder import McapRecorder  # noqa: E402
+from hil_service.offline.replay import ReplayOptions, replay  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
-from hil_service.recorder import McapRecorder  # noqa: E402
-from hil_service.replay import ReplayOptions, replay  # noqa: E402
 from hil_service.service import ServiceConfig  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402

@@ -34,12 +34,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hil_service.bus import Inbox, ZenohBus  # noqa: E402
 from hil_service.experiment.speed import rates  # noqa: E402
+from hil_service.inputs import Inbox  # noqa: E402
+from hil_service.mcap.recorder import McapRecorder  # noqa: E402
+from hil_service.pipeline import PipelineSettings  # noqa: E402
 from hil_service.process_tuning import one_cpu_child, tune_for_service  # noqa: E402
-from hil_service.recorder import McapRecorder  # noqa: E402
 from hil_service.service import HilService, ServiceConfig  # noqa: E402
-from hil_service.vehicle import PipelineSettings  # noqa: E402
+from hil_service.zenoh_bus import ZenohBus  # noqa: E402
 from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402

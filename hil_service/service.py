@@ -15,10 +15,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.assembler import SampleAssembler
-from hil_service.bus import Bus, Inbox
+from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
-from hil_service.recorder import McapRecorder
-from hil_service.vehicle import PipelineSettings, VehiclePipeline
+from hil_service.mcap.recorder import McapRecorder
+from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.zenoh_bus import Bus
 from protocols import keys
 from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage

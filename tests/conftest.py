@@ -76,7 +76,7 @@ DATA = Path(__file__).resolve().parent / "data"
 @pytest.fixture
 def replay_log():
     """Feed a recorded log through the live service path: ``replay_log(path, **options)``."""
-    from hil_service.replay import ReplayOptions, replay
+    from hil_service.offline.replay import ReplayOptions, replay
 
     def run(path: str | Path, **options: object):
         return replay(path, ReplayOptions(**options))

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from hil_service.logreader import LogReader
+from hil_service.mcap.reader import LogReader
 from tests.conftest import free_tcp_port, free_udp_port
 from tests.zenoh_peer import ZenohProbe
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from hil_service.bus import Inbox, SetpointLimits
+from hil_service.inputs import Inbox, SetpointLimits
 
 
 def put(inbox: Inbox, key: str, payload: object) -> None:

@@ -15,9 +15,9 @@ import pytest
 
 from hil_service.assembler import SampleAssembler
 from hil_service.link_stats import SequenceTracker
-from hil_service.logreader import LogReader
+from hil_service.mcap.reader import LogReader
+from hil_service.pipeline import PipelineSettings, StepContinuity, VehiclePipeline
 from hil_service.umodel import build_model
-from hil_service.vehicle import PipelineSettings, StepContinuity, VehiclePipeline
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec

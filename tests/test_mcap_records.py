@@ -10,7 +10,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from hil_service.mcap_records import McapFormatError, read_records
+from hil_service.mcap.records import McapFormatError, read_records
 
 DATA = Path(__file__).parent / "data"
 

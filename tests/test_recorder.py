@@ -7,8 +7,8 @@ import time
 
 import pytest
 
-from hil_service.logreader import LogError, LogReader
-from hil_service.recorder import McapRecorder
+from hil_service.mcap.reader import LogError, LogReader
+from hil_service.mcap.recorder import McapRecorder
 from protocols.mavlink_io import MavlinkCodec, dialect
 
 
@@ -173,7 +173,7 @@ def test_producers_do_not_wait_for_a_stalled_disk(tmp_path, monkeypatch):
     """The control path records while the writer thread is stuck in a write."""
     import threading
 
-    from hil_service import recorder as recorder_module
+    from hil_service.mcap import recorder as recorder_module
 
     entered, release = threading.Event(), threading.Event()
     original = recorder_module.McapFile.write_chunk
@@ -200,7 +200,7 @@ def test_producers_do_not_wait_for_a_stalled_disk(tmp_path, monkeypatch):
 
 def test_after_a_failed_write_the_next_file_defines_its_channels_again(tmp_path, monkeypatch):
     """A lost chunk may have held the channel records: the next file must not need them."""
-    from hil_service import recorder as recorder_module
+    from hil_service.mcap import recorder as recorder_module
 
     original = recorder_module.McapFile.write_chunk
     failures = []

@@ -115,7 +115,7 @@ def test_info_and_cli_errors(capsys, tmp_path):
 
 def _log_with(tmp_path, metadata: dict[str, str], raw_frames: list[bytes]):
     """A log written by the service's recorder with the given metadata and raw frames."""
-    from hil_service.recorder import McapRecorder
+    from hil_service.mcap.recorder import McapRecorder
 
     recorder = McapRecorder(tmp_path, metadata).start()
     recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out", t_ns=1)
@@ -152,8 +152,8 @@ def test_check_needs_the_stored_configuration(tmp_path, capsys):
 
 
 def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_path):
-    from hil_service.recorder import McapRecorder
-    from hil_service.replay import ReplayOptions, replay
+    from hil_service.mcap.recorder import McapRecorder
+    from hil_service.offline.replay import ReplayOptions, replay
     from protocols.mapping import TelemetryMapping
     from protocols.mavlink_io import MavlinkCodec
     from protocols.samples import TelemetrySample

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from hil_service.cli import main
-from hil_service.log_report import write_report
-from hil_service.logreader import LogReader
+from hil_service.mcap.reader import LogReader
+from hil_service.offline.report import write_report
 from hil_service.umodel import build_model
 
 DATA = Path(__file__).parent / "data"

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from hil_service.logreader import LogError, LogReader
+from hil_service.mcap.reader import LogError, LogReader
 from hil_service.umodel import build_model
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from hil_service.vehicle import ControlSettings, PipelineSettings
+from hil_service.pipeline import ControlSettings, PipelineSettings
 
 
 def test_remaining_share_is_the_pole_to_the_horizon() -> None:

@@ -25,7 +25,7 @@ from hil_service.experiment.identification import (
     run_identification,
 )
 from hil_service.experiment.speed import measure_all
-from hil_service.plots import prediction_figure, tracking_figure
+from hil_service.offline.plots import prediction_figure, tracking_figure
 from plant_emulator.excitation import EXCITATIONS
 from plant_emulator.models import CHANNELS
 from plant_emulator.scenarios import SCENARIOS

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from hil_service.logreader import LogError, LogReader
+from hil_service.mcap.reader import LogError, LogReader
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

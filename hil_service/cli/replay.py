@@ -6,10 +6,11 @@ import argparse
 import json
 import sys
 
-from hil_service.bus import Inbox, ZenohBus
-from hil_service.logreader import LogError
+from hil_service.inputs import Inbox
+from hil_service.mcap.reader import LogError
+from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
-from hil_service.replay import ReplayError, ReplayOptions, replay
+from hil_service.zenoh_bus import ZenohBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 
 

@@ -12,8 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from hil_service.log_report import write_report
-from hil_service.logreader import LogError
+from hil_service.mcap.reader import LogError
+from hil_service.offline.report import write_report
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

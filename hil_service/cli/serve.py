@@ -10,12 +10,13 @@ import threading
 import time
 from dataclasses import replace
 
-from hil_service.bus import Inbox, SetpointLimits, ZenohBus
 from hil_service.cli.processes import SERVICE_READY
+from hil_service.inputs import Inbox, SetpointLimits
+from hil_service.mcap.recorder import McapRecorder
+from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
-from hil_service.recorder import McapRecorder
 from hil_service.service import HilService, LinkSecurity, ServiceConfig
-from hil_service.vehicle import MODEL_CHOICES, PipelineSettings
+from hil_service.zenoh_bus import ZenohBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link

@@ -17,7 +17,7 @@ from typing import Any
 import control
 import numpy as np
 
-from hil_service.vehicle import PipelineSettings, VehiclePipeline
+from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS, open_loop_plant
 from plant_emulator.plant import GliderPlant, PlantConfig

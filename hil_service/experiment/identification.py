@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.scoring import ErrorStats
+from hil_service.pipeline import DEFAULT_MODEL_OPTIONS
 from hil_service.umodel import MODEL_NAMES, build_model, paper_preset
-from hil_service.vehicle import DEFAULT_MODEL_OPTIONS
+from hil_service.umodel.scoring import ErrorStats
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig

@@ -12,7 +12,7 @@ import statistics
 import time
 from dataclasses import dataclass
 
-from hil_service.vehicle import ChannelPipeline, PipelineSettings
+from hil_service.pipeline import ChannelPipeline, PipelineSettings
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig

@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 
 from hil_service.experiment.identification import CONVERGENCE_BAND, converged_at
-from hil_service.log_series import CHANNELS, LogSeries, VehicleSeries, load_series
-from hil_service.plots import UNITS, prediction_figure, tracking_figure
-from hil_service.scoring import ErrorStats
+from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
+from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
+from hil_service.umodel.scoring import ErrorStats
 
 DEFAULT_BURN_IN = 300
 

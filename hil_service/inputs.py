@@ -1,8 +1,7 @@
-"""The service's Zenoh side behind a small interface, so replay and benchmarks can swap it.
+"""Control inputs from the operators (setpoints, control on/off) and the owner's limits.
 
-``ZenohBus`` publishes JSON payloads (commands with congestion control BLOCK, the rest with
-DROP), records every publication and every received input to MCAP, and hands received
-setpoints and control messages to an ``Inbox`` without blocking Zenoh's callback threads.
+Zenoh callbacks write an ``Inbox``; the MAVLink thread reads it once per sample. Setpoints
+outside the owner's ``SetpointLimits`` are refused (counted and named), never clipped.
 """
 
 from __future__ import annotations
@@ -10,24 +9,11 @@ from __future__ import annotations
 import json
 import math
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
 
-import zenoh
-
-from hil_service.recorder import McapRecorder
-from protocols import keys, payload_json
+from protocols import keys
 from protocols.samples import TelemetrySample
 from protocols.schemas import validation_errors
-
-
-class Bus(Protocol):
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None: ...
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None: ...
-
-    def close(self) -> None: ...
 
 
 @dataclass
@@ -133,81 +119,3 @@ class Inbox:
             self.set_enabled(system_id, bool(payload["enabled"]))
         else:
             self.reject(f"{key}: not a setpoint or control key")
-
-
-class NullBus:
-    """Publishes nothing: replay without ``--publish``, benchmarks of the decode path."""
-
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        pass
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-class ZenohBus:
-    def __init__(
-        self,
-        session: zenoh.Session,
-        inbox: Inbox,
-        recorder: McapRecorder | None = None,
-    ):
-        self.session = session
-        self.inbox = inbox
-        self.recorder = recorder
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._declared: dict[int, list[Any]] = {}
-        self._subscribers: list[Any] = [
-            session.declare_subscriber(f"{keys.ROOT}/*/setpoint/*", self._on_input),
-            session.declare_subscriber(f"{keys.ROOT}/*/control", self._on_input),
-        ]
-
-    def _on_input(self, sample: zenoh.Sample) -> None:
-        # Runs on a Zenoh thread: parse and store only, never block.
-        key = str(sample.key_expr)
-        raw = sample.payload.to_bytes()
-        if self.recorder is not None:
-            try:
-                payload: Any = json.loads(raw)
-            except ValueError:
-                payload = {"raw": raw.decode("utf-8", "replace")}
-            self.recorder.zenoh(key, payload, "in")
-        self.inbox.accept(key, raw)
-
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        publisher = self._publishers.get(key)
-        if publisher is None:
-            congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-            publisher = self.session.declare_publisher(
-                key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
-            )
-            self._publishers[key] = publisher
-        data = payload_json.encode(payload)
-        publisher.put(data)
-        if self.recorder is not None:
-            self.recorder.zenoh_encoded(key, data, "out")
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        """Liveliness token and state queryable for a newly seen vehicle."""
-        if system_id in self._declared:
-            return
-
-        def answer(query: zenoh.Query) -> None:
-            query.reply(keys.state(system_id), payload_json.encode(state()))
-
-        self._declared[system_id] = [
-            self.session.liveliness().declare_token(keys.service(system_id)),
-            self.session.declare_queryable(keys.state(system_id), answer),
-        ]
-
-    def close(self) -> None:
-        for declared in [*self._subscribers, *self._publishers.values()]:
-            declared.undeclare()
-        for items in self._declared.values():
-            for item in items:
-                item.undeclare()
-        self._publishers.clear()
-        self._declared.clear()

@@ -36,7 +36,7 @@ from typing import Any
 
 from mcap.writer import CompressionType
 
-from hil_service.mcap_writer import ChunkBuilder, McapFile, SealedChunk
+from hil_service.mcap.writer import ChunkBuilder, McapFile, SealedChunk
 from protocols import payload_json
 from protocols.keys import schema_for_key
 from protocols.mavlink_io import DIALECT_NAME, MAVLINK_VERSION, MavMessage

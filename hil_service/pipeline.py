@@ -13,7 +13,6 @@ import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
-from hil_service.scoring import ErrorStats
 from hil_service.umodel import (
     CommandShaper,
     Estimate,
@@ -24,6 +23,7 @@ from hil_service.umodel import (
     solve_inverse,
 )
 from hil_service.umodel.forecast import forecast_model
+from hil_service.umodel.scoring import ErrorStats
 from protocols.samples import BallastCommand, TelemetrySample
 
 CHANNELS = ("depth", "pitch")

@@ -15,8 +15,8 @@ from typing import Any, NamedTuple
 
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 
-from hil_service.mcap_records import read_records
-from hil_service.recorder import CONFIG_METADATA
+from hil_service.mcap.recorder import CONFIG_METADATA
+from hil_service.mcap.records import read_records
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
 

@@ -19,10 +19,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from hil_service.bus import Bus, ControlInputs, Inbox, NullBus
-from hil_service.logreader import LogMessage, LogReader
+from hil_service.inputs import ControlInputs, Inbox
+from hil_service.mcap.reader import LogMessage, LogReader
+from hil_service.pipeline import PipelineSettings
 from hil_service.service import HilService, ServiceConfig
-from hil_service.vehicle import PipelineSettings
+from hil_service.zenoh_bus import Bus, NullBus
 from protocols import payload_json
 from protocols.mapping import TelemetryMapping
 from protocols.samples import TelemetrySample

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.logreader import LogReader, ReadReport
+from hil_service.mcap.reader import LogReader, ReadReport
 
 CHANNELS = ("depth", "pitch")
 _TOPIC = re.compile(r"^glider/(\d+)/(telemetry|umodel/(depth|pitch)|command/ballast|health)$")

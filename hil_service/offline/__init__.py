@@ -1,0 +1,1 @@
+"""Working from logs: replay through the live path, series, reports and figures."""
