@@ -1,7 +1,8 @@
 """MAVLink messages → one ``TelemetrySample`` per plant step and vehicle.
 
-A step is complete when its ATTITUDE, SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATUS, all
-stamped with the same time, have arrived (VFR_HUD carries no timestamp and is not needed).
+Message fields are read through ``protocols.mapping`` only (docs/mavlink.md). A step is
+complete when its ATTITUDE, SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATUS, all stamped with
+the same time, have arrived (VFR_HUD carries no timestamp and is not needed).
 A step with a missing piece is counted when a later step supersedes it, never guessed;
 a timestamp at or before the last emitted one is counted as out of order and dropped;
 non-finite or physically absurd values are counted as invalid and dropped. A vehicle whose
@@ -17,10 +18,12 @@ from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
 from protocols.mapping import (
-    MSG_ACTUATORS,
     MSG_ATTITUDE,
     MSG_PRESSURE,
     TelemetryMapping,
+    pitch_from_attitude,
+    pitch_rate_from_attitude,
+    step_time_ms,
 )
 from protocols.mavlink_io import MavMessage
 from protocols.samples import TelemetrySample
@@ -83,11 +86,8 @@ class SampleAssembler:
     def add(self, message: MavMessage) -> TelemetrySample | None:
         """Take one decoded message; return the sample it completes, if any."""
         kind = message.get_type()
-        if kind in (MSG_ATTITUDE, MSG_PRESSURE):
-            stamp = int(message.time_boot_ms)
-        elif kind == MSG_ACTUATORS:
-            stamp = int(message.time_usec) // 1000
-        else:
+        stamp = step_time_ms(message, kind)
+        if stamp < 0:
             return None
         vehicle = self._vehicle(message.get_srcSystem())
         if vehicle is None:
@@ -163,10 +163,10 @@ class SampleAssembler:
                 system_id=system_id,
                 time_boot_ms=stamp,
                 depth=depth,
-                pitch=float(attitude.pitch),
+                pitch=pitch_from_attitude(attitude),
                 u_depth=u_depth,
                 u_pitch=u_pitch,
-                pitch_rate=float(attitude.pitchspeed),
+                pitch_rate=pitch_rate_from_attitude(attitude),
             )
         except (TypeError, ValueError, IndexError, AttributeError):
             return None

@@ -15,52 +15,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.assembler import SampleAssembler
+from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
 from hil_service.mcap.recorder import McapRecorder
-from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.pipeline import VehiclePipeline
 from hil_service.zenoh_bus import Bus
 from protocols import keys
-from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
+from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
 from protocols.samples import TelemetrySample
-
-
-def decision_inputs_topic(system_id: int) -> str:
-    """MCAP channel of the control inputs each decision used (recorded on change)."""
-    return f"glider-hil/{system_id}/decision-inputs"
-
-
-@dataclass(frozen=True)
-class LinkSecurity:
-    """MAVLink 2 signing on the vehicle link. The key itself is never logged or published."""
-
-    key: bytes | None = field(default=None, repr=False)
-    #: With a key: still accept unsigned telemetry (counted), e.g. while a fleet migrates.
-    accept_unsigned: bool = False
-
-    def to_json(self) -> dict[str, Any]:
-        return {"signed": self.key is not None, "accept_unsigned": self.accept_unsigned}
-
-
-@dataclass(frozen=True)
-class ServiceConfig:
-    system_ids: tuple[int, ...] = ()  # empty: every vehicle on the link
-    service_system_id: int = 255
-    control_default: bool = False  # control state before any control message arrives
-    stale_timeout: float = 3.0  # wall s without a sample → no commands
-    health_period: float = 1.0  # wall s
-    pipeline: PipelineSettings = field(default_factory=PipelineSettings)
-    security: LinkSecurity = field(default_factory=LinkSecurity)
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "system_ids": list(self.system_ids),
-            "control_default": self.control_default,
-            "stale_timeout": self.stale_timeout,
-            "pipeline": self.pipeline.to_json(),
-            "signing": self.security.to_json(),
-        }
 
 
 @dataclass
@@ -89,7 +53,6 @@ class HilService:
         inbox: Inbox,
         link: Link | None = None,
         recorder: McapRecorder | None = None,
-        mapping: TelemetryMapping | None = None,
         clock: Callable[[], float] = time.monotonic,
         send_commands: bool = True,
     ):
@@ -98,7 +61,7 @@ class HilService:
         self.inbox = inbox
         self.link = link
         self.recorder = recorder
-        self.mapping = mapping or TelemetryMapping()
+        self.mapping = config.mapping()
         self.clock = clock
         self.send_commands = send_commands and link is not None
         self.codec = MavlinkCodec.for_link(
@@ -135,7 +98,7 @@ class HilService:
     def process_message(self, message: MavMessage) -> TelemetrySample | None:
         header = message.get_header()
         self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
-        if message.get_type() == "COMMAND_ACK":
+        if message.get_type() == MSG_ACK:
             self._on_ack(message)
             return None
         sample = self.assembler.add(message)
@@ -167,7 +130,7 @@ class HilService:
             vehicle.last_applied = applied
             if self.recorder is not None:
                 self.recorder.zenoh(
-                    decision_inputs_topic(system_id),
+                    topics.decision_inputs,
                     {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
                     "internal",
                 )
@@ -197,8 +160,7 @@ class HilService:
         vehicle = self.vehicles.get(message.get_srcSystem())
         if vehicle is None:
             return
-        accepted = message.result == 0
-        vehicle.acks["accepted" if accepted else "refused"] += 1
+        vehicle.acks["accepted" if ack_accepted(message) else "refused"] += 1
 
     def _vehicle(self, system_id: int) -> VehicleRuntime:
         vehicle = self.vehicles.get(system_id)

@@ -20,7 +20,12 @@ from dataclasses import dataclass, field
 
 from plant_emulator.excitation import Excitation
 from plant_emulator.plant import GliderPlant
-from protocols.mapping import CommandRejected, TelemetryMapping, is_ballast_command
+from protocols.mapping import (
+    CommandRejected,
+    TelemetryMapping,
+    command_target_system,
+    is_ballast_command,
+)
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
 
@@ -133,7 +138,7 @@ class Autopilot:
         if not is_ballast_command(message):
             self.stats.ignored_messages += 1
             return
-        if message.target_system not in (0, self.config.system_id):
+        if command_target_system(message) not in (0, self.config.system_id):
             self.stats.commands_for_other_systems += 1
             return
         try:

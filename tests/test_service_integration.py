@@ -114,7 +114,7 @@ def test_identify_command_disable_and_stale(rig, processes):
 
 
 def check_log(log_dir, probe_telemetry):
-    """Every channel of DESIGN.md section 4 with schemas; raw frames decode to the same samples."""
+    """Every channel of docs/mcap.md with schemas; raw frames decode to the same samples."""
     from hil_service.assembler import SampleAssembler
     from hil_service.mcap.reader import LogReader
     from protocols.mavlink_io import MavlinkCodec

@@ -9,11 +9,12 @@ from pathlib import Path
 
 import pytest
 
+from hil_service.config import LinkSecurity, ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.replay import ReplayOptions, replay
-from hil_service.service import HilService, LinkSecurity, ServiceConfig
+from hil_service.service import HilService
 from hil_service.umodel import build_model
 from hil_service.zenoh_bus import NullBus
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -255,7 +256,7 @@ class LoggingBus(NullBus):
 @pytest.mark.timeout(60)
 def test_a_signed_log_replays_without_the_key_and_checks_bit_for_bit(tmp_path):
     config = ServiceConfig(security=LinkSecurity(KEY))
-    recorder = McapRecorder(tmp_path, metadata={"service": json.dumps(config.to_json())}).start()
+    recorder = McapRecorder(tmp_path, metadata=config.to_metadata()).start()
     service = HilService(config, LoggingBus(recorder), Inbox(), recorder=recorder)
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 3):  # refused, logged apart
         service.process_datagram(datagram)

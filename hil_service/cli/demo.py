@@ -59,14 +59,15 @@ class Observations:
     health: dict[str, Any] = field(default_factory=dict)
 
     def on_sample(self, sample: Any) -> None:
-        key = str(sample.key_expr)
+        parsed = keys.parse(str(sample.key_expr))
+        kind = "" if parsed is None else parsed.kind
         payload = json.loads(sample.payload.to_bytes())
         with self.lock:
-            if key.endswith("/telemetry"):
+            if kind == keys.TELEMETRY:
                 self.telemetry.append(payload)
-            elif key.endswith("/command/ballast"):
+            elif kind == keys.COMMAND_BALLAST:
                 self.commands += 1
-            elif key.endswith("/health"):
+            elif kind == keys.HEALTH:
                 self.health = payload
 
     def latest_t(self) -> float:
@@ -113,7 +114,9 @@ def run(args: argparse.Namespace) -> int:
     observations = Observations()
     try:
         session = open_session(ZenohOptions(connect=(endpoint,)))
-        subscriber = session.declare_subscriber(f"glider/{SYSTEM_ID}/**", observations.on_sample)
+        subscriber = session.declare_subscriber(
+            keys.vehicle_pattern(SYSTEM_ID), observations.on_sample
+        )
         emulator = start_verb(
             "emulate", "--connect", f"udpout:127.0.0.1:{udp_port}", "--speed", str(args.speed),
             "--duration", str(sim_total), "--scenario", args.scenario, "--seed", str(args.seed),

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
+from hil_service.config import ServiceConfig
 from hil_service.mcap.reader import LogError, LogReader
 
 
@@ -34,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
             topic: {"count": c["count"], "encoding": c["encoding"], "schema": c["schema"]}
             for topic, c in sorted(report.channels.items())
         },
-        "config": reader.config(),
+        "config": _config(reader.config()),
     }
     if not report.complete:
         info["recovery"] = report.describe()
@@ -43,6 +45,16 @@ def run(args: argparse.Namespace) -> int:
     except BrokenPipeError:  # `glider-hil info LOG | head`
         sys.stderr.close()
     return 0
+
+
+def _config(stored: dict[str, Any]) -> dict[str, Any]:
+    """The stored configuration as the service reads it back (defaults filled in for fields
+    an older log lacks); what the file holds when that is not a service configuration."""
+    try:
+        config = ServiceConfig.from_stored(stored)
+    except (TypeError, ValueError, KeyError) as error:
+        return {**stored, "error": f"unreadable configuration: {error}"}
+    return stored if config is None else config.stored()
 
 
 def _print(info: dict, as_json: bool) -> None:

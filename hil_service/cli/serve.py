@@ -1,4 +1,7 @@
-"""``glider-hil serve``: the HIL service on a MAVLink link, publishing on Zenoh, logging MCAP."""
+"""``glider-hil serve``: the HIL service on a MAVLink link, publishing on Zenoh, logging MCAP.
+
+As zenoh-python's examples: flags → ``config_from_args`` → ``main(config)``.
+"""
 
 from __future__ import annotations
 
@@ -10,18 +13,15 @@ import threading
 import time
 from dataclasses import replace
 
+from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
-from hil_service.inputs import Inbox, SetpointLimits
-from hil_service.mcap.recorder import McapRecorder
+from hil_service.config import LinkSecurity, LogOptions, ServeConfig, ServiceConfig, Units
+from hil_service.inputs import SetpointLimits
 from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
-from hil_service.service import HilService, LinkSecurity, ServiceConfig
-from hil_service.zenoh_bus import ZenohBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
-from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
 from protocols.signing import load_key
-from protocols.units import InputScale, PressureDepth
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -100,73 +100,73 @@ def security_from_args(args: argparse.Namespace) -> LinkSecurity:
     return LinkSecurity(load_key(args.signing_key), accept_unsigned=args.accept_unsigned)
 
 
+def config_from_args(args: argparse.Namespace) -> ServeConfig:
+    """Flags → configuration; raises ValueError (or OSError for the key file) on bad ones."""
+    service = ServiceConfig(
+        system_ids=tuple(args.sysid),
+        control_default=args.control,
+        stale_timeout=args.stale_timeout,
+        pipeline=settings_from_args(args),
+        security=security_from_args(args),
+        units=Units(args.full_scale, args.water_density, args.surface_pressure),
+        limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),
+    )
+    log = LogOptions(
+        directory=None if args.no_log else args.log_dir,
+        max_bytes=int(args.log_max_mb * 1024 * 1024),
+        max_seconds=args.log_max_s,
+    )
+    return ServeConfig(service, args.mavlink, options_from_args(args), log, args.duration)
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        mapping = TelemetryMapping(
-            pressure=PressureDepth(args.water_density, args.surface_pressure),
-            inputs=InputScale(args.full_scale),
-        )
-        config = ServiceConfig(
-            system_ids=tuple(args.sysid),
-            control_default=args.control,
-            stale_timeout=args.stale_timeout,
-            pipeline=settings_from_args(args),
-            security=security_from_args(args),
-        )
-        zenoh_options = options_from_args(args)
-        zenoh_options.to_config()  # a bad config file is reported here, before anything opens
+        config = config_from_args(args)
+        config.zenoh.to_config()  # a bad config file is reported here, before anything opens
     except Exception as error:
         print(f"glider-hil serve: {error}", file=sys.stderr)
         return 2
+    return main(config)
+
+
+def main(config: ServeConfig) -> int:
+    """Run the service until SIGINT/SIGTERM or ``config.duration``; 2 if a part cannot open."""
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
-    recorder = None
-    if not args.no_log:
-        recorder = McapRecorder(
-            args.log_dir,
-            metadata={"service": json.dumps(config.to_json()), "mapping": json.dumps(
-                {"full_scale": args.full_scale, "water_density": args.water_density,
-                 "surface_pressure": args.surface_pressure})},
-            max_bytes=int(args.log_max_mb * 1024 * 1024),
-            max_seconds=args.log_max_s,
-        ).start()  # fmt: skip
+    recorder = open_recorder(config.service, config.log)
     try:
-        link = Link(args.mavlink, source_system=255, source_component=191)
+        link = Link(config.mavlink, source_system=255, source_component=191)
     except Exception as error:  # pymavlink raises many kinds for a bad connection string
-        print(f"glider-hil serve: cannot open {args.mavlink}: {error}", file=sys.stderr)
+        print(f"glider-hil serve: cannot open {config.mavlink}: {error}", file=sys.stderr)
         if recorder is not None:
             recorder.close()
         return 2
     try:
-        session = open_session(zenoh_options)
+        session = open_session(config.zenoh)
     except Exception as error:  # zenoh raises its own ZError for bad endpoints
         print(f"glider-hil serve: cannot open Zenoh session: {error}", file=sys.stderr)
         link.close()
         if recorder is not None:
             recorder.close()
         return 2
-    inbox = Inbox(SetpointLimits(args.min_depth, args.max_depth, args.max_pitch))
-    bus = ZenohBus(session, inbox, recorder)
-    service = HilService(config, bus, inbox, link=link, recorder=recorder, mapping=mapping)
+    wired = wire(config.service, session=session, link=link, recorder=recorder)
     tune_for_service()
-    print(f"{SERVICE_READY} on {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)
-    if args.duration is not None:
-        timer = threading.Timer(args.duration, stop.set)
+    model = config.service.pipeline.model
+    print(f"{SERVICE_READY} on {config.mavlink}, model {model}", file=sys.stderr, flush=True)
+    if config.duration is not None:
+        timer = threading.Timer(config.duration, stop.set)
         timer.daemon = True
         timer.start()
     started = time.monotonic()
     try:
-        service.run(stop)
+        wired.service.run(stop)
     finally:
-        summary = service.summary()
+        summary = wired.service.summary()
         summary["wall_s"] = time.monotonic() - started
-        bus.close()
-        session.close()
-        link.close()
-        if recorder is not None:
-            recorder.close()
-            summary["log"] = recorder.report()
+        log = wired.close()
+        if log is not None:
+            summary["log"] = log
     print(json.dumps({"service": summary}), flush=True)
     return 0

@@ -1,4 +1,4 @@
-"""MCAP recording of all traffic (DESIGN.md section 4), off the control path.
+"""MCAP recording of all traffic (docs/mcap.md), off the control path.
 
 Producers (the control path, Zenoh callbacks) call ``raw``, ``mavlink`` and ``zenoh``: those
 encode the record and pack it into the open chunk in memory, under a lock held for a few

@@ -2,9 +2,11 @@
 
 The raw MAVLink frames of ``mavlink/raw/in`` go through ``HilService.process_datagram``
 exactly as they did live; the control inputs each decision used come from the log's
-decision-inputs channel, applied at the same sample; the identifier configuration is
-rebuilt from the log's metadata. With ``check``, every recomputed estimate and command is
-compared, as published bytes, with the recorded one, and the first difference is reported.
+decision-inputs channel, applied at the same sample; the service configuration is
+rebuilt from the log's metadata (``ServiceConfig.from_stored``) and the service wired by
+``hil_service.builder`` as ``serve`` wires it. With ``check``, every recomputed estimate and
+command is compared, as published bytes, with the recorded one, and the first difference
+is reported.
 Timed replay sleeps to absolute deadlines derived from the log's timestamps, so it does not
 drift over long logs.
 """
@@ -19,18 +21,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from hil_service.builder import wire
+from hil_service.config import ServiceConfig
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.mcap.reader import LogMessage, LogReader
-from hil_service.pipeline import PipelineSettings
-from hil_service.service import HilService, ServiceConfig
+from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus
-from protocols import payload_json
-from protocols.mapping import TelemetryMapping
+from protocols import keys, payload_json
 from protocols.samples import TelemetrySample
-from protocols.units import InputScale, PressureDepth
 
 RAW_IN = "mavlink/raw/in"
-CHECKED_KINDS = ("umodel", "command")
+CHECKED_KINDS = (keys.UMODEL, keys.COMMAND_BALLAST)
 
 
 class ReplayError(Exception):
@@ -128,36 +129,8 @@ class RecordingBus(NullBus):
 
 
 def _kind(key: str) -> str:
-    parts = key.split("/")
-    return parts[2] if len(parts) > 2 and parts[0] == "glider" else ""
-
-
-def stored_mapping(stored: dict[str, Any]) -> TelemetryMapping:
-    """The unit conversions the live service used (defaults when the log has none)."""
-    mapping = stored.get("mapping")
-    if not mapping:
-        return TelemetryMapping()
-    return TelemetryMapping(
-        pressure=PressureDepth(mapping["water_density"], mapping["surface_pressure"]),
-        inputs=InputScale(mapping["full_scale"]),
-    )
-
-
-def stored_config(stored: dict[str, Any]) -> ServiceConfig | None:
-    """The service configuration stored in a log's metadata, or None when there is none."""
-    config = stored.get("service")
-    if config is None:
-        return None
-    return ServiceConfig(
-        system_ids=tuple(config.get("system_ids", ())),
-        control_default=config.get("control_default", False),
-        stale_timeout=config.get("stale_timeout", 3.0),
-        pipeline=PipelineSettings.from_json(config["pipeline"]),
-    )
-
-
-def _is_decision_inputs(topic: str) -> bool:
-    return topic.startswith("glider-hil/") and topic.endswith("/decision-inputs")
+    parsed = keys.parse(key)
+    return "" if parsed is None else parsed.kind
 
 
 def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> ReplayResult:
@@ -194,9 +167,13 @@ class _Replay:
                     pending = None
                     break
                 pending = message
-            elif _is_decision_inputs(topic):
-                self.inbox.add_event(int(topic.split("/")[1]), message.json())
-            elif self.options.check and _kind(topic) in CHECKED_KINDS:
+                continue
+            parsed = keys.parse(topic)
+            if parsed is None:
+                continue
+            if parsed.kind == keys.DECISION_INPUTS:
+                self.inbox.add_event(parsed.system_id, message.json())
+            elif self.options.check and parsed.kind in CHECKED_KINDS:
                 self.to_compare.append(message)
         if pending is not None:
             self._feed(pending)
@@ -226,21 +203,15 @@ class _Replay:
 
     def _start(self) -> HilService:
         """The service as the log's metadata describes it (metadata precedes all messages)."""
-        stored = self.reader.config()
-        config = stored_config(stored)
+        config = ServiceConfig.from_stored(self.reader.config())
         if config is None:
             if self.options.check:
                 raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
             config = ServiceConfig()
         if self.options.model is not None:
             config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
-        self.service = HilService(
-            config,
-            self.recording,
-            self.inbox,
-            mapping=stored_mapping(stored),
-            send_commands=False,
-        )
+        wired = wire(config, inbox=self.inbox, bus=self.recording, send_commands=False)
+        self.service = wired.service
         return self.service
 
     def _finish(self) -> ReplayResult:

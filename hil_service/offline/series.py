@@ -8,7 +8,6 @@ what the service computed at the time, under the configuration stored in the log
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from hil_service.mcap.reader import LogReader, ReadReport
+from protocols import keys
 
-CHANNELS = ("depth", "pitch")
-_TOPIC = re.compile(r"^glider/(\d+)/(telemetry|umodel/(depth|pitch)|command/ballast|health)$")
+CHANNELS = keys.CHANNELS
+_SERIES_KINDS = frozenset({keys.TELEMETRY, keys.UMODEL, keys.COMMAND_BALLAST, keys.HEALTH})
 
 
 @dataclass
@@ -84,29 +84,28 @@ def load_series(path: str | Path) -> LogSeries:
     vehicles: dict[int, VehicleSeries] = {}
     skipped = 0
     for message in reader.messages():
-        match = _TOPIC.match(message.topic)
-        if not match:
+        parsed = keys.parse(message.topic)
+        if parsed is None or parsed.kind not in _SERIES_KINDS:
             continue
-        system_id = int(match.group(1))
-        vehicle = vehicles.setdefault(system_id, VehicleSeries(system_id))
+        vehicle = vehicles.setdefault(parsed.system_id, VehicleSeries(parsed.system_id))
         try:
             payload = message.json()
-            _add(vehicle, match.group(2), match.group(3), payload)
+            _add(vehicle, parsed.kind, parsed.channel, payload)
         except (ValueError, TypeError, KeyError, AttributeError):
             skipped += 1
     return LogSeries(Path(path), reader.report, reader.config(), vehicles, skipped)
 
 
 def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[str, Any]) -> None:
-    if kind == "telemetry":
+    if kind == keys.TELEMETRY:
         t = _number(payload["t"])
         applied = {ch: _number(payload[f"u_{ch}"]) for ch in CHANNELS}
         vehicle.telemetry_t.append(t)
         for ch in CHANNELS:
             vehicle.applied[ch].append(applied[ch])
-    elif kind == "health":
+    elif kind == keys.HEALTH:
         vehicle.last_health = dict(payload)
-    elif kind == "command/ballast":
+    elif kind == keys.COMMAND_BALLAST:
         commands = vehicle.commands
         t = _number(payload["t"])
         setpoints = payload.get("setpoints") or {}
