@@ -76,3 +76,9 @@ def wire(
         config, bus, inbox, link=link, recorder=recorder, send_commands=send_commands
     )
     return Wired(service, inbox, bus, recorder, link, session)
+
+
+def publishing_bus(session: Any) -> Bus:
+    """The bus of ``replay --publish``: the replayed service's output on Zenoh under the same
+    keys. Inputs it receives go to an inbox nobody reads (replay applies the recorded ones)."""
+    return ZenohBus(session, Inbox())

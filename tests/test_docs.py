@@ -276,3 +276,26 @@ def test_logs_written_before_the_config_module_still_read(name):
     assert config is not None
     assert ServiceConfig.from_stored(config.stored()) == config
     assert config.security.key is None  # never stored
+
+
+def test_serve_flags_reach_replay_through_the_stored_configuration():
+    """What ``serve`` is told is what the log stores and what ``replay`` rebuilds."""
+    import json
+
+    from hil_service.cli import build_parser
+    from hil_service.cli.serve import config_from_args
+
+    args = build_parser().parse_args(
+        ["serve", "--sysid", "3", "--model", "paper", "--seed", "4", "--burn-in", "77",
+         "--full-scale", "1.5", "--water-density", "1000", "--surface-pressure", "1010",
+         "--min-depth", "2", "--max-depth", "40", "--max-pitch", "0.3", "--control"]
+    )  # fmt: skip
+    config = config_from_args(args).service
+    stored = {name: json.loads(text) for name, text in config.to_metadata().items()}
+    again = ServiceConfig.from_stored(stored)
+    assert again is not None and again.stored() == config.stored() == stored
+    assert (again.units, again.limits, again.system_ids) == (
+        config.units, config.limits, config.system_ids
+    )
+    assert again.mapping().inputs.full_scale == 1.5
+    assert again.pipeline.model == "paper" and again.pipeline.burn_in == 77

@@ -6,11 +6,10 @@ import argparse
 import json
 import sys
 
-from hil_service.inputs import Inbox
+from hil_service.builder import publishing_bus
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
-from hil_service.zenoh_bus import ZenohBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 
 
@@ -51,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.publish:
             session = open_session(options_from_args(args))
-            bus = ZenohBus(session, Inbox())
+            bus = publishing_bus(session)
         tune_for_service()
         while True:
             result = replay(args.log, options, bus)
