@@ -268,7 +268,11 @@ def test_the_documented_stored_configuration_is_what_a_log_holds(recorded_log):
 
 
 @pytest.mark.parametrize("name", ["paper", "disturbed", "nonlinear"])
-def test_logs_written_before_the_config_module_still_read(name):
+def test_logs_written_before_the_config_module_still_read(name, capsys):
+    import json
+
+    from hil_service.cli import main
+
     reader = LogReader(DATA / f"{name}.mcap")
     for _ in reader.messages():
         pass
@@ -276,6 +280,11 @@ def test_logs_written_before_the_config_module_still_read(name):
     assert config is not None
     assert ServiceConfig.from_stored(config.stored()) == config
     assert config.security.key is None  # never stored
+    # info shows the configuration as read back, and says which fields the log lacked.
+    assert main(["info", "--json", str(DATA / f"{name}.mcap")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["config"] == config.stored()
+    assert info["config_defaults"] == ["service.limits"]
 
 
 def test_serve_flags_reach_replay_through_the_stored_configuration():

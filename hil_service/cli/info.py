@@ -38,6 +38,9 @@ def run(args: argparse.Namespace) -> int:
         },
         "config": _config(reader.config()),
     }
+    defaults = _defaulted(reader.config(), info["config"])
+    if defaults:
+        info["config_defaults"] = defaults
     if not report.complete:
         info["recovery"] = report.describe()
     try:
@@ -57,6 +60,21 @@ def _config(stored: dict[str, Any]) -> dict[str, Any]:
     return stored if config is None else config.stored()
 
 
+def _defaulted(stored: dict[str, Any], read: dict[str, Any]) -> list[str]:
+    """Fields of the configuration read back that the log does not hold (an older log):
+    they show the defaults, not what that service ran with."""
+    missing = []
+    for part, fields in read.items():
+        if not isinstance(fields, dict):
+            continue
+        held = stored.get(part)
+        if not isinstance(held, dict):
+            missing.append(part)
+        else:
+            missing += [f"{part}.{name}" for name in fields if name not in held]
+    return missing
+
+
 def _print(info: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(info, indent=2))
@@ -69,3 +87,5 @@ def _print(info: dict, as_json: bool) -> None:
         print(f"  {topic:48} {channel['count']:>8}  {channel['encoding']:8}  {channel['schema']}")
     print("  configuration:")
     print("    " + json.dumps(info["config"], indent=2).replace("\n", "\n    "))
+    if "config_defaults" in info:
+        print(f"  not in this log, shown with their defaults: {', '.join(info['config_defaults'])}")
