@@ -25,12 +25,13 @@ from hil_service.builder import wire
 from hil_service.config import ServiceConfig
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.mcap.reader import LogMessage, LogReader
+from hil_service.mcap.recorder import RAW_TOPIC
 from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus
 from protocols import keys, payload_json
 from protocols.samples import TelemetrySample
 
-RAW_IN = "mavlink/raw/in"
+RAW_IN = RAW_TOPIC.format(direction="in")
 CHECKED_KINDS = (keys.UMODEL, keys.COMMAND_BALLAST)
 
 

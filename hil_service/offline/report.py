@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from hil_service.config import ServiceConfig
 from hil_service.experiment.identification import CONVERGENCE_BAND, converged_at
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
 from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
@@ -38,10 +39,14 @@ class Report:
     summaries: list[ChannelSummary]
 
 
-def _burn_in(config: dict[str, Any]) -> int:
-    pipeline = (config.get("service") or {}).get("pipeline") or {}
-    value = pipeline.get("burn_in", DEFAULT_BURN_IN)
-    return int(value) if isinstance(value, int) and value >= 0 else DEFAULT_BURN_IN
+def _burn_in(stored: dict[str, Any]) -> int:
+    """The burn-in the service ran with, from the log's stored configuration."""
+    try:
+        config = ServiceConfig.from_stored(stored)
+    except (TypeError, ValueError, KeyError, AttributeError):  # unreadable: the default
+        config = None
+    value = DEFAULT_BURN_IN if config is None else config.pipeline.burn_in
+    return value if isinstance(value, int) and value >= 0 else DEFAULT_BURN_IN
 
 
 def summarise(vehicle: VehicleSeries, channel: str, burn_in: int) -> ChannelSummary:
