@@ -179,9 +179,11 @@ class HilService:
             if decision.payload is not None:
                 vehicle.last_command = decision.payload
         if decision.command is not None and decision.payload is not None:
-            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
+            # The vehicle first: the Zenoh publish blocks (congestion control BLOCK) while a
+            # slow subscriber catches up, and must not hold the command back.
             if self.send_commands:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
+            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
 
     def _send(self, message: MavMessage) -> None:
