@@ -9,7 +9,21 @@ from typing import Any
 
 import jsonschema
 
-SCHEMA_NAMES = ("telemetry", "umodel", "command_ballast", "setpoint", "control", "health")
+from protocols.keys import schema_for_key
+
+SCHEMA_NAMES = (
+    "telemetry",
+    "umodel",
+    "command_ballast",
+    "setpoint",
+    "control",
+    "health",
+    "decision_inputs",
+)
+
+#: The service's own JSON channels beside the Zenoh keys (MCAP only, never published):
+#: ``glider-hil/{id}/{kind}`` → schema name.
+INTERNAL_SCHEMAS = {"decision-inputs": "decision_inputs"}
 
 
 @cache
@@ -18,6 +32,18 @@ def load_schema(name: str) -> dict[str, Any]:
         raise KeyError(f"no schema {name!r}; known: {SCHEMA_NAMES}")
     text = resources.files("protocols").joinpath("schemas", f"{name}.json").read_text()
     return json.loads(text)
+
+
+def schema_for_channel(topic: str) -> str | None:
+    """The schema name of a recorded JSON channel (a Zenoh key or one of the service's own
+    channels), or None when it has none."""
+    name = schema_for_key(topic)
+    if name is not None:
+        return name
+    parts = topic.split("/")
+    if len(parts) == 3 and parts[0] == "glider-hil" and parts[1].isdigit():
+        return INTERNAL_SCHEMAS.get(parts[2])
+    return None
 
 
 @cache

@@ -38,10 +38,9 @@ from mcap.writer import CompressionType
 
 from hil_service.mcap.writer import ChunkBuilder, McapFile, SealedChunk
 from protocols import payload_json
-from protocols.keys import schema_for_key
 from protocols.mavlink_io import DIALECT_NAME, MAVLINK_VERSION, MavMessage
 from protocols.mavlink_json import message_schema, message_to_json
-from protocols.schemas import load_schema
+from protocols.schemas import load_schema, schema_for_channel
 
 RAW_TOPIC = "mavlink/raw/{direction}"
 JSON_TOPIC = "mavlink/json/{direction}/{kind}"
@@ -216,7 +215,7 @@ class McapRecorder:
             )
             topic = JSON_TOPIC.format(direction=name, kind=message_type)
             return builder.register_channel(topic, "json", schema_id, {"direction": name})
-        schema_name = schema_for_key(name)
+        schema_name = schema_for_channel(name)
         schema_id = 0
         if schema_name is not None:
             schema_id = builder.register_schema(
