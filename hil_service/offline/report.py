@@ -192,6 +192,8 @@ def _link_lines(vehicle: VehicleSeries) -> list[str]:
         return ["No health publication was recorded for this vehicle."]
     link = health.get("link") or {}
     counters = health.get("counters") or {}
+    # Logs written before health was per vehicle keep the link's counters in "counters".
+    link_wide = health.get("link_wide") or counters
     loss = link.get("loss_fraction", health.get("packet_loss"))
     return [
         f"- packet loss: {_fmt(loss * 100 if isinstance(loss, (int, float)) else None, '.2f')} % "
@@ -202,12 +204,14 @@ def _link_lines(vehicle: VehicleSeries) -> list[str]:
         f"- samples: {counters.get('samples', '–')} complete, "
         f"{counters.get('incomplete', '–')} incomplete steps, "
         f"{counters.get('out_of_order', '–')} out of order, "
-        f"{counters.get('invalid', '–')} invalid",
-        f"- frames: {counters.get('bad_frames', '–')} bad, "
-        f"{counters.get('unknown_frames', '–')} unknown; "
-        f"commands sent {counters.get('commands_sent', '–')}, "
+        f"{counters.get('invalid', '–')} invalid, "
+        f"{counters.get('restarts', '–')} clock restarts",
+        f"- commands sent {counters.get('commands_sent', '–')}, "
         f"acknowledged {counters.get('acks_accepted', '–')}, "
         f"refused {counters.get('acks_refused', '–')}",
+        f"- the whole link (every vehicle on it): {link_wide.get('bad_frames', '–')} bad "
+        f"frames, {link_wide.get('unknown_frames', '–')} unknown, "
+        f"{link_wide.get('unknown_system', '–')} messages of systems not served",
     ]
 
 
