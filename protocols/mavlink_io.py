@@ -228,8 +228,7 @@ def check_link(connection: str) -> None:
     is_device = os.path.exists(name) and not os.path.isfile(name)
     if not is_device and (lowered.endswith(_LOG_SUFFIXES) or os.path.isfile(name)):
         raise ValueError(
-            f"{connection} is a file, not a link (replaying a recorded log is not done "
-            f"through --mavlink); --mavlink takes {ACCEPTED_LINKS}"
+            f"{connection} is a file, not a link; --mavlink takes {ACCEPTED_LINKS}"
         )
 
 
