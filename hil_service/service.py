@@ -142,9 +142,11 @@ class HilService:
             if decision.payload is not None:
                 vehicle.last_command = decision.payload
         if decision.command is not None and decision.payload is not None:
-            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
+            # The vehicle first: the Zenoh publish blocks (congestion control BLOCK) while a
+            # slow subscriber catches up, and must not hold the command back.
             if self.send_commands:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
+            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
 
     def _send(self, message: MavMessage) -> None:
@@ -193,35 +195,30 @@ class HilService:
         reason = "telemetry stale" if stale else vehicle.control_reason
         if stale:
             vehicle.reset_pending = True  # controllers re-arm before the next decision
+        # Everything in "counters", "link", "samples", "packet_loss" and "malformed" is this
+        # vehicle's own; what cannot be told apart by vehicle is under "link_wide" (the
+        # MAVLink link: garbage, unknown or refused frames, other systems) and
+        # "service_wide" (operator inputs, the log).
+        assembled = self.assembler.counters_for(system_id)
+        link = self.sequence.for_system(system_id)
         counters = {
-            **self.assembler.counters.as_dict(),
-            **self.codec.counters.as_dict(),
-            "setpoints_rejected": self.inbox.rejected,
+            **assembled.as_dict(),
             "commands_sent": vehicle.commands_sent,
             "acks_accepted": vehicle.acks["accepted"],
             "acks_refused": vehicle.acks["refused"],
             "step_gaps": vehicle.pipeline.gaps.gaps,
         }
-        if self.verifier is not None:
-            counters.update(self.verifier.counters.as_dict())
-        if self.recorder is not None:
-            counters["log_records"] = self.recorder.status.records
-            counters["log_dropped"] = self.recorder.status.dropped
-        malformed = (
-            self.codec.counters.bad_frames
-            + self.codec.counters.unknown_frames
-            + self.assembler.counters.invalid
-            + self.assembler.counters.out_of_order
-            + self.assembler.counters.incomplete
-        )
+        malformed = assembled.invalid + assembled.out_of_order + assembled.incomplete
         payload: dict[str, Any] = {
             "t_wall": time.time(),
             "link_rate": vehicle.rate.rate(now),
-            "samples": self.assembler.counters.samples,
-            "packet_loss": self.sequence.loss_fraction,
+            "samples": assembled.samples,
+            "packet_loss": link.loss_fraction,
             "malformed": malformed,
             "counters": counters,
-            "link": self.sequence.as_dict(),
+            "link": link.as_dict(),
+            "link_wide": self._link_wide(),
+            "service_wide": self._service_wide(),
             "identifier": vehicle.pipeline.identifier_health(),
             "control": {
                 "enabled": enabled,
@@ -243,6 +240,26 @@ class HilService:
         if self.inbox.last_rejection:
             payload["last_rejected_input"] = self.inbox.last_rejection
         return payload
+
+    def _link_wide(self) -> dict[str, int]:
+        """Counters of the MAVLink link that belong to no one vehicle: frames decoded from
+        every system, bytes that were no frame, frames of unknown types or of systems not
+        served, and (with signing) the verifier's counts."""
+        counters = {
+            **self.codec.counters.as_dict(),
+            "unknown_system": self.assembler.unknown_system,
+        }
+        if self.verifier is not None:
+            counters.update(self.verifier.counters.as_dict())
+        return counters
+
+    def _service_wide(self) -> dict[str, int]:
+        """Counters of the service as a whole: refused operator inputs, log records."""
+        counters = {"setpoints_rejected": self.inbox.rejected}
+        if self.recorder is not None:
+            counters["log_records"] = self.recorder.status.records
+            counters["log_dropped"] = self.recorder.status.dropped
+        return counters
 
     def state(self, system_id: int) -> dict[str, Any]:
         """Answer of the ``state`` queryable: the latest sample, estimates and command."""
@@ -272,6 +289,8 @@ class HilService:
                     "commands_sent": vehicle.commands_sent,
                     "acks": dict(vehicle.acks),
                     "step_gaps": vehicle.pipeline.gaps.gaps,
+                    "counters": self.assembler.counters_for(system_id).as_dict(),
+                    "link": self.sequence.for_system(system_id).as_dict(),
                 }
                 for system_id, vehicle in self.vehicles.items()
             },

@@ -165,6 +165,7 @@ SCHEMA_FOR_KIND = {
     SETPOINT: "setpoint",
     CONTROL: "control",
     HEALTH: "health",
+    DECISION_INPUTS: "decision_inputs",
 }
 
 

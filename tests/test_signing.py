@@ -200,7 +200,7 @@ def test_service_requires_signed_telemetry_counts_refusals_and_logs_them(tmp_pat
         service.process_datagram(datagram)
     assert service.assembler.counters.samples == 20
     health = service.health(1)
-    counters = health["counters"]
+    counters = health["link_wide"]  # the verifier sees frames, not vehicles
     assert counters["signing_signed_accepted"] == 80
     assert counters["signing_unsigned_rejected"] == 20
     assert counters["signing_bad_signature"] == 20
@@ -227,7 +227,7 @@ def test_service_may_accept_unsigned_telemetry_when_configured():
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 5):
         service.process_datagram(datagram)
     assert service.assembler.counters.samples == 5
-    assert service.health(1)["counters"]["signing_unsigned_accepted"] == 20
+    assert service.health(1)["link_wide"]["signing_unsigned_accepted"] == 20
 
 
 def test_service_signs_the_commands_it_sends():

@@ -3,6 +3,11 @@
 Reads the decoded Zenoh publications the service recorded (``glider/{id}/telemetry``,
 ``umodel/{channel}``, ``command/ballast``, ``health``), not the raw MAVLink: a report shows
 what the service computed at the time, under the configuration stored in the log.
+
+A vehicle that reboots starts its clock again, so telemetry times repeat across a restart:
+a restart is a telemetry time at or before the previous one, and each estimate and command
+is tied to the telemetry record of its own sample by position in the log (``index``), never
+by its time alone.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ class ChannelSeries:
     alpha: list[list[float]] = field(default_factory=list)
     status: list[str] = field(default_factory=list)
     model: str = ""
+    index: list[int] = field(default_factory=list)  # of the sample in telemetry_t, -1: none
 
     def arrays(self) -> dict[str, np.ndarray]:
         width = max((len(a) for a in self.alpha), default=0)
@@ -51,6 +57,7 @@ class CommandSeries:
     u: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
     setpoint: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
     saturated: int = 0
+    index: list[int] = field(default_factory=list)  # of the sample in telemetry_t, -1: none
 
 
 @dataclass
@@ -63,6 +70,14 @@ class VehicleSeries:
     )
     commands: CommandSeries = field(default_factory=CommandSeries)
     last_health: dict[str, Any] | None = None
+    #: Where in telemetry_t each run of the vehicle's clock starts (a restart: a reboot).
+    segment_starts: list[int] = field(default_factory=list)
+    #: Time → position in telemetry_t, for the current segment only.
+    _in_segment: dict[float, int] = field(default_factory=dict, repr=False)
+
+    def sample_index(self, t: float) -> int:
+        """Position in telemetry_t of the latest sample stamped ``t`` (-1: not recorded)."""
+        return self._in_segment.get(t, -1)
 
 
 @dataclass
@@ -100,6 +115,10 @@ def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[s
     if kind == keys.TELEMETRY:
         t = _number(payload["t"])
         applied = {ch: _number(payload[f"u_{ch}"]) for ch in CHANNELS}
+        if not vehicle.telemetry_t or not t > vehicle.telemetry_t[-1]:
+            vehicle.segment_starts.append(len(vehicle.telemetry_t))
+            vehicle._in_segment.clear()
+        vehicle._in_segment[t] = len(vehicle.telemetry_t)
         vehicle.telemetry_t.append(t)
         for ch in CHANNELS:
             vehicle.applied[ch].append(applied[ch])
@@ -111,6 +130,7 @@ def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[s
         setpoints = payload.get("setpoints") or {}
         values = {ch: payload.get(f"u_{ch}") for ch in CHANNELS}
         commands.t.append(t)
+        commands.index.append(vehicle.sample_index(t))
         for ch in CHANNELS:
             commands.u[ch].append(_number(values[ch]))
             commands.setpoint[ch].append(_number(setpoints.get(ch)))
@@ -121,6 +141,7 @@ def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[s
         t, y, y_hat = (_number(payload[k]) for k in ("t", "y", "y_hat"))
         baseline = _number(payload.get("baseline_y_hat"))
         series.t.append(t)
+        series.index.append(vehicle.sample_index(t))
         series.y.append(y)
         series.y_hat.append(y_hat)
         series.baseline_y_hat.append(baseline)
