@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import pytest
 from mcap.records import Channel, Message, Metadata, Schema
@@ -11,6 +10,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from hil_service.cli import main
+from hil_service.mcap.reader import LogReader
+from hil_service.offline import replay as replay_module
 from tests.conftest import DATA
 
 SCENARIOS = ("paper", "disturbed", "nonlinear")
@@ -21,11 +22,20 @@ def test_fixtures_replay_bit_for_bit(replay_log, scenario):
     result = replay_log(DATA / f"{scenario}.mcap", check=True)
     assert result.mismatch is None, result.mismatch.describe()
     assert result.samples == 2000
-    assert result.compared > 4000  # both channels' estimates and the commands
+    # Every recorded estimate of both channels and every command, each compared once.
+    recorded = sum(1 for m in LogReader(DATA / f"{scenario}.mcap").messages() if _checked(m.topic))
+    assert result.compared == recorded
 
 
-def copy_with_changed_estimate(source, target, index: int) -> float:
-    """Rewrite ``source`` with one byte of the index-th depth estimate changed."""
+def _checked(topic: str) -> bool:
+    parts = topic.split("/")
+    return parts[0] == "glider" and parts[2] in ("umodel", "command")
+
+
+def copy_with_changed_estimate(
+    source, target, index: int, topic: str = "glider/1/umodel/depth", field: str = "y_hat"
+) -> float:
+    """Rewrite ``source`` with one byte of ``field`` in the index-th ``topic`` record changed."""
     changed_t = None
     with open(source, "rb") as src, open(target, "wb") as out:
         writer = Writer(out)
@@ -50,12 +60,12 @@ def copy_with_changed_estimate(source, target, index: int) -> float:
                 writer.add_metadata(record.name, record.metadata)
             elif isinstance(record, Message):
                 data = record.data
-                if topics[record.channel_id] == "glider/1/umodel/depth":
+                if topics[record.channel_id] == topic:
                     if seen == index:
                         payload = json.loads(data)
                         changed_t = payload["t"]
                         text = data.decode()
-                        at = text.index('"y_hat":') + len('"y_hat":')
+                        at = text.index(f'"{field}":') + len(f'"{field}":')
                         at += len(text[at:]) - len(text[at:].lstrip()) + 3  # a digit of the value
                         digit = "1" if text[at] != "1" else "2"
                         data = (text[:at] + digit + text[at + 1 :]).encode()
@@ -79,6 +89,17 @@ def test_check_fails_naming_the_first_changed_estimate(tmp_path, capsys):
     assert "not finished" not in err and "recovered" not in err
 
 
+def test_check_fails_on_one_changed_command_byte(tmp_path, capsys):
+    changed = tmp_path / "changed.mcap"
+    t = copy_with_changed_estimate(
+        DATA / "paper.mcap", changed, index=500, topic="glider/1/command/ballast", field="u_depth"
+    )
+    assert main(["replay", "--fast", "--check", str(changed)]) == 1
+    err = capsys.readouterr().err
+    assert "glider/1/command/ballast" in err
+    assert f"message #500 (t = {t:g} s)" in err
+
+
 def test_truncated_fixture_replays_up_to_the_cut(tmp_path, replay_log):
     data = (DATA / "disturbed.mcap").read_bytes()
     cut = tmp_path / "cut.mcap"
@@ -90,16 +111,55 @@ def test_truncated_fixture_replays_up_to_the_cut(tmp_path, replay_log):
     assert result.mismatch is None
 
 
-def test_timed_replay_keeps_its_schedule_and_equals_fast_replay(replay_log):
+class SimulatedClock:
+    """Stands in for the replay module's ``time``: its clock moves only by ``sleep`` and by
+    ``cost`` s per reading (the work done between two readings)."""
+
+    def __init__(self, cost: float = 0.0) -> None:
+        self.now = 1000.0
+        self.cost = cost
+        self.slept = 0.0
+
+    def monotonic(self) -> float:
+        self.now += self.cost
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        assert seconds > 0
+        self.slept += seconds
+        self.now += seconds
+
+
+def _raw_span_s(path) -> float:
+    times = [m.log_time_ns for m in LogReader(path).messages({"mavlink/raw/in"})]
+    return (max(times) - min(times)) / 1e9
+
+
+@pytest.mark.parametrize("cost", [0.0, 1e-4])
+def test_timed_replay_keeps_its_schedule_and_equals_fast_replay(replay_log, monkeypatch, cost):
     path = DATA / "paper.mcap"
     fast = replay_log(path)
-    started = time.monotonic()
+    clock = SimulatedClock(cost)
+    monkeypatch.setattr(replay_module, "time", clock)
     timed = replay_log(path, speed=5.0)
-    elapsed = time.monotonic() - started
-    log_span = 20.0  # the fixture covers 20 s of wall time (2000 samples at 100x)
-    assert elapsed == pytest.approx(log_span / 5.0, abs=0.6)
-    assert timed.lag_s < 0.25
+    span = _raw_span_s(path) / 5.0
+    # Deadlines are absolute: ~9,000 frames' work (0.9 s at 1e-4 s each) does not add up,
+    # only the last readings' cost shows.
+    assert timed.wall_s == pytest.approx(span, abs=10 * cost + 1e-9)
+    assert clock.slept == pytest.approx(span, abs=timed.frames * 2 * cost + 1e-9)
+    assert timed.lag_s == pytest.approx(0.0, abs=10 * cost + 1e-12)
     assert timed.summary == fast.summary
+
+
+def test_timed_replay_reports_how_late_it_fell(replay_log, monkeypatch):
+    """Work slower than the schedule: replay never sleeps and says how late it is."""
+    path = DATA / "paper.mcap"
+    clock = SimulatedClock(cost=0.01)  # a reading per frame at least: ≥ 0.01 s per frame
+    monkeypatch.setattr(replay_module, "time", clock)
+    timed = replay_log(path, speed=100.0)  # the log's frames are ~2 ms apart at 100x
+    assert clock.slept == 0.0
+    behind = timed.frames * 0.01 - _raw_span_s(path) / 100.0  # 92 s of work for 0.2 s of log
+    assert timed.lag_s == pytest.approx(behind, rel=0.01)
 
 
 def test_info_and_cli_errors(capsys, tmp_path):
@@ -151,7 +211,7 @@ def test_check_needs_the_stored_configuration(tmp_path, capsys):
     assert "replayed 5 samples" in capsys.readouterr().out
 
 
-def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_path):
+def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_path, monkeypatch):
     from hil_service.mcap.recorder import McapRecorder
     from hil_service.offline.replay import ReplayOptions, replay
     from protocols.mapping import TelemetryMapping
@@ -166,7 +226,8 @@ def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_p
             recorder.raw("in", codec.pack(message), t_ns=300_000_000 * k)
     recorder.close()
     (path,) = tmp_path.glob("*.mcap")
+    monkeypatch.setattr(replay_module, "time", SimulatedClock())
     result = replay(path, ReplayOptions(speed=1.0))
     assert result.samples == 3
     # 0.6 s of log at 1x; taking t = 0 for "no start yet" lost the first 0.3 s.
-    assert 0.55 <= result.wall_s < 2.0
+    assert result.wall_s == pytest.approx(0.6)
