@@ -231,3 +231,131 @@ def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_p
     assert result.samples == 3
     # 0.6 s of log at 1x; taking t = 0 for "no start yet" lost the first 0.3 s.
     assert result.wall_s == pytest.approx(0.6)
+
+
+def test_non_default_units_replay_with_the_units_of_the_log(tmp_path):
+    """A log recorded with other units (fresh water, another surface pressure, a smaller
+    actuator full scale) replays bit for bit only with the units stored in it."""
+    from hil_service.inputs import Inbox
+    from hil_service.mcap.recorder import McapRecorder
+    from hil_service.offline.replay import ReplayOptions, replay
+    from hil_service.pipeline import PipelineSettings
+    from hil_service.service import HilService, ServiceConfig
+    from hil_service.zenoh_bus import NullBus
+    from plant_emulator.excitation import RandomSteps
+    from plant_emulator.plant import GliderPlant, PlantConfig
+    from protocols.mapping import TelemetryMapping
+    from protocols.mavlink_io import MavlinkCodec
+    from protocols.units import InputScale, PressureDepth
+
+    units = {"full_scale": 1.5, "water_density": 1000.0, "surface_pressure": 990.0}
+    mapping = TelemetryMapping(
+        pressure=PressureDepth(units["water_density"], units["surface_pressure"]),
+        inputs=InputScale(units["full_scale"]),
+    )
+    config = ServiceConfig(control_default=True, pipeline=PipelineSettings(burn_in=50))
+    metadata = {"service": json.dumps(config.to_json()), "mapping": json.dumps(units)}
+    recorder = McapRecorder(tmp_path, metadata=metadata).start()
+
+    class LoggingBus(NullBus):
+        def publish(self, key, payload, reliable=False):
+            recorder.zenoh(key, payload, "out")
+
+    service = HilService(config, LoggingBus(), Inbox(), recorder=recorder, mapping=mapping)
+    service.inbox.set_setpoint(1, "depth", 16.0)
+    plant, codec = GliderPlant(PlantConfig(seed=2, input_limit=1.5)), MavlinkCodec(1, 1)
+    excitation = RandomSteps(amplitude=1.4, min_hold=5, max_hold=20, seed=2)
+    for k in range(150):
+        sample = plant.step(excitation.value(k), 0.0)
+        for message in mapping.encode_telemetry(sample):
+            service.process_datagram(codec.pack(message))
+    recorder.close()
+    (log,) = tmp_path.glob("*.mcap")
+    recorded = [m.json() for m in LogReader(log).messages() if _checked(m.topic)]
+    assert any(r.get("u_depth") is not None for r in recorded), "no command was recorded"
+
+    result = replay(log, ReplayOptions(check=True))
+    assert result.mismatch is None, result.mismatch.describe()
+    assert result.compared == len(recorded)
+    # The same log read with the default units is another plant: the check says so.
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    copy_without_units = bare / "log.mcap"
+    _copy_metadata_without(log, copy_without_units, "mapping")
+    assert replay(copy_without_units, ReplayOptions(check=True)).mismatch is not None
+
+
+def _copy_metadata_without(source, target, key: str) -> None:
+    """``source`` rewritten with ``key`` left out of its stored configuration metadata."""
+    with open(source, "rb") as src, open(target, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="glider-hil", library="test")
+        schema_ids, channel_ids = {0: 0}, {}
+        for record in StreamReader(src).records:
+            if isinstance(record, Schema) and record.id not in schema_ids:
+                schema_ids[record.id] = writer.register_schema(
+                    record.name, record.encoding, record.data
+                )
+            elif isinstance(record, Channel) and record.id not in channel_ids:
+                channel_ids[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schema_ids[record.schema_id],
+                    record.metadata,
+                )  # fmt: skip
+            elif isinstance(record, Metadata):
+                writer.add_metadata(
+                    record.name, {k: v for k, v in record.metadata.items() if k != key}
+                )
+            elif isinstance(record, Message):
+                writer.add_message(
+                    channel_ids[record.channel_id],
+                    record.log_time,
+                    record.data,
+                    record.publish_time,
+                )
+        writer.finish()
+
+
+@pytest.mark.timeout(90)
+def test_replay_publish_and_loop_republish_the_log_on_zenoh(processes):
+    """`replay --publish --loop`: the log's telemetry appears on Zenoh, in order, again and
+    again (a restart is where the sample time goes back to the log's first)."""
+    import socket
+    import time
+
+    from tests.conftest import free_tcp_port
+    from tests.zenoh_peer import ZenohProbe
+
+    path = DATA / "paper.mcap"
+    logged = [m.json() for m in LogReader(path).messages({"glider/1/telemetry"})]
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    replaying = processes.start(
+        "replay", str(path), "--speed", "5", "--loop", "--publish", "--zenoh-listen", endpoint
+    )  # fmt: skip
+
+    def listening() -> bool:
+        with socket.socket() as probe_socket:
+            return probe_socket.connect_ex(("127.0.0.1", port)) == 0
+
+    deadline = time.monotonic() + 30
+    while not listening():
+        assert replaying.poll() is None, replaying.communicate()[1]
+        assert time.monotonic() < deadline, "replay never opened its Zenoh endpoint"
+        time.sleep(0.05)
+    probe = ZenohProbe(endpoint, key="glider/1/telemetry")
+    try:
+
+        def restarts() -> list[int]:
+            seen = probe.payloads("glider/1/telemetry")
+            return [i for i in range(1, len(seen)) if seen[i]["t"] < seen[i - 1]["t"]]
+
+        assert probe.wait_for(lambda: len(restarts()) >= 2, 60), (
+            len(restarts()),
+            probe.count("glider/1/telemetry"),
+        )
+    finally:
+        probe.close()
+        processes.stop(replaying)
+    seen = probe.payloads("glider/1/telemetry")
+    first, second = restarts()[:2]
+    assert seen[first:second] == logged  # one whole pass, every sample, as recorded
