@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
-        "markers", "wire: runs `serve` processes on real sockets (left out of `make mutate`)"
+        "markers", "wire: runs project processes on real sockets (left out of `make mutate`)"
     )
 
 

@@ -315,6 +315,7 @@ def _copy_metadata_without(source, target, key: str) -> None:
         writer.finish()
 
 
+@pytest.mark.wire
 @pytest.mark.timeout(90)
 def test_replay_publish_and_loop_republish_the_log_on_zenoh(processes):
     """`replay --publish --loop`: the log's telemetry appears on Zenoh, in order, again and
@@ -359,3 +360,79 @@ def test_replay_publish_and_loop_republish_the_log_on_zenoh(processes):
     seen = probe.payloads("glider/1/telemetry")
     first, second = restarts()[:2]
     assert seen[first:second] == logged  # one whole pass, every sample, as recorded
+
+
+def _rewrite(source, target, edit) -> None:
+    """``source`` copied to ``target`` with each message's data replaced by
+    ``edit(topic, n, data)`` (a list: [] drops it, two entries duplicate it), ``n`` counting
+    that topic's messages from 0."""
+    with open(source, "rb") as src, open(target, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="glider-hil", library="test")
+        schema_ids, channel_ids, topics = {0: 0}, {}, {}
+        seen: dict[str, int] = {}
+        for record in StreamReader(src).records:
+            if isinstance(record, Schema) and record.id not in schema_ids:
+                schema_ids[record.id] = writer.register_schema(
+                    record.name, record.encoding, record.data
+                )
+            elif isinstance(record, Channel) and record.id not in channel_ids:
+                topics[record.id] = record.topic
+                channel_ids[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schema_ids[record.schema_id],
+                    record.metadata,
+                )  # fmt: skip
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, record.metadata)
+            elif isinstance(record, Message):
+                topic = topics[record.channel_id]
+                n = seen.get(topic, 0)
+                seen[topic] = n + 1
+                for data in edit(topic, n, record.data):
+                    writer.add_message(
+                        channel_ids[record.channel_id], record.log_time, data, record.publish_time
+                    )
+        writer.finish()
+
+
+def test_a_recorded_estimate_the_replay_does_not_produce_is_named(tmp_path, replay_log):
+    changed = tmp_path / "extra.mcap"
+    duplicated = {}
+
+    def duplicate(topic, n, data):
+        if topic == "glider/1/umodel/depth" and n == 100:
+            duplicated["data"] = data
+            return [data, data]
+        return [data]
+
+    _rewrite(DATA / "paper.mcap", changed, duplicate)
+    mismatch = replay_log(changed, check=True).mismatch
+    assert mismatch is not None
+    assert (mismatch.key, mismatch.index) == ("glider/1/umodel/depth", 101)
+    assert mismatch.t == json.loads(duplicated["data"])["t"]
+    assert (mismatch.recorded, mismatch.recomputed) == (duplicated["data"].decode(), "<nothing>")
+
+
+def test_check_compares_values_not_spelling(tmp_path, replay_log):
+    """A log written by another JSON encoder (other spacing) checks; a record that is not
+    JSON at all is a mismatch."""
+    respaced, broken = tmp_path / "respaced.mcap", tmp_path / "broken.mcap"
+
+    def respace(topic, n, data):
+        return [json.dumps(json.loads(data), indent=1).encode() if _checked(topic) else data]
+
+    def garble(topic, n, data):
+        return [b"not json" if topic == "glider/1/command/ballast" and n == 10 else data]
+
+    _rewrite(DATA / "paper.mcap", respaced, respace)
+    result = replay_log(respaced, check=True)
+    assert result.mismatch is None, result.mismatch.describe()
+    assert result.compared == 5185
+    _rewrite(DATA / "paper.mcap", broken, garble)
+    mismatch = replay_log(broken, check=True).mismatch
+    assert mismatch is not None
+    assert (mismatch.key, mismatch.index, mismatch.recorded) == (
+        "glider/1/command/ballast",
+        10,
+        "not json",
+    )
