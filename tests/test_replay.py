@@ -21,6 +21,7 @@ SCENARIOS = ("paper", "disturbed", "nonlinear")
 def test_fixtures_replay_bit_for_bit(replay_log, scenario):
     result = replay_log(DATA / f"{scenario}.mcap", check=True)
     assert result.mismatch is None, result.mismatch.describe()
+    assert result.complete is True
     assert result.samples == 2000
     # Every recorded estimate of both channels and every command, each compared once.
     recorded = sum(1 for m in LogReader(DATA / f"{scenario}.mcap").messages() if _checked(m.topic))
@@ -105,7 +106,7 @@ def test_truncated_fixture_replays_up_to_the_cut(tmp_path, replay_log):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
     result = replay_log(cut, check=True)
-    assert not result.complete
+    assert result.complete is False
     assert "recovered" in result.recovered
     assert 200 < result.samples < 2000
     assert result.mismatch is None
@@ -435,4 +436,24 @@ def test_check_compares_values_not_spelling(tmp_path, replay_log):
         "glider/1/command/ballast",
         10,
         "not json",
+    )
+
+
+def test_an_estimate_the_log_lacks_is_named(tmp_path, replay_log):
+    """The replay publishes one more estimate than the (complete) log recorded."""
+    last = sum(1 for _ in LogReader(DATA / "paper.mcap").messages({"glider/1/umodel/pitch"})) - 1
+    shorter = tmp_path / "shorter.mcap"
+    _rewrite(
+        DATA / "paper.mcap",
+        shorter,
+        lambda topic, n, data: [] if topic == "glider/1/umodel/pitch" and n == last else [data],
+    )
+    result = replay_log(shorter, check=True)
+    assert result.complete is True
+    mismatch = result.mismatch
+    assert mismatch is not None
+    assert (mismatch.key, mismatch.index, mismatch.recorded) == (
+        "glider/1/umodel/pitch",
+        last,
+        "<not in the log>",
     )
