@@ -110,18 +110,21 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
     service = None
     stop = threading.Event()
     try:
-        time.sleep(1.0)
+        assert router.stdout is not None
+        assert router.stdout.readline(), "the router did not start"  # its session is open
         service = processes.start_service(
             "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-connect", endpoint,
             "--log-dir", str(tmp_path / "logs"),
         )  # fmt: skip
         vehicle = FakeVehicle(udp)
 
+        sent = [0]  # steps sent so far
+
         def stream() -> None:
-            k = 0
             while not stop.is_set():
+                k = sent[0]
                 vehicle.step(k * 1000, depth=15.0 + 0.01 * (k % 100))
-                k += 1
+                sent[0] = k + 1
                 time.sleep(0.02)
 
         sender = threading.Thread(target=stream, daemon=True)
@@ -129,9 +132,9 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
         assert first_received(router, time.monotonic() + 15) > 0, "router never heard the service"
 
         stop_router(router)
-        outage_start = time.time()
-        time.sleep(3.0)
-        outage_end = time.time()
+        outage_from = sent[0]
+        time.sleep(3.0)  # the outage (what is asserted is counted in steps, not seconds)
+        outage_to = sent[0]
         router = start_router(endpoint)
         assert first_received(router, time.monotonic() + 30) > 0, "publications did not resume"
         assert service.poll() is None
@@ -143,12 +146,9 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
     vehicle.close()
     summary = json.loads(out.strip().splitlines()[-1])["service"]
     [log] = (tmp_path / "logs").glob("*.mcap")
-    during = [
-        m
-        for m in LogReader(log).messages({"mavlink/raw/in", "glider/1/telemetry"})
-        if outage_start + 0.5 < m.log_time_ns / 1e9 < outage_end - 0.5
-    ]
-    # 2 s of outage at 50 steps/s: MAVLink decoding and logging went on throughout.
-    assert sum(m.topic == "glider/1/telemetry" for m in during) > 50
-    assert sum(m.topic == "mavlink/raw/in" for m in during) > 150
-    assert summary["counters"]["samples"] > 200
+    logged = {m.json()["t"] for m in LogReader(log).messages({"glider/1/telemetry"})}
+    # Every step the vehicle sent while the router was away was decoded and logged.
+    assert outage_to - outage_from > 20
+    missing = [k for k in range(outage_from, outage_to) if float(k) not in logged]
+    assert missing == []
+    assert summary["counters"]["samples"] >= outage_to
