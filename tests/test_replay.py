@@ -441,7 +441,8 @@ def test_check_compares_values_not_spelling(tmp_path, replay_log):
 
 def test_an_estimate_the_log_lacks_is_named(tmp_path, replay_log):
     """The replay publishes one more estimate than the (complete) log recorded."""
-    last = sum(1 for _ in LogReader(DATA / "paper.mcap").messages({"glider/1/umodel/pitch"})) - 1
+    estimates = [m.data for m in LogReader(DATA / "paper.mcap").messages({"glider/1/umodel/pitch"})]
+    last = len(estimates) - 1
     shorter = tmp_path / "shorter.mcap"
     _rewrite(
         DATA / "paper.mcap",
@@ -457,3 +458,6 @@ def test_an_estimate_the_log_lacks_is_named(tmp_path, replay_log):
         last,
         "<not in the log>",
     )
+    # What the replay computed is the record that was left out, bit for bit.
+    assert mismatch.recomputed == estimates[last].decode()
+    assert mismatch.t == json.loads(estimates[last])["t"]
