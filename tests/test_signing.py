@@ -231,16 +231,36 @@ def test_service_may_accept_unsigned_telemetry_when_configured():
 
 
 def test_service_signs_the_commands_it_sends():
-    service = HilService(ServiceConfig(security=LinkSecurity(KEY)), NullBus(), Inbox())
-    frame = service.codec.pack(MAPPING.ballast_command(_command(), 1))
-    assert FrameVerifier(KEY).accept(frame)
-    assert not FrameVerifier(OTHER_KEY).accept(frame)
+    """Through the service's own send path: signed telemetry in, control on, and every
+    frame that reaches the vehicle's socket is a command signed with the link key."""
+    from hil_service.pipeline import PipelineSettings
+    from tests.test_safety_gate import BLOCKED, BURN_IN, SentFrames, plant_samples
 
-
-def _command():
-    from protocols.samples import BallastCommand
-
-    return BallastCommand(0.4, -0.2)
+    link = SentFrames()
+    config = ServiceConfig(
+        control_default=True,
+        pipeline=PipelineSettings(burn_in=BURN_IN),
+        security=LinkSecurity(KEY),
+    )
+    service = HilService(config, NullBus(), Inbox(), link=link.link)
+    service.inbox.set_setpoint(1, "depth", 16.0)
+    vehicle = MavlinkCodec(1, 1, signing_key=KEY)
+    try:
+        for sample, _ in plant_samples(BLOCKED + 10):
+            for message in MAPPING.encode_telemetry(sample):
+                service.process_datagram(vehicle.pack(message))
+        frames = link.frames
+    finally:
+        link.close()
+    assert len(frames) == 10 == service.vehicles[1].commands_sent
+    genuine, other = FrameVerifier(KEY), FrameVerifier(OTHER_KEY)
+    for frame in frames:
+        assert frame[2] & 0x01, "signed flag not set"
+        assert not other.accept(frame)
+        assert genuine.accept(frame)  # each once: timestamps increase, no replay
+    receiver = MavlinkCodec(255, 190, verifier=FrameVerifier(KEY))
+    decoded = [m for frame in frames for m in receiver.parse(frame, datagram=True)]
+    assert [m.get_type() for m in decoded] == ["COMMAND_LONG"] * 10
 
 
 class LoggingBus(NullBus):
