@@ -237,32 +237,30 @@ def test_timed_replay_of_a_log_that_starts_at_time_zero_keeps_its_schedule(tmp_p
 def test_non_default_units_replay_with_the_units_of_the_log(tmp_path):
     """A log recorded with other units (fresh water, another surface pressure, a smaller
     actuator full scale) replays bit for bit only with the units stored in it."""
+    from hil_service.config import ServiceConfig, Units
     from hil_service.inputs import Inbox
     from hil_service.mcap.recorder import McapRecorder
     from hil_service.offline.replay import ReplayOptions, replay
     from hil_service.pipeline import PipelineSettings
-    from hil_service.service import HilService, ServiceConfig
+    from hil_service.service import HilService
     from hil_service.zenoh_bus import NullBus
     from plant_emulator.excitation import RandomSteps
     from plant_emulator.plant import GliderPlant, PlantConfig
-    from protocols.mapping import TelemetryMapping
     from protocols.mavlink_io import MavlinkCodec
-    from protocols.units import InputScale, PressureDepth
 
-    units = {"full_scale": 1.5, "water_density": 1000.0, "surface_pressure": 990.0}
-    mapping = TelemetryMapping(
-        pressure=PressureDepth(units["water_density"], units["surface_pressure"]),
-        inputs=InputScale(units["full_scale"]),
+    units = Units(full_scale=1.5, water_density=1000.0, surface_pressure=990.0)
+    mapping = units.mapping()
+    config = ServiceConfig(
+        control_default=True, pipeline=PipelineSettings(burn_in=50), units=units
     )
-    config = ServiceConfig(control_default=True, pipeline=PipelineSettings(burn_in=50))
-    metadata = {"service": json.dumps(config.to_json()), "mapping": json.dumps(units)}
+    metadata = config.to_metadata()
     recorder = McapRecorder(tmp_path, metadata=metadata).start()
 
     class LoggingBus(NullBus):
         def publish(self, key, payload, reliable=False):
             recorder.zenoh(key, payload, "out")
 
-    service = HilService(config, LoggingBus(), Inbox(), recorder=recorder, mapping=mapping)
+    service = HilService(config, LoggingBus(), Inbox(), recorder=recorder)
     service.inbox.set_setpoint(1, "depth", 16.0)
     plant, codec = GliderPlant(PlantConfig(seed=2, input_limit=1.5)), MavlinkCodec(1, 1)
     excitation = RandomSteps(amplitude=1.4, min_hold=5, max_hold=20, seed=2)

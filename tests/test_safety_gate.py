@@ -339,7 +339,7 @@ def test_owner_limits_refuse_setpoints_and_never_clip(make_rig):
     ]
     for n, (channel, value, why) in enumerate(refused, start=1):
         rig.probe.put(f"glider/1/setpoint/{channel}", {"value": value})
-        health = rig.wait_health(lambda h, n=n: h["counters"]["setpoints_rejected"] == n)
+        health = rig.wait_health(lambda h, n=n: h["service_wide"]["setpoints_rejected"] == n)
         assert health["last_rejected_input"] == f"glider/1/setpoint/{channel}: refused: {why}"
         # Refused, not clipped to the limit: no setpoint is in force.
         assert health["control"]["setpoints"] == {"depth": None, "pitch": None}
@@ -352,7 +352,7 @@ def test_owner_limits_refuse_setpoints_and_never_clip(make_rig):
     rig.set_setpoints(30.0, -0.3)  # on the limits: accepted
     rig.wait_health(lambda h: h["control"]["setpoints"] == {"depth": 30.0, "pitch": -0.3})
     assert rig.stream(20) == 20
-    assert rig.settle()["counters"]["setpoints_rejected"] == len(refused)
+    assert rig.settle()["service_wide"]["setpoints_rejected"] == len(refused)
 
 
 # ---- in process: the finer cases ---------------------------------------------------------
