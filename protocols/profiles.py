@@ -17,6 +17,7 @@ import math
 import re
 import sys
 from dataclasses import dataclass, field
+from functools import cached_property
 from importlib import resources
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -174,18 +175,23 @@ class Profile:
         )
 
     # ---- reading messages ------------------------------------------------------------
+    @cached_property
+    def _sources_by_message(self) -> dict[str, tuple[tuple[str, int, Source], ...]]:
+        plan: dict[str, list[tuple[str, int, Source]]] = {}
+        for name, sources in self.signals.items():
+            for rank, source in enumerate(sources):
+                plan.setdefault(source.message, []).append((name, rank, source))
+        return {kind: tuple(entries) for kind, entries in plan.items()}
+
     def readings(self, message: MavMessage) -> list[Reading]:
         """Every signal value ``message`` carries under this profile (unit-converted)."""
         kind = message.get_type()
         found = []
-        for name, sources in self.signals.items():
-            for rank, source in enumerate(sources):
-                if source.message != kind:
-                    continue
-                raw = getattr(message, source.field)
-                if source.index is not None:
-                    raw = raw[source.index]
-                found.append(Reading(name, rank, self._convert(source, float(raw))))
+        for name, rank, source in self._sources_by_message.get(kind, ()):
+            raw = getattr(message, source.field)
+            if source.index is not None:
+                raw = raw[source.index]
+            found.append(Reading(name, rank, self._convert(source, float(raw))))
         if kind == self.ballast.readback:
             u_depth, u_pitch = self.ballast.applied(message)
             found.append(Reading("u_depth", 0, u_depth))
@@ -231,16 +237,30 @@ def _command_long(target_system: int, command: int, params: list[float]) -> MavM
     )
 
 
+_CLOCK_FIELDS: dict[type, tuple[str, str] | None] = {}
+
+
+def _clock_field(cls: Any) -> tuple[str, str] | None:
+    names = cls.fieldnames
+    if "time_boot_ms" in names:
+        return "ms32", "time_boot_ms"
+    if "time_usec" in names:
+        ftype = cls.fieldtypes[names.index("time_usec")]
+        return ("us64" if ftype == "uint64_t" else "us32"), "time_usec"
+    return None
+
+
 def message_clock(message: MavMessage) -> tuple[str, int] | None:
     """The vehicle-clock stamp a message carries: (``ms32``/``us32``/``us64``, raw value),
     or None (VFR_HUD has none)."""
-    names = message.fieldnames
-    if "time_boot_ms" in names:
-        return "ms32", int(message.time_boot_ms)
-    if "time_usec" in names:
-        ftype = message.fieldtypes[names.index("time_usec")]
-        return ("us64" if ftype == "uint64_t" else "us32"), int(message.time_usec)
-    return None
+    cls = type(message)
+    try:
+        found = _CLOCK_FIELDS[cls]
+    except KeyError:
+        found = _CLOCK_FIELDS[cls] = _clock_field(cls)
+    if found is None:
+        return None
+    return found[0], int(getattr(message, found[1]))
 
 
 # ---- loading ---------------------------------------------------------------------------
