@@ -4,14 +4,12 @@ against `glider-hil emulate --profile ardusub` on loopback UDP, across a µs-clo
 from __future__ import annotations
 
 import itertools
-import time
 
 from hil_service.cli.processes import last_json
-from hil_service.companion import COMPANION_COMPONENT, Companion
-from hil_service.profile_assembler import ProfileAssembler
+from hil_service.pipeline import PipelineSettings
 from protocols.mavlink_io import dialect
 from protocols.profiles import load_profile
-from tests.mavlink_peer import UdpPeer
+from tests.ardusub_client import ArduSubClient
 
 SPEED = 5.0
 PERIOD = 0.1
@@ -19,44 +17,15 @@ US32_SPAN = (1 << 32) / 1e6
 PROFILE = load_profile("ardusub")
 
 
-class Client:
-    """What `serve --profile ardusub` will do, in-process: a companion on the vehicle's
-    system id, component 191, sampling the vehicle's streams."""
-
-    def __init__(self, peer: UdpPeer):
-        self.peer = peer
-        self.companion = Companion(PROFILE, PERIOD, target_system=1)
-        self.assembler = ProfileAssembler(PROFILE, PERIOD)
-        self.samples = []
-        self.acks = []
-        self.servo_usec = []
-
-    def run(self, seconds: float, until=None) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            for item in self.peer.receive_until(lambda got: True, 0.05):
-                message = item.message
-                self.companion.on_message(message, item.arrival)
-                self.samples += self.assembler.add_all(message)
-                if message.get_type() == "COMMAND_ACK":
-                    self.acks.append(message)
-                if message.get_type() == "SERVO_OUTPUT_RAW":
-                    self.servo_usec.append(message.time_usec)
-            if self.peer.remote is not None:
-                for message in self.companion.poll(time.monotonic()):
-                    self.peer.send(message)
-            if until is not None and until():
-                return
-
-
 def test_companion_samples_ardusub_streams_and_commands_servos_across_a_wrap(processes):
-    peer = UdpPeer(system_id=1, component_id=COMPANION_COMPONENT)
+    client = ArduSubClient(PROFILE, PERIOD)
+    peer = client.peer
     emulator = processes.start(
         "emulate",
         "--profile",
         "ardusub",
         "--connect",
-        f"udpout:127.0.0.1:{peer.port}",
+        f"udpout:127.0.0.1:{client.port}",
         "--speed",
         str(SPEED),
         "--period",
@@ -73,7 +42,6 @@ def test_companion_samples_ardusub_streams_and_commands_servos_across_a_wrap(pro
         "1000",
     )
     try:
-        client = Client(peer)
         # Until every stream runs at the sample rate (the vehicle accepted each request).
         client.run(30.0, lambda: set(client.companion.states.values()) == {"accepted"})
         assert set(client.companion.states.values()) == {"accepted"}
@@ -106,4 +74,61 @@ def test_companion_samples_ardusub_streams_and_commands_servos_across_a_wrap(pro
         heartbeats = last_json(out, "emulator")["gcs"]["heartbeats"]
         assert heartbeats.get("MAV_TYPE_ONBOARD_CONTROLLER", 0) >= 5
     finally:
-        peer.close()
+        client.close()
+
+
+def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes):
+    """Identification on ArduSub-style streams sampled every 0.1 s, then inverse control
+    of a depth and pitch step through DO_SET_SERVO, across a µs-clock wrap."""
+    speed, identify, control = 10.0, 60.0, 150.0  # simulated s
+    client = ArduSubClient(PROFILE, PERIOD, PipelineSettings(burn_in=int(0.8 * identify / PERIOD)))
+    emulator = processes.start(
+        "emulate",
+        "--profile",
+        "ardusub",
+        "--connect",
+        f"udpout:127.0.0.1:{client.port}",
+        "--speed",
+        str(speed),
+        "--period",
+        str(PERIOD),
+        "--uptime",
+        f"{US32_SPAN - identify:.3f}",
+        "--excitation",
+        "prbs",
+        "--seed",
+        "1",
+        "--command-timeout",
+        "5",
+        "--fallback",
+        "hold",
+        "--trim-depth",
+        "15",
+    )
+    try:
+        client.run(30.0, lambda: set(client.companion.states.values()) == {"accepted"})
+        client.run(identify / speed)
+        health = client.pipeline.identifier_health()
+        assert all(health[ch]["converged"] for ch in ("depth", "pitch")), health
+        assert all(health[ch]["skill"] > 0.2 for ch in ("depth", "pitch")), health
+        start = len(client.samples)
+        client.setpoints = {"depth": 16.0, "pitch": 0.1}
+        client.run(control / speed)
+        usec = client.servo_usec
+        assert any(b < a for a, b in itertools.pairwise(usec)), "no µs wrap seen"
+        # Mean |y − setpoint| over the second half of the step.
+        tail = client.samples[start + (len(client.samples) - start) // 2 :]
+        depth_error = sum(abs(s.depth - 16.0) for s in tail) / len(tail)
+        pitch_error = sum(abs(s.pitch - 0.1) for s in tail) / len(tail)
+        print(
+            f"\nardusub closed loop: skill depth {health['depth']['skill']}, pitch "
+            f"{health['pitch']['skill']}; mean |error| depth {depth_error:.3f} m, "
+            f"pitch {pitch_error:.5f} rad; {client.commands_sent} DO_SET_SERVO"
+        )
+        assert depth_error < 0.3 and pitch_error < 0.01
+        out, _ = processes.stop(emulator)
+        summary = last_json(out, "emulator")
+        assert summary["commands_accepted"] == client.commands_sent > 0
+        assert summary["commands_rejected"] == 0
+    finally:
+        client.close()
