@@ -200,7 +200,10 @@ class ArduSubAutopilot(Autopilot):
         if not self._start:
             return self.streams.uptime + self.plant.t
         now = self.clock() if now is None else now
-        return self.streams.uptime + (now - self._start) * self.config.speed
+        wall = self.streams.uptime + (now - self._start) * self.config.speed
+        # Never ahead of the plant's next step: an emulator running behind its speed (a
+        # loaded machine) stamps what it sends with the plant's time, not the wall's.
+        return min(wall, self.streams.uptime + self.plant.t)
 
     def step(self) -> TelemetrySample:
         sample = self.plant.step(*self._inputs_for_step())

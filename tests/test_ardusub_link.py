@@ -107,13 +107,16 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
     )
     try:
         client.run(30.0, lambda: set(client.companion.states.values()) == {"accepted"})
-        client.run(identify / speed)
+        # By samples, not wall time: on a loaded machine the emulator runs behind its speed.
+        goal = len(client.samples) + round(identify / PERIOD)
+        client.run(6 * identify / speed, lambda: len(client.samples) >= goal)
         health = client.pipeline.identifier_health()
         assert all(health[ch]["converged"] for ch in ("depth", "pitch")), health
         assert all(health[ch]["skill"] > 0.2 for ch in ("depth", "pitch")), health
         start = len(client.samples)
         client.setpoints = {"depth": 16.0, "pitch": 0.1}
-        client.run(control / speed)
+        goal = start + round(control / PERIOD)
+        client.run(6 * control / speed, lambda: len(client.samples) >= goal)
         usec = client.servo_usec
         assert any(b < a for a, b in itertools.pairwise(usec)), "no µs wrap seen"
         # Mean |y − setpoint| over the second half of the step.

@@ -89,11 +89,13 @@ def mavproxy_tlog(tmp_path_factory) -> tuple[Path, dict]:
         f"--logfile={tlog}",
         "--cmd=repeat add 2 wp list; repeat add 2 version; repeat add 2 param set SR0_EXTRA2 2",
     ]
+    console = open(base / "mavproxy.out", "w")  # noqa: SIM115 - closed below
     gcs = subprocess.Popen(
         command,
         cwd=base,
         stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
+        # To a file: an undrained pipe fills up and MAVProxy stops routing when it blocks.
+        stdout=console,
         stderr=subprocess.STDOUT,
         text=True,
         env={**os.environ, "HOME": str(base)},  # no ~/.mavinit.scr of the user's
@@ -121,10 +123,12 @@ def mavproxy_tlog(tmp_path_factory) -> tuple[Path, dict]:
         emulator_out, _ = stop_process(emulator)
         gcs.send_signal(signal.SIGTERM)
         try:
-            gcs_out, _ = gcs.communicate(timeout=20)
+            gcs.wait(timeout=20)
         except subprocess.TimeoutExpired:
             gcs.kill()
-            gcs_out, _ = gcs.communicate(timeout=5)
+            gcs.wait(timeout=5)
+        console.close()
+        gcs_out = (base / "mavproxy.out").read_text(errors="replace")
     summary = next(
         (
             json.loads(line)["emulator"]
