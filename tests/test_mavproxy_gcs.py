@@ -120,13 +120,14 @@ def mavproxy_tlog(tmp_path_factory) -> tuple[Path, dict]:
                 break
             time.sleep(0.5)  # polling the file MAVProxy writes; the loop waits for content
     finally:
-        emulator_out, _ = stop_process(emulator)
+        # The ground station first: requests it sends to a stopped vehicle go unanswered.
         gcs.send_signal(signal.SIGTERM)
         try:
             gcs.wait(timeout=20)
         except subprocess.TimeoutExpired:
             gcs.kill()
             gcs.wait(timeout=5)
+        emulator_out, _ = stop_process(emulator)
         console.close()
         gcs_out = (base / "mavproxy.out").read_text(errors="replace")
     summary = next(

@@ -102,13 +102,13 @@ def test_identify_and_control_through_mavproxy_and_import_its_tlog(tmp_path):
         goal = start + round(CONTROL / PERIOD)
         client.run(6 * CONTROL / SPEED, lambda: len(client.samples) >= goal)
     finally:
-        emulator_out, _ = stop_process(emulator)
         router.send_signal(signal.SIGTERM)
         try:
             router.wait(timeout=20)
         except subprocess.TimeoutExpired:
             router.kill()
             router.wait(timeout=5)
+        emulator_out, _ = stop_process(emulator)
         console.close()
         router_out = (tmp_path / "mavproxy.out").read_text(errors="replace")
         client.close()
