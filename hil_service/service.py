@@ -15,14 +15,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.assembler import SampleAssembler
+from hil_service.companion import Companion
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.profile_assembler import ProfileAssembler
 from hil_service.zenoh_bus import Bus
 from protocols import keys
 from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
-from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
+from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
+from protocols.profiles import Profile
 from protocols.samples import TelemetrySample
 
 
@@ -52,15 +55,23 @@ class ServiceConfig:
     health_period: float = 1.0  # wall s
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
     security: LinkSecurity = field(default_factory=LinkSecurity)
+    #: A periodic vehicle profile (docs/profiles.md): sample the vehicle's streams every
+    #: ``sample_period`` s, command it as the profile says, and behave as its companion
+    #: computer (heartbeat, stream requests). None: the lockstep ``glider`` contract.
+    profile: Profile | None = None
+    sample_period: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        data: dict[str, Any] = {
             "system_ids": list(self.system_ids),
             "control_default": self.control_default,
             "stale_timeout": self.stale_timeout,
             "pipeline": self.pipeline.to_json(),
             "signing": self.security.to_json(),
         }
+        if self.profile is not None:
+            data["profile"] = {"name": self.profile.name, "sample_period": self.sample_period}
+        return data
 
 
 @dataclass
@@ -101,8 +112,17 @@ class HilService:
         self.mapping = mapping or TelemetryMapping()
         self.clock = clock
         self.send_commands = send_commands and link is not None
+        self.periodic: ProfileAssembler | None = None
+        self.companions: dict[int, Companion] = {}
+        system_id = config.service_system_id
+        if config.profile is not None:
+            self.periodic = ProfileAssembler(
+                config.profile, config.sample_period, config.system_ids or None
+            )
+            if len(config.system_ids) == 1:
+                system_id = config.system_ids[0]  # a companion speaks as its vehicle
         self.codec = MavlinkCodec.for_link(
-            config.service_system_id,
+            system_id,
             SERVICE_COMPONENT,
             config.security.key,
             accept_unsigned=config.security.accept_unsigned,
@@ -127,12 +147,18 @@ class HilService:
             if self.recorder is not None:
                 self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
                 self.recorder.mavlink("in", message, now_ns)
+            if self.periodic is not None:
+                samples.extend(self._process_periodic(message))
+                continue
             sample = self.process_message(message)
             if sample is not None:
                 samples.append(sample)
         return samples
 
     def process_message(self, message: MavMessage) -> TelemetrySample | None:
+        if self.periodic is not None:
+            found = self._process_periodic(message)
+            return found[-1] if found else None
         header = message.get_header()
         self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
         if message.get_type() == "COMMAND_ACK":
@@ -142,6 +168,28 @@ class HilService:
         if sample is not None:
             self.process_sample(sample)
         return sample
+
+    def _process_periodic(self, message: MavMessage) -> list[TelemetrySample]:
+        """A periodic profile's path: a message may complete several samples (a gap)."""
+        assert self.periodic is not None
+        header = message.get_header()
+        self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
+        companion = self.companions.get(header.srcSystem)
+        if companion is not None:
+            companion.on_message(message, self.clock())
+        if message.get_type() == "COMMAND_ACK":
+            if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+                self._on_ack(message)
+            return []
+        samples = self.periodic.add_all(message)
+        for sample in samples:
+            if sample.system_id not in self.companions and self.config.profile is not None:
+                period = self.periodic.config.period
+                self.companions[sample.system_id] = Companion(
+                    self.config.profile, period, sample.system_id
+                )
+            self.process_sample(sample)
+        return samples
 
     def process_sample(self, sample: TelemetrySample) -> None:
         vehicle = self._vehicle(sample.system_id)
@@ -180,7 +228,13 @@ class HilService:
                 vehicle.last_command = decision.payload
         if decision.command is not None and decision.payload is not None:
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
-            if self.send_commands:
+            if self.send_commands and self.config.profile is not None:
+                command = decision.command
+                for message in self.config.profile.command_messages(
+                    command.u_depth, command.u_pitch, system_id
+                ):
+                    self._send(message)
+            elif self.send_commands:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
             vehicle.commands_sent += 1
 
@@ -213,6 +267,10 @@ class HilService:
     def tick(self) -> None:
         """Health at ``health_period``; call often (the run loop does every 0.1 s at most)."""
         now = self.clock()
+        if self.link is not None:
+            for companion in self.companions.values():
+                for message in companion.poll(now):
+                    self._send(message)
         if now < self._next_health:
             return
         self._next_health = now + self.config.health_period
@@ -231,8 +289,9 @@ class HilService:
         reason = "telemetry stale" if stale else vehicle.control_reason
         if stale:
             vehicle.reset_pending = True  # controllers re-arm before the next decision
-        counters = {
-            **self.assembler.counters.as_dict(),
+        assembly = self._assembly()
+        counters: dict[str, Any] = {
+            **assembly,
             **self.codec.counters.as_dict(),
             "setpoints_rejected": self.inbox.rejected,
             "commands_sent": vehicle.commands_sent,
@@ -248,14 +307,18 @@ class HilService:
         malformed = (
             self.codec.counters.bad_frames
             + self.codec.counters.unknown_frames
-            + self.assembler.counters.invalid
-            + self.assembler.counters.out_of_order
-            + self.assembler.counters.incomplete
+            + int(assembly["invalid"])
+            + int(assembly["out_of_order"])
+            + int(assembly["incomplete"])
         )
+        companion = self.companions.get(system_id)
+        if companion is not None:
+            counters["companion"] = companion.counters.as_dict()
+            counters["stream_requests"] = companion.states
         payload: dict[str, Any] = {
             "t_wall": time.time(),
             "link_rate": vehicle.rate.rate(now),
-            "samples": self.assembler.counters.samples,
+            "samples": assembly["samples"],
             "packet_loss": self.sequence.loss_fraction,
             "malformed": malformed,
             "counters": counters,
@@ -295,11 +358,21 @@ class HilService:
                 "control_reason": vehicle.control_reason,
             }
 
+    def _assembly(self) -> dict[str, Any]:
+        """The assembler's counters (lockstep or periodic, the same names)."""
+        if self.periodic is not None:
+            return self.periodic.counters.as_dict()
+        return dict(self.assembler.counters.as_dict())
+
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
+            "companions": {
+                str(system_id): {**c.counters.as_dict(), "stream_requests": c.states}
+                for system_id, c in self.companions.items()
+            },
             "counters": {
-                **self.assembler.counters.as_dict(),
+                **self._assembly(),
                 **self.codec.counters.as_dict(),
                 **({} if self.verifier is None else self.verifier.counters.as_dict()),
             },

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, NoReturn
 
 from protocols.mavlink_io import MavMessage, dialect
 from protocols.units import PressureDepth
@@ -327,7 +327,9 @@ class _Parser:
                     return number
         return None
 
-    def fail(self, message: str, table: str, key: str | None = None, occurrence: int = 0):
+    def fail(
+        self, message: str, table: str, key: str | None = None, occurrence: int = 0
+    ) -> NoReturn:
         line = self._line(table, key, occurrence)
         if line is None and key is not None:
             line = self._line(table, None, occurrence)

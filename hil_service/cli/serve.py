@@ -20,6 +20,7 @@ from hil_service.zenoh_bus import ZenohBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
+from protocols.profiles import DEFAULT_PROFILE, load_profile
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
@@ -36,6 +37,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         help="vehicle system id to serve (repeatable; default: every vehicle on the link)",
+    )
+    parser.add_argument(
+        "--profile",
+        default=DEFAULT_PROFILE,
+        help="vehicle profile: a built-in name (glider, ardusub) or a TOML file "
+        "(docs/profiles.md; default %(default)s)",
+    )
+    parser.add_argument(
+        "--sample-period",
+        type=float,
+        default=None,
+        help="periodic profiles: s between samples on the vehicle's clock (default: the "
+        "profile's)",
     )
     parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
     parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
@@ -106,12 +120,18 @@ def run(args: argparse.Namespace) -> int:
             pressure=PressureDepth(args.water_density, args.surface_pressure),
             inputs=InputScale(args.full_scale),
         )
+        profile = load_profile(args.profile)
+        periodic = profile.sampling.mode == "periodic"
+        if args.sample_period is not None and not periodic:
+            raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
         config = ServiceConfig(
             system_ids=tuple(args.sysid),
             control_default=args.control,
             stale_timeout=args.stale_timeout,
             pipeline=settings_from_args(args),
             security=security_from_args(args),
+            profile=profile if periodic else None,
+            sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
         )
         zenoh_options = options_from_args(args)
         zenoh_options.to_config()  # a bad config file is reported here, before anything opens
@@ -128,7 +148,8 @@ def run(args: argparse.Namespace) -> int:
             args.log_dir,
             metadata={"service": json.dumps(config.to_json()), "mapping": json.dumps(
                 {"full_scale": args.full_scale, "water_density": args.water_density,
-                 "surface_pressure": args.surface_pressure})},
+                 "surface_pressure": args.surface_pressure}),
+                "profile": json.dumps({"name": profile.name, "text": profile.text})},
             max_bytes=int(args.log_max_mb * 1024 * 1024),
             max_seconds=args.log_max_s,
         ).start()  # fmt: skip
