@@ -26,6 +26,7 @@ from hil_service.service import HilService, ServiceConfig
 from hil_service.zenoh_bus import Bus, NullBus
 from protocols import payload_json
 from protocols.mapping import TelemetryMapping
+from protocols.profiles import Profile, load_profile, parse_profile
 from protocols.samples import TelemetrySample
 from protocols.units import InputScale, PressureDepth
 
@@ -42,6 +43,8 @@ class ReplayOptions:
     speed: float | None = None  # None: as fast as possible
     check: bool = False
     model: str | None = None  # override the stored model (disables bit-for-bit checking)
+    profile: str | None = None  # a vehicle profile (name or file); default: the log's own
+    sample_period: float | None = None  # periodic profiles; default: the log's or profile's
     progress: Callable[[int, int], None] | None = None  # (bytes read, file size)
 
 
@@ -234,6 +237,15 @@ class _Replay:
             config = ServiceConfig()
         if self.options.model is not None:
             config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
+        profile = self._profile(stored)
+        if profile is not None and profile.sampling.mode == "periodic":
+            recorded = (stored.get("service") or {}).get("profile") or {}
+            period = (
+                self.options.sample_period
+                or recorded.get("sample_period")
+                or profile.sampling.period
+            )
+            config = replace(config, profile=profile, sample_period=period)
         self.service = HilService(
             config,
             self.recording,
@@ -243,10 +255,21 @@ class _Replay:
         )
         return self.service
 
+    def _profile(self, stored: dict[str, Any]) -> Profile | None:
+        """``--profile``, else the profile the log stores (serve and import store theirs)."""
+        if self.options.profile is not None:
+            return load_profile(self.options.profile)
+        text = (stored.get("profile") or {}).get("text")
+        return parse_profile(text, f"{self.path} (stored profile)") if text else None
+
     def _finish(self) -> ReplayResult:
         result, report, service = self.result, self.reader.report, self.service
         assert service is not None
-        result.samples = service.assembler.counters.samples
+        result.samples = (
+            service.assembler.counters.samples
+            if service.periodic is None
+            else service.periodic.counters.samples
+        )
         result.complete = report.complete
         if report.ended and not report.complete:
             # Only a read that reached the end can tell a damaged file (--check stops early).
