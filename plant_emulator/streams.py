@@ -246,7 +246,9 @@ class ArduSubAutopilot(Autopilot):
                 continue
             due = self._due.setdefault(name, sim + self._rng.uniform(0, interval))
             if due <= sim:
-                self._send_stream(name, sim)
+                # Stamped at its own (jittered) send time: behind schedule on a loaded machine
+                # the streams still never share a stamp by accident.
+                self._send_stream(name, due)
                 due += interval * (1 + self._rng.uniform(-self.streams.jitter, self.streams.jitter))
                 self._due[name] = due if due > sim else sim + interval
             next_due = min(next_due, self._due[name])
