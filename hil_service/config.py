@@ -22,11 +22,13 @@ from hil_service.inputs import SetpointLimits
 from hil_service.pipeline import PipelineSettings
 from hil_service.zenoh_config import ZenohOptions
 from protocols.mapping import TelemetryMapping
+from protocols.profiles import Profile, parse_profile
 from protocols.units import InputScale, PressureDepth
 
 #: Keys of the metadata record (``hil_service.mcap.recorder.CONFIG_METADATA``).
 SERVICE_KEY = "service"
 MAPPING_KEY = "mapping"
+PROFILE_KEY = "profile"  # a periodic vehicle profile: {"name", "text"} (docs/profiles.md)
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,11 @@ class ServiceConfig:
     security: LinkSecurity = field(default_factory=LinkSecurity)
     units: Units = field(default_factory=Units)
     limits: SetpointLimits = field(default_factory=SetpointLimits)
+    #: A periodic vehicle profile (docs/profiles.md): sample the vehicle's streams every
+    #: ``sample_period`` s, command it as the profile says, and behave as its companion
+    #: computer (heartbeat, stream requests). None: the lockstep ``glider`` contract.
+    profile: Profile | None = None
+    sample_period: float | None = None
 
     def mapping(self) -> TelemetryMapping:
         return self.units.mapping()
@@ -108,11 +115,19 @@ class ServiceConfig:
             "pipeline": self.pipeline.to_json(),
             "signing": self.security.to_json(),
             "limits": _limits_json(self.limits),
+            **(
+                {}
+                if self.profile is None
+                else {"profile": {"name": self.profile.name, "sample_period": self.sample_period}}
+            ),
         }
 
     def stored(self) -> dict[str, Any]:
         """The configuration as a log stores it, decoded (what ``info`` prints)."""
-        return {SERVICE_KEY: self.to_json(), MAPPING_KEY: self.units.to_json()}
+        stored = {SERVICE_KEY: self.to_json(), MAPPING_KEY: self.units.to_json()}
+        if self.profile is not None:
+            stored[PROFILE_KEY] = {"name": self.profile.name, "text": self.profile.text}
+        return stored
 
     def to_metadata(self) -> dict[str, str]:
         """The MCAP metadata record's content (string values, as MCAP requires)."""
@@ -127,6 +142,9 @@ class ServiceConfig:
         if not isinstance(service, dict) or "pipeline" not in service:
             return None
         limits = service.get("limits") or {}
+        profile = stored_profile(stored)
+        periodic = profile is not None and profile.sampling.mode == "periodic"
+        recorded = service.get("profile") or {}
         return cls(
             system_ids=tuple(service.get("system_ids", ())),
             control_default=service.get("control_default", False),
@@ -136,7 +154,18 @@ class ServiceConfig:
             limits=SetpointLimits(
                 limits.get("min_depth"), limits.get("max_depth"), limits.get("max_abs_pitch")
             ),
+            profile=profile if periodic else None,
+            sample_period=(recorded.get("sample_period") or profile.sampling.period)
+            if periodic and profile is not None
+            else None,
         )
+
+
+def stored_profile(stored: dict[str, Any]) -> Profile | None:
+    """The vehicle profile a log stores (``serve --profile`` and ``import`` store theirs)."""
+    entry = stored.get(PROFILE_KEY) or {}
+    text = entry.get("text") if isinstance(entry, dict) else None
+    return parse_profile(text, "(the log's stored profile)") if text else None
 
 
 @dataclass(frozen=True)

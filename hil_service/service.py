@@ -15,15 +15,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.assembler import SampleAssembler
+from hil_service.companion import Companion
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
+from hil_service.profile_assembler import ProfileAssembler
 from hil_service.zenoh_bus import Bus
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
-from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
+from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
 
 
@@ -64,8 +66,17 @@ class HilService:
         self.mapping = config.mapping()
         self.clock = clock
         self.send_commands = send_commands and link is not None
+        self.periodic: ProfileAssembler | None = None
+        self.companions: dict[int, Companion] = {}
+        system_id = config.service_system_id
+        if config.profile is not None:
+            self.periodic = ProfileAssembler(
+                config.profile, config.sample_period, config.system_ids or None
+            )
+            if len(config.system_ids) == 1:
+                system_id = config.system_ids[0]  # a companion speaks as its vehicle
         self.codec = MavlinkCodec.for_link(
-            config.service_system_id,
+            system_id,
             SERVICE_COMPONENT,
             config.security.key,
             accept_unsigned=config.security.accept_unsigned,
@@ -90,12 +101,18 @@ class HilService:
             if self.recorder is not None:
                 self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
                 self.recorder.mavlink("in", message, now_ns)
+            if self.periodic is not None:
+                samples.extend(self._process_periodic(message))
+                continue
             sample = self.process_message(message)
             if sample is not None:
                 samples.append(sample)
         return samples
 
     def process_message(self, message: MavMessage) -> TelemetrySample | None:
+        if self.periodic is not None:
+            found = self._process_periodic(message)
+            return found[-1] if found else None
         header = message.get_header()
         self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
         if message.get_type() == MSG_ACK:
@@ -105,6 +122,28 @@ class HilService:
         if sample is not None:
             self.process_sample(sample)
         return sample
+
+    def _process_periodic(self, message: MavMessage) -> list[TelemetrySample]:
+        """A periodic profile's path: a message may complete several samples (a gap)."""
+        assert self.periodic is not None
+        header = message.get_header()
+        self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
+        companion = self.companions.get(header.srcSystem)
+        if companion is not None:
+            companion.on_message(message, self.clock())
+        if message.get_type() == "COMMAND_ACK":
+            if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+                self._on_ack(message)
+            return []
+        samples = self.periodic.add_all(message)
+        for sample in samples:
+            if sample.system_id not in self.companions and self.config.profile is not None:
+                period = self.periodic.config.period
+                self.companions[sample.system_id] = Companion(
+                    self.config.profile, period, sample.system_id
+                )
+            self.process_sample(sample)
+        return samples
 
     def process_sample(self, sample: TelemetrySample) -> None:
         vehicle = self._vehicle(sample.system_id)
@@ -144,7 +183,13 @@ class HilService:
         if decision.command is not None and decision.payload is not None:
             # The vehicle first: the Zenoh publish blocks (congestion control BLOCK) while a
             # slow subscriber catches up, and must not hold the command back.
-            if self.send_commands:
+            if self.send_commands and self.config.profile is not None:
+                command = decision.command
+                for message in self.config.profile.command_messages(
+                    command.u_depth, command.u_pitch, system_id
+                ):
+                    self._send(message)
+            elif self.send_commands:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
@@ -177,6 +222,10 @@ class HilService:
     def tick(self) -> None:
         """Health at ``health_period``; call often (the run loop does every 0.1 s at most)."""
         now = self.clock()
+        if self.link is not None:
+            for companion in self.companions.values():
+                for message in companion.poll(now):
+                    self._send(message)
         if now < self._next_health:
             return
         self._next_health = now + self.config.health_period
@@ -199,20 +248,20 @@ class HilService:
         # vehicle's own; what cannot be told apart by vehicle is under "link_wide" (the
         # MAVLink link: garbage, unknown or refused frames, other systems) and
         # "service_wide" (operator inputs, the log).
-        assembled = self.assembler.counters_for(system_id)
+        assembled = self._assembled(system_id)
         link = self.sequence.for_system(system_id)
         counters = {
-            **assembled.as_dict(),
+            **assembled,
             "commands_sent": vehicle.commands_sent,
             "acks_accepted": vehicle.acks["accepted"],
             "acks_refused": vehicle.acks["refused"],
             "step_gaps": vehicle.pipeline.gaps.gaps,
         }
-        malformed = assembled.invalid + assembled.out_of_order + assembled.incomplete
+        malformed = assembled["invalid"] + assembled["out_of_order"] + assembled["incomplete"]
         payload: dict[str, Any] = {
             "t_wall": time.time(),
             "link_rate": vehicle.rate.rate(now),
-            "samples": assembled.samples,
+            "samples": assembled["samples"],
             "packet_loss": link.loss_fraction,
             "malformed": malformed,
             "counters": counters,
@@ -237,6 +286,19 @@ class HilService:
         }
         if self.recorder is not None:
             payload["logging"] = self.recorder.report()
+        if self.periodic is not None:
+            sampled = self.periodic.counters_for(system_id)
+            payload["sampling"] = {
+                "period": self.periodic.config.period,
+                "incomplete_reasons": sampled.reasons,
+                "fallbacks": sampled.fallbacks,
+            }
+        companion = self.companions.get(system_id)
+        if companion is not None:
+            payload["companion"] = {
+                **companion.counters.as_dict(),
+                "stream_requests": companion.states,
+            }
         if self.inbox.last_rejection:
             payload["last_rejected_input"] = self.inbox.last_rejection
         return payload
@@ -247,7 +309,9 @@ class HilService:
         served, and (with signing) the verifier's counts."""
         counters = {
             **self.codec.counters.as_dict(),
-            "unknown_system": self.assembler.unknown_system,
+            "unknown_system": self.assembler.unknown_system
+            if self.periodic is None
+            else self.periodic.counters.unknown_system,
         }
         if self.verifier is not None:
             counters.update(self.verifier.counters.as_dict())
@@ -274,11 +338,34 @@ class HilService:
                 "control_reason": vehicle.control_reason,
             }
 
+    def _assembled(self, system_id: int) -> dict[str, int]:
+        """One vehicle's assembly counters (lockstep or periodic, the same names)."""
+        if self.periodic is None:
+            return self.assembler.counters_for(system_id).as_dict()
+        counted = self.periodic.counters_for(system_id)
+        return {
+            "samples": counted.samples,
+            "incomplete": counted.incomplete,
+            "out_of_order": counted.out_of_order,
+            "invalid": counted.invalid,
+            "restarts": counted.restarts,
+        }
+
+    def _assembly(self) -> dict[str, Any]:
+        """Every vehicle's assembly counters together (lockstep or periodic)."""
+        if self.periodic is not None:
+            return self.periodic.counters.as_dict()
+        return dict(self.assembler.counters.as_dict())
+
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
+            "companions": {
+                str(system_id): {**c.counters.as_dict(), "stream_requests": c.states}
+                for system_id, c in self.companions.items()
+            },
             "counters": {
-                **self.assembler.counters.as_dict(),
+                **self._assembly(),
                 **self.codec.counters.as_dict(),
                 **({} if self.verifier is None else self.verifier.counters.as_dict()),
             },
@@ -289,7 +376,7 @@ class HilService:
                     "commands_sent": vehicle.commands_sent,
                     "acks": dict(vehicle.acks),
                     "step_gaps": vehicle.pipeline.gaps.gaps,
-                    "counters": self.assembler.counters_for(system_id).as_dict(),
+                    "counters": self._assembled(system_id),
                     "link": self.sequence.for_system(system_id).as_dict(),
                 }
                 for system_id, vehicle in self.vehicles.items()

@@ -284,3 +284,37 @@ class Link:
 
     def close(self) -> None:
         self._file.close()
+
+
+# ---- helpers for profiles, the emulator's ground-station manners and tlog import --------
+def message_name(message_id: int) -> str | None:
+    """The ``common`` dialect's name for a message id, or None when it has none."""
+    cls = dialect.mavlink_map.get(message_id)
+    return None if cls is None else str(cls.msgname)
+
+
+def message_id(name: str) -> int:
+    """The id of a ``common`` dialect message by name; KeyError when there is none."""
+    cls = getattr(dialect, f"MAVLink_{name.lower()}_message", None)
+    if cls is None:
+        raise KeyError(name)
+    return int(cls.id)
+
+
+def frame_length(data: bytes | bytearray, position: int = 0) -> int | None:
+    """The length of the MAVLink 1 or 2 frame starting at ``position`` (from its header),
+    or None when no frame starts there or its header is cut off."""
+    if position >= len(data):
+        return None
+    marker = data[position]
+    if marker == dialect.PROTOCOL_MARKER_V2:
+        if position + 3 > len(data):
+            return None
+        signed = data[position + 2] & dialect.MAVLINK_IFLAG_SIGNED
+        extra = dialect.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0
+        return dialect.HEADER_LEN_V2 + data[position + 1] + 2 + extra
+    if marker == dialect.PROTOCOL_MARKER_V1:
+        if position + 2 > len(data):
+            return None
+        return dialect.HEADER_LEN_V1 + data[position + 1] + 2
+    return None

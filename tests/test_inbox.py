@@ -66,7 +66,11 @@ def test_a_setpoint_never_changes_the_control_flag():
 def test_every_refusal_names_the_key_and_why():
     inbox = Inbox()
     cases = [
-        ("glider/x/setpoint/depth", b'{"value": 1}', "glider/x/setpoint/depth: not a setpoint or control key"),
+        (
+            "glider/x/setpoint/depth",
+            b'{"value": 1}',
+            "glider/x/setpoint/depth: not a setpoint or control key",
+        ),
         ("glider/1/setpoint/depth", b"{not json", "glider/1/setpoint/depth: Expecting"),
         ("glider/1/setpoint/depth", b'{"value": "deep"}', "glider/1/setpoint/depth: "),
         ("glider/1/setpoint/depth", b'{"value": NaN}', "glider/1/setpoint/depth: non-finite"),

@@ -24,9 +24,10 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox, SetpointLimits
 from hil_service.pipeline import PipelineSettings
-from hil_service.service import HilService, ServiceConfig
+from hil_service.service import HilService
 from hil_service.umodel import build_model
 from hil_service.zenoh_bus import NullBus
 from plant_emulator.excitation import RandomSteps

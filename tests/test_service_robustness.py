@@ -201,8 +201,9 @@ def test_bad_config_file_and_connection_string_are_clear_errors(processes, tmp_p
 def test_health_turns_stale_exactly_after_the_timeout_on_the_service_clock():
     """Staleness on a simulated clock: fresh up to ``stale_timeout`` after the last sample,
     stale just after, and the controllers re-arm before the next decision."""
+    from hil_service.config import ServiceConfig
     from hil_service.inputs import Inbox
-    from hil_service.service import HilService, ServiceConfig
+    from hil_service.service import HilService
     from hil_service.zenoh_bus import NullBus
 
     now = [50.0]

@@ -15,6 +15,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "replay": ("hil_service.cli.replay", "replay a log through the service path (--check)"),
     "info": ("hil_service.cli.info", "duration, channels and configuration of a log"),
     "report": ("hil_service.cli.report", "figures and a Markdown summary from a log"),
+    "import": ("hil_service.cli.import_tlog", "a telemetry log (.tlog) into an MCAP log"),
 }
 
 

@@ -11,6 +11,7 @@ from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
+from protocols.profiles import ProfileError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +25,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--check", action="store_true", help="recomputed estimates and commands must match"
     )
     parser.add_argument("--model", choices=("paper", "dynamic"), default=None)
+    parser.add_argument(
+        "--profile",
+        default=None,
+        help="vehicle profile, a built-in name or a TOML file (default: the one the log stores)",
+    )
+    parser.add_argument(
+        "--sample-period", type=float, default=None, help="periodic profiles: s between samples"
+    )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     add_zenoh_arguments(parser)
 
@@ -44,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
         speed=None if args.fast else args.speed,
         check=args.check,
         model=args.model,
+        profile=args.profile,
+        sample_period=args.sample_period,
         progress=_progress if args.fast and sys.stderr.isatty() else None,
     )
     session = bus = None
@@ -60,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"glider-hil replay: {result.recovered}", file=sys.stderr)
             if result.mismatch is not None or not args.loop:
                 break
-    except (LogError, ReplayError, OSError) as error:
+    except (LogError, ReplayError, ProfileError, OSError) as error:
         print(f"glider-hil replay: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

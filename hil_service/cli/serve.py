@@ -21,6 +21,7 @@ from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mavlink_io import Link
+from protocols.profiles import DEFAULT_PROFILE, load_profile
 from protocols.signing import load_key
 
 
@@ -36,6 +37,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         help="vehicle system id to serve (repeatable; default: every vehicle on the link)",
+    )
+    parser.add_argument(
+        "--profile",
+        default=DEFAULT_PROFILE,
+        help="vehicle profile: a built-in name (glider, ardusub) or a TOML file "
+        "(docs/profiles.md; default %(default)s)",
+    )
+    parser.add_argument(
+        "--sample-period",
+        type=float,
+        default=None,
+        help="periodic profiles: s between samples on the vehicle's clock (default: the "
+        "profile's)",
     )
     parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
     parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
@@ -102,6 +116,10 @@ def security_from_args(args: argparse.Namespace) -> LinkSecurity:
 
 def config_from_args(args: argparse.Namespace) -> ServeConfig:
     """Flags → configuration; raises ValueError (or OSError for the key file) on bad ones."""
+    profile = load_profile(args.profile)
+    periodic = profile.sampling.mode == "periodic"
+    if args.sample_period is not None and not periodic:
+        raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
     service = ServiceConfig(
         system_ids=tuple(args.sysid),
         control_default=args.control,
@@ -110,6 +128,8 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         security=security_from_args(args),
         units=Units(args.full_scale, args.water_density, args.surface_pressure),
         limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),
+        profile=profile if periodic else None,
+        sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
     )
     log = LogOptions(
         directory=None if args.no_log else args.log_dir,

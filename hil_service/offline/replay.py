@@ -22,13 +22,14 @@ from pathlib import Path
 from typing import Any
 
 from hil_service.builder import wire
-from hil_service.config import ServiceConfig
+from hil_service.config import ServiceConfig, stored_profile
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.mcap.reader import LogMessage, LogReader
 from hil_service.mcap.recorder import RAW_TOPIC
 from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus
 from protocols import keys, payload_json
+from protocols.profiles import Profile, load_profile
 from protocols.samples import TelemetrySample
 
 RAW_IN = RAW_TOPIC.format(direction="in")
@@ -44,6 +45,8 @@ class ReplayOptions:
     speed: float | None = None  # None: as fast as possible
     check: bool = False
     model: str | None = None  # override the stored model (disables bit-for-bit checking)
+    profile: str | None = None  # a vehicle profile (name or file); default: the log's own
+    sample_period: float | None = None  # periodic profiles; default: the log's or profile's
     progress: Callable[[int, int], None] | None = None  # (bytes read, file size)
 
 
@@ -204,21 +207,41 @@ class _Replay:
 
     def _start(self) -> HilService:
         """The service as the log's metadata describes it (metadata precedes all messages)."""
-        config = ServiceConfig.from_stored(self.reader.config())
+        stored = self.reader.config()
+        config = ServiceConfig.from_stored(stored)
         if config is None:
             if self.options.check:
                 raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
             config = ServiceConfig()
         if self.options.model is not None:
             config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
+        profile = self._profile(stored)
+        if profile is not None and profile.sampling.mode == "periodic":
+            recorded = (stored.get("service") or {}).get("profile") or {}
+            period = (
+                self.options.sample_period
+                or recorded.get("sample_period")
+                or profile.sampling.period
+            )
+            config = replace(config, profile=profile, sample_period=period)
         wired = wire(config, inbox=self.inbox, bus=self.recording, send_commands=False)
         self.service = wired.service
         return self.service
 
+    def _profile(self, stored: dict[str, Any]) -> Profile | None:
+        """``--profile``, else the profile the log stores (serve and import store theirs)."""
+        if self.options.profile is not None:
+            return load_profile(self.options.profile)
+        return stored_profile(stored)
+
     def _finish(self) -> ReplayResult:
         result, report, service = self.result, self.reader.report, self.service
         assert service is not None
-        result.samples = service.assembler.counters.samples
+        result.samples = (
+            service.assembler.counters.samples
+            if service.periodic is None
+            else service.periodic.counters.samples
+        )
         result.complete = report.complete
         if report.ended and not report.complete:
             # Only a read that reached the end can tell a damaged file (--check stops early).
