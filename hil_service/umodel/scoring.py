@@ -1,7 +1,9 @@
-"""One-step prediction scores: NMSE and skill versus persistence, windowed and cumulative.
+"""Prediction scores: one-step NMSE and skill versus persistence, windowed and cumulative;
+multi-step accuracy of the free-running model over the control horizon.
 
 NMSE = mean((y − ŷ)²) / var(y); skill = 1 − MSE_model / MSE_persistence, so 0 means no
-better than "y(t) = y(t−1)" and 1 means perfect.
+better than "y(t) = y(t−1)" and 1 means perfect. Free-run fit (system identification's
+"simulation fit") = 100·(1 − ‖y − ŷ_sim‖ / ‖y − mean(y)‖).
 """
 
 from __future__ import annotations
@@ -81,3 +83,54 @@ class ErrorStats:
 
 def _round(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(f"{value:.6g}")
+
+
+class MultiStepStats:
+    """Rolling accuracy of the model's free run: the pipeline restarts a frozen copy of the
+    model from the measured outputs every ``horizon`` samples and feeds it the applied
+    inputs, so each ŷ_sim is a 1…horizon-step-ahead prediction. Over the last ``window``
+    samples: NMSE = Σ(y − ŷ_sim)² / Σ(y − ȳ)² and fit % = 100·(1 − √NMSE)."""
+
+    __slots__ = ("_recent", "_sum_e2", "_sum_y", "_sum_y2", "window")
+
+    def __init__(self, window: int = 500) -> None:
+        self.window = window
+        self._recent: deque[tuple[float, float]] = deque()
+        self._sum_e2 = 0.0
+        self._sum_y = 0.0
+        self._sum_y2 = 0.0
+
+    def add(self, y: float, y_sim: float) -> None:
+        e = y - y_sim
+        if not (math.isfinite(e) and math.isfinite(y)):
+            e = 1e150 if math.isfinite(y) else 0.0  # a diverged free run is a bad fit
+        self._recent.append((y, e * e))
+        self._sum_e2 += e * e
+        self._sum_y += y
+        self._sum_y2 += y * y
+        if len(self._recent) > self.window:
+            old_y, old_e2 = self._recent.popleft()
+            self._sum_e2 -= old_e2
+            self._sum_y -= old_y
+            self._sum_y2 -= old_y * old_y
+
+    def nmse(self) -> float | None:
+        n = len(self._recent)
+        if n < 2:
+            return None
+        mean = self._sum_y / n
+        variance = self._sum_y2 / n - mean * mean
+        if not variance > 1e-12 * (1.0 + mean * mean):
+            return None  # a flat output: no scale to judge the fit by
+        return max(self._sum_e2, 0.0) / n / variance
+
+    def fit(self) -> float | None:
+        nmse = self.nmse()
+        return None if nmse is None else 100.0 * (1.0 - math.sqrt(nmse))
+
+    def summary(self, horizon: int) -> dict[str, float | int | None]:
+        return {
+            "multistep_horizon": horizon,
+            "multistep_nmse": _round(self.nmse()),
+            "multistep_fit": _round(self.fit()),
+        }

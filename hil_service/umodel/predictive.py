@@ -1,0 +1,444 @@
+"""Predictive U-model inverse: the next input from an optimisation over a horizon.
+
+At every sample the identified U-model gives its multi-step map (:class:`.ModelDynamics`):
+linear in past outputs, a polynomial of each input lag. The controller
+
+1. reads the lag polynomials as one static input map times a linear filter (a rank-one
+   factorisation of the lag × power coefficient matrix: w = N(u), y = G(q)·w; exact for a
+   Hammerstein plant, the best rank-one fit otherwise);
+2. derives its horizons from the identified linear part: the prediction horizon is the
+   settling time of G's step response (clamped to ``[min_horizon, max_horizon]``), the
+   blocked input moves are one sample, up to a fraction ``hold_share`` of it, and the
+   rest of it;
+3. predicts the output with every future input held at the applied one (the free
+   response, on the full model, started from the measured outputs, with the disturbance
+   estimate as a constant forcing), adds each block's effect through G's step response,
+   and minimises Σ (ŷ − r)² + ρ Σ Δw² over the block levels inside the actuator's range
+   (the first block also inside its rate limit): a box-constrained QP in three variables,
+   solved exactly by enumerating the faces of the box;
+4. root-solves N(u) = w for the first block (the U-model inverse step, with the solver's
+   fallback where there is no real root).
+
+Offset-free tracking: the a-priori one-step error is low-passed with a time constant of
+a share of the horizon (``disturbance_share``) and acts as a constant forcing over the
+horizon, so the predicted steady state carries the disturbance. A slow estimate on
+purpose: a non-minimum-phase plant answers a fast correction with its wrong-way response.
+
+Guards: non-finite model coefficients, a degenerate input map or a non-finite plan give
+"hold" (the applied input), never an exception or a non-finite command.
+"""
+
+from __future__ import annotations
+
+import math
+
+from .dynamics import ModelDynamics, StaticMap
+from .inverse import solve_inverse
+
+__all__ = ["PredictiveInverse", "PredictiveSettings", "settling_horizon", "step_response"]
+
+#: Power-iteration sweeps of the rank-one factorisation (a 3×3 symmetric matrix).
+_POWER_SWEEPS = 30
+#: At most this many points of the horizon enter the cost (evenly spaced, always the last).
+_COST_POINTS = 120
+
+
+class PredictiveSettings:
+    """Scale-free constants of the predictive inverse (no plant's figure among them)."""
+
+    __slots__ = (
+        "band",
+        "disturbance_share",
+        "hold_share",
+        "max_horizon",
+        "min_horizon",
+        "move_weight",
+        "refresh",
+    )
+
+    def __init__(
+        self,
+        min_horizon: int = 5,
+        max_horizon: int = 1000,
+        band: float = 0.05,
+        hold_share: float = 0.25,
+        move_weight: float = 1e-3,
+        disturbance_share: float = 0.5,
+        refresh: int = 50,
+    ) -> None:
+        if not 2 <= min_horizon <= max_horizon:
+            raise ValueError("need 2 <= min_horizon <= max_horizon")
+        if not 0.0 < band < 1.0:
+            raise ValueError("band must be in (0, 1)")
+        if not 0.0 < hold_share < 1.0:
+            raise ValueError("hold_share must be in (0, 1)")
+        if not (math.isfinite(move_weight) and move_weight >= 0.0):
+            raise ValueError("move_weight must be finite and >= 0")
+        if not (math.isfinite(disturbance_share) and disturbance_share > 0.0):
+            raise ValueError("disturbance_share must be finite and > 0")
+        if refresh < 1:
+            raise ValueError("refresh must be >= 1")
+        self.min_horizon = int(min_horizon)
+        self.max_horizon = int(max_horizon)
+        self.band = float(band)
+        self.hold_share = float(hold_share)
+        self.move_weight = float(move_weight)
+        self.disturbance_share = float(disturbance_share)
+        self.refresh = int(refresh)
+
+
+def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
+    """s(0 … n−1): the output j samples after w steps from 0 to 1 (s(0) = 0: no
+    feedthrough), for y(t) = Σ c_i y(t−i) + Σ_L g_L w(t−L)."""
+    na = len(ar)
+    nb = len(gains)
+    out: list[float] = []
+    forcing = 0.0
+    for j in range(n):
+        if 1 <= j <= nb:
+            forcing += gains[j - 1]
+        acc = forcing
+        for i in range(na):
+            if j - 1 - i >= 0:
+                acc += ar[i] * out[j - 1 - i]
+        out.append(acc)
+    return out
+
+
+def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
+    """The first sample after which the step response stays within ``band`` of its last
+    value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
+    settle or is not finite."""
+    n = len(response)
+    if n == 0:
+        return lo
+    final = response[-1]
+    if not math.isfinite(final) or final == 0.0:
+        return hi
+    # Not settled if it still moves at the end: compare with the value a tenth earlier.
+    check = response[n - 1 - n // 10]
+    tol = band * abs(final)
+    if abs(check - final) > tol:
+        return hi
+    last = 0
+    for j in range(n):
+        if abs(response[j] - final) > tol:
+            last = j + 1
+    return lo if last < lo else hi if last > hi else last
+
+
+def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float], StaticMap] | None:
+    """Lag gains g_L and the static map N with P_L(u) ≈ g_L·N(u); N scaled to a mean slope
+    of one over [u_lo, u_hi]. None when the map is degenerate (no input effect yet)."""
+    polys = dyn.lag_polys
+    m = 0
+    for poly in polys:
+        m = max(m, len(poly))
+    if m == 0:
+        return None
+    rows = [poly + [0.0] * (m - len(poly)) for poly in polys]
+    # Θᵀ Θ (m × m), then its dominant eigenvector by power iteration from e_1.
+    gram = [[0.0] * m for _ in range(m)]
+    for row in rows:
+        for i in range(m):
+            ri = row[i]
+            for j in range(m):
+                gram[i][j] += ri * row[j]
+    v = [1.0] + [0.0] * (m - 1)
+    for _ in range(_POWER_SWEEPS):
+        w = [0.0] * m
+        for i in range(m):
+            acc = 0.0
+            for j in range(m):
+                acc += gram[i][j] * v[j]
+            w[i] = acc
+        norm = 0.0
+        for x in w:
+            norm += x * x
+        norm = math.sqrt(norm)
+        if not (math.isfinite(norm) and norm > 0.0):
+            return None
+        v = [x / norm for x in w]
+    gains = []
+    for row in rows:
+        acc = 0.0
+        for i in range(m):
+            acc += row[i] * v[i]
+        gains.append(acc)
+    shape = StaticMap(v, dyn.poly_scale)
+    if dyn.rbf is not None and gains[0] != 0.0:
+        # The paper model's RBF layer acts on lag 1 only: N carries it, scaled by 1/g_1.
+        shape = StaticMap(v, dyn.poly_scale, dyn.rbf, dyn.rbf_weights, 1.0 / gains[0])
+    slope = (shape.value(u_hi) - shape.value(u_lo)) / (u_hi - u_lo)
+    if not (math.isfinite(slope) and abs(slope) > 1e-12):
+        return None
+    poly = [x / slope for x in v]
+    gains = [g * slope for g in gains]
+    if dyn.rbf is not None and gains[0] != 0.0:
+        return gains, StaticMap(poly, dyn.poly_scale, dyn.rbf, dyn.rbf_weights, 1.0 / gains[0])
+    return gains, StaticMap(poly, dyn.poly_scale)
+
+
+def _solve_box_qp(
+    h: list[list[float]], f: list[float], lo: list[float], hi: list[float]
+) -> list[float]:
+    """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite, n ≤ 3):
+    every face of the box (each variable free, at its lower or at its upper bound), the
+    unconstrained optimum on the face, the best feasible one. Exact and deterministic."""
+    n = len(f)
+    best: list[float] = [min(max(0.0, lo[i]), hi[i]) for i in range(n)]
+    best_cost = math.inf
+    combos = 1
+    for _ in range(n):
+        combos *= 3
+    for code in range(combos):
+        x = [0.0] * n
+        free: list[int] = []
+        c = code
+        for i in range(n):
+            state = c % 3
+            c //= 3
+            if state == 0:
+                free.append(i)
+            elif state == 1:
+                x[i] = lo[i]
+            else:
+                x[i] = hi[i]
+        if free:
+            # H_ff x_f = −(f_f + H_fb x_b), by Gaussian elimination (at most 3×3).
+            k = len(free)
+            a = [[h[free[r]][free[s]] for s in range(k)] for r in range(k)]
+            b = []
+            for r in range(k):
+                acc = -f[free[r]]
+                for j in range(n):
+                    if j not in free:
+                        acc -= h[free[r]][j] * x[j]
+                b.append(acc)
+            ok = True
+            for col in range(k):
+                piv = col
+                for r in range(col + 1, k):
+                    if abs(a[r][col]) > abs(a[piv][col]):
+                        piv = r
+                if abs(a[piv][col]) < 1e-300:
+                    ok = False
+                    break
+                a[col], a[piv] = a[piv], a[col]
+                b[col], b[piv] = b[piv], b[col]
+                for r in range(col + 1, k):
+                    factor = a[r][col] / a[col][col]
+                    for s in range(col, k):
+                        a[r][s] -= factor * a[col][s]
+                    b[r] -= factor * b[col]
+            if not ok:
+                continue
+            sol = [0.0] * k
+            for r in range(k - 1, -1, -1):
+                acc = b[r]
+                for s in range(r + 1, k):
+                    acc -= a[r][s] * sol[s]
+                sol[r] = acc / a[r][r]
+            feasible = True
+            for r in range(k):
+                i = free[r]
+                if not (lo[i] <= sol[r] <= hi[i]):
+                    feasible = False
+                    break
+                x[i] = sol[r]
+            if not feasible:
+                continue
+        cost = 0.0
+        for i in range(n):
+            hx = 0.0
+            for j in range(n):
+                hx += h[i][j] * x[j]
+            cost += x[i] * (0.5 * hx + f[i])
+        if cost < best_cost:
+            best_cost = cost
+            best = x
+    return best
+
+
+class PredictiveInverse:
+    """The controller state of one channel: horizons, the plan's fixed matrices (derived
+    again every ``refresh`` samples) and the disturbance estimate."""
+
+    __slots__ = (
+        "_age",
+        "_columns",
+        "_disturbance",
+        "_hessian",
+        "_horizon",
+        "_onset",
+        "_points",
+        "_rho",
+        "rate",
+        "settings",
+        "u_max",
+        "u_min",
+    )
+
+    def __init__(
+        self, u_min: float, u_max: float, rate: float, settings: PredictiveSettings | None = None
+    ) -> None:
+        if not (math.isfinite(u_min) and math.isfinite(u_max) and u_min < u_max):
+            raise ValueError("need finite u_min < u_max")
+        if not (math.isfinite(rate) and rate > 0.0):
+            raise ValueError("rate must be finite and > 0")
+        self.u_min = float(u_min)
+        self.u_max = float(u_max)
+        self.rate = float(rate)
+        self.settings = settings or PredictiveSettings()
+        self._horizon = 0
+        self._age = 0
+        self._disturbance = 0.0
+        self._points: list[int] = []  # cost points j (ŷ(k+j))
+        self._columns: list[list[float]] = []  # per point: effect of each block's level
+        self._onset: list[float] = []  # per point: s(j − 1), the held input's step
+        self._hessian: list[list[float]] = []
+        self._rho = 0.0
+
+    @property
+    def horizon(self) -> int:
+        return self._horizon
+
+    @property
+    def disturbance(self) -> float:
+        return self._disturbance
+
+    def reset(self) -> None:
+        self._disturbance = 0.0
+        self._age = 0
+        self._horizon = 0
+
+    def observe_error(self, error: float) -> None:
+        """Feed the identifier's a-priori one-step error (the disturbance estimate)."""
+        if not math.isfinite(error) or self._horizon == 0:
+            return
+        share = self.settings.disturbance_share * self._horizon
+        alpha = 1.0 / (1.0 + share)
+        self._disturbance += alpha * (error - self._disturbance)
+
+    def horizon_for(self, dyn: ModelDynamics) -> int:
+        """The prediction horizon of these dynamics (derived now if never derived), e.g.
+        for the health report's multi-step accuracy before control starts; 0 when the
+        model has no usable input map yet."""
+        if self._horizon == 0 and dyn.is_finite():
+            factors = factorise(dyn, self.u_min, self.u_max)
+            if factors is not None:
+                self._derive(dyn.ar, factors[0])
+        return self._horizon
+
+    def _derive(self, ar: list[float], gains: list[float]) -> None:
+        """Horizon, blocks, cost points, their columns and the Hessian, from the
+        identified linear part: they change as slowly as the model does."""
+        s = self.settings
+        response = step_response(ar, gains, s.max_horizon)
+        n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
+        split = max(2, round(s.hold_share * n))
+        if split >= n:
+            split = n - 1
+        # Blocks of input levels: u(k+1) (the command, rate-limited), u(k+2 … k+split),
+        # u(k+split+1 …) (one block less when the horizon is too short for three).
+        starts = [1, 2, split + 1] if split >= 2 else [1, 2]
+        nblocks = len(starts)
+        stride = max(1, -(-n // _COST_POINTS))
+        points = list(range(n, 0, -stride))
+        columns: list[list[float]] = []
+        onset: list[float] = []
+        hessian = [[0.0] * nblocks for _ in range(nblocks)]
+        for j in points:
+            # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
+            # (s(m) = 0 for m ≤ 0: an input acts one sample later).
+            col = [0.0] * nblocks
+            for b in range(nblocks):
+                first = j - starts[b]
+                on = response[first] if first > 0 else 0.0
+                off = 0.0
+                if b + 1 < nblocks:
+                    after = j - starts[b + 1]
+                    off = response[after] if after > 0 else 0.0
+                col[b] = on - off
+            columns.append(col)
+            first0 = j - starts[0]
+            onset.append(response[first0] if first0 > 0 else 0.0)
+            for a in range(nblocks):
+                for b in range(nblocks):
+                    hessian[a][b] += col[a] * col[b]
+        # Move penalty ρ Σ (W_b − W_{b−1})², W_{−1} = the applied input's level, scaled to
+        # the output cost's size.
+        trace = 0.0
+        for b in range(nblocks):
+            trace += hessian[b][b]
+        rho = s.move_weight * (trace / nblocks + 1e-12)
+        for b in range(nblocks):
+            hessian[b][b] += rho if b + 1 == nblocks else 2.0 * rho
+            if b + 1 < nblocks:
+                hessian[b][b + 1] -= rho
+                hessian[b + 1][b] -= rho
+        self._horizon = n
+        self._points = points
+        self._columns = columns
+        self._onset = onset
+        self._hessian = hessian
+        self._rho = rho
+        self._age = 0
+
+    def decide(
+        self, dyn: ModelDynamics, u_applied: float, setpoint: float
+    ) -> tuple[float, str, bool]:
+        """(next input, path, saturated): path "newton"/"fallback" is the inverse step's,
+        "hold" means the plan could not be made (the applied input is kept)."""
+        lo_u, hi_u = self.u_min, self.u_max
+        u0 = u_applied if math.isfinite(u_applied) else 0.5 * (lo_u + hi_u)
+        u0 = lo_u if u0 < lo_u else hi_u if u0 > hi_u else u0
+        if not (math.isfinite(setpoint) and dyn.is_finite()):
+            return u0, "hold", False
+        factors = factorise(dyn, lo_u, hi_u)
+        if factors is None:
+            return u0, "hold", False
+        shape = factors[1]
+        if self._horizon == 0 or self._age >= self.settings.refresh:
+            self._derive(dyn.ar, factors[0])
+        self._age += 1
+        n = self._horizon
+        free = dyn.simulate_held(u0, n, self._disturbance)
+        w0 = shape.value(u0)
+        nblocks = len(self._hessian)
+        f = [0.0] * nblocks
+        columns = self._columns
+        onset = self._onset
+        points = self._points
+        for p in range(len(points)):
+            resid = free[points[p] - 1] - w0 * onset[p] - setpoint
+            col = columns[p]
+            for b in range(nblocks):
+                f[b] += col[b] * resid
+        f[0] -= self._rho * w0
+        w_lo = shape.value(lo_u)
+        w_hi = shape.value(hi_u)
+        if w_lo > w_hi:
+            w_lo, w_hi = w_hi, w_lo
+        first_lo = max(lo_u, u0 - self.rate)
+        first_hi = min(hi_u, u0 + self.rate)
+        r_lo = shape.value(first_lo)
+        r_hi = shape.value(first_hi)
+        if r_lo > r_hi:
+            r_lo, r_hi = r_hi, r_lo
+        lo = [r_lo] + [w_lo] * (nblocks - 1)
+        hi = [r_hi] + [w_hi] * (nblocks - 1)
+        for value in f:
+            if not math.isfinite(value):
+                return u0, "hold", False
+        plan = _solve_box_qp(self._hessian, f, lo, hi)
+        target = plan[0]
+        if not math.isfinite(target):
+            return u0, "hold", False
+        # The inverse step: the input whose static map gives the planned level.
+        result = solve_inverse(shape.value, shape.derivative, target, u0, first_lo, first_hi)
+        u = result.u
+        if not math.isfinite(u):
+            return u0, "hold", False
+        saturated = u <= lo_u or u >= hi_u
+        return u, result.path, saturated
