@@ -49,17 +49,20 @@ class ControlSettings:
     min_horizon: int = 5
     max_horizon: int = 1000
     settle_band: float = 0.05  # the prediction horizon: settling into this band
-    hold_share: float = 0.25  # the second input block ends at this share of the horizon
-    move_weight: float = 1e-3  # input-move penalty, relative to the output cost's scale
+    max_blocks: int = 8  # input blocks over the horizon (geometrically spaced)
+    move_weight: float = 0.03  # input-move penalty, relative to the output cost's scale
     disturbance_share: float = 0.5  # disturbance estimate's time constant / horizon
     refresh: int = 50  # samples between two horizon derivations
+
+    def __post_init__(self) -> None:
+        self.predictive()  # validates the constants
 
     def predictive(self) -> PredictiveSettings:
         return PredictiveSettings(
             min_horizon=self.min_horizon,
             max_horizon=self.max_horizon,
             band=self.settle_band,
-            hold_share=self.hold_share,
+            max_blocks=self.max_blocks,
             move_weight=self.move_weight,
             disturbance_share=self.disturbance_share,
             refresh=self.refresh,
@@ -157,6 +160,7 @@ class ChannelPipeline:
         # and restarts from the measured outputs every control horizon.
         self.multistep = MultiStepStats(window=settings.window)
         self._free_run: ModelDynamics | None = None
+        self.dynamics: ModelDynamics | None = None  # the model after the last accepted step
         self._free_run_left = 0
         control = settings.control
         self.controller = PredictiveInverse(
@@ -188,6 +192,8 @@ class ChannelPipeline:
         if not follows_previous or self.u_prev is None:
             self.resync = self.model.history_length
             self._free_run, self._free_run_left = None, 0
+            self.controller.reset()
+            self.dynamics = None
         if self.resync > 0:
             u_guess = u_now if self.u_prev is None else self.u_prev
             self.model.observe_only(u_guess, y)
@@ -212,7 +218,8 @@ class ChannelPipeline:
             self.converged = False
         else:
             self.stats.add(y, estimate.error, baseline.error)
-            self.controller.observe_error(estimate.error)
+            self.dynamics = self.model.dynamics()
+            self.controller.track(self.dynamics, y)
         self._free_run_left -= 1
         if self._free_run_left <= 0:
             self._restart_free_run()
@@ -233,7 +240,7 @@ class ChannelPipeline:
         }
 
     def _restart_free_run(self) -> None:
-        dynamics = self.model.dynamics()
+        dynamics = self.model.dynamics()  # a copy of its own: it advances its histories
         horizon = self.controller.horizon_for(dynamics)
         if horizon < 2:
             self._free_run, self._free_run_left = None, self.settings.control.min_horizon
@@ -259,7 +266,8 @@ class ChannelPipeline:
         if not self.active:
             self.shaper.reset(u_applied)
             self.active = True
-        u, path, saturated = self.controller.decide(self.model.dynamics(), u_applied, setpoint)
+        dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
+        u, path, saturated = self.controller.decide(dynamics, u_applied, setpoint)
         shaped = self.shaper.shape(u)
         return shaped.u, path, saturated or shaped.saturated or shaped.rate_limited
 

@@ -72,7 +72,8 @@ class ModelDynamics:
     """One instant of a U-model: coefficients and histories (see the module docstring).
 
     ``outputs`` = y(k), y(k−1), … (at least na values); ``inputs`` = u(k−1), u(k−2), …
-    (at least nb − 1 values); ``lag_polys[L−1]`` = P_L's coefficients of x, x², …
+    (nb values: the input that produced y(k) and the older ones);
+    ``lag_polys[L−1]`` = P_L's coefficients of x, x², …
     """
 
     __slots__ = ("ar", "bias", "inputs", "lag_polys", "outputs", "poly_scale", "rbf", "rbf_weights")
@@ -109,15 +110,18 @@ class ModelDynamics:
             value += self.rbf.weighted(u, self.rbf_weights)[0]
         return value
 
-    def simulate_held(self, u_now: float, horizon: int, forcing: float) -> list[float]:
+    def simulate_held(
+        self, u_now: float, horizon: int, forcing: float, outputs: list[float] | None = None
+    ) -> list[float]:
         """ŷ(k+1 … k+horizon) with u(k), u(k+1), … all equal to ``u_now`` and ``forcing``
-        added to the bias (the controller's disturbance estimate). Non-finite values are
-        the caller's to screen."""
+        added to the bias, from ``outputs`` (y(k), y(k−1), …; default: the measured ones).
+        Non-finite values are the caller's to screen."""
         na = len(self.ar)
         nb = len(self.lag_polys)
         ar = self.ar
         # y history, newest first, padded with the oldest known value.
-        past = list(self.outputs[:na]) if na else []
+        start = self.outputs if outputs is None else outputs
+        past = list(start[:na]) if na else []
         while len(past) < na:
             past.append(past[-1] if past else 0.0)
         # Contribution of each input lag for step j: the held value for L ≤ j, else history.
@@ -148,6 +152,20 @@ class ModelDynamics:
                 past.insert(0, acc)
         return out
 
+    def one_step(self, outputs: list[float]) -> float:
+        """ŷ(k) from ``outputs`` = y(k−1), y(k−2), … and this snapshot's inputs u(k−1), …
+        (the input history already holds the input that produced y(k)): one step of the
+        controller's internal model, which runs on its own outputs."""
+        acc = self.bias
+        na = len(self.ar)
+        for i in range(min(na, len(outputs))):
+            acc += self.ar[i] * outputs[i]
+        inputs = self.inputs
+        for lag in range(1, len(self.lag_polys) + 1):
+            if lag - 1 < len(inputs):
+                acc += self.lag_value(lag, inputs[lag - 1])
+        return acc
+
     def advance(self, u_prev: float) -> float:
         """Free run: ŷ of the next sample from u_prev = the input one step before it and
         this snapshot's own histories, which then take ŷ and u_prev in (the coefficients
@@ -165,8 +183,7 @@ class ModelDynamics:
                 acc += self.lag_value(lag, inputs[lag - 2])
         if na:
             self.outputs = [acc, *outputs[: na - 1]]
-        if nb > 1:
-            self.inputs = [u_prev, *inputs[: nb - 2]]
+        self.inputs = [u_prev, *inputs[: nb - 1]]
         return acc
 
     def is_finite(self) -> bool:

@@ -436,7 +436,7 @@ class PaperUModel(_UModelCore):
         """ŷ(t) = Σ α_i x(t−1)^i + Σ w_j Φ_j(u(t−1)): no output lags, one input lag."""
         theta = self._theta
         return ModelDynamics(
-            [], 0.0, [list(theta[self._nr : self._np])], self.poly_scale, [], [],
+            [], 0.0, [list(theta[self._nr : self._np])], self.poly_scale, [], [self._u_last],
             self.rbf, theta[: self._nr],
         )  # fmt: skip
 
@@ -474,7 +474,7 @@ class DynamicUModel(_ModelBase):
         nb: int = 4,
         degree: int = PAPER_DEGREE,
         u_scale: float = 2.0,
-        lam: float = 0.9995,
+        lam: float = 0.9999,
         p0: float = 1000.0,
         seed: int = 0,
         guard: GuardConfig | dict[str, Any] | None = None,
@@ -566,15 +566,14 @@ class DynamicUModel(_ModelBase):
             self._levels = [y] * self.na
             self._y_ref = y
             self._primed = True
-        if self.nb > 1:
-            self._inputs = [u, *self._inputs[:-1]]
+        self._inputs = [u, *self._inputs[:-1]]
         self._rebuild_tail()
 
     def _rebuild_tail(self) -> None:
         tail = [1.0]
         ref = self._y_ref
         tail += [v - ref for v in self._levels]
-        for past in self._inputs:
+        for past in self._inputs[: self.nb - 1]:
             tail += self._powers(past)
         self._tail = tail
 
@@ -582,7 +581,9 @@ class DynamicUModel(_ModelBase):
         self._primed = False
         self._y_ref = 0.0
         self._levels = [0.0] * self.na
-        self._inputs = [0.0] * (self.nb - 1)
+        # u(t−1) … u(t−nb): the regressor uses the first nb − 1 (lags 2..nb of the next
+        # sample); the controller's internal model all of them.
+        self._inputs = [0.0] * self.nb
         self._rebuild_tail()
 
     def dynamics(self) -> ModelDynamics:

@@ -7,22 +7,23 @@ linear in past outputs, a polynomial of each input lag. The controller
    factorisation of the lag × power coefficient matrix: w = N(u), y = G(q)·w; exact for a
    Hammerstein plant, the best rank-one fit otherwise);
 2. derives its horizons from the identified linear part: the prediction horizon is the
-   settling time of G's step response (clamped to ``[min_horizon, max_horizon]``), the
-   blocked input moves are one sample, up to a fraction ``hold_share`` of it, and the
-   rest of it;
+   settling time of G's step response (clamped to ``[min_horizon, max_horizon]``), and
+   the input is planned in blocks that start at 1, 2, 4, … samples (geometric up to the
+   horizon, at most ``max_blocks``): fine where the plan is applied next, coarse where
+   only its level matters;
 3. predicts the output with every future input held at the applied one (the free
-   response, on the full model, started from the measured outputs, with the disturbance
-   estimate as a constant forcing), adds each block's effect through G's step response,
-   and minimises Σ (ŷ − r)² + ρ Σ Δw² over the block levels inside the actuator's range
-   (the first block also inside its rate limit): a box-constrained QP in three variables,
-   solved exactly by enumerating the faces of the box;
+   response of the internal model, plus the disturbance estimate), adds each block's
+   effect through G's step response, and minimises Σ (ŷ − r)² + ρ Σ Δw² over the block
+   levels inside the actuator's range (the first block also inside its rate limit): a
+   box-constrained QP, solved exactly by a primal active-set method;
 4. root-solves N(u) = w for the first block (the U-model inverse step, with the solver's
    fallback where there is no real root).
 
-Offset-free tracking: the a-priori one-step error is low-passed with a time constant of
-a share of the horizon (``disturbance_share``) and acts as a constant forcing over the
-horizon, so the predicted steady state carries the disturbance. A slow estimate on
-purpose: a non-minimum-phase plant answers a fast correction with its wrong-way response.
+Offset-free tracking (internal model control): an internal copy of the model runs on its
+own outputs and the applied inputs; the measured output's departure from it, low-passed
+with a time constant of a share of the horizon (``disturbance_share``), is the output
+disturbance, held constant over the horizon. A slow estimate on purpose: a
+non-minimum-phase plant answers a fast correction with its wrong-way response.
 
 Guards: non-finite model coefficients, a degenerate input map or a non-finite plan give
 "hold" (the applied input), never an exception or a non-finite command.
@@ -49,7 +50,7 @@ class PredictiveSettings:
     __slots__ = (
         "band",
         "disturbance_share",
-        "hold_share",
+        "max_blocks",
         "max_horizon",
         "min_horizon",
         "move_weight",
@@ -61,8 +62,8 @@ class PredictiveSettings:
         min_horizon: int = 5,
         max_horizon: int = 1000,
         band: float = 0.05,
-        hold_share: float = 0.25,
-        move_weight: float = 1e-3,
+        max_blocks: int = 8,
+        move_weight: float = 0.03,
         disturbance_share: float = 0.5,
         refresh: int = 50,
     ) -> None:
@@ -70,8 +71,8 @@ class PredictiveSettings:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
         if not 0.0 < band < 1.0:
             raise ValueError("band must be in (0, 1)")
-        if not 0.0 < hold_share < 1.0:
-            raise ValueError("hold_share must be in (0, 1)")
+        if max_blocks < 2:
+            raise ValueError("max_blocks must be >= 2")
         if not (math.isfinite(move_weight) and move_weight >= 0.0):
             raise ValueError("move_weight must be finite and >= 0")
         if not (math.isfinite(disturbance_share) and disturbance_share > 0.0):
@@ -81,10 +82,31 @@ class PredictiveSettings:
         self.min_horizon = int(min_horizon)
         self.max_horizon = int(max_horizon)
         self.band = float(band)
-        self.hold_share = float(hold_share)
+        self.max_blocks = int(max_blocks)
         self.move_weight = float(move_weight)
         self.disturbance_share = float(disturbance_share)
         self.refresh = int(refresh)
+
+
+def block_starts(horizon: int, max_blocks: int) -> list[int]:
+    """First samples of the input blocks: 1 (the command), then geometrically spaced up to
+    the horizon (ratio 2, or larger so that there are at most ``max_blocks``): fine where
+    the plan is applied next, coarse where only its level matters."""
+    ratio = 2.0
+    if max_blocks > 2:
+        ratio = max(ratio, math.exp(math.log(max(horizon, 2)) / (max_blocks - 1)))
+    starts = [1]
+    edge = 1.0
+    while True:
+        edge *= ratio
+        start = round(edge)
+        if start >= horizon:
+            break
+        if start > starts[-1]:
+            starts.append(start)
+    if len(starts) == 1 and horizon > 1:
+        starts.append(2)
+    return starts
 
 
 def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
@@ -179,85 +201,105 @@ def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float]
     return gains, StaticMap(poly, dyn.poly_scale)
 
 
+def _solve_linear(a: list[list[float]], b: list[float]) -> list[float] | None:
+    """x with a·x = b by Gaussian elimination with partial pivoting (a and b are
+    consumed); None when a is singular to working precision."""
+    k = len(b)
+    for col in range(k):
+        piv = col
+        for r in range(col + 1, k):
+            if abs(a[r][col]) > abs(a[piv][col]):
+                piv = r
+        if not abs(a[piv][col]) > 1e-300:
+            return None
+        if piv != col:
+            a[col], a[piv] = a[piv], a[col]
+            b[col], b[piv] = b[piv], b[col]
+        pivot_row = a[col]
+        for r in range(col + 1, k):
+            row = a[r]
+            factor = row[col] / pivot_row[col]
+            if factor != 0.0:
+                for c in range(col, k):
+                    row[c] -= factor * pivot_row[c]
+                b[r] -= factor * b[col]
+    x = [0.0] * k
+    for r in range(k - 1, -1, -1):
+        acc = b[r]
+        row = a[r]
+        for c in range(r + 1, k):
+            acc -= row[c] * x[c]
+        x[r] = acc / row[r]
+    return x
+
+
 def _solve_box_qp(
     h: list[list[float]], f: list[float], lo: list[float], hi: list[float]
 ) -> list[float]:
-    """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite, n ≤ 3):
-    every face of the box (each variable free, at its lower or at its upper bound), the
-    unconstrained optimum on the face, the best feasible one. Exact and deterministic."""
+    """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite): a primal
+    active-set method (Nocedal & Wright, §16.5) from the centre of the box. Each
+    iteration solves for the free variables, steps until a bound blocks, and releases
+    the bound whose multiplier has the wrong sign once no step is left; finite, exact to
+    rounding, deterministic. Returns the best point reached if the iteration limit hits."""
     n = len(f)
-    best: list[float] = [min(max(0.0, lo[i]), hi[i]) for i in range(n)]
-    best_cost = math.inf
-    combos = 1
-    for _ in range(n):
-        combos *= 3
-    for code in range(combos):
-        x = [0.0] * n
-        free: list[int] = []
-        c = code
+    x = [0.5 * (lo[i] + hi[i]) for i in range(n)]
+    state = [0] * n  # 0 free, −1 at lo, +1 at hi
+    for _ in range(8 * n + 8):
+        grad = [0.0] * n
         for i in range(n):
-            state = c % 3
-            c //= 3
-            if state == 0:
-                free.append(i)
-            elif state == 1:
-                x[i] = lo[i]
-            else:
-                x[i] = hi[i]
-        if free:
-            # H_ff x_f = −(f_f + H_fb x_b), by Gaussian elimination (at most 3×3).
-            k = len(free)
-            a = [[h[free[r]][free[s]] for s in range(k)] for r in range(k)]
-            b = []
-            for r in range(k):
-                acc = -f[free[r]]
-                for j in range(n):
-                    if j not in free:
-                        acc -= h[free[r]][j] * x[j]
-                b.append(acc)
-            ok = True
-            for col in range(k):
-                piv = col
-                for r in range(col + 1, k):
-                    if abs(a[r][col]) > abs(a[piv][col]):
-                        piv = r
-                if abs(a[piv][col]) < 1e-300:
-                    ok = False
-                    break
-                a[col], a[piv] = a[piv], a[col]
-                b[col], b[piv] = b[piv], b[col]
-                for r in range(col + 1, k):
-                    factor = a[r][col] / a[col][col]
-                    for s in range(col, k):
-                        a[r][s] -= factor * a[col][s]
-                    b[r] -= factor * b[col]
-            if not ok:
-                continue
-            sol = [0.0] * k
-            for r in range(k - 1, -1, -1):
-                acc = b[r]
-                for s in range(r + 1, k):
-                    acc -= a[r][s] * sol[s]
-                sol[r] = acc / a[r][r]
-            feasible = True
-            for r in range(k):
-                i = free[r]
-                if not (lo[i] <= sol[r] <= hi[i]):
-                    feasible = False
-                    break
-                x[i] = sol[r]
-            if not feasible:
-                continue
-        cost = 0.0
-        for i in range(n):
-            hx = 0.0
+            acc = f[i]
+            row = h[i]
             for j in range(n):
-                hx += h[i][j] * x[j]
-            cost += x[i] * (0.5 * hx + f[i])
-        if cost < best_cost:
-            best_cost = cost
-            best = x
-    return best
+                acc += row[j] * x[j]
+            grad[i] = acc
+        free = [i for i in range(n) if state[i] == 0]
+        step = [0.0] * n
+        moved = False
+        if free:
+            sol = _solve_linear(
+                [[h[i][j] for j in free] for i in free], [-grad[i] for i in free]
+            )
+            if sol is None:
+                return x
+            for r in range(len(free)):
+                step[free[r]] = sol[r]
+            scale = 0.0
+            for i in range(n):
+                scale = max(scale, abs(x[i]), hi[i] - lo[i])
+            moved = any(abs(v) > 1e-14 * (1.0 + scale) for v in step)
+        if moved:
+            alpha = 1.0
+            block = -1
+            for i in free:
+                v = step[i]
+                if v < 0.0 and x[i] + v < lo[i]:
+                    t = (lo[i] - x[i]) / v
+                    if t < alpha:
+                        alpha, block = t, i
+                elif v > 0.0 and x[i] + v > hi[i]:
+                    t = (hi[i] - x[i]) / v
+                    if t < alpha:
+                        alpha, block = t, i
+            for i in free:
+                x[i] += alpha * step[i]
+            if block >= 0:
+                if step[block] < 0.0:
+                    x[block], state[block] = lo[block], -1
+                else:
+                    x[block], state[block] = hi[block], 1
+            continue
+        # No step left on this face: release the bound that most wants to move inward.
+        worst = -1
+        worst_value = 0.0
+        for i in range(n):
+            # At lo the gradient must be ≥ 0, at hi ≤ 0 (multipliers of the right sign).
+            g = grad[i] if state[i] == -1 else -grad[i] if state[i] == 1 else 0.0
+            if g < worst_value:
+                worst, worst_value = i, g
+        if worst < 0:
+            return x
+        state[worst] = 0
+    return x
 
 
 class PredictiveInverse:
@@ -273,6 +315,8 @@ class PredictiveInverse:
         "_onset",
         "_points",
         "_rho",
+        "_sim",
+        "_starts",
         "rate",
         "settings",
         "u_max",
@@ -298,6 +342,8 @@ class PredictiveInverse:
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
         self._hessian: list[list[float]] = []
         self._rho = 0.0
+        self._starts: list[int] = []  # first sample of each input block
+        self._sim: list[float] | None = None  # internal model's outputs y_m(k), y_m(k−1), …
 
     @property
     def horizon(self) -> int:
@@ -308,23 +354,44 @@ class PredictiveInverse:
         return self._disturbance
 
     def reset(self) -> None:
+        """Forget the internal model and the disturbance (after a gap in the telemetry)."""
         self._disturbance = 0.0
-        self._age = 0
-        self._horizon = 0
+        self._sim = None
 
-    def observe_error(self, error: float) -> None:
-        """Feed the identifier's a-priori one-step error (the disturbance estimate)."""
-        if not math.isfinite(error) or self._horizon == 0:
+    def track(self, dyn: ModelDynamics, y: float) -> None:
+        """Advance the internal model by the sample whose output ``y`` the identifier has
+        just learnt from (``dyn`` is the model after that step), and the disturbance
+        estimate d ← d + α·(y − y_m − d), α = 1/(1 + disturbance_share·horizon).
+
+        The internal model runs on its own outputs and the applied inputs (internal model
+        control): the prediction carries the measured output's departure from it as a
+        constant, so tracking is offset-free whatever the model's error at steady state.
+        It restarts from the measured outputs when it has none or stops being finite.
+        """
+        na = len(dyn.ar)
+        sim = self._sim
+        if sim is None or len(sim) != na or not math.isfinite(y):
+            self._sim = list(dyn.outputs[:na])
             return
-        share = self.settings.disturbance_share * self._horizon
-        alpha = 1.0 / (1.0 + share)
-        self._disturbance += alpha * (error - self._disturbance)
+        y_m = dyn.one_step(sim)
+        if not math.isfinite(y_m) or not math.isfinite(y - y_m):
+            self._sim = list(dyn.outputs[:na])
+            self._disturbance = 0.0
+            return
+        if na:
+            sim.pop()
+            sim.insert(0, y_m)
+        self._age += 1
+        horizon = self.horizon_for(dyn)
+        alpha = 1.0 / (1.0 + self.settings.disturbance_share * horizon)
+        self._disturbance += alpha * (y - y_m - self._disturbance)
 
     def horizon_for(self, dyn: ModelDynamics) -> int:
         """The prediction horizon of these dynamics (derived now if never derived), e.g.
         for the health report's multi-step accuracy before control starts; 0 when the
         model has no usable input map yet."""
-        if self._horizon == 0 and dyn.is_finite():
+        stale = self._horizon == 0 or self._age >= self.settings.refresh
+        if stale and dyn.is_finite():
             factors = factorise(dyn, self.u_min, self.u_max)
             if factors is not None:
                 self._derive(dyn.ar, factors[0])
@@ -336,12 +403,7 @@ class PredictiveInverse:
         s = self.settings
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
-        split = max(2, round(s.hold_share * n))
-        if split >= n:
-            split = n - 1
-        # Blocks of input levels: u(k+1) (the command, rate-limited), u(k+2 … k+split),
-        # u(k+split+1 …) (one block less when the horizon is too short for three).
-        starts = [1, 2, split + 1] if split >= 2 else [1, 2]
+        starts = block_starts(n, s.max_blocks)
         nblocks = len(starts)
         stride = max(1, -(-n // _COST_POINTS))
         points = list(range(n, 0, -stride))
@@ -383,6 +445,7 @@ class PredictiveInverse:
         self._onset = onset
         self._hessian = hessian
         self._rho = rho
+        self._starts = starts
         self._age = 0
 
     def decide(
@@ -401,9 +464,13 @@ class PredictiveInverse:
         shape = factors[1]
         if self._horizon == 0 or self._age >= self.settings.refresh:
             self._derive(dyn.ar, factors[0])
-        self._age += 1
         n = self._horizon
-        free = dyn.simulate_held(u0, n, self._disturbance)
+        sim = self._sim
+        if sim is None or len(sim) != len(dyn.ar):
+            sim = list(dyn.outputs[: len(dyn.ar)])
+        # The internal model's free response plus the output disturbance estimate.
+        free = dyn.simulate_held(u0, n, 0.0, sim)
+        disturbance = self._disturbance
         w0 = shape.value(u0)
         nblocks = len(self._hessian)
         f = [0.0] * nblocks
@@ -411,23 +478,25 @@ class PredictiveInverse:
         onset = self._onset
         points = self._points
         for p in range(len(points)):
-            resid = free[points[p] - 1] - w0 * onset[p] - setpoint
+            resid = free[points[p] - 1] + disturbance - w0 * onset[p] - setpoint
             col = columns[p]
             for b in range(nblocks):
                 f[b] += col[b] * resid
         f[0] -= self._rho * w0
-        w_lo = shape.value(lo_u)
-        w_hi = shape.value(hi_u)
-        if w_lo > w_hi:
-            w_lo, w_hi = w_hi, w_lo
+        # Each block's level within what the actuator can reach by the block's start
+        # (amplitude, and the rate limit from the applied input), in the map's units.
+        lo: list[float] = []
+        hi: list[float] = []
+        for start in self._starts:
+            reach = self.rate * start
+            a_u = max(lo_u, u0 - reach)
+            b_u = min(hi_u, u0 + reach)
+            a_w = shape.value(a_u)
+            b_w = shape.value(b_u)
+            lo.append(min(a_w, b_w))
+            hi.append(max(a_w, b_w))
         first_lo = max(lo_u, u0 - self.rate)
         first_hi = min(hi_u, u0 + self.rate)
-        r_lo = shape.value(first_lo)
-        r_hi = shape.value(first_hi)
-        if r_lo > r_hi:
-            r_lo, r_hi = r_hi, r_lo
-        lo = [r_lo] + [w_lo] * (nblocks - 1)
-        hi = [r_hi] + [w_hi] * (nblocks - 1)
         for value in f:
             if not math.isfinite(value):
                 return u0, "hold", False

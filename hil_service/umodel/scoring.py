@@ -89,40 +89,46 @@ class MultiStepStats:
     """Rolling accuracy of the model's free run: the pipeline restarts a frozen copy of the
     model from the measured outputs every ``horizon`` samples and feeds it the applied
     inputs, so each ŷ_sim is a 1…horizon-step-ahead prediction. Over the last ``window``
-    samples: NMSE = Σ(y − ŷ_sim)² / Σ(y − ȳ)² and fit % = 100·(1 − √NMSE)."""
+    samples: NMSE = Σ(y − ŷ_sim)² / Σ(y − ȳ)² and fit % = 100·(1 − √NMSE).
 
-    __slots__ = ("_recent", "_sum_e2", "_sum_y", "_sum_y2", "window")
+    The sums are taken when asked (health is published at 1 Hz), not kept running: a
+    free run that blew up must not leave its rounding in the figures after it has left
+    the window."""
+
+    __slots__ = ("_recent", "window")
+
+    #: A free-run error beyond this (or not finite) counts as this: the fit is then very
+    #: negative, and the squares stay finite.
+    ERROR_CAP = 1e100
 
     def __init__(self, window: int = 500) -> None:
         self.window = window
-        self._recent: deque[tuple[float, float]] = deque()
-        self._sum_e2 = 0.0
-        self._sum_y = 0.0
-        self._sum_y2 = 0.0
+        self._recent: deque[tuple[float, float]] = deque(maxlen=window)
 
     def add(self, y: float, y_sim: float) -> None:
+        if not math.isfinite(y):
+            return
         e = y - y_sim
-        if not (math.isfinite(e) and math.isfinite(y)):
-            e = 1e150 if math.isfinite(y) else 0.0  # a diverged free run is a bad fit
-        self._recent.append((y, e * e))
-        self._sum_e2 += e * e
-        self._sum_y += y
-        self._sum_y2 += y * y
-        if len(self._recent) > self.window:
-            old_y, old_e2 = self._recent.popleft()
-            self._sum_e2 -= old_e2
-            self._sum_y -= old_y
-            self._sum_y2 -= old_y * old_y
+        if not (math.isfinite(e) and abs(e) < self.ERROR_CAP):
+            e = self.ERROR_CAP
+        self._recent.append((y, e))
 
     def nmse(self) -> float | None:
         n = len(self._recent)
         if n < 2:
             return None
-        mean = self._sum_y / n
-        variance = self._sum_y2 / n - mean * mean
-        if not variance > 1e-12 * (1.0 + mean * mean):
+        mean = 0.0
+        for y, _ in self._recent:
+            mean += y
+        mean /= n
+        spread = 0.0
+        squares = 0.0
+        for y, e in self._recent:
+            spread += (y - mean) * (y - mean)
+            squares += e * e
+        if not spread > 1e-12 * n * (1.0 + mean * mean):
             return None  # a flat output: no scale to judge the fit by
-        return max(self._sum_e2, 0.0) / n / variance
+        return squares / spread
 
     def fit(self) -> float | None:
         nmse = self.nmse()
