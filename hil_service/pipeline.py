@@ -53,6 +53,7 @@ class ControlSettings:
     move_weight: float = 0.03  # input-move penalty, relative to the output cost's scale
     disturbance_share: float = 0.5  # disturbance estimate's time constant / horizon
     refresh: int = 50  # samples between two horizon derivations
+    cost_points: int = 120  # points of the horizon in the cost (evenly spaced)
 
     def __post_init__(self) -> None:
         self.predictive()  # validates the constants
@@ -66,6 +67,7 @@ class ControlSettings:
             move_weight=self.move_weight,
             disturbance_share=self.disturbance_share,
             refresh=self.refresh,
+            cost_points=self.cost_points,
         )
 
     @classmethod

@@ -60,7 +60,9 @@ def test_box_qp_is_the_minimum_over_the_box(seed: int) -> None:
     h = (a @ a.T + 0.1 * np.eye(3)).tolist()
     f = rng.normal(size=3).tolist()
     lo, hi = [-1.0, -0.5, 0.0], [1.0, 0.5, 2.0]
-    x = _solve_box_qp(h, f, lo, hi)
+    x, state = _solve_box_qp(h, f, lo, hi)
+    assert _solve_box_qp(h, f, lo, hi, state)[0] == pytest.approx(x)  # warm start
+    assert _solve_box_qp(h, f, lo, hi, [1, -1, 1])[0] == pytest.approx(x)  # a wrong one
     assert all(lo[i] - 1e-12 <= x[i] <= hi[i] + 1e-12 for i in range(3))
 
     def cost(v: np.ndarray) -> float:
@@ -148,3 +150,18 @@ def test_tracks_a_plant_it_was_not_tuned_on() -> None:
     # Every 300-sample step ends within 2 % of the step size, and no command is non-finite.
     for start in range(0, len(errors), 300):
         assert max(errors[start + 250 : start + 300]) < 0.02 * 2.5
+
+
+@pytest.mark.parametrize(("na", "nb"), [(1, 1), (2, 4), (4, 4), (4, 2)])
+def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int) -> None:
+    rng = np.random.default_rng(na * 10 + nb)
+    ar = (0.9 * rng.uniform(-1, 1, na) / na).tolist()
+    polys = rng.normal(size=(nb, 3)).tolist()
+    dyn = ModelDynamics(ar, 0.7, polys, 0.5, rng.normal(size=na).tolist(),
+                        rng.uniform(-2, 2, nb).tolist())  # fmt: skip
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    controller._derive(ar, [1.0] * nb)
+    sim = rng.normal(size=na).tolist()
+    fast = controller._free_response(dyn, 0.4, sim)
+    slow = dyn.simulate_held(0.4, controller.horizon, 0.0, sim)
+    assert fast == pytest.approx([slow[j - 1] for j in controller._points], rel=1e-9, abs=1e-9)

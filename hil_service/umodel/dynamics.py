@@ -131,26 +131,59 @@ class ModelDynamics:
             for j in range(1, nb)
             for lag in range(j + 1, nb + 1)
         ]
-        # history is laid out per step j = 1..nb−1: lags j+1..nb.
+        # history is laid out per step j = 1..nb−1: lags j+1..nb. From step nb on every
+        # lag sees the held input: one constant.
+        held_sum = 0.0
+        for v in held:
+            held_sum += v
+        # Outputs oldest first, the predictions appended: y(k+j−i) is seq[len − i].
+        seq = [past[na - 1 - i] for i in range(na)]
         out: list[float] = []
         base = self.bias + forcing
         pos = 0
         for j in range(1, horizon + 1):
             acc = base
+            end = len(seq)
             for i in range(na):
-                acc += ar[i] * past[i]
+                acc += ar[i] * seq[end - 1 - i]
+            if j < nb:
+                for lag in range(1, nb + 1):
+                    if lag <= j:
+                        acc += held[lag - 1]
+                    else:
+                        acc += history[pos + lag - j - 1]
+                pos += nb - j
+            else:
+                acc += held_sum
+            out.append(acc)
+            seq.append(acc)
+        return out
+
+    def input_forcing(self, u_now: float, count: int) -> tuple[list[float], float]:
+        """The non-autoregressive part of ŷ(k+l) with u(k), u(k+1), … held at ``u_now``:
+        bias + Σ_L P_L(u(k+l−L)) for l = 1 … ``count``, and its constant value from l = nb
+        on (every lag then sees the held input). ``simulate_held`` is this run through
+        1/A(q); the controller does that in closed form at its cost points."""
+        nb = len(self.lag_polys)
+        held = [self.lag_value(lag, u_now) for lag in range(1, nb + 1)]
+        constant = self.bias
+        for v in held:
+            constant += v
+        terms: list[float] = []
+        inputs = self.inputs
+        for step in range(1, count + 1):
+            if step >= nb:
+                terms.append(constant)
+                continue
+            acc = self.bias
             for lag in range(1, nb + 1):
-                if lag <= j:
+                if lag <= step:
                     acc += held[lag - 1]
                 else:
-                    acc += history[pos + lag - j - 1]
-            if j < nb:
-                pos += nb - j
-            out.append(acc)
-            if na:
-                past.pop()
-                past.insert(0, acc)
-        return out
+                    index = lag - step - 1
+                    acc += self.lag_value(lag, inputs[index] if index < len(inputs) else 0.0)
+            terms.append(acc)
+        return terms, constant
 
     def one_step(self, outputs: list[float]) -> float:
         """ŷ(k) from ``outputs`` = y(k−1), y(k−2), … and this snapshot's inputs u(k−1), …

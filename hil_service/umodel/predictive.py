@@ -40,8 +40,6 @@ __all__ = ["PredictiveInverse", "PredictiveSettings", "settling_horizon", "step_
 
 #: Power-iteration sweeps of the rank-one factorisation (a 3×3 symmetric matrix).
 _POWER_SWEEPS = 30
-#: At most this many points of the horizon enter the cost (evenly spaced, always the last).
-_COST_POINTS = 120
 
 
 class PredictiveSettings:
@@ -49,6 +47,7 @@ class PredictiveSettings:
 
     __slots__ = (
         "band",
+        "cost_points",
         "disturbance_share",
         "max_blocks",
         "max_horizon",
@@ -66,6 +65,7 @@ class PredictiveSettings:
         move_weight: float = 0.03,
         disturbance_share: float = 0.5,
         refresh: int = 50,
+        cost_points: int = 120,
     ) -> None:
         if not 2 <= min_horizon <= max_horizon:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
@@ -79,6 +79,8 @@ class PredictiveSettings:
             raise ValueError("disturbance_share must be finite and > 0")
         if refresh < 1:
             raise ValueError("refresh must be >= 1")
+        if cost_points < 1:
+            raise ValueError("cost_points must be >= 1")
         self.min_horizon = int(min_horizon)
         self.max_horizon = int(max_horizon)
         self.band = float(band)
@@ -86,6 +88,9 @@ class PredictiveSettings:
         self.move_weight = float(move_weight)
         self.disturbance_share = float(disturbance_share)
         self.refresh = int(refresh)
+        #: At most this many points of the horizon enter the cost (evenly spaced, the last
+        #: one always).
+        self.cost_points = int(cost_points)
 
 
 def block_starts(horizon: int, max_blocks: int) -> list[int]:
@@ -180,7 +185,13 @@ def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float]
         norm = math.sqrt(norm)
         if not (math.isfinite(norm) and norm > 0.0):
             return None
-        v = [x / norm for x in w]
+        w = [x / norm for x in w]
+        moved = 0.0
+        for i in range(m):
+            moved = max(moved, abs(w[i] - v[i]))
+        v = w
+        if moved < 1e-14:
+            break
     gains = []
     for row in rows:
         acc = 0.0
@@ -234,16 +245,25 @@ def _solve_linear(a: list[list[float]], b: list[float]) -> list[float] | None:
 
 
 def _solve_box_qp(
-    h: list[list[float]], f: list[float], lo: list[float], hi: list[float]
-) -> list[float]:
+    h: list[list[float]],
+    f: list[float],
+    lo: list[float],
+    hi: list[float],
+    warm: list[int] | None = None,
+) -> tuple[list[float], list[int]]:
     """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite): a primal
     active-set method (Nocedal & Wright, §16.5) from the centre of the box. Each
     iteration solves for the free variables, steps until a bound blocks, and releases
     the bound whose multiplier has the wrong sign once no step is left; finite, exact to
-    rounding, deterministic. Returns the best point reached if the iteration limit hits."""
+    rounding, deterministic. Returns the best point reached if the iteration limit hits,
+    and the working set (0 free, −1 at lo, +1 at hi): given back as ``warm`` on the next
+    sample, the last plan's active bounds, it usually leaves one or two iterations."""
     n = len(f)
-    x = [0.5 * (lo[i] + hi[i]) for i in range(n)]
-    state = [0] * n  # 0 free, −1 at lo, +1 at hi
+    state = [0] * n
+    if warm is not None and len(warm) == n:
+        state = list(warm)
+    x = [lo[i] if state[i] < 0 else hi[i] if state[i] > 0 else 0.5 * (lo[i] + hi[i])
+         for i in range(n)]  # fmt: skip
     for _ in range(8 * n + 8):
         grad = [0.0] * n
         for i in range(n):
@@ -260,7 +280,7 @@ def _solve_box_qp(
                 [[h[i][j] for j in free] for i in free], [-grad[i] for i in free]
             )
             if sol is None:
-                return x
+                return x, state
             for r in range(len(free)):
                 step[free[r]] = sol[r]
             scale = 0.0
@@ -297,9 +317,9 @@ def _solve_box_qp(
             if g < worst_value:
                 worst, worst_value = i, g
         if worst < 0:
-            return x
+            return x, state
         state[worst] = 0
-    return x
+    return x, state
 
 
 class PredictiveInverse:
@@ -310,11 +330,16 @@ class PredictiveInverse:
         "_age",
         "_columns",
         "_disturbance",
+        "_free_ar",
+        "_free_impulse",
+        "_free_step",
         "_hessian",
         "_horizon",
         "_onset",
+        "_plan_state",
         "_points",
         "_rho",
+        "_shape",
         "_sim",
         "_starts",
         "rate",
@@ -341,8 +366,15 @@ class PredictiveInverse:
         self._columns: list[list[float]] = []  # per point: effect of each block's level
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
         self._hessian: list[list[float]] = []
+        # The free response in closed form at the cost points (see ``_free_response``):
+        # the AR part it was derived for, S_A(j) and h_A(j − l) for l = 1 … L.
+        self._free_ar: list[float] = []
+        self._free_step: list[float] = []
+        self._free_impulse: list[list[float]] = []
         self._rho = 0.0
+        self._shape: StaticMap | None = None  # the input map N the plan was derived with
         self._starts: list[int] = []  # first sample of each input block
+        self._plan_state: list[int] | None = None  # the last plan's active bounds
         self._sim: list[float] | None = None  # internal model's outputs y_m(k), y_m(k−1), …
 
     @property
@@ -357,6 +389,7 @@ class PredictiveInverse:
         """Forget the internal model and the disturbance (after a gap in the telemetry)."""
         self._disturbance = 0.0
         self._sim = None
+        self._plan_state = None
 
     def track(self, dyn: ModelDynamics, y: float) -> None:
         """Advance the internal model by the sample whose output ``y`` the identifier has
@@ -395,6 +428,7 @@ class PredictiveInverse:
             factors = factorise(dyn, self.u_min, self.u_max)
             if factors is not None:
                 self._derive(dyn.ar, factors[0])
+                self._shape = factors[1]
         return self._horizon
 
     def _derive(self, ar: list[float], gains: list[float]) -> None:
@@ -405,7 +439,7 @@ class PredictiveInverse:
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
         starts = block_starts(n, s.max_blocks)
         nblocks = len(starts)
-        stride = max(1, -(-n // _COST_POINTS))
+        stride = max(1, -(-n // s.cost_points))
         points = list(range(n, 0, -stride))
         columns: list[list[float]] = []
         onset: list[float] = []
@@ -439,6 +473,24 @@ class PredictiveInverse:
             if b + 1 < nblocks:
                 hessian[b][b + 1] -= rho
                 hessian[b + 1][b] -= rho
+        # 1/A(q): impulse response h_A and its running sum S_A, for the free response.
+        na = len(ar)
+        lead = max(na, len(gains) - 1, 1)
+        impulse: list[float] = []
+        for m in range(n):
+            acc = 1.0 if m == 0 else 0.0
+            for i in range(na):
+                if m - 1 - i >= 0:
+                    acc += ar[i] * impulse[m - 1 - i]
+            impulse.append(acc)
+        running = [0.0]
+        for m in range(n):
+            running.append(running[-1] + impulse[m])
+        self._free_ar = list(ar)
+        self._free_step = [running[j] for j in points]
+        self._free_impulse = [
+            [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
+        ]
         self._horizon = n
         self._points = points
         self._columns = columns
@@ -447,6 +499,37 @@ class PredictiveInverse:
         self._rho = rho
         self._starts = starts
         self._age = 0
+
+    def _free_response(self, dyn: ModelDynamics, u_now: float, outputs: list[float]) -> list[float]:
+        """ŷ(k+j) at the cost points j with the input held at ``u_now``, from ``outputs``
+        (newest first), in closed form: y(k+j) = E·S_A(j) + Σ_{l=1..L} h_A(j − l)·d(l),
+        where E is the constant forcing once every input lag sees the held input and d(l)
+        the departure from it at the first L samples: the forcing's own (older inputs)
+        plus the past outputs' share Σ_{i≥l} c_i·y(k+l−i). The same numbers as running
+        the recursion over the horizon (``ModelDynamics.simulate_held``; tested), in
+        points × (L + 1) operations instead of horizon × (na + 1)."""
+        ar = self._free_ar
+        na = len(ar)
+        impulses = self._free_impulse
+        lead = len(impulses[0]) if impulses else 0
+        terms, constant = dyn.input_forcing(u_now, lead)
+        departures = [terms[d] - constant for d in range(lead)]
+        for step in range(1, min(lead, na) + 1):
+            acc = 0.0
+            for i in range(step, na + 1):
+                index = i - step
+                if index < len(outputs):
+                    acc += ar[i - 1] * outputs[index]
+            departures[step - 1] += acc
+        free: list[float] = []
+        steps = self._free_step
+        for p in range(len(impulses)):
+            acc = constant * steps[p]
+            row = impulses[p]
+            for d in range(lead):
+                acc += row[d] * departures[d]
+            free.append(acc)
+        return free
 
     def decide(
         self, dyn: ModelDynamics, u_applied: float, setpoint: float
@@ -458,18 +541,20 @@ class PredictiveInverse:
         u0 = lo_u if u0 < lo_u else hi_u if u0 > hi_u else u0
         if not (math.isfinite(setpoint) and dyn.is_finite()):
             return u0, "hold", False
-        factors = factorise(dyn, lo_u, hi_u)
-        if factors is None:
-            return u0, "hold", False
-        shape = factors[1]
-        if self._horizon == 0 or self._age >= self.settings.refresh:
+        # The factorisation, horizons and plan matrices change as slowly as the model:
+        # derived again every ``refresh`` samples, the same N for the plan and the inverse.
+        shape = self._shape
+        if shape is None or self._horizon == 0 or self._age >= self.settings.refresh:
+            factors = factorise(dyn, lo_u, hi_u)
+            if factors is None:
+                return u0, "hold", False
             self._derive(dyn.ar, factors[0])
-        n = self._horizon
+            shape = self._shape = factors[1]
         sim = self._sim
         if sim is None or len(sim) != len(dyn.ar):
             sim = list(dyn.outputs[: len(dyn.ar)])
         # The internal model's free response plus the output disturbance estimate.
-        free = dyn.simulate_held(u0, n, 0.0, sim)
+        free = self._free_response(dyn, u0, sim)
         disturbance = self._disturbance
         w0 = shape.value(u0)
         nblocks = len(self._hessian)
@@ -478,7 +563,7 @@ class PredictiveInverse:
         onset = self._onset
         points = self._points
         for p in range(len(points)):
-            resid = free[points[p] - 1] + disturbance - w0 * onset[p] - setpoint
+            resid = free[p] + disturbance - w0 * onset[p] - setpoint
             col = columns[p]
             for b in range(nblocks):
                 f[b] += col[b] * resid
@@ -500,7 +585,7 @@ class PredictiveInverse:
         for value in f:
             if not math.isfinite(value):
                 return u0, "hold", False
-        plan = _solve_box_qp(self._hessian, f, lo, hi)
+        plan, self._plan_state = _solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
         target = plan[0]
         if not math.isfinite(target):
             return u0, "hold", False
