@@ -220,15 +220,15 @@ class ChannelPipeline:
             self.converged = False
         else:
             self.stats.add(y, estimate.error, baseline.error)
+            if not self.converged and self.stats.count >= self.settings.burn_in:
+                skill = self.stats.recent_skill()  # only needed until convergence
+                if skill is not None and skill >= self.settings.min_skill:
+                    self.converged = True
             self.dynamics = self.model.dynamics()
             self.controller.track(self.dynamics, y)
         self._free_run_left -= 1
         if self._free_run_left <= 0:
             self._restart_free_run()
-            if not self.converged and self.stats.count >= self.settings.burn_in:
-                skill = self.stats.recent_skill()  # only needed until convergence
-                if skill is not None and skill >= self.settings.min_skill:
-                    self.converged = True
         return {
             "t": t,
             "y": estimate.y,

@@ -53,3 +53,22 @@ def test_commands_are_finite_within_limits_and_the_identifier_never_diverges(run
             u = result.inverse.u[channel]
             assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= 2.0)
             assert np.all(np.abs(np.diff(u)) <= 0.5 + 1e-12)
+
+
+def test_the_identifier_converges_on_the_sample_its_burn_in_completes() -> None:
+    """Convergence is judged on every accepted sample, not only when the health report's
+    free run restarts (a long horizon must not delay the first command)."""
+    from hil_service.pipeline import ChannelPipeline, PipelineSettings
+
+    pipeline = ChannelPipeline("depth", PipelineSettings(burn_in=50), 0)
+    rng = np.random.default_rng(2)
+    y = u = 0.0
+    for k in range(200):
+        y = 0.9 * y + 0.2 * u
+        pipeline.observe(float(k), y, u)
+        if pipeline.stats.count >= 50:
+            assert pipeline.converged, k
+            break
+        u = float(rng.uniform(-2, 2)) if k % 10 == 0 else u
+    else:
+        pytest.fail("burn-in never completed")
