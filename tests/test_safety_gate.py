@@ -559,3 +559,23 @@ def test_the_diverging_sample_is_not_commanded_nor_those_after_it(in_process):
     assert reasons[burst.stop - 1] == "identifier diverged (depth)"
     assert sent[burst.stop :] == [0] * 40
     assert all(r.startswith("identifier not converged (depth:") for r in reasons[burst.stop :])
+
+
+def test_samples_the_identifier_rejects_never_count_toward_convergence():
+    """The assembler drops non-finite telemetry, but the pipeline guards too: a sample the
+    identifier rejects is counted as rejected, not as a perfect prediction in the skill."""
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    samples = [sample for sample, _ in plant_samples(BLOCKED + 5)]
+    for sample in samples[:BLOCKED]:
+        pipeline.observe(sample)
+    depth = pipeline.channels["depth"]
+    counted, skill = depth.stats.count, depth.stats.recent_skill()
+    for sample in samples[BLOCKED:]:
+        pipeline.observe(sample._replace(depth=math.nan))
+    assert depth.rejected == 5
+    assert (depth.stats.count, depth.stats.recent_skill()) == (counted, skill)
+    decision = pipeline.decide(samples[-1], {"depth": 16.0, "pitch": None}, True)
+    assert decision.command is None
+    assert decision.reason.startswith(f"identifier not converged (depth: {BURN_IN - 1}/")
