@@ -579,3 +579,23 @@ def test_samples_the_identifier_rejects_never_count_toward_convergence():
     decision = pipeline.decide(samples[-1], {"depth": 16.0, "pitch": None}, True)
     assert decision.command is None
     assert decision.reason.startswith(f"identifier not converged (depth: {BURN_IN - 1}/")
+
+
+def test_disabled_and_no_setpoint_are_named_and_send_nothing_in_process():
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    samples = [sample for sample, _ in plant_samples(BLOCKED + 1)]
+    for sample in samples:
+        pipeline.observe(sample)
+    last = samples[-1]
+    on = pipeline.decide(last, {"depth": 16.0, "pitch": None}, True)
+    assert on.command is not None and on.reason == ""  # converged: the gate is open
+    cases = [
+        ({"depth": 16.0, "pitch": 0.0}, False, "control disabled"),
+        ({"depth": None, "pitch": None}, True, "no setpoint"),
+        ({"depth": math.nan, "pitch": math.inf}, True, "no setpoint"),
+    ]
+    for setpoints, enabled, reason in cases:
+        decision = pipeline.decide(last, setpoints, enabled)
+        assert (decision.command, decision.payload, decision.reason) == (None, None, reason)
