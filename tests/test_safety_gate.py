@@ -591,6 +591,12 @@ def test_disabled_and_no_setpoint_are_named_and_send_nothing_in_process():
     last = samples[-1]
     on = pipeline.decide(last, {"depth": 16.0, "pitch": None}, True)
     assert on.command is not None and on.reason == ""  # converged: the gate is open
+    # The channel without a setpoint is left unchanged: NaN on the wire, null on Zenoh.
+    assert math.isnan(on.command.u_pitch) and math.isfinite(on.command.u_depth)
+    assert on.payload["u_pitch"] is None and on.payload["u_depth"] == on.command.u_depth
+    assert on.payload["mode"].endswith("/-")
+    pitch_only = pipeline.decide(last, {"depth": None, "pitch": 0.05}, True)
+    assert pitch_only.payload["u_depth"] is None and pitch_only.payload["mode"].startswith("-/")
     cases = [
         ({"depth": 16.0, "pitch": 0.0}, False, "control disabled"),
         ({"depth": None, "pitch": None}, True, "no setpoint"),
