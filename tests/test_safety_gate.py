@@ -419,9 +419,9 @@ def commands_in(frames: list[bytes]) -> list[BallastCommand]:
     ]
 
 
-def plant_samples(n: int, seed: int = 1):
+def plant_samples(n: int, seed: int = 1, trim_depth: float = 15.0):
     vehicle_codec = MavlinkCodec(1, 1)
-    plant = GliderPlant(PlantConfig(scenario="paper", seed=seed))
+    plant = GliderPlant(PlantConfig(scenario="paper", seed=seed, trim_depth=trim_depth))
     excitation = [RandomSteps(1.5, 5, 20, seed=seed + i) for i in range(2)]
     for k in range(n):
         sample = plant.step(excitation[0].value(k), excitation[1].value(k))
@@ -527,3 +527,96 @@ def test_limits_on_one_channel_do_not_apply_to_the_other():
     assert limits.violation("pitch", 4.0) != ""
     assert SetpointLimits(max_abs_pitch=0.3).violation("depth", 500.0) == ""
     assert SetpointLimits(max_depth=30.0).violation("pitch", 2.0) == ""
+
+
+def test_no_command_while_the_identifier_resynchronises_after_a_gap(in_process):
+    """Five steps lost after convergence: the samples that only refill the model's lags
+    are not commanded, though the identifier stays converged (the last of the HISTORY
+    refilling samples completes the lags, so it may be, as at the start: BLOCKED)."""
+    service, link = in_process(PipelineSettings(burn_in=BURN_IN))
+    service.inbox.set_setpoint(1, "depth", 16.0)
+    lost = range(BLOCKED + 20, BLOCKED + 25)
+    sent, reasons = [], []
+    for k, (_, frames) in enumerate(plant_samples(BLOCKED + 60)):
+        if k in lost:
+            continue
+        sent.append(feed(service, link, frames))
+        reasons.append(service.vehicles[1].control_reason)
+    after = BLOCKED + 20
+    assert sent[:after] == [0] * BLOCKED + [1] * 20
+    refill = HISTORY - 1
+    assert sent[after : after + refill] == [0] * refill
+    assert set(reasons[after : after + refill]) == {
+        "identifier resynchronising after a telemetry gap (depth)"
+    }
+    assert sent[after + refill :] == [1] * (len(sent) - after - refill)
+    assert service.vehicles[1].pipeline.channels["depth"].converged
+
+
+def test_the_diverging_sample_is_not_commanded_nor_those_after_it(in_process):
+    """In process, the forced divergence of the wire test: the sample that trips the
+    divergence test gets no command and says so; then the skill must come back."""
+    service, link = in_process(PipelineSettings(burn_in=BURN_IN))
+    service.inbox.set_setpoint(1, "depth", 1.0)
+    service.inbox.set_setpoint(1, "pitch", 0.05)
+    codec = MavlinkCodec(1, 2)
+    sent, reasons = [], []
+    burst = range(BLOCKED + 40, BLOCKED + 50)
+    for k, (sample, frames) in enumerate(plant_samples(BLOCKED + 90, trim_depth=0.5)):
+        if k in burst:
+            depth = 10_000.0 if (k - burst.start) % 2 == 0 else 0.0
+            edited = sample._replace(depth=depth)
+            frames = [codec.pack(m) for m in MAPPING.encode_telemetry(edited)]
+        sent.append(feed(service, link, frames))
+        reasons.append(service.vehicles[1].control_reason)
+    assert sent[BLOCKED : burst.start] == [1] * 40
+    assert sent[burst.start : burst.stop] == [1] * 9 + [0]
+    assert reasons[burst.stop - 1] == "identifier diverged (depth)"
+    assert sent[burst.stop :] == [0] * 40
+    assert all(r.startswith("identifier not converged (depth:") for r in reasons[burst.stop :])
+
+
+def test_samples_the_identifier_rejects_never_count_toward_convergence():
+    """The assembler drops non-finite telemetry, but the pipeline guards too: a sample the
+    identifier rejects is counted as rejected, not as a perfect prediction in the skill."""
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    samples = [sample for sample, _ in plant_samples(BLOCKED + 5)]
+    for sample in samples[:BLOCKED]:
+        pipeline.observe(sample)
+    depth = pipeline.channels["depth"]
+    counted, skill = depth.stats.count, depth.stats.recent_skill()
+    for sample in samples[BLOCKED:]:
+        pipeline.observe(sample._replace(depth=math.nan))
+    assert depth.rejected == 5
+    assert (depth.stats.count, depth.stats.recent_skill()) == (counted, skill)
+    decision = pipeline.decide(samples[-1], {"depth": 16.0, "pitch": None}, True)
+    assert decision.command is None
+    assert decision.reason.startswith(f"identifier not converged (depth: {BURN_IN - 1}/")
+
+
+def test_disabled_and_no_setpoint_are_named_and_send_nothing_in_process():
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    samples = [sample for sample, _ in plant_samples(BLOCKED + 1)]
+    for sample in samples:
+        pipeline.observe(sample)
+    last = samples[-1]
+    on = pipeline.decide(last, {"depth": 16.0, "pitch": None}, True)
+    assert on.command is not None and on.reason == ""  # converged: the gate is open
+    # The channel without a setpoint is left unchanged: NaN on the wire, null on Zenoh.
+    assert math.isnan(on.command.u_pitch) and math.isfinite(on.command.u_depth)
+    assert on.payload["u_pitch"] is None and on.payload["u_depth"] == on.command.u_depth
+    assert on.payload["mode"].endswith("/-")
+    pitch_only = pipeline.decide(last, {"depth": None, "pitch": 0.05}, True)
+    assert pitch_only.payload["u_depth"] is None and pitch_only.payload["mode"].startswith("-/")
+    cases = [
+        ({"depth": 16.0, "pitch": 0.0}, False, "control disabled"),
+        ({"depth": None, "pitch": None}, True, "no setpoint"),
+        ({"depth": math.nan, "pitch": math.inf}, True, "no setpoint"),
+    ]
+    for setpoints, enabled, reason in cases:
+        decision = pipeline.decide(last, setpoints, enabled)
+        assert (decision.command, decision.payload, decision.reason) == (None, None, reason)
