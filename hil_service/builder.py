@@ -13,6 +13,8 @@ from typing import Any
 
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.live.bus import LiveBus
+from hil_service.live.view import LiveView
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus, ZenohBus
@@ -41,11 +43,14 @@ class Wired:
     recorder: McapRecorder | None = None
     link: Link | None = None
     session: Any = None  # zenoh.Session
+    live: LiveView | None = None
 
     def close(self) -> dict[str, Any] | None:
-        """Close the bus, the Zenoh session, the link and the recorder (that order: the
-        recorder logs until the end); return the recorder's final report, if any."""
+        """Close the bus, the live view, the Zenoh session, the link and the recorder (that
+        order: the recorder logs until the end); return the recorder's final report, if any."""
         self.bus.close()
+        if self.live is not None:
+            self.live.close()
         if self.session is not None:
             self.session.close()
         if self.link is not None:
@@ -65,17 +70,21 @@ def wire(
     inbox: Inbox | None = None,
     bus: Bus | None = None,
     send_commands: bool = True,
+    live: LiveView | None = None,
 ) -> Wired:
     """The service for ``config``. Without ``bus``: a ``ZenohBus`` on ``session`` (recording
     to ``recorder``), or a ``NullBus`` without a session. Without ``inbox``: one that refuses
-    setpoints outside ``config.limits``."""
+    setpoints outside ``config.limits``. With ``live`` (a started ``LiveView``), every
+    publication is also offered to it (``LiveBus``)."""
     inbox = Inbox(config.limits) if inbox is None else inbox
     if bus is None:
         bus = NullBus() if session is None else ZenohBus(session, inbox, recorder)
+    if live is not None:
+        bus = LiveBus(bus, live)
     service = HilService(
         config, bus, inbox, link=link, recorder=recorder, send_commands=send_commands
     )
-    return Wired(service, inbox, bus, recorder, link, session)
+    return Wired(service, inbox, bus, recorder, link, session, live)
 
 
 def publishing_bus(session: Any) -> Bus:

@@ -15,8 +15,16 @@ from dataclasses import replace
 
 from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
-from hil_service.config import LinkSecurity, LogOptions, ServeConfig, ServiceConfig, Units
+from hil_service.config import (
+    LinkSecurity,
+    LogOptions,
+    ServeConfig,
+    ServiceConfig,
+    Units,
+    parse_system_ids,
+)
 from hil_service.inputs import SetpointLimits
+from hil_service.live.view import LiveAddress, LiveView
 from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
@@ -32,10 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--sysid",
-        type=int,
         action="append",
         default=[],
-        help="vehicle system id to serve (repeatable; default: every vehicle on the link)",
+        metavar="IDS",
+        help="vehicle system ids to serve: N, N-M or a comma list (repeatable; default: every "
+        "vehicle on the link)",
     )
     parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
     parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
@@ -77,7 +86,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --signing-key: accept unsigned telemetry too (counted in health)",
     )
+    add_foxglove_argument(parser)
     add_zenoh_arguments(parser)
+
+
+def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="serve a Foxglove live view (WebSocket) on PORT, loopback unless HOST is given",
+    )
+
+
+def foxglove_from_args(args: argparse.Namespace) -> LiveAddress | None:
+    return None if args.foxglove is None else LiveAddress.parse(args.foxglove)
+
+
+def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
+    """The started live view, announced on stderr (its URL), or None without an address."""
+    if address is None:
+        return None
+    try:
+        live = LiveView(address, name=f"glider-hil {verb}").start()
+    except Exception as error:  # foxglove raises its own error type, e.g. for a port in use
+        raise OSError(f"cannot start the Foxglove server on {address}: {error}") from error
+    print(f"glider-hil {verb}: foxglove live view on {live.url}", file=sys.stderr, flush=True)
+    return live
 
 
 def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
@@ -102,8 +137,9 @@ def security_from_args(args: argparse.Namespace) -> LinkSecurity:
 
 def config_from_args(args: argparse.Namespace) -> ServeConfig:
     """Flags → configuration; raises ValueError (or OSError for the key file) on bad ones."""
+    system_ids = [i for text in args.sysid for i in parse_system_ids(str(text))]
     service = ServiceConfig(
-        system_ids=tuple(args.sysid),
+        system_ids=tuple(dict.fromkeys(system_ids)),
         control_default=args.control,
         stale_timeout=args.stale_timeout,
         pipeline=settings_from_args(args),
@@ -116,7 +152,14 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         max_bytes=int(args.log_max_mb * 1024 * 1024),
         max_seconds=args.log_max_s,
     )
-    return ServeConfig(service, args.mavlink, options_from_args(args), log, args.duration)
+    return ServeConfig(
+        service,
+        args.mavlink,
+        options_from_args(args),
+        log,
+        args.duration,
+        foxglove_from_args(args),
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,7 +194,16 @@ def main(config: ServeConfig) -> int:
         if recorder is not None:
             recorder.close()
         return 2
-    wired = wire(config.service, session=session, link=link, recorder=recorder)
+    try:
+        live = start_live(config.foxglove, "serve")
+    except OSError as error:
+        print(f"glider-hil serve: {error}", file=sys.stderr)
+        session.close()
+        link.close()
+        if recorder is not None:
+            recorder.close()
+        return 2
+    wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
     tune_for_service()
     model = config.service.pipeline.model
     print(f"{SERVICE_READY} on {config.mavlink}, model {model}", file=sys.stderr, flush=True)
@@ -165,6 +217,8 @@ def main(config: ServeConfig) -> int:
     finally:
         summary = wired.service.summary()
         summary["wall_s"] = time.monotonic() - started
+        if live is not None:
+            summary["foxglove"] = live.status()
         log = wired.close()
         if log is not None:
             summary["log"] = log
