@@ -3,8 +3,10 @@
 System ids run from ``--sysid`` (``sysid … sysid+N-1``), seeds from ``--seed`` (one per
 vehicle, so their excitations and disturbances are independent). Each vehicle is an
 ``Autopilot`` on its own link (its own UDP socket) and thread, exactly as ``emulate`` runs
-one. ``--fleet-connect`` (repeatable) splits the vehicles in contiguous, equal blocks over
-several links, e.g. one per service; without it every vehicle uses ``--connect``.
+one, and measures telemetry → command latency (``TimedAutopilot``; printed at the end with
+the per-vehicle statistics). ``--fleet-connect`` (repeatable) splits the vehicles in
+contiguous, equal blocks over several links, e.g. one per service; without it every vehicle
+uses ``--connect``.
 """
 
 from __future__ import annotations
@@ -14,13 +16,14 @@ import json
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 from plant_emulator.autopilot import Autopilot, AutopilotConfig
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
-from protocols.mavlink_io import Link
+from protocols.mavlink_io import Link, MavMessage
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
@@ -48,6 +51,41 @@ def connection_for(index: int, vehicles: int, connections: list[str]) -> str:
     return connections[index * len(connections) // vehicles]
 
 
+class TimedAutopilot(Autopilot):
+    """An autopilot that also measures telemetry → command latency: from sending a step's
+    last telemetry datagram to receiving the first accepted command after it (the service
+    answers each complete sample with at most one command)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.latencies: list[float] = []  # s
+        self._sent_at: float | None = None
+
+    def step(self) -> Any:
+        sample = super().step()
+        self._sent_at = time.perf_counter()
+        return sample
+
+    def handle_message(self, message: MavMessage) -> None:
+        accepted = self.stats.commands_accepted
+        super().handle_message(message)
+        if self.stats.commands_accepted > accepted and self._sent_at is not None:
+            self.latencies.append(time.perf_counter() - self._sent_at)
+            self._sent_at = None
+
+
+def latency_summary(latencies: list[float]) -> dict[str, Any]:
+    """Count and percentiles (ms) of telemetry → command latencies."""
+    if not latencies:
+        return {"count": 0}
+    ordered = sorted(latencies)
+
+    def pct(q: float) -> float:
+        return round(1000 * ordered[min(len(ordered) - 1, int(q * len(ordered)))], 3)
+
+    return {"count": len(ordered), "p50_ms": pct(0.5), "p99_ms": pct(0.99), "max_ms": pct(1.0)}
+
+
 def _autopilot(args: argparse.Namespace, system_id: int, seed: int, link: Link) -> Autopilot:
     plant = GliderPlant(
         PlantConfig(
@@ -72,7 +110,7 @@ def _autopilot(args: argparse.Namespace, system_id: int, seed: int, link: Link) 
         pressure=PressureDepth(args.water_density, args.surface_pressure),
         inputs=InputScale(args.full_scale),
     )
-    return Autopilot(
+    return TimedAutopilot(
         plant, link, build_channel_excitations(args.excitation, seed=seed), config, mapping
     )
 
@@ -88,7 +126,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         return 2
     connections = list(args.fleet_connect) or [args.connect]
     links: list[Link] = []
-    autopilots: list[Autopilot] = []
+    autopilots: list[TimedAutopilot] = []
     try:
         for index in range(count):
             system_id = args.sysid + index
@@ -97,7 +135,9 @@ def run_fleet(args: argparse.Namespace) -> int:
                 source_component=1,
             )  # fmt: skip
             links.append(link)
-            autopilots.append(_autopilot(args, system_id, args.seed + index, link))
+            autopilot = _autopilot(args, system_id, args.seed + index, link)
+            assert isinstance(autopilot, TimedAutopilot)
+            autopilots.append(autopilot)
     except (ValueError, OSError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
         for link in links:
@@ -131,8 +171,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         str(a.config.system_id): a.stats.as_dict(a.codec) for a in autopilots
     }
     steps = sum(v["steps"] for v in per_vehicle.values())
-    print(
-        json.dumps({"emulator": {"vehicles": count, "steps": steps, "per_vehicle": per_vehicle}}),
-        flush=True,
-    )
+    latency = latency_summary([x for a in autopilots for x in a.latencies])
+    summary = {"vehicles": count, "steps": steps, "latency": latency, "per_vehicle": per_vehicle}
+    print(json.dumps({"emulator": summary}), flush=True)
     return 0
