@@ -75,12 +75,15 @@ def wire(
     """The service for ``config``. Without ``bus``: a ``ZenohBus`` on ``session`` (recording
     to ``recorder``), or a ``NullBus`` without a session. Without ``inbox``: one that refuses
     setpoints outside ``config.limits``. With ``live`` (a started ``LiveView``), every
-    publication is also offered to it (``LiveBus``)."""
+    publication is also offered to it (``LiveBus``), and so is every input received on
+    ``session``."""
     inbox = Inbox(config.limits) if inbox is None else inbox
     if bus is None:
         bus = NullBus() if session is None else ZenohBus(session, inbox, recorder)
     if live is not None:
         bus = LiveBus(bus, live)
+        if session is not None:
+            live.watch_inputs(session)
     service = HilService(
         config, bus, inbox, link=link, recorder=recorder, send_commands=send_commands
     )

@@ -87,6 +87,7 @@ def test_reference_client_validates_live_messages(processes, tmp_path) -> None:
         ("glider/1/umodel/depth", "glider-hil.umodel"),
         ("glider/1/umodel/pitch", "glider-hil.umodel"),
         ("glider/1/command/ballast", "glider-hil.command_ballast"),
+        ("glider/1/setpoint/depth", "glider-hil.setpoint"),  # an input, streamed too
     ):
         assert advertised[topic]["encoding"] == "json"
         assert advertised[topic]["schemaName"] == schema

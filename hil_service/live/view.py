@@ -21,7 +21,7 @@ from typing import Any
 import foxglove
 from foxglove import Channel, Schema
 
-from protocols import payload_json
+from protocols import keys, payload_json
 from protocols.keys import schema_for_key
 from protocols.schemas import load_schema
 
@@ -82,6 +82,7 @@ class LiveView:
         self._channels: dict[str, Channel] = {}
         self._context = foxglove.Context()
         self._server: Any = None
+        self._inputs: list[Any] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="foxglove-live", daemon=True)
 
@@ -129,16 +130,29 @@ class LiveView:
         }
 
     # ---- sender thread --------------------------------------------------------------------
+    def watch_inputs(self, session: Any) -> None:
+        """Also stream the inputs the service receives (setpoints, control), as the log
+        records them: a Zenoh subscriber of our own whose callback only offers the bytes."""
+
+        def on_input(sample: Any) -> None:
+            self.offer(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+
+        self._inputs = [
+            session.declare_subscriber(key_expr, on_input)
+            for key_expr in keys.INPUT_SUBSCRIPTIONS
+        ]
+
     def _channel(self, topic: str) -> Channel:
         channel = self._channels.get(topic)
         if channel is None:
-            schema = channel_schema(topic)
+            parsed = keys.parse(topic)
+            inbound = parsed is not None and parsed.kind in (keys.SETPOINT, keys.CONTROL)
             channel = Channel(
                 topic,
-                schema=schema,
+                schema=channel_schema(topic),
                 message_encoding="json",
                 context=self._context,
-                metadata={"transport": "zenoh", "direction": "out"},
+                metadata={"transport": "zenoh", "direction": "in" if inbound else "out"},
             )
             self._channels[topic] = channel
         return channel
@@ -165,6 +179,9 @@ class LiveView:
         self._drain()
 
     def close(self) -> None:
+        for subscriber in self._inputs:
+            subscriber.undeclare()
+        self._inputs = []
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(5.0)
