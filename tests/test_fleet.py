@@ -115,3 +115,25 @@ def test_two_services_one_router(fleet_rig) -> None:
     while 2 in fleet_snapshot(router):
         assert time.monotonic() - killed_at < LIVELINESS_TIMEOUT, "vehicle 2 still listed"
     assert 1 in fleet_snapshot(router)
+
+
+def test_an_explicit_sysid_list_is_served_whole() -> None:
+    """``--sysid 1-50``: every listed vehicle is assembled, beyond the open-link cap of 32."""
+    from hil_service.assembler import SampleAssembler
+    from plant_emulator.plant import GliderPlant, PlantConfig
+    from protocols.mapping import TelemetryMapping
+    from protocols.mavlink_io import MavlinkCodec
+
+    mapping = TelemetryMapping()
+    listed = SampleAssembler(mapping, parse_system_ids("1-50"))
+    open_link = SampleAssembler(mapping)
+    reader = MavlinkCodec(255, 0)
+    for system_id in range(1, 51):
+        sample = GliderPlant(PlantConfig(), system_id=system_id).step(0.0, 0.0)
+        codec = MavlinkCodec(system_id, 1)
+        for message in mapping.encode_telemetry(sample):
+            for parsed in reader.parse(codec.pack(message), datagram=True):
+                listed.add(parsed)
+                open_link.add(parsed)
+    assert listed.counters.samples == 50 and listed.counters.unknown_system == 0
+    assert open_link.counters.samples == 32  # the cap still guards a link without a list

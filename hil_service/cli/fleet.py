@@ -157,15 +157,19 @@ def render(rows: list[dict[str, Any]]) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    where = parser.add_mutually_exclusive_group()
-    where.add_argument(
+    parser.add_argument(
         "--zenoh-connect",
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="router or service to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
+        help="router or service to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; with "
+        "--zenoh-config, on top of the file's endpoints)",
     )
-    where.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration file")
+    parser.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="Zenoh JSON5 configuration file (e.g. config/zenoh/observer.json5)",
+    )
     parser.add_argument("--json", action="store_true", help="print one snapshot as JSON")
     parser.add_argument(
         "--wait", type=float, default=2.5, help="with --json: s to listen first (default 2.5)"
