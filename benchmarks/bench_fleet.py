@@ -40,6 +40,7 @@ from hil_service.cli.processes import (  # noqa: E402
     wait_for_line,
 )
 from hil_service.cli.router import ROUTER_READY  # noqa: E402
+from plant_emulator.fleet import connection_for  # noqa: E402
 from protocols import keys  # noqa: E402
 
 RATE = 10.0  # samples/s per vehicle (plant period 1 s at speed 10)
@@ -88,9 +89,12 @@ def run_fleet(vehicles: int, seconds: float) -> dict[str, Any]:
         router_process = start_verb("router", "--listen", router)
         processes.append(router_process)
         wait_for_line(router_process, ROUTER_READY, 60)
-        half = vehicles // 2
-        ranges = [f"1-{half}", f"{half + 1}-{vehicles}"]
-        udp = [free_port(socket.SOCK_DGRAM) for _ in ranges]
+        # The services' --sysid ranges are the emulator's blocks (connection_for).
+        udp = [free_port(socket.SOCK_DGRAM) for _ in range(2)]
+        block = [connection_for(i, vehicles, [0, 1]) for i in range(vehicles)]
+        ranges = [
+            f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in (0, 1)
+        ]
         services = []
         for sysids, port in zip(ranges, udp, strict=True):
             service = start_service(

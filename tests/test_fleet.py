@@ -137,3 +137,33 @@ def test_an_explicit_sysid_list_is_served_whole() -> None:
                 open_link.add(parsed)
     assert listed.counters.samples == 50 and listed.counters.unknown_system == 0
     assert open_link.counters.samples == 32  # the cap still guards a link without a list
+
+
+def test_the_table_shows_each_served_vehicle() -> None:
+    from hil_service.cli.fleet import render
+
+    rows = [
+        {
+            "system_id": 3,
+            "link_rate": 10.0,
+            "packet_loss": 0.01,
+            "fit": {"depth": 0.72, "pitch": None},
+            "control": {"enabled": True, "commanding": True, "reason": ""},
+            "last_command": {"u_depth": 0.5, "u_pitch": None},
+            "command_age_s": 0.1,
+        },
+        {
+            "system_id": 12,
+            "link_rate": None,
+            "packet_loss": None,
+            "fit": {},
+            "control": {"enabled": False, "commanding": False, "reason": "control disabled"},
+            "last_command": None,
+            "command_age_s": None,
+        },
+    ]
+    lines = render(rows).splitlines()
+    assert lines[0] == "glider-hil fleet: 2 vehicles served"
+    assert lines[2].split()[:5] == ["3", "10.0", "1.00%", "0.72", "-"]
+    assert "commanding" in lines[2] and "0.5, -" in lines[2]
+    assert lines[3].split()[0] == "12" and "off: control disabled" in lines[3]
