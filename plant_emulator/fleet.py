@@ -41,6 +41,12 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         help="emulate N gliders in this process, system ids from --sysid (default 1)",
     )
     group.add_argument(
+        "--phase-locked",
+        action="store_true",
+        help="with --vehicles: step every vehicle at the same instant (default: their steps "
+        "are spread evenly over one period, as independent vehicles' clocks are)",
+    )
+    group.add_argument(
         "--fleet-connect",
         action="append",
         default=[],
@@ -231,9 +237,16 @@ def run_fleet(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    wall_period = args.period / args.speed
+
+    def run_one(index: int, autopilot: TimedAutopilot) -> None:
+        if not args.phase_locked and stop.wait(index * wall_period / count):
+            return  # stopped before its first step
+        autopilot.run(stop)
+
     threads = [
-        threading.Thread(target=a.run, args=(stop,), name=f"glider-{a.config.system_id}")
-        for a in autopilots
+        threading.Thread(target=run_one, args=(i, a), name=f"glider-{a.config.system_id}")
+        for i, a in enumerate(autopilots)
     ]
     print(
         f"emulating {count} gliders, sysid {args.sysid}-{last} ({args.scenario}, "
