@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from hil_service.cli.processes import wait_for_line
 from hil_service.live.view import LiveAddress, channel_schema
 from protocols.schemas import load_schema
 from tests.conftest import free_tcp_port, free_udp_port
@@ -93,3 +94,22 @@ def test_reference_client_validates_live_messages(processes, tmp_path) -> None:
         assert advertised[topic]["schemaName"] == schema
         assert advertised[topic]["schemaEncoding"] == "jsonschema"
     assert not summary["errors"], summary["errors"]
+
+
+def test_replay_streams_a_log_to_the_reference_client(processes) -> None:
+    """``replay --foxglove``: the replayed service's publications, validated the same way."""
+    client = _node_client()
+    fox = free_tcp_port()
+    log = Path(__file__).resolve().parent / "data" / "paper.mcap"
+    replay = processes.start("replay", str(log), "--speed", "100", "--foxglove", f"127.0.0.1:{fox}")
+    wait_for_line(replay, "Foxglove live view on", 60)
+    result = subprocess.run(
+        [*client, f"ws://127.0.0.1:{fox}", "20", "30", "telemetry", "umodel"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["complete"], summary
+    assert summary["kinds"]["umodel"]["invalid"] == 0 and not summary["errors"], summary

@@ -111,7 +111,7 @@ def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
         live = LiveView(address, name=f"glider-hil {verb}").start()
     except Exception as error:  # foxglove raises its own error type, e.g. for a port in use
         raise OSError(f"cannot start the Foxglove server on {address}: {error}") from error
-    print(f"glider-hil {verb}: foxglove live view on {live.url}", file=sys.stderr, flush=True)
+    print(f"glider-hil {verb}: Foxglove live view on {live.url}", file=sys.stderr, flush=True)
     return live
 
 
