@@ -5,8 +5,10 @@ The path is ``serve``'s (``hil_service.builder.wire``: MAVLink datagrams → sam
 identifiers → Zenoh publish → MCAP write); the viewer is the reference client
 (``tests/foxglove_client/client.js``, ``@foxglove/ws-protocol``) subscribed to telemetry,
 estimates and commands and validating every message, a real WebSocket on loopback. Runs
-alternate (off, on, off, on, …) so that machine load hits both alike; medians and the ratio
-of medians are printed, with the live view's own counters (offered, sent, dropped).
+alternate (off, on, stalled, off, on, stalled, …; stalled: the viewer is stopped with
+SIGSTOP once subscribed, a viewer that holds its connection and never reads again) so that
+machine load hits all alike; medians and the ratios of medians are printed, with the live
+view's own counters (offered, sent, dropped).
 
 Run: .venv/bin/python benchmarks/bench_live_view.py [--samples N] [--repeats R]
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import signal
 import socket
 import statistics
 import subprocess
@@ -44,7 +47,11 @@ def free_tcp_port() -> int:
         return sock.getsockname()[1]
 
 
-def one_run(warm: list[bytes], datagrams: list[bytes], live_on: bool) -> dict[str, object]:
+def one_run(
+    warm: list[bytes], datagrams: list[bytes], live_on: bool, stalled: bool = False
+) -> dict[str, object]:
+    """Throughput of the timed datagrams; with ``stalled``, the viewer is stopped (SIGSTOP)
+    once subscribed: it holds its connection but never reads again."""
     config = ServiceConfig()
     session = open_session(ZenohOptions())
     with tempfile.TemporaryDirectory() as log_dir:
@@ -68,6 +75,8 @@ def one_run(warm: list[bytes], datagrams: list[bytes], live_on: bool) -> dict[st
                 if time.monotonic() > deadline:
                     raise RuntimeError("the viewer did not subscribe within 30 s")
                 time.sleep(0.05)
+            if stalled and viewer is not None:
+                viewer.send_signal(signal.SIGSTOP)
         before = service.assembler.counters.samples
         t0 = time.perf_counter()
         for data in datagrams:
@@ -76,6 +85,8 @@ def one_run(warm: list[bytes], datagrams: list[bytes], live_on: bool) -> dict[st
         samples = service.assembler.counters.samples - before
         status = live.status() if live is not None else None
         if viewer is not None:
+            if stalled:
+                viewer.send_signal(signal.SIGCONT)
             viewer.terminate()
             viewer.communicate(timeout=10)
         wired.close()
@@ -93,11 +104,14 @@ def main() -> int:
     everything = telemetry_datagrams(WARM_UP + args.samples)
     split = len(everything) * WARM_UP // (WARM_UP + args.samples)
     warm, datagrams = everything[:split], everything[split:]
-    off, on, live_status = [], [], []
+    off, on, stalled, live_status = [], [], [], []
     for _ in range(args.repeats):
         off.append(one_run(warm, datagrams, False)["samples_per_s"])
         result = one_run(warm, datagrams, True)
         on.append(result["samples_per_s"])
+        live_status.append(result["live"])
+        result = one_run(warm, datagrams, True, stalled=True)
+        stalled.append(result["samples_per_s"])
         live_status.append(result["live"])
     report = {
         "samples": args.samples,
@@ -107,6 +121,9 @@ def main() -> int:
         "median_without": round(statistics.median(off)),
         "median_with_viewer": round(statistics.median(on)),
         "ratio_with_to_without": round(statistics.median(on) / statistics.median(off), 3),
+        "with_stalled_viewer_samples_per_s": [round(x) for x in stalled],
+        "median_with_stalled_viewer": round(statistics.median(stalled)),
+        "ratio_stalled_to_without": round(statistics.median(stalled) / statistics.median(off), 3),
         "live_view": live_status,
     }
     print(json.dumps(report, indent=2))

@@ -12,6 +12,7 @@ nothing but dropped frames on its own connection.
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from collections import deque
@@ -87,6 +88,10 @@ class LiveView:
         self._thread = threading.Thread(target=self._run, name="foxglove-live", daemon=True)
 
     def start(self) -> LiveView:
+        # The SDK reports each failed send to a vanished client through Python's logging,
+        # which takes the GIL from the SDK's threads once per message: quiet it (a failed
+        # start still raises).
+        logging.getLogger("foxglove").setLevel(logging.CRITICAL)
         self._server = foxglove.start_server(
             name=self.name,
             host=self.address.host,
