@@ -9,16 +9,17 @@ replay and the benchmarks run is what ``serve`` runs. Each caller opens the part
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import Inbox
-from hil_service.live.bus import LiveBus
-from hil_service.live.view import LiveView
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus, ZenohBus
 from protocols.mavlink_io import Link
+
+if TYPE_CHECKING:  # the Foxglove SDK is imported only by a run with a live view
+    from hil_service.live.view import LiveView
 
 
 def open_recorder(
@@ -81,6 +82,8 @@ def wire(
     if bus is None:
         bus = NullBus() if session is None else ZenohBus(session, inbox, recorder)
     if live is not None:
+        from hil_service.live.bus import LiveBus
+
         bus = LiveBus(bus, live)
         if session is not None:
             live.watch_inputs(session)

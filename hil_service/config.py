@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.inputs import SetpointLimits
-from hil_service.live.view import LiveAddress
+from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
 from hil_service.zenoh_config import ZenohOptions
 from protocols.mapping import TelemetryMapping

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -113,3 +114,12 @@ def test_replay_streams_a_log_to_the_reference_client(processes) -> None:
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     assert summary["complete"], summary
     assert summary["kinds"]["umodel"]["invalid"] == 0 and not summary["errors"], summary
+
+
+def test_verbs_without_a_live_view_do_not_load_the_sdk() -> None:
+    code = (
+        "import sys, hil_service.cli as c, hil_service.builder, hil_service.config; "
+        "c.build_parser(); print('foxglove' in sys.modules)"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.stdout.strip() == "False", result.stderr

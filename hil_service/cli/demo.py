@@ -27,7 +27,7 @@ from hil_service.cli.processes import (
     start_verb,
     stop_process,
 )
-from hil_service.live.view import LiveAddress
+from hil_service.live.address import LiveAddress
 from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 

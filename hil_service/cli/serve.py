@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
@@ -24,12 +25,15 @@ from hil_service.config import (
     parse_system_ids,
 )
 from hil_service.inputs import SetpointLimits
-from hil_service.live.view import LiveAddress, LiveView
+from hil_service.live.address import LiveAddress
 from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mavlink_io import Link
 from protocols.signing import load_key
+
+if TYPE_CHECKING:
+    from hil_service.live.view import LiveView
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -107,6 +111,8 @@ def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
     """The started live view, announced on stderr (its URL), or None without an address."""
     if address is None:
         return None
+    from hil_service.live.view import LiveView  # the Foxglove SDK, only when asked for
+
     try:
         live = LiveView(address, name=f"glider-hil {verb}").start()
     except Exception as error:  # foxglove raises its own error type, e.g. for a port in use

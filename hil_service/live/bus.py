@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from hil_service.live.view import LiveView
 from hil_service.zenoh_bus import Bus
+
+if TYPE_CHECKING:
+    from hil_service.live.view import LiveView
 
 
 class LiveBus:

@@ -16,12 +16,12 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
 from typing import Any
 
 import foxglove
 from foxglove import Channel, Schema
 
+from hil_service.live.address import LiveAddress
 from protocols import keys, payload_json
 from protocols.keys import schema_for_key
 from protocols.schemas import load_schema
@@ -30,29 +30,7 @@ from protocols.schemas import load_schema
 MAX_PENDING = 10_000
 #: Messages the SDK buffers per client before it drops the oldest.
 BACKLOG = 1024
-DEFAULT_PORT = 8765
 IDLE_WAIT = 0.05  # s between two batches of the sender thread
-
-
-@dataclass(frozen=True)
-class LiveAddress:
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_PORT
-
-    @classmethod
-    def parse(cls, text: str) -> LiveAddress:
-        """``PORT`` (loopback) or ``HOST:PORT``; ValueError names what is wrong."""
-        host, colon, port_text = text.rpartition(":")
-        if not colon:
-            host, port_text = "127.0.0.1", text
-        host = host.strip("[]") or "127.0.0.1"
-        try:
-            port = int(port_text)
-        except ValueError:
-            raise ValueError(f"--foxglove {text!r}: expected [HOST:]PORT") from None
-        if not 0 <= port <= 65535:
-            raise ValueError(f"--foxglove {text!r}: port out of range")
-        return cls(host, port)
 
 
 def channel_schema(topic: str) -> Schema | None:
@@ -143,8 +121,7 @@ class LiveView:
             self.offer(str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
 
         self._inputs = [
-            session.declare_subscriber(key_expr, on_input)
-            for key_expr in keys.INPUT_SUBSCRIPTIONS
+            session.declare_subscriber(key_expr, on_input) for key_expr in keys.INPUT_SUBSCRIPTIONS
         ]
 
     def _channel(self, topic: str) -> Channel:
