@@ -4,7 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench build clean mutate
+.PHONY: demo test lint bench build clean mutate foxglove-client
+FOXGLOVE_CLIENT := tests/foxglove_client
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -20,7 +21,16 @@ build: $(STAMP)
 demo: build
 	$(BIN)/glider-hil demo
 
-test: build
+# The reference Foxglove client of tests/test_foxglove_live.py, from its lock file, when node
+# and npm are on the machine (without them that test is skipped and says why).
+foxglove-client: $(FOXGLOVE_CLIENT)/node_modules/.installed
+
+$(FOXGLOVE_CLIENT)/node_modules/.installed: $(FOXGLOVE_CLIENT)/package-lock.json
+	@if command -v node >/dev/null && command -v npm >/dev/null; then \
+		npm ci --prefix $(FOXGLOVE_CLIENT) --no-audit --no-fund && touch $@; \
+	else echo "node/npm not found: the Foxglove client test will be skipped"; fi
+
+test: build foxglove-client
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
@@ -64,3 +74,4 @@ mutate: $(STAMP)
 clean:
 	rm -rf $(VENV) build *.egg-info glider_hil_native__mypyc*.so
 	find hil_service protocols -name '*.so' -delete
+	rm -rf $(FOXGLOVE_CLIENT)/node_modules

@@ -93,7 +93,8 @@ class SampleAssembler:
     ):
         self.mapping = mapping or TelemetryMapping()
         self.allowed = frozenset(system_ids) if system_ids else None
-        self.max_vehicles = max_vehicles
+        # An explicit list (serve --sysid 1-50) is served whole; the cap guards open links.
+        self.max_vehicles = max(max_vehicles, len(self.allowed or ()))
         #: Messages of a system not served (not allowed, or beyond ``max_vehicles``).
         self.unknown_system = 0
         self._vehicles: dict[int, _VehicleState] = {}

@@ -9,7 +9,7 @@ replay and the benchmarks run is what ``serve`` runs. Each caller opens the part
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import Inbox
@@ -17,6 +17,9 @@ from hil_service.mcap.recorder import McapRecorder
 from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus, ZenohBus
 from protocols.mavlink_io import Link
+
+if TYPE_CHECKING:  # the Foxglove SDK is imported only by a run with a live view
+    from hil_service.live.view import LiveView
 
 
 def open_recorder(
@@ -41,11 +44,14 @@ class Wired:
     recorder: McapRecorder | None = None
     link: Link | None = None
     session: Any = None  # zenoh.Session
+    live: LiveView | None = None
 
     def close(self) -> dict[str, Any] | None:
-        """Close the bus, the Zenoh session, the link and the recorder (that order: the
-        recorder logs until the end); return the recorder's final report, if any."""
+        """Close the bus, the live view, the Zenoh session, the link and the recorder (that
+        order: the recorder logs until the end); return the recorder's final report, if any."""
         self.bus.close()
+        if self.live is not None:
+            self.live.close()
         if self.session is not None:
             self.session.close()
         if self.link is not None:
@@ -65,17 +71,26 @@ def wire(
     inbox: Inbox | None = None,
     bus: Bus | None = None,
     send_commands: bool = True,
+    live: LiveView | None = None,
 ) -> Wired:
     """The service for ``config``. Without ``bus``: a ``ZenohBus`` on ``session`` (recording
     to ``recorder``), or a ``NullBus`` without a session. Without ``inbox``: one that refuses
-    setpoints outside ``config.limits``."""
+    setpoints outside ``config.limits``. With ``live`` (a started ``LiveView``), every
+    publication is also offered to it (``LiveBus``), and so is every input received on
+    ``session``."""
     inbox = Inbox(config.limits) if inbox is None else inbox
     if bus is None:
         bus = NullBus() if session is None else ZenohBus(session, inbox, recorder)
+    if live is not None:
+        from hil_service.live.bus import LiveBus
+
+        bus = LiveBus(bus, live)
+        if session is not None:
+            live.watch_inputs(session)
     service = HilService(
         config, bus, inbox, link=link, recorder=recorder, send_commands=send_commands
     )
-    return Wired(service, inbox, bus, recorder, link, session)
+    return Wired(service, inbox, bus, recorder, link, session, live)
 
 
 def publishing_bus(session: Any) -> Bus:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.inputs import SetpointLimits
+from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
 from hil_service.zenoh_config import ZenohOptions
 from protocols.mapping import TelemetryMapping
@@ -186,3 +187,22 @@ class ServeConfig:
     zenoh: ZenohOptions = field(default_factory=ZenohOptions)
     log: LogOptions = field(default_factory=LogOptions)
     duration: float | None = None  # wall s, then stop
+    foxglove: LiveAddress | None = None  # the live view's address (None: no live view)
+
+
+def parse_system_ids(text: str) -> tuple[int, ...]:
+    """``--sysid`` values: ``7``, ``1-50`` or a comma list of both (``1-3,9``), each id a
+    MAVLink system id (1..255); ValueError names what is wrong."""
+    ids: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        low_text, dash, high_text = part.partition("-")
+        try:
+            low = int(low_text)
+            high = int(high_text) if dash else low
+        except ValueError:
+            raise ValueError(f"--sysid {text!r}: expected N, N-M or a comma list") from None
+        if not 1 <= low <= high <= 255:
+            raise ValueError(f"--sysid {text!r}: ids are 1..255 and a range runs low-high")
+        ids.extend(range(low, high + 1))
+    return tuple(dict.fromkeys(ids))

@@ -10,6 +10,7 @@ import threading
 
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
+from plant_emulator.fleet import add_fleet_arguments, run_fleet
 from plant_emulator.plant import GliderPlant, PlantConfig
 from plant_emulator.scenarios import SCENARIOS
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
@@ -91,9 +92,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
     )
+    add_fleet_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.vehicles != 1 or args.fleet_connect:
+        return run_fleet(args)
     try:
         profile = load_profile(args.profile)
         periodic = profile.sampling.mode == "periodic"

@@ -27,6 +27,7 @@ from hil_service.cli.processes import (
     start_verb,
     stop_process,
 )
+from hil_service.live.address import LiveAddress
 from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 
@@ -46,6 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--signing",
         action="store_true",
         help="sign the MAVLink link both ways with a fresh key (kept in a private temp dir)",
+    )
+    parser.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="the service serves a Foxglove live view on PORT (loopback unless HOST is given)",
     )
 
 
@@ -104,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
             "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
             "--burn-in", str(int(0.25 * sim_total)), *signing,
+            *(["--foxglove", args.foxglove] if args.foxglove else []),
         )  # fmt: skip
     except NotReady as error:
         print(f"demo: the service did not start: {error}", file=sys.stderr)
@@ -127,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
             (t_control, {"depth": TRIM_DEPTH + 2.0, "pitch": 0.15}),
             (t_second, {"depth": TRIM_DEPTH - 1.0, "pitch": -0.1}),
         ]
+        if args.foxglove:
+            address = LiveAddress.parse(args.foxglove)
+            print(f"demo: Foxglove live view on ws://{address.host}:{address.port}", flush=True)
         print(
             f"demo: {sim_total:.0f} simulated s at {args.speed:g}x; identification until "
             f"t={t_control:.0f}s, then setpoint steps at t={t_control:.0f}s and {t_second:.0f}s",

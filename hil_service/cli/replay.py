@@ -7,9 +7,12 @@ import json
 import sys
 
 from hil_service.builder import publishing_bus
+from hil_service.cli.serve import add_foxglove_argument, foxglove_from_args, start_live
+from hil_service.live.bus import LiveBus
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
+from hil_service.zenoh_bus import NullBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.profiles import ProfileError
 
@@ -34,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--sample-period", type=float, default=None, help="periodic profiles: s between samples"
     )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_foxglove_argument(parser)
     add_zenoh_arguments(parser)
 
 
@@ -57,11 +61,14 @@ def run(args: argparse.Namespace) -> int:
         sample_period=args.sample_period,
         progress=_progress if args.fast and sys.stderr.isatty() else None,
     )
-    session = bus = None
+    session = bus = live = None
     try:
+        live = start_live(foxglove_from_args(args), "replay")
         if args.publish:
             session = open_session(options_from_args(args))
             bus = publishing_bus(session)
+        if live is not None:
+            bus = LiveBus(NullBus() if bus is None else bus, live)
         tune_for_service()
         while True:
             result = replay(args.log, options, bus)
@@ -71,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"glider-hil replay: {result.recovered}", file=sys.stderr)
             if result.mismatch is not None or not args.loop:
                 break
-    except (LogError, ReplayError, ProfileError, OSError) as error:
+    except (LogError, ReplayError, ProfileError, OSError, ValueError) as error:
         print(f"glider-hil replay: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -79,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bus is not None:
             bus.close()
+        if live is not None:
+            live.close()
         if session is not None:
             session.close()
     report = {

@@ -12,17 +12,29 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
-from hil_service.config import LinkSecurity, LogOptions, ServeConfig, ServiceConfig, Units
+from hil_service.config import (
+    LinkSecurity,
+    LogOptions,
+    ServeConfig,
+    ServiceConfig,
+    Units,
+    parse_system_ids,
+)
 from hil_service.inputs import SetpointLimits
+from hil_service.live.address import LiveAddress
 from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, load_profile
 from protocols.signing import load_key
+
+if TYPE_CHECKING:
+    from hil_service.live.view import LiveView
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,10 +45,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--sysid",
-        type=int,
         action="append",
         default=[],
-        help="vehicle system id to serve (repeatable; default: every vehicle on the link)",
+        metavar="IDS",
+        help="vehicle system ids to serve: N, N-M or a comma list (repeatable; default: every "
+        "vehicle on the link)",
     )
     parser.add_argument(
         "--profile",
@@ -91,7 +104,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --signing-key: accept unsigned telemetry too (counted in health)",
     )
+    add_foxglove_argument(parser)
     add_zenoh_arguments(parser)
+
+
+def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="serve a Foxglove live view (WebSocket) on PORT, loopback unless HOST is given",
+    )
+
+
+def foxglove_from_args(args: argparse.Namespace) -> LiveAddress | None:
+    return None if args.foxglove is None else LiveAddress.parse(args.foxglove)
+
+
+def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
+    """The started live view, announced on stderr (its URL), or None without an address."""
+    if address is None:
+        return None
+    from hil_service.live.view import LiveView  # the Foxglove SDK, only when asked for
+
+    try:
+        live = LiveView(address, name=f"glider-hil {verb}").start()
+    except Exception as error:  # foxglove raises its own error type, e.g. for a port in use
+        raise OSError(f"cannot start the Foxglove server on {address}: {error}") from error
+    print(f"glider-hil {verb}: Foxglove live view on {live.url}", file=sys.stderr, flush=True)
+    return live
 
 
 def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
@@ -120,8 +161,9 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
     periodic = profile.sampling.mode == "periodic"
     if args.sample_period is not None and not periodic:
         raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
+    system_ids = [i for text in args.sysid for i in parse_system_ids(str(text))]
     service = ServiceConfig(
-        system_ids=tuple(args.sysid),
+        system_ids=tuple(dict.fromkeys(system_ids)),
         control_default=args.control,
         stale_timeout=args.stale_timeout,
         pipeline=settings_from_args(args),
@@ -136,7 +178,14 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         max_bytes=int(args.log_max_mb * 1024 * 1024),
         max_seconds=args.log_max_s,
     )
-    return ServeConfig(service, args.mavlink, options_from_args(args), log, args.duration)
+    return ServeConfig(
+        service,
+        args.mavlink,
+        options_from_args(args),
+        log,
+        args.duration,
+        foxglove_from_args(args),
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -171,7 +220,16 @@ def main(config: ServeConfig) -> int:
         if recorder is not None:
             recorder.close()
         return 2
-    wired = wire(config.service, session=session, link=link, recorder=recorder)
+    try:
+        live = start_live(config.foxglove, "serve")
+    except OSError as error:
+        print(f"glider-hil serve: {error}", file=sys.stderr)
+        session.close()
+        link.close()
+        if recorder is not None:
+            recorder.close()
+        return 2
+    wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
     tune_for_service()
     model = config.service.pipeline.model
     print(f"{SERVICE_READY} on {config.mavlink}, model {model}", file=sys.stderr, flush=True)
@@ -185,6 +243,8 @@ def main(config: ServeConfig) -> int:
     finally:
         summary = wired.service.summary()
         summary["wall_s"] = time.monotonic() - started
+        if live is not None:
+            summary["foxglove"] = live.status()
         log = wired.close()
         if log is not None:
             summary["log"] = log
