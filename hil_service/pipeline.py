@@ -16,10 +16,10 @@ from typing import Any
 from hil_service.umodel import (
     CommandShaper,
     Estimate,
-    ImcReference,
     PersistenceModel,
+    PredictiveModel,
+    ReferenceFilter,
     build_model,
-    from_config,
     solve_inverse,
 )
 from hil_service.umodel.forecast import forecast_model
@@ -161,11 +161,13 @@ class ChannelPipeline:
         self.channel = channel
         self.settings = settings
         options = settings.options_for(channel)
-        self.model = build_model(settings.model, seed=seed, **options)
+        model = build_model(settings.model, seed=seed, **options)
+        assert isinstance(model, PredictiveModel)  # MODEL_CHOICES are the U-models
+        self.model: PredictiveModel = model
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
         control = settings.control
-        self.reference = ImcReference(a=control.reference_filter)
+        self.reference = ReferenceFilter(a=control.reference_filter)
         self.remaining = control.remaining_share(channel)
         self.shaper = CommandShaper(-control.u_limit, control.u_limit, control.rate_limit)
         self.u_prev: float | None = None
@@ -357,7 +359,3 @@ class VehiclePipeline:
     def configs(self) -> dict[str, dict[str, Any]]:
         return {ch: pipeline.config() for ch, pipeline in self.channels.items()}
 
-
-def rebuild_models(configs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Fresh models from stored ``configs`` (replay checks recompute with these)."""
-    return {ch: from_config(cfg) for ch, cfg in configs.items()}

@@ -161,15 +161,6 @@ def test_newton_solves_a_reachable_forecast_target(horizon: int) -> None:
         assert abs(res.residual) <= 1e-9 * max(1.0, abs(target))
 
 
-@pytest.mark.parametrize("na", [0, 1, 2, 5])
-def test_inline_ar_coefficients_equal_the_models_bit_for_bit(na: int) -> None:
-    from hil_service.umodel import DynamicUModel
-    from hil_service.umodel.forecast import _ar_coefficients
-
-    model = DynamicUModel(na=na, seed=3, init_scale=0.4, y_scale=0.1)
-    assert _ar_coefficients(model) == model.ar_coefficients()
-
-
 def test_overflowing_forecast_never_gives_a_nan_command() -> None:
     """An explosive identified AR part overflows ŷ(k+150): the solver still returns a finite
     input on the fallback path with an infinite residual, never NaN."""

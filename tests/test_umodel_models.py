@@ -15,6 +15,7 @@ from hil_service.umodel import (
     Estimate,
     OneStepModel,
     PaperUModel,
+    PredictiveModel,
     build_model,
     from_config,
     paper_preset,
@@ -61,6 +62,8 @@ def test_factory_and_names() -> None:
         model = build_model(name)
         assert isinstance(model, OneStepModel)
         assert model.name == name
+        # The controller's interface: the U-models give their multi-step input map.
+        assert isinstance(model, PredictiveModel) == (name in ("paper", "dynamic"))
     with pytest.raises(ValueError):
         build_model("nope")
     with pytest.raises(TypeError):
@@ -124,8 +127,9 @@ def test_predict_does_not_mutate(name: str) -> None:
     snap = m.snapshot()
     for u in (-1.0, 0.0, 2.5, math.nan):
         m.predict(u)
-        m.output_given_input(u if math.isfinite(u) else 0.0)
-        m.output_derivative(0.1)
+        horizon_map = getattr(m, "horizon_map", None)
+        if horizon_map is not None:
+            horizon_map(u if math.isfinite(u) else 0.0, 5).evaluate(0.1)
     assert m.snapshot() == snap
 
 
@@ -211,7 +215,9 @@ def test_garbage_never_yields_nan(name: str) -> None:
         est = m.step(u, y)
         assert all_finite(est)
         assert math.isfinite(m.predict(u))
-        assert math.isfinite(m.output_given_input(0.3)) and math.isfinite(m.output_derivative(0.3))
+        horizon_map = getattr(m, "horizon_map", None)
+        if horizon_map is not None:
+            assert all(map(math.isfinite, horizon_map(0.3, 5).evaluate(0.3)))
 
 
 @pytest.mark.parametrize("name", MODEL_NAMES)
@@ -293,11 +299,11 @@ def test_paper_model_learns_static_map_with_causal_ordering() -> None:
     misaligned = run(paper_preset(seed=0), shifted, y)
     e_mis = np.array([e.error for e in misaligned])[burn:]
     assert nmse(e_mis, y_arr) > 0.5
-    # Controller's view: output_given_input approximates g on the excited range.
+    # Controller's view: the model's input map approximates g on the excited range.
     model = paper_preset(seed=0)
     run(model, u, y)
     for x in (-1.5, -0.5, 0.0, 0.6, 1.4):
-        assert model.output_given_input(x) == pytest.approx(g(x), abs=0.1)
+        assert model.horizon_map(x, 2).value(x) == pytest.approx(g(x), abs=0.1)
 
 
 def test_rls_constant_input_stays_bounded() -> None:

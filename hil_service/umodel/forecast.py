@@ -29,7 +29,7 @@ or on slow convergence (~4 % of samples). So the fallback was made cheap instead
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import lru_cache
 from operator import sub
 from typing import Any
@@ -37,8 +37,11 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from .models import DynamicUModel, PaperUModel
+from .rbf import GaussianRBF
 from .reproducible import dot, row_sum
+
+#: The cached design array of a model's grid: [Φ_1(u)…Φ_J(u), x, …, x^degree] as rows.
+DesignRows = Callable[[np.ndarray, int], np.ndarray]
 
 _ONE = np.ones(1)  # lfilter numerator
 
@@ -58,7 +61,7 @@ class HorizonMap:
     __slots__ = (
         "_coef",
         "_curvatures",
-        "_model",
+        "_design",
         "_poly",
         "_rbf",
         "_scale",
@@ -70,15 +73,17 @@ class HorizonMap:
 
     def __init__(
         self,
-        model: DynamicUModel | PaperUModel,
+        rbf: GaussianRBF,
+        poly_scale: float,
+        design: DesignRows,
         offset: float,
         rbf_gain: float,
         weights: Sequence[float],
         poly: Sequence[float],
     ) -> None:
-        self._model = model
-        self._rbf = model.rbf
-        self._scale = model.poly_scale
+        self._design = design
+        self._rbf = rbf
+        self._scale = poly_scale
         self.offset = offset
         self.rbf_gain = rbf_gain
         self._weights = weights
@@ -151,7 +156,7 @@ class HorizonMap:
 
         Element-wise products and a fixed-order row sum only (see :mod:`.reproducible`).
         """
-        rows = self._model.design_rows(us, len(self._poly))
+        rows = self._design(us, len(self._poly))
         coef = self._coef
         if coef is None:
             g = self.rbf_gain
@@ -191,7 +196,7 @@ def _unit_step(horizon: int) -> np.ndarray:
     return step
 
 
-def _horizon_response(
+def horizon_response(
     ar: Sequence[float],
     outputs: Sequence[float],
     impulses: list[float],
@@ -242,68 +247,15 @@ def _horizon_response(
     return known, [tail[end - lag] if lag < horizon else 0.0 for lag in range(1, n_gains + 1)]
 
 
-def _ar_coefficients(model: DynamicUModel) -> list[float]:
-    """``model.ar_coefficients()`` written out: c = [1 + a_1, a_2 − a_1, …, −a_na], the
-    same operations (0 − a + b = b − a exactly), so the same bits."""
-    start = model._np + 1
-    a = [t * model._inv_ys for t in model._theta[start : start + model.na]]
-    if not a:
-        return [1.0]
-    return [1.0 + a[0], *map(sub, a[1:], a), -a[-1]]
-
-
-def _dynamic_horizon_map(model: DynamicUModel, u_applied: float, horizon: int) -> HorizonMap:
-    theta = model._theta
-    nr, npoly, na, nb, ld = model._nr, model._np, model.na, model.nb, model.lag_degree
-    weights = theta[:nr]
-    alphas = theta[nr:npoly]
-    base = npoly + 1 + na  # first lag-2 coefficient
-    end = base + (nb - 1) * ld
-    degree = max(model.degree, ld)
-    # Powers of the known inputs u(k) = u_applied, u(k−1), …, u(k−nb+1), flattened; the
-    # history tail of φ already holds those of the past inputs (lag_degree each).
-    x0 = u_applied * model.poly_scale
-    powers0 = [x0]
-    for _ in range(degree - 1):
-        powers0.append(powers0[-1] * x0)
-    past_powers = model._lin[1 + na :]
-    known = powers0[:ld] + past_powers
-    # Step k+j sees u(k+j−L) through lag L: known for L ≥ j. The lag blocks are contiguous
-    # in θ and the known inputs in ``known``, so each step is one scalar product. Φ(u(k))
-    # is the identifier's next regressor too (values_list keeps it).
-    impulses = [
-        dot(theta[base:end], past_powers)
-        + dot(model.rbf.values_list(u_applied), weights)
-        + dot(alphas, powers0)
-    ]
-    for j in range(2, min(nb, horizon) + 1):
-        impulses.append(dot(theta[base + (j - 2) * ld : end], known))
-    # AR form of the increments: ŷ(t) = Σ_{i=1..na+1} c_i·y(t−i) + … (see ar_coefficients).
-    offset, gains = _horizon_response(
-        _ar_coefficients(model), model._levels, impulses, theta[npoly], horizon, nb
-    )
-    g1 = gains[0]
-    poly = [g1 * a for a in alphas]
-    if len(poly) < degree:
-        poly += [0.0] * (degree - len(poly))
-    lag_gains = gains[1:]
-    if lag_gains:
-        for i in range(ld):
-            poly[i] += dot(lag_gains, theta[base + i : end : ld])
-    return HorizonMap(model, offset, g1, weights, poly)
-
-
 def forecast_model(model: Any, u_applied: float, horizon: int) -> HorizonMap:
-    """ŷ(k+``horizon``) of the package's U-models (paper and dynamic) as a ``HorizonMap``.
+    """ŷ(k+``horizon``) of a U-model as a ``HorizonMap`` (the model's own ``horizon_map``).
 
     Checked in the tests against a step-by-step simulation of the model (horizons 2–150).
     """
     if horizon < 2:
         raise ValueError("horizon must be >= 2: y(k+1) no longer depends on the command")
-    if isinstance(model, DynamicUModel):
-        return _dynamic_horizon_map(model, u_applied, horizon)
-    if isinstance(model, PaperUModel):
-        # ŷ(k+H) = ŷ(k+1)'s static map: no output lags, one input lag, no bias.
-        theta = model._theta
-        return HorizonMap(model, 0.0, 1.0, theta[: model._nr], theta[model._nr : model._np])
-    raise TypeError(f"no H-step forecast for {type(model).__name__}")
+    method = getattr(model, "horizon_map", None)
+    if method is None:
+        raise TypeError(f"no H-step forecast for {type(model).__name__}")
+    result: HorizonMap = method(u_applied, horizon)
+    return result

@@ -5,9 +5,8 @@ u_prev = u(t−1), the input applied *before* y(t) was measured. The model first
 a-priori prediction ŷ(t) from u(t−1) and its internal history (which only contains data up
 to t−1), then reveals y(t), computes e = y(t) − ŷ(t), adapts, and finally shifts y(t) and
 u(t−1) into its history. ``predict(u)`` returns the same a-priori prediction without changing
-anything; after a step it is the model's forecast of y(t+1) as a function of the next input
-u(t), which is what the inverse controller inverts via ``output_given_input`` /
-``output_derivative``.
+anything. The controller uses the U-models' multi-step input map instead
+(``horizon_map``: ŷ(k+H) as a function of the held next input, see :mod:`.forecast`).
 
 Models (``MODEL_NAMES``):
 
@@ -31,16 +30,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from operator import mul
+from operator import mul, sub
 from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
+from .forecast import HorizonMap, horizon_response
 from .guards import DivergenceMonitor, GuardConfig
 from .interface import OneStepModel
 from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
-from .reproducible import dot, gaussian_columns, linear_combination, power_columns
+from .reproducible import dot, gaussian_columns, power_columns
 from .rls import RLS
 
 __all__ = [
@@ -136,12 +136,6 @@ class _ModelBase:
 
     def _state(self) -> dict[str, Any]:
         return {}
-
-    def output_given_input(self, u: float) -> float:
-        raise NotImplementedError
-
-    def output_derivative(self, u: float) -> float:
-        raise NotImplementedError
 
     # ---- public API --------------------------------------------------------------------
     @property
@@ -349,8 +343,6 @@ class _UModelCore(_ModelBase):
         self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
         self._theta_phi = 0.0  # scratch: θᵀφ of the last _predict
         self._lin: list[float] = []  # history tail of φ (dynamic model only)
-        self._cache: tuple[tuple[float, ...], tuple[float, ...], float] | None = None
-        self._eval: tuple[float, float, float] | None = None
         self._stacked: tuple[np.ndarray, int, np.ndarray] | None = None
 
     def _fill(self, u: float) -> list[float]:
@@ -388,8 +380,6 @@ class _UModelCore(_ModelBase):
             self._sq_norm += g * (2.0 * self._theta_phi + g * phi_sq)
         else:
             self._sq_norm = dot(self._theta, self._theta)  # the rounding never drifts far
-        self._cache = None
-        self._eval = None
 
     def _params_ok(self) -> bool:
         return _norm_ok(self._sq_norm, self.guard.param_limit)
@@ -397,63 +387,13 @@ class _UModelCore(_ModelBase):
     def _reset_params(self) -> None:
         self._theta = list(self._theta0)
         self._sq_norm = dot(self._theta, self._theta)
-        self._cache = None
-        self._eval = None
-
-    def _linear_const(self) -> float:
-        return dot(self._theta[self._np :], self._lin)
-
-    def _eval_both(self, u: float) -> tuple[float, float]:
-        ev = self._eval
-        if ev is not None and ev[0] == u:
-            return ev[1], ev[2]
-        cache = self._cache
-        if cache is None:
-            th = self._theta
-            cache = (tuple(th[: self._nr]), tuple(th[self._nr : self._np]), self._linear_const())
-            self._cache = cache
-        w, alphas, c = cache
-        s, ds = self.rbf.weighted(u, w)
-        # Horner for Σ θ_i x^i, x = poly_scale·u, and its derivative.
-        x = u * self.poly_scale
-        f = 0.0
-        df = 0.0
-        for a in reversed(alphas):
-            df = df * x + f
-            f = f * x + a
-        df = df * x + f
-        f = f * x
-        val = c + s + f
-        der = ds + df * self.poly_scale
-        self._eval = (u, val, der)
-        return val, der
-
-    def output_given_input(self, u: float) -> float:
-        """ŷ(t+1) as a function of the next input u(t) (fast scalar path, ≈ ``predict``)."""
-        f = self._eval_both(u)[0]
-        return f if _isfinite(f) else self._y_last
-
-    def output_derivative(self, u: float) -> float:
-        """Analytic d ŷ(t+1)/d u(t), RBF term included."""
-        d = self._eval_both(u)[1]
-        return d if _isfinite(d) else 0.0
-
-    def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
-        """Vectorised ``output_given_input`` for dense grids (``invert_model``'s fallback).
-
-        M + J scaled additions of the cached ``design_rows``, in row order: the same bits on
-        every machine (see :mod:`.reproducible`).
-        """
-        rows = self.design_rows(us, self.degree)
-        # θ is kept finite by the guards, so no NaN screening is needed here.
-        return linear_combination(rows, self._theta[: self._np], self._linear_const())
 
     def design_rows(self, us: np.ndarray, degree: int) -> np.ndarray:
         """[Φ_1(u)…Φ_J(u), x, x², …, x^degree] (x = poly_scale·u) as the rows of one array.
 
         Depends on the grid only, so it is cached for the last grid (the inverse solver
-        passes the same read-only array every step); the same bits as
-        ``output_given_inputs``'s columns (see :mod:`.reproducible`).
+        passes the same read-only array every step); the same bits as the scalar path
+        (see :mod:`.reproducible`).
         """
         cached = self._stacked
         if cached is not None and cached[1] == degree and cached[0] is us:
@@ -513,6 +453,14 @@ class PaperUModel(_UModelCore):
 
     def _options(self) -> dict[str, Any]:
         return self._core_options()
+
+    def horizon_map(self, u_applied: float, horizon: int) -> HorizonMap:
+        """ŷ(k+H) = ŷ(k+1)'s static map: no output lags, one input lag, no bias."""
+        theta = self._theta
+        return HorizonMap(
+            self.rbf, self.poly_scale, self.design_rows, 0.0, 1.0,
+            theta[: self._nr], theta[self._nr : self._np],
+        )  # fmt: skip
 
 
 class DynamicUModel(_UModelCore):
@@ -588,9 +536,6 @@ class DynamicUModel(_UModelCore):
     def _predict(self, u: float) -> float:
         return self._levels[0] + super()._predict(u)
 
-    def _linear_const(self) -> float:
-        return self._levels[0] + super()._linear_const()
-
     def _lags(self) -> int:
         # Δy regressors need na + 1 post-gap levels; the guessed u(t−1) of the first sample
         # leaves the input lags after nb − 1 more pushes.
@@ -619,8 +564,6 @@ class DynamicUModel(_UModelCore):
                 new.append(p)
             new += tail[1 + na : len(tail) - ld]
         self._lin = new
-        self._cache = None
-        self._eval = None
 
     def _rebuild_tail(self) -> None:
         levels, inv = self._levels, self._inv_ys
@@ -633,8 +576,6 @@ class DynamicUModel(_UModelCore):
                 p *= x
                 tail.append(p)
         self._lin = tail
-        self._cache = None
-        self._eval = None
 
     def _reset_history(self) -> None:
         self._levels = [0.0] * (self.na + 1)
@@ -642,13 +583,57 @@ class DynamicUModel(_UModelCore):
         self._rebuild_tail()
 
     def ar_coefficients(self) -> list[float]:
-        """ŷ(t) = Σ c_i·y(t−i) + … with i = 1..na+1 (the increments expanded)."""
-        a = [v * self._inv_ys for v in self._theta[self._np + 1 : self._np + 1 + self.na]]
-        c = [1.0] + [0.0] * self.na
-        for i, ai in enumerate(a):
-            c[i] += ai
-            c[i + 1] -= ai
-        return c
+        """ŷ(t) = Σ c_i·y(t−i) + … with i = 1..na+1 (the increments expanded):
+        c = [1 + a_1, a_2 − a_1, …, −a_na]."""
+        start = self._np + 1
+        a = [t * self._inv_ys for t in self._theta[start : start + self.na]]
+        if not a:
+            return [1.0]
+        return [1.0 + a[0], *map(sub, a[1:], a), -a[-1]]
+
+    def horizon_map(self, u_applied: float, horizon: int) -> HorizonMap:
+        """ŷ(k+H) as a function of the input held from k+1 on, u(k) = ``u_applied``.
+
+        The model is linear in its past outputs and a sum of static maps of each input lag,
+        so ŷ(k+H) = known response + Σ_L gain_L·map_L(u) (see :func:`.horizon_response`).
+        """
+        theta = self._theta
+        nr, npoly, na, nb, ld = self._nr, self._np, self.na, self.nb, self.lag_degree
+        weights = theta[:nr]
+        alphas = theta[nr:npoly]
+        base = npoly + 1 + na  # first lag-2 coefficient
+        end = base + (nb - 1) * ld
+        degree = max(self.degree, ld)
+        # Powers of the known inputs u(k) = u_applied, u(k−1), …, u(k−nb+1), flattened; the
+        # history tail of φ already holds those of the past inputs (lag_degree each).
+        x0 = u_applied * self.poly_scale
+        powers0 = [x0]
+        for _ in range(degree - 1):
+            powers0.append(powers0[-1] * x0)
+        past_powers = self._lin[1 + na :]
+        known = powers0[:ld] + past_powers
+        # Step k+j sees u(k+j−L) through lag L: known for L ≥ j. The lag blocks are
+        # contiguous in θ and the known inputs in ``known``, so each step is one scalar
+        # product. Φ(u(k)) is the identifier's next regressor too (values_list keeps it).
+        impulses = [
+            dot(theta[base:end], past_powers)
+            + dot(self.rbf.values_list(u_applied), weights)
+            + dot(alphas, powers0)
+        ]
+        for j in range(2, min(nb, horizon) + 1):
+            impulses.append(dot(theta[base + (j - 2) * ld : end], known))
+        offset, gains = horizon_response(
+            self.ar_coefficients(), self._levels, impulses, theta[npoly], horizon, nb
+        )
+        g1 = gains[0]
+        poly = [g1 * a for a in alphas]
+        if len(poly) < degree:
+            poly += [0.0] * (degree - len(poly))
+        lag_gains = gains[1:]
+        if lag_gains:
+            for i in range(ld):
+                poly[i] += dot(lag_gains, theta[base + i : end : ld])
+        return HorizonMap(self.rbf, self.poly_scale, self.design_rows, offset, g1, weights, poly)
 
     def _options(self) -> dict[str, Any]:
         opts = {
@@ -685,15 +670,6 @@ class PersistenceModel(_ModelBase):
     def _adapt(self, error: float) -> None:
         pass
 
-    def output_given_input(self, u: float) -> float:
-        return self._y_last
-
-    def output_derivative(self, u: float) -> float:
-        return 0.0
-
-    def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
-        return np.full(np.shape(us), self._y_last)
-
     def _options(self) -> dict[str, Any]:
         return {}
 
@@ -728,7 +704,6 @@ class RlsArxModel(_ModelBase):
         self._phi = np.zeros(n)
         self._phi[-1] = 1.0
         self._iu = self.na
-        self._cache: tuple[float, float] | None = None
 
     def _predict(self, u: float) -> float:
         self._phi[self._iu] = u
@@ -748,7 +723,6 @@ class RlsArxModel(_ModelBase):
     def _reset_params(self) -> None:
         self._theta[:] = 0.0
         self.rls.reset()
-        self._cache = None
 
     def _lags(self) -> int:
         return max(self.na - 1, self.nb - 1)
@@ -762,33 +736,9 @@ class RlsArxModel(_ModelBase):
         if self.nb > 1:
             phi[iu + 1 : iu + self.nb] = phi[iu : iu + self.nb - 1]
             phi[iu + 1] = u
-        self._cache = None
 
     def _reset_history(self) -> None:
         self._phi[:-1] = 0.0
-        self._cache = None
-
-    def _affine(self) -> tuple[float, float]:
-        c = self._cache
-        if c is None:
-            self._phi[self._iu] = 0.0
-            b1 = float(self._theta[self._iu])
-            c = (float(np.dot(self._theta, self._phi)), b1)
-            self._cache = c
-        return c
-
-    def output_given_input(self, u: float) -> float:
-        c, b1 = self._affine()
-        f = c + b1 * u
-        return f if _isfinite(f) else self._y_last
-
-    def output_derivative(self, u: float) -> float:
-        d = self._affine()[1]
-        return d if _isfinite(d) else 0.0
-
-    def output_given_inputs(self, us: np.ndarray) -> np.ndarray:
-        c, b1 = self._affine()
-        return c + b1 * np.asarray(us, dtype=float)
 
     def _options(self) -> dict[str, Any]:
         return {
