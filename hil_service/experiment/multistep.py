@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -200,3 +201,23 @@ def multistep_scores(
     targets, predictions = k_step_predictions(factory, u_in, y_arr, split, horizon, stride)
     k_nmse = nmse(y_arr[targets], predictions) if targets.size >= 2 else None
     return MultiStepScores(fit, k_nmse, horizon, split, int(targets.size))
+
+
+def longest_contiguous(t: Sequence[float], tolerance: float = 1.5) -> tuple[int, int]:
+    """[start, stop) of the longest run of samples each one period after the previous.
+
+    The period is the smallest positive step of ``t`` (as the pipeline learns it); a step
+    longer than ``tolerance`` periods, or not forward, breaks the run. (0, 0) when empty.
+    """
+    times = np.asarray(t, dtype=float)
+    if times.size == 0:
+        return 0, 0
+    steps = np.diff(times)
+    positive = steps[steps > 0]
+    if positive.size == 0:
+        return 0, 1
+    period = float(np.min(positive))
+    breaks = np.flatnonzero(~((steps > 0) & (steps <= tolerance * period))) + 1
+    edges = [0, *breaks.tolist(), times.size]
+    best = max(pairwise(edges), key=lambda e: e[1] - e[0])
+    return int(best[0]), int(best[1])
