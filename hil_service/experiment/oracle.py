@@ -116,6 +116,8 @@ class OracleSettings:
     # The last block holds the input whose steady state is the setpoint (less d̂), so a
     # plan cannot leave the output off target just beyond the horizon.
     terminal: bool = False
+    # Weight of the predicted error j samples ahead: discount**j (1: all alike).
+    discount: float = 1.0
 
     def __post_init__(self) -> None:
         if self.horizon < 2:
@@ -174,9 +176,8 @@ class OracleController:
         # move slacks m (nb) with m_b ≥ |V_b − V_{b−1}|.
         self._moves = s.move_weight > 0
         nm = nb if self._moves else 0
-        cost = np.concatenate(
-            (np.zeros(nb), np.full(nt, float(s.cost_stride)), np.full(nm, s.move_weight))
-        )
+        weights = float(s.cost_stride) * np.power(s.discount, cost_rows.astype(float))
+        cost = np.concatenate((np.zeros(nb), weights, np.full(nm, s.move_weight)))
         eye_t = np.eye(nt)
         diff = np.eye(nb) - np.eye(nb, k=-1)  # V_b − V_{b−1}; row 0 is V_0 (− v(k) in b_ub)
         rows = [
