@@ -35,11 +35,11 @@ GLIDER_ORACLE: dict[str, OracleSettings] = {
     "depth": OracleSettings(
         horizon=600,
         blocks=(4, 4, 8, 8, 16, 16, 32, 64, 128),
-        disturbance_tau=400.0,
+        disturbance_tau=1500.0,
         cost_stride=4,
         terminal=True,
     ),
-    "pitch": OracleSettings(horizon=30, blocks=(1,) * 14 + (16,), disturbance_tau=5.0),
+    "pitch": OracleSettings(horizon=30, blocks=(1,) * 14 + (16,), disturbance_tau=1.0),
 }
 
 #: Setpoint sequences cycled through, one step every ``step_every`` samples. Depth in
