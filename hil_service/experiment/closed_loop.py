@@ -34,7 +34,7 @@ from protocols.samples import TelemetrySample
 GLIDER_ORACLE: dict[str, OracleSettings] = {
     "depth": OracleSettings(
         horizon=600,
-        blocks=(4, 4, 8, 8, 16, 16, 32, 64, 128),
+        blocks=(4, 4, 4, 4, 4, 4, 8, 8, 16, 16, 32, 64, 128),
         disturbance_tau=1500.0,
         cost_stride=4,
         terminal=True,
