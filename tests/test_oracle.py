@@ -79,7 +79,7 @@ def test_an_exact_model_class_simulates_the_validation_data():
     scores = multistep_scores(lambda: build_model("rls-arx"), u, y, split=600, horizon=20)
     assert scores.fit is not None and scores.fit > 99.0
     assert scores.k_step_nmse is not None and scores.k_step_nmse < 1e-3
-    assert scores.windows >= 100  # starts every max(1, 20 // 10) = 2 samples
+    assert scores.windows >= 100  # starts every max(1, 20 // 5) = 4 samples
 
 
 def test_persistence_free_run_is_a_constant_and_scores_below_zero():

@@ -184,8 +184,9 @@ def multistep_scores(
     """Free-run fit and k-step NMSE of the model ``factory`` builds, trained on [0, split).
 
     ``u_applied[k]`` is the input applied during sample k, ``y[k]`` the output measured at
-    its start (the plant's ``TelemetrySample``). ``stride`` defaults to max(1, k // 10):
-    about ten windows start within any k samples.
+    its start (the plant's ``TelemetrySample``). ``stride`` defaults to max(1, k // 5):
+    about five windows start within any k samples (each copy replays the training part,
+    so the cost grows with the number of copies, about (k + L) / stride).
     """
     y_arr = np.asarray(y, dtype=float)
     u_in = model_inputs(np.asarray(u_applied, dtype=float))
@@ -197,7 +198,7 @@ def multistep_scores(
     model = train(factory, u_in, y_arr, split)
     sim = free_run(model, u_in, split, n)
     fit = fit_percent(y_arr[split:], sim)
-    stride = max(1, horizon // 10) if stride is None else stride
+    stride = max(1, horizon // 5) if stride is None else stride
     targets, predictions = k_step_predictions(factory, u_in, y_arr, split, horizon, stride)
     k_nmse = nmse(y_arr[targets], predictions) if targets.size >= 2 else None
     return MultiStepScores(fit, k_nmse, horizon, split, int(targets.size))
