@@ -35,7 +35,7 @@ GLIDER_ORACLE: dict[str, OracleSettings] = {
     "depth": OracleSettings(
         horizon=600,
         blocks=(4, 4, 4, 4, 4, 4, 8, 8, 16, 16, 32, 64, 128),
-        disturbance_tau=1500.0,
+        disturbance_tau=5000.0,
         cost_stride=4,
         terminal=True,
     ),
