@@ -4,7 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench build clean
+.PHONY: demo test lint bench build clean mutate foxglove-client
+FOXGLOVE_CLIENT := tests/foxglove_client
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -20,7 +21,16 @@ build: $(STAMP)
 demo: build
 	$(BIN)/glider-hil demo
 
-test: build
+# The reference Foxglove client of tests/test_foxglove_live.py, from its lock file, when node
+# and npm are on the machine (without them that test is skipped and says why).
+foxglove-client: $(FOXGLOVE_CLIENT)/node_modules/.installed
+
+$(FOXGLOVE_CLIENT)/node_modules/.installed: $(FOXGLOVE_CLIENT)/package-lock.json
+	@if command -v node >/dev/null && command -v npm >/dev/null; then \
+		npm ci --prefix $(FOXGLOVE_CLIENT) --no-audit --no-fund && touch $@; \
+	else echo "node/npm not found: the Foxglove client test will be skipped"; fi
+
+test: build foxglove-client
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
@@ -32,6 +42,36 @@ bench: build
 	$(BIN)/python benchmarks/bench_replay.py --samples 20000
 	$(BIN)/python benchmarks/bench_service.py --samples 20000 --latency-samples 1500 --memory-samples 500000
 
+# Mutation testing of what keeps commands off the wire (README "Mutation testing"); not part
+# of `make test`. Runs mutmut ([tool.mutmut] in pyproject.toml) on a copy of the tree in
+# build/mutate, the Python sources only, with the in-process tests (`-m "not wire"`), over
+# the functions below; prints every mutant that survived. MUTANTS=... narrows it further.
+MUTATE_DIR := build/mutate
+MUTANTS ?= \
+	'hil_service.pipeline.xǁChannelPipelineǁblocked_reason__mutmut_*' \
+	'hil_service.pipeline.xǁChannelPipelineǁobserve__mutmut_*' \
+	'hil_service.pipeline.xǁVehiclePipelineǁdecide__mutmut_*' \
+	'hil_service.inputs.xǁSetpointLimitsǁviolation__mutmut_*' \
+	'hil_service.inputs.xǁInboxǁ*__mutmut_*' \
+	'protocols.mapping.xǁTelemetryMappingǁballast_command__mutmut_*' \
+	'protocols.mapping.x_is_ballast_command__mutmut_*' \
+	'hil_service.offline.replay.x__compare__mutmut_*' \
+	'hil_service.offline.replay.x__same_values__mutmut_*' \
+	'hil_service.offline.replay.xǁ_Replayǁ_feed__mutmut_*' \
+	'hil_service.offline.replay.xǁ_Replayǁrun__mutmut_*' \
+	'hil_service.offline.replay.xǁ_Replayǁ_finish__mutmut_*'
+
+mutate: $(STAMP)
+	test -x $(BIN)/mutmut || $(BIN)/python -m pip install --quiet -e '.[mutation]'
+	rm -rf $(MUTATE_DIR) && mkdir -p $(MUTATE_DIR)
+	git ls-files -co --exclude-standard | grep -v '^build/' | tar cf - -T - | tar xf - -C $(MUTATE_DIR)
+	cd $(MUTATE_DIR) && GLIDER_HIL_INTERPRETED=1 $(CURDIR)/$(BIN)/mutmut run $(MUTANTS) >mutmut.log 2>&1 \
+		|| { tail -n 40 mutmut.log; exit 1; }
+	@cd $(MUTATE_DIR) && tail -n 3 mutmut.log && echo "surviving mutants (none: nothing below):" \
+		&& GLIDER_HIL_INTERPRETED=1 $(CURDIR)/$(BIN)/mutmut results \
+		| grep -v -e ': killed' -e ': not checked' || true
+
 clean:
 	rm -rf $(VENV) build *.egg-info glider_hil_native__mypyc*.so
 	find hil_service protocols -name '*.so' -delete
+	rm -rf $(FOXGLOVE_CLIENT)/node_modules

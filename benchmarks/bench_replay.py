@@ -18,12 +18,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hil_service.config import ServiceConfig  # noqa: E402
 from hil_service.experiment.speed import rates  # noqa: E402
 from hil_service.mcap.reader import LogReader  # noqa: E402
 from hil_service.mcap.recorder import McapRecorder  # noqa: E402
 from hil_service.offline.replay import ReplayOptions, replay  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
-from hil_service.service import ServiceConfig  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
 from protocols.mapping import TelemetryMapping  # noqa: E402
@@ -31,9 +31,7 @@ from protocols.mavlink_io import MavlinkCodec  # noqa: E402
 
 
 def write_log(log_dir: str, samples: int) -> Path:
-    recorder = McapRecorder(
-        log_dir, {"service": json.dumps(ServiceConfig().to_json())}, max_bytes=1 << 40
-    ).start()
+    recorder = McapRecorder(log_dir, ServiceConfig().to_metadata(), max_bytes=1 << 40).start()
     plant = GliderPlant(PlantConfig(scenario="disturbed", seed=2))
     excitation = build_channel_excitations("steps", 2)
     codec, mapping = MavlinkCodec(1, 1), TelemetryMapping()

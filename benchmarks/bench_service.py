@@ -34,17 +34,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hil_service.builder import open_recorder, wire  # noqa: E402
+from hil_service.config import LogOptions, ServiceConfig  # noqa: E402
 from hil_service.experiment.speed import rates  # noqa: E402
-from hil_service.inputs import Inbox  # noqa: E402
 from hil_service.mcap.recorder import McapRecorder  # noqa: E402
-from hil_service.pipeline import PipelineSettings  # noqa: E402
 from hil_service.process_tuning import one_cpu_child, tune_for_service  # noqa: E402
-from hil_service.service import HilService, ServiceConfig  # noqa: E402
-from hil_service.zenoh_bus import ZenohBus  # noqa: E402
+from hil_service.service import HilService  # noqa: E402
 from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
-from protocols import compiled  # noqa: E402
+from protocols import compiled, keys  # noqa: E402
 from protocols.mapping import TelemetryMapping  # noqa: E402
 from protocols.mavlink_io import MavlinkCodec, dialect  # noqa: E402
 
@@ -68,15 +67,13 @@ def rss_mib() -> float:
 
 def build_service(log_dir: str) -> tuple[HilService, McapRecorder, object]:
     """The service as ``serve`` builds it (interpreter tuning included), minus the link."""
+    config = ServiceConfig()
     session = open_session(ZenohOptions())  # no peers: publications go nowhere, as fast as can be
-    recorder = McapRecorder(log_dir, {"bench": "1"}).start()
-    inbox = Inbox()
-    service = HilService(
-        ServiceConfig(pipeline=PipelineSettings()), ZenohBus(session, inbox, recorder), inbox,
-        recorder=recorder,
-    )  # fmt: skip
+    recorder = open_recorder(config, LogOptions(directory=log_dir), {"bench": "1"})
+    assert recorder is not None
+    wired = wire(config, session=session, recorder=recorder)
     tune_for_service()
-    return service, recorder, session
+    return wired.service, recorder, session
 
 
 def bench_throughput(n: int, repeats: int) -> dict[str, object]:
@@ -186,8 +183,8 @@ def _send_setpoints(session: object, timeout: float = 10.0) -> None:
         time.sleep(0.05)
     for _ in range(3):
         time.sleep(0.3)
-        session.put("glider/1/setpoint/depth", json.dumps({"value": 16.0}))
-        session.put("glider/1/setpoint/pitch", json.dumps({"value": 0.1}))
+        session.put(keys.setpoint(1, "depth"), json.dumps({"value": 16.0}))
+        session.put(keys.setpoint(1, "pitch"), json.dumps({"value": 0.1}))
 
 
 def _measure_latency(port: int, samples: int, rate: float) -> dict[str, float]:

@@ -26,6 +26,7 @@ sys.path.insert(0, str(ROOT))
 
 from hil_service.cli.processes import free_port, last_json, start_verb, stop_process  # noqa: E402
 from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
+from protocols import keys  # noqa: E402
 from tests.udp_relay import FaultyRelay  # noqa: E402
 
 
@@ -82,9 +83,9 @@ def main() -> int:
             if not memory_start and now - started > 10:
                 memory_start = memory_kib(service.pid)
             if not controlled and now - started > 5:
-                session.put("glider/1/setpoint/depth", json.dumps({"value": 16.0}))
-                session.put("glider/1/setpoint/pitch", json.dumps({"value": 0.05}))
-                session.put("glider/1/control", json.dumps({"enabled": True}))
+                session.put(keys.setpoint(1, "depth"), json.dumps({"value": 16.0}))
+                session.put(keys.setpoint(1, "pitch"), json.dumps({"value": 0.05}))
+                session.put(keys.control(1), json.dumps({"enabled": True}))
                 controlled = True
             if now >= next_outage:
                 relay.paused.set()

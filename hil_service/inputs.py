@@ -92,30 +92,28 @@ class Inbox:
 
     def accept(self, key: str, raw: bytes) -> None:
         """Parse one received setpoint/control message; bad ones are counted, never raised."""
-        parts = key.split("/")
+        parsed = keys.parse(key)
+        if parsed is None or parsed.kind not in (keys.SETPOINT, keys.CONTROL):
+            self.reject(f"{key}: not a setpoint or control key")
+            return
         try:
-            system_id = int(parts[1])
             payload = json.loads(raw)
-        except (IndexError, ValueError) as error:
+        except ValueError as error:
             self.reject(f"{key}: {error}")
             return
-        kind = parts[2] if len(parts) > 2 else ""
-        schema = "setpoint" if kind == "setpoint" else "control"
-        errors = validation_errors(schema, payload)
+        errors = validation_errors(keys.SCHEMA_FOR_KIND[parsed.kind], payload)
         if errors:
             self.reject(f"{key}: {errors[0]}")
             return
-        if kind == "setpoint" and len(parts) == 4 and parts[3] in keys.CHANNELS:
+        if parsed.channel is not None:  # a setpoint
             value = payload["value"]
             if value is not None and not math.isfinite(value):
                 self.reject(f"{key}: non-finite setpoint")
                 return
-            violation = "" if value is None else self.limits.violation(parts[3], value)
+            violation = "" if value is None else self.limits.violation(parsed.channel, value)
             if violation:
                 self.reject(f"{key}: refused: {violation}")
                 return
-            self.set_setpoint(system_id, parts[3], value)
-        elif kind == "control" and len(parts) == 3:
-            self.set_enabled(system_id, bool(payload["enabled"]))
+            self.set_setpoint(parsed.system_id, parsed.channel, value)
         else:
-            self.reject(f"{key}: not a setpoint or control key")
+            self.set_enabled(parsed.system_id, bool(payload["enabled"]))

@@ -15,52 +15,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.assembler import SampleAssembler
+from hil_service.companion import Companion
+from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
 from hil_service.mcap.recorder import McapRecorder
-from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.pipeline import VehiclePipeline
+from hil_service.profile_assembler import ProfileAssembler
 from hil_service.zenoh_bus import Bus
 from protocols import keys
-from protocols.mapping import SERVICE_COMPONENT, TelemetryMapping
-from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
+from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
+from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
-
-
-def decision_inputs_topic(system_id: int) -> str:
-    """MCAP channel of the control inputs each decision used (recorded on change)."""
-    return f"glider-hil/{system_id}/decision-inputs"
-
-
-@dataclass(frozen=True)
-class LinkSecurity:
-    """MAVLink 2 signing on the vehicle link. The key itself is never logged or published."""
-
-    key: bytes | None = field(default=None, repr=False)
-    #: With a key: still accept unsigned telemetry (counted), e.g. while a fleet migrates.
-    accept_unsigned: bool = False
-
-    def to_json(self) -> dict[str, Any]:
-        return {"signed": self.key is not None, "accept_unsigned": self.accept_unsigned}
-
-
-@dataclass(frozen=True)
-class ServiceConfig:
-    system_ids: tuple[int, ...] = ()  # empty: every vehicle on the link
-    service_system_id: int = 255
-    control_default: bool = False  # control state before any control message arrives
-    stale_timeout: float = 3.0  # wall s without a sample → no commands
-    health_period: float = 1.0  # wall s
-    pipeline: PipelineSettings = field(default_factory=PipelineSettings)
-    security: LinkSecurity = field(default_factory=LinkSecurity)
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "system_ids": list(self.system_ids),
-            "control_default": self.control_default,
-            "stale_timeout": self.stale_timeout,
-            "pipeline": self.pipeline.to_json(),
-            "signing": self.security.to_json(),
-        }
 
 
 @dataclass
@@ -89,7 +55,6 @@ class HilService:
         inbox: Inbox,
         link: Link | None = None,
         recorder: McapRecorder | None = None,
-        mapping: TelemetryMapping | None = None,
         clock: Callable[[], float] = time.monotonic,
         send_commands: bool = True,
     ):
@@ -98,11 +63,20 @@ class HilService:
         self.inbox = inbox
         self.link = link
         self.recorder = recorder
-        self.mapping = mapping or TelemetryMapping()
+        self.mapping = config.mapping()
         self.clock = clock
         self.send_commands = send_commands and link is not None
+        self.periodic: ProfileAssembler | None = None
+        self.companions: dict[int, Companion] = {}
+        system_id = config.service_system_id
+        if config.profile is not None:
+            self.periodic = ProfileAssembler(
+                config.profile, config.sample_period, config.system_ids or None
+            )
+            if len(config.system_ids) == 1:
+                system_id = config.system_ids[0]  # a companion speaks as its vehicle
         self.codec = MavlinkCodec.for_link(
-            config.service_system_id,
+            system_id,
             SERVICE_COMPONENT,
             config.security.key,
             accept_unsigned=config.security.accept_unsigned,
@@ -127,21 +101,49 @@ class HilService:
             if self.recorder is not None:
                 self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
                 self.recorder.mavlink("in", message, now_ns)
+            if self.periodic is not None:
+                samples.extend(self._process_periodic(message))
+                continue
             sample = self.process_message(message)
             if sample is not None:
                 samples.append(sample)
         return samples
 
     def process_message(self, message: MavMessage) -> TelemetrySample | None:
+        if self.periodic is not None:
+            found = self._process_periodic(message)
+            return found[-1] if found else None
         header = message.get_header()
         self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
-        if message.get_type() == "COMMAND_ACK":
+        if message.get_type() == MSG_ACK:
             self._on_ack(message)
             return None
         sample = self.assembler.add(message)
         if sample is not None:
             self.process_sample(sample)
         return sample
+
+    def _process_periodic(self, message: MavMessage) -> list[TelemetrySample]:
+        """A periodic profile's path: a message may complete several samples (a gap)."""
+        assert self.periodic is not None
+        header = message.get_header()
+        self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
+        companion = self.companions.get(header.srcSystem)
+        if companion is not None:
+            companion.on_message(message, self.clock())
+        if message.get_type() == "COMMAND_ACK":
+            if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+                self._on_ack(message)
+            return []
+        samples = self.periodic.add_all(message)
+        for sample in samples:
+            if sample.system_id not in self.companions and self.config.profile is not None:
+                period = self.periodic.config.period
+                self.companions[sample.system_id] = Companion(
+                    self.config.profile, period, sample.system_id
+                )
+            self.process_sample(sample)
+        return samples
 
     def process_sample(self, sample: TelemetrySample) -> None:
         vehicle = self._vehicle(sample.system_id)
@@ -167,7 +169,7 @@ class HilService:
             vehicle.last_applied = applied
             if self.recorder is not None:
                 self.recorder.zenoh(
-                    decision_inputs_topic(system_id),
+                    topics.decision_inputs,
                     {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
                     "internal",
                 )
@@ -179,9 +181,17 @@ class HilService:
             if decision.payload is not None:
                 vehicle.last_command = decision.payload
         if decision.command is not None and decision.payload is not None:
-            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
-            if self.send_commands:
+            # The vehicle first: the Zenoh publish blocks (congestion control BLOCK) while a
+            # slow subscriber catches up, and must not hold the command back.
+            if self.send_commands and self.config.profile is not None:
+                command = decision.command
+                for message in self.config.profile.command_messages(
+                    command.u_depth, command.u_pitch, system_id
+                ):
+                    self._send(message)
+            elif self.send_commands:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
+            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
 
     def _send(self, message: MavMessage) -> None:
@@ -197,8 +207,7 @@ class HilService:
         vehicle = self.vehicles.get(message.get_srcSystem())
         if vehicle is None:
             return
-        accepted = message.result == 0
-        vehicle.acks["accepted" if accepted else "refused"] += 1
+        vehicle.acks["accepted" if ack_accepted(message) else "refused"] += 1
 
     def _vehicle(self, system_id: int) -> VehicleRuntime:
         vehicle = self.vehicles.get(system_id)
@@ -213,6 +222,10 @@ class HilService:
     def tick(self) -> None:
         """Health at ``health_period``; call often (the run loop does every 0.1 s at most)."""
         now = self.clock()
+        if self.link is not None:
+            for companion in self.companions.values():
+                for message in companion.poll(now):
+                    self._send(message)
         if now < self._next_health:
             return
         self._next_health = now + self.config.health_period
@@ -231,35 +244,30 @@ class HilService:
         reason = "telemetry stale" if stale else vehicle.control_reason
         if stale:
             vehicle.reset_pending = True  # controllers re-arm before the next decision
+        # Everything in "counters", "link", "samples", "packet_loss" and "malformed" is this
+        # vehicle's own; what cannot be told apart by vehicle is under "link_wide" (the
+        # MAVLink link: garbage, unknown or refused frames, other systems) and
+        # "service_wide" (operator inputs, the log).
+        assembled = self._assembled(system_id)
+        link = self.sequence.for_system(system_id)
         counters = {
-            **self.assembler.counters.as_dict(),
-            **self.codec.counters.as_dict(),
-            "setpoints_rejected": self.inbox.rejected,
+            **assembled,
             "commands_sent": vehicle.commands_sent,
             "acks_accepted": vehicle.acks["accepted"],
             "acks_refused": vehicle.acks["refused"],
             "step_gaps": vehicle.pipeline.gaps.gaps,
         }
-        if self.verifier is not None:
-            counters.update(self.verifier.counters.as_dict())
-        if self.recorder is not None:
-            counters["log_records"] = self.recorder.status.records
-            counters["log_dropped"] = self.recorder.status.dropped
-        malformed = (
-            self.codec.counters.bad_frames
-            + self.codec.counters.unknown_frames
-            + self.assembler.counters.invalid
-            + self.assembler.counters.out_of_order
-            + self.assembler.counters.incomplete
-        )
+        malformed = assembled["invalid"] + assembled["out_of_order"] + assembled["incomplete"]
         payload: dict[str, Any] = {
             "t_wall": time.time(),
             "link_rate": vehicle.rate.rate(now),
-            "samples": self.assembler.counters.samples,
-            "packet_loss": self.sequence.loss_fraction,
+            "samples": assembled["samples"],
+            "packet_loss": link.loss_fraction,
             "malformed": malformed,
             "counters": counters,
-            "link": self.sequence.as_dict(),
+            "link": link.as_dict(),
+            "link_wide": self._link_wide(),
+            "service_wide": self._service_wide(),
             "identifier": vehicle.pipeline.identifier_health(),
             "control": {
                 "enabled": enabled,
@@ -278,9 +286,44 @@ class HilService:
         }
         if self.recorder is not None:
             payload["logging"] = self.recorder.report()
+        if self.periodic is not None:
+            sampled = self.periodic.counters_for(system_id)
+            payload["sampling"] = {
+                "period": self.periodic.config.period,
+                "incomplete_reasons": sampled.reasons,
+                "fallbacks": sampled.fallbacks,
+            }
+        companion = self.companions.get(system_id)
+        if companion is not None:
+            payload["companion"] = {
+                **companion.counters.as_dict(),
+                "stream_requests": companion.states,
+            }
         if self.inbox.last_rejection:
             payload["last_rejected_input"] = self.inbox.last_rejection
         return payload
+
+    def _link_wide(self) -> dict[str, int]:
+        """Counters of the MAVLink link that belong to no one vehicle: frames decoded from
+        every system, bytes that were no frame, frames of unknown types or of systems not
+        served, and (with signing) the verifier's counts."""
+        counters = {
+            **self.codec.counters.as_dict(),
+            "unknown_system": self.assembler.unknown_system
+            if self.periodic is None
+            else self.periodic.counters.unknown_system,
+        }
+        if self.verifier is not None:
+            counters.update(self.verifier.counters.as_dict())
+        return counters
+
+    def _service_wide(self) -> dict[str, int]:
+        """Counters of the service as a whole: refused operator inputs, log records."""
+        counters = {"setpoints_rejected": self.inbox.rejected}
+        if self.recorder is not None:
+            counters["log_records"] = self.recorder.status.records
+            counters["log_dropped"] = self.recorder.status.dropped
+        return counters
 
     def state(self, system_id: int) -> dict[str, Any]:
         """Answer of the ``state`` queryable: the latest sample, estimates and command."""
@@ -295,11 +338,34 @@ class HilService:
                 "control_reason": vehicle.control_reason,
             }
 
+    def _assembled(self, system_id: int) -> dict[str, int]:
+        """One vehicle's assembly counters (lockstep or periodic, the same names)."""
+        if self.periodic is None:
+            return self.assembler.counters_for(system_id).as_dict()
+        counted = self.periodic.counters_for(system_id)
+        return {
+            "samples": counted.samples,
+            "incomplete": counted.incomplete,
+            "out_of_order": counted.out_of_order,
+            "invalid": counted.invalid,
+            "restarts": counted.restarts,
+        }
+
+    def _assembly(self) -> dict[str, Any]:
+        """Every vehicle's assembly counters together (lockstep or periodic)."""
+        if self.periodic is not None:
+            return self.periodic.counters.as_dict()
+        return dict(self.assembler.counters.as_dict())
+
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
+            "companions": {
+                str(system_id): {**c.counters.as_dict(), "stream_requests": c.states}
+                for system_id, c in self.companions.items()
+            },
             "counters": {
-                **self.assembler.counters.as_dict(),
+                **self._assembly(),
                 **self.codec.counters.as_dict(),
                 **({} if self.verifier is None else self.verifier.counters.as_dict()),
             },
@@ -310,6 +376,8 @@ class HilService:
                     "commands_sent": vehicle.commands_sent,
                     "acks": dict(vehicle.acks),
                     "step_gaps": vehicle.pipeline.gaps.gaps,
+                    "counters": self._assembled(system_id),
+                    "link": self.sequence.for_system(system_id).as_dict(),
                 }
                 for system_id, vehicle in self.vehicles.items()
             },

@@ -53,8 +53,8 @@ class ZenohBus:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._declared: dict[int, list[Any]] = {}
         self._subscribers: list[Any] = [
-            session.declare_subscriber(f"{keys.ROOT}/*/setpoint/*", self._on_input),
-            session.declare_subscriber(f"{keys.ROOT}/*/control", self._on_input),
+            session.declare_subscriber(key_expr, self._on_input)
+            for key_expr in keys.INPUT_SUBSCRIPTIONS
         ]
 
     def _on_input(self, sample: zenoh.Sample) -> None:

@@ -1,7 +1,10 @@
 """The one place that turns command-line flags into a Zenoh configuration.
 
 Defaults are safe for a laptop and for parallel test runs: peer mode, multicast and gossip
-scouting off, so a session talks only to the endpoints it is given.
+scouting off, so a session talks only to the endpoints it is given. With ``--zenoh-config``
+the file is the base and every flag given on the command line is applied over it, as
+zenoh's own examples do: a flag the user typed always wins, a flag left out leaves the
+file's value (the safe defaults fill in only what neither says).
 """
 
 from __future__ import annotations
@@ -13,21 +16,27 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+DEFAULT_MODE = "peer"
+
 
 @dataclass(frozen=True)
 class ZenohOptions:
     config_file: str | None = None
-    mode: str = "peer"
+    mode: str | None = None  # None: the file's mode, or DEFAULT_MODE without a file
     listen: Sequence[str] = field(default_factory=tuple)
     connect: Sequence[str] = field(default_factory=tuple)
 
     def to_config(self) -> zenoh.Config:
-        """A Zenoh config: the file's, if given, with explicit flags on top."""
-        config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
-        if not self.config_file:
-            config.insert_json5("mode", json.dumps(self.mode))
+        """A Zenoh config: the file's, if given, with every explicit flag on top."""
+        if self.config_file:
+            config = zenoh.Config.from_file(self.config_file)
+        else:
+            config = zenoh.Config()
+            config.insert_json5("mode", json.dumps(DEFAULT_MODE))
             config.insert_json5("scouting/multicast/enabled", "false")
             config.insert_json5("scouting/gossip/enabled", "false")
+        if self.mode is not None:
+            config.insert_json5("mode", json.dumps(self.mode))
         if self.listen:
             config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         if self.connect:
@@ -39,7 +48,10 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("Zenoh")
     group.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration file")
     group.add_argument(
-        "--zenoh-mode", choices=("peer", "client"), default="peer", help="default: peer"
+        "--zenoh-mode",
+        choices=("peer", "client"),
+        default=None,
+        help=f"default: the config file's mode, else {DEFAULT_MODE}",
     )
     group.add_argument(
         "--zenoh-listen",

@@ -19,8 +19,14 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from plant_emulator.excitation import Excitation
+from plant_emulator.gcs import GroundStationManners, Parameter
 from plant_emulator.plant import GliderPlant
-from protocols.mapping import CommandRejected, TelemetryMapping, is_ballast_command
+from protocols.mapping import (
+    CommandRejected,
+    TelemetryMapping,
+    command_target_system,
+    is_ballast_command,
+)
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
 
@@ -115,6 +121,33 @@ class Autopilot:
         self._external = {"depth": math.nan, "pitch": math.nan}
         self._last_command_t: float | None = None  # simulated time of the last command
         self._external_active = False
+        # Settings a ground station may change (parameters); they start from the config.
+        self.command_timeout = self.config.command_timeout
+        self.fallback = self.config.fallback
+        self.manners = GroundStationManners(self.config.system_id, self._send)
+        for parameter in self.parameters():
+            self.manners.add_parameter(parameter)
+
+    def parameters(self) -> list[Parameter]:
+        """The emulator's real settings as MAVLink parameters (a change takes effect)."""
+
+        def set_timeout(value: float) -> None:
+            if not value > 0:
+                raise ValueError("command timeout must be positive")
+            self.command_timeout = value
+
+        def set_fallback(value: float) -> None:
+            if int(value) not in (0, 1):
+                raise ValueError("fallback is 0 (excitation) or 1 (hold)")
+            self.fallback = FALLBACKS[int(value)]
+
+        return [
+            Parameter("SYSID_THISMAV", lambda: self.config.system_id, None, integer=True),
+            Parameter("CMD_TIMEOUT", lambda: self.command_timeout, set_timeout),
+            Parameter(
+                "CMD_FALLBACK", lambda: FALLBACKS.index(self.fallback), set_fallback, integer=True
+            ),
+        ]
 
     # ---- sending ------------------------------------------------------------------
     def _send(self, message: MavMessage) -> None:
@@ -131,9 +164,10 @@ class Autopilot:
 
     def handle_message(self, message: MavMessage) -> None:
         if not is_ballast_command(message):
-            self.stats.ignored_messages += 1
+            if not self.manners.handle(message):
+                self.stats.ignored_messages += 1
             return
-        if message.target_system not in (0, self.config.system_id):
+        if command_target_system(message) not in (0, self.config.system_id):
             self.stats.commands_for_other_systems += 1
             return
         try:
@@ -157,14 +191,14 @@ class Autopilot:
         t = self.plant.t
         timed_out = (
             self._last_command_t is not None
-            and t - self._last_command_t > self.config.command_timeout
+            and t - self._last_command_t > self.command_timeout
         )
         if self._external_active and timed_out:
             self._external_active = False
             self._external = {"depth": math.nan, "pitch": math.nan}
             self.stats.fallbacks += 1
             self._status(
-                f"ballast: no command for {self.config.command_timeout:g}s, {self.config.fallback}",
+                f"ballast: no command for {self.command_timeout:g}s, {self.fallback}",
                 dialect.MAV_SEVERITY_WARNING,
             )
         if self._external_active:
@@ -173,7 +207,7 @@ class Autopilot:
                 held[0] if math.isnan(self._external["depth"]) else self._external["depth"],
                 held[1] if math.isnan(self._external["pitch"]) else self._external["pitch"],
             )
-        if self.config.fallback == "hold" and self._last_command_t is not None:
+        if self.fallback == "hold" and self._last_command_t is not None:
             return 0.0, 0.0
         k = self.plant.k
         return self.excitations["depth"].value(k), self.excitations["pitch"].value(k)

@@ -10,10 +10,13 @@ import threading
 
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
+from plant_emulator.fleet import add_fleet_arguments, run_fleet
 from plant_emulator.plant import GliderPlant, PlantConfig
 from plant_emulator.scenarios import SCENARIOS
+from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
+from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
@@ -25,7 +28,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="pymavlink connection string of the link to the service (default %(default)s)",
     )
     parser.add_argument("--sysid", type=int, default=1, help="MAVLink system id (default 1)")
-    parser.add_argument("--period", type=float, default=1.0, help="plant step, simulated s")
+    parser.add_argument(
+        "--profile",
+        default=DEFAULT_PROFILE,
+        help="vehicle profile, a built-in name (glider, ardusub) or a TOML file: a lockstep "
+        "profile streams as glider-hil's emulator, a periodic one the ArduSub way "
+        "(default %(default)s)",
+    )
+    parser.add_argument(
+        "--period",
+        type=float,
+        default=None,
+        help="plant step, simulated s (default 1.0; a periodic profile: its sample period)",
+    )
+    parser.add_argument(
+        "--uptime",
+        type=float,
+        default=0.0,
+        help="periodic profiles: simulated s since boot at start (4290: the uint32 µs clock "
+        "of SERVO_OUTPUT_RAW wraps 5 s in)",
+    )
+    parser.add_argument(
+        "--jitter", type=float, default=0.1, help="periodic profiles: fraction of each interval"
+    )
+    for name, hz in DEFAULT_RATES_HZ.items():
+        parser.add_argument(
+            f"--rate-{name.lower().replace('_', '-')}",
+            type=float,
+            default=hz,
+            metavar="HZ",
+            help=f"periodic profiles: {name} per simulated s (default %(default)s, 0: off)",
+        )
     parser.add_argument("--speed", type=float, default=1.0, help="times faster than real time")
     parser.add_argument(
         "--duration", type=float, default=None, help="simulated seconds to run (default: forever)"
@@ -59,14 +92,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
     )
+    add_fleet_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.vehicles != 1 or args.fleet_connect:
+        return run_fleet(args)
     try:
+        profile = load_profile(args.profile)
+        periodic = profile.sampling.mode == "periodic"
+        period = args.period
+        if period is None:
+            period = profile.sampling.period if periodic and profile.sampling.period else 1.0
+        streams = StreamConfig(
+            uptime=args.uptime,
+            jitter=args.jitter,
+            rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
+            seed=args.seed,
+        )
         plant = GliderPlant(
             PlantConfig(
                 scenario=args.scenario,
-                period=args.period,
+                period=period,
                 seed=args.seed,
                 trim_depth=args.trim_depth,
                 rate_limit=args.rate_limit,
@@ -86,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
             pressure=PressureDepth(args.water_density, args.surface_pressure),
             inputs=InputScale(args.full_scale),
         )
-    except ValueError as error:
+    except (ValueError, ProfileError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
         return 2
     link = Link(args.connect, source_system=args.sysid, source_component=1)
@@ -102,17 +149,18 @@ def run(args: argparse.Namespace) -> int:
         if args.print_every and autopilot.stats.steps % args.print_every == 0:
             print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
 
-    autopilot = Autopilot(
-        plant,
-        link,
-        build_channel_excitations(args.excitation, seed=args.seed),
-        config,
-        mapping,
-        on_step=print_sample if args.print_every else None,
-    )
+    excitations = build_channel_excitations(args.excitation, seed=args.seed)
+    on_step = print_sample if args.print_every else None
+    autopilot: Autopilot
+    if periodic:
+        autopilot = ArduSubAutopilot(
+            plant, link, excitations, profile, config, streams, on_step=on_step
+        )
+    else:
+        autopilot = Autopilot(plant, link, excitations, config, mapping, on_step=on_step)
     print(
-        f"emulating glider sysid {args.sysid} ({args.scenario}, {args.excitation}) "
-        f"on {args.connect} at {args.speed:g}x",
+        f"emulating glider sysid {args.sysid} ({args.scenario}, {args.excitation}, profile "
+        f"{profile.name}) on {args.connect} at {args.speed:g}x",
         file=sys.stderr,
         flush=True,
     )
@@ -120,5 +168,9 @@ def run(args: argparse.Namespace) -> int:
         stats = autopilot.run(stop)
     finally:
         link.close()
-    print(json.dumps({"emulator": stats.as_dict(autopilot.codec)}), flush=True)
+    summary = stats.as_dict(autopilot.codec)
+    summary["gcs"] = autopilot.manners.counters.as_dict()
+    if isinstance(autopilot, ArduSubAutopilot):
+        summary["streams_sent"] = dict(autopilot.sent)
+    print(json.dumps({"emulator": summary}), flush=True)
     return 0

@@ -1,4 +1,4 @@
-"""The MAVLink contract of DESIGN.md section 2: which standard message carries what.
+"""The MAVLink contract (docs/mavlink.md): which standard message carries what.
 
 * depth: SCALED_PRESSURE2 (137) ``press_abs`` hPa, converted by ``PressureDepth``;
   also VFR_HUD (74) ``alt`` m (negative below the surface) and ``climb`` m/s.
@@ -8,7 +8,9 @@
 * ballast command: COMMAND_LONG with MAV_CMD_DO_SET_ACTUATOR, ``param1`` depth,
   ``param2`` pitch, −1..1, NaN = leave unchanged; answered with COMMAND_ACK.
 
-Both the emulator and the service build and read messages only through this module.
+Both the emulator and the service build messages and read their fields only through this
+module (the service's ``assembler`` groups messages by the step time read here, then builds
+the sample with the readers below).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ MSG_ATTITUDE = "ATTITUDE"
 MSG_PRESSURE = "SCALED_PRESSURE2"
 MSG_HUD = "VFR_HUD"
 MSG_ACTUATORS = "ACTUATOR_OUTPUT_STATUS"
+MSG_ACK = "COMMAND_ACK"
 TELEMETRY_TYPES = frozenset({MSG_ATTITUDE, MSG_PRESSURE, MSG_HUD, MSG_ACTUATORS})
 DEPTH_ACTUATOR = 0
 PITCH_ACTUATOR = 1
@@ -117,9 +120,11 @@ class TelemetryMapping:
         )
 
     def depth_from_pressure(self, message: MavMessage) -> float:
+        """Depth (m) of a SCALED_PRESSURE2."""
         return self.pressure.depth_m(message.press_abs)
 
     def inputs_from_actuators(self, message: MavMessage) -> tuple[float, float]:
+        """Applied (depth, pitch) inputs in model units of an ACTUATOR_OUTPUT_STATUS."""
         return (
             self.inputs.to_model(message.actuator[DEPTH_ACTUATOR]),
             self.inputs.to_model(message.actuator[PITCH_ACTUATOR]),
@@ -130,3 +135,33 @@ def is_ballast_command(message: MavMessage) -> bool:
     return (
         message.get_type() == "COMMAND_LONG" and message.command == dialect.MAV_CMD_DO_SET_ACTUATOR
     )
+
+
+def command_target_system(message: MavMessage) -> int:
+    """The system a COMMAND_LONG is addressed to (0: every system)."""
+    return int(message.target_system)
+
+
+def step_time_ms(message: MavMessage, kind: str) -> int:
+    """The plant step (ms since boot) of a telemetry message of type ``kind`` that carries
+    one (ATTITUDE, SCALED_PRESSURE2, ACTUATOR_OUTPUT_STATUS); -1 for any other message."""
+    if kind in (MSG_ATTITUDE, MSG_PRESSURE):
+        return int(message.time_boot_ms)
+    if kind == MSG_ACTUATORS:
+        return int(message.time_usec) // 1000
+    return -1
+
+
+def pitch_from_attitude(message: MavMessage) -> float:
+    """Pitch (rad) of an ATTITUDE."""
+    return float(message.pitch)
+
+
+def pitch_rate_from_attitude(message: MavMessage) -> float:
+    """Pitch rate (rad/s) of an ATTITUDE."""
+    return float(message.pitchspeed)
+
+
+def ack_accepted(message: MavMessage) -> bool:
+    """Whether a COMMAND_ACK accepts the command."""
+    return bool(message.result == dialect.MAV_RESULT_ACCEPTED)

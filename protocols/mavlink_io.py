@@ -200,20 +200,61 @@ class MavlinkCodec:
         self._mav.have_prefix_error = False
 
 
+#: What ``Link`` opens, for error messages.
+ACCEPTED_LINKS = (
+    "udpin:HOST:PORT, udpout:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT "
+    "or a serial device (e.g. /dev/ttyUSB0, /dev/ttyACM0)"
+)
+#: Names pymavlink would open as a recorded log (or a CSV export), never a live link.
+_LOG_SUFFIXES = (".tlog", ".bin", ".px4log", ".log", ".mavlink", ".raw", ".csv")
+#: pymavlink classes that are live byte pipes (everything else it returns reads a file
+#: or runs a program).
+_LINK_CLASSES = (mavutil.mavudp, mavutil.mavtcp, mavutil.mavtcpin, mavutil.mavserial)
+
+
+def check_link(connection: str) -> None:
+    """Refuse a connection string that names a file rather than a link (``ValueError``).
+
+    pymavlink opens a ``.tlog`` or any existing regular file as a log to read (and runs an
+    ``.elf`` or a file under ``/bin/``): none of them has a socket or a device to wait on
+    and send to, so the service would fail later with an obscure error.
+    """
+    name = connection.strip()
+    lowered = name.lower()
+    if lowered.startswith("csv:"):
+        raise ValueError(f"{connection} is a CSV log, not a link; --mavlink takes {ACCEPTED_LINKS}")
+    if ":" in name.split("/")[0] and not lowered.endswith(_LOG_SUFFIXES):
+        return  # a scheme (udpin:, tcp:, ...): pymavlink parses it
+    is_device = os.path.exists(name) and not os.path.isfile(name)
+    if not is_device and (lowered.endswith(_LOG_SUFFIXES) or os.path.isfile(name)):
+        raise ValueError(
+            f"{connection} is a file, not a link; --mavlink takes {ACCEPTED_LINKS}"
+        )
+
+
 class Link:
     """A byte pipe to a vehicle or a ground station, opened from a pymavlink connection string.
 
-    Only bytes cross this class: parsing, statistics and vehicle state live elsewhere.
+    Only bytes cross this class: parsing, statistics and vehicle state live elsewhere. A
+    file (a ``.tlog``, any regular file) is refused with ``ValueError`` before pymavlink
+    opens it (see ``check_link``).
     """
 
     def __init__(self, connection: str, source_system: int = 255, source_component: int = 0):
         self.connection = connection
+        check_link(connection)
         self._file = mavutil.mavlink_connection(
             connection,
             source_system=source_system,
             source_component=source_component,
             autoreconnect=True,
         )
+        if not isinstance(self._file, _LINK_CLASSES):
+            kind = type(self._file).__name__
+            self._file.close()
+            raise ValueError(
+                f"{connection} opens as a {kind}, not a link; --mavlink takes {ACCEPTED_LINKS}"
+            )
         #: UDP delivers whole frames per datagram; streams may split them anywhere.
         self.datagram = isinstance(self._file, mavutil.mavudp)
 
@@ -243,3 +284,37 @@ class Link:
 
     def close(self) -> None:
         self._file.close()
+
+
+# ---- helpers for profiles, the emulator's ground-station manners and tlog import --------
+def message_name(message_id: int) -> str | None:
+    """The ``common`` dialect's name for a message id, or None when it has none."""
+    cls = dialect.mavlink_map.get(message_id)
+    return None if cls is None else str(cls.msgname)
+
+
+def message_id(name: str) -> int:
+    """The id of a ``common`` dialect message by name; KeyError when there is none."""
+    cls = getattr(dialect, f"MAVLink_{name.lower()}_message", None)
+    if cls is None:
+        raise KeyError(name)
+    return int(cls.id)
+
+
+def frame_length(data: bytes | bytearray, position: int = 0) -> int | None:
+    """The length of the MAVLink 1 or 2 frame starting at ``position`` (from its header),
+    or None when no frame starts there or its header is cut off."""
+    if position >= len(data):
+        return None
+    marker = data[position]
+    if marker == dialect.PROTOCOL_MARKER_V2:
+        if position + 3 > len(data):
+            return None
+        signed = data[position + 2] & dialect.MAVLINK_IFLAG_SIGNED
+        extra = dialect.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0
+        return dialect.HEADER_LEN_V2 + data[position + 1] + 2 + extra
+    if marker == dialect.PROTOCOL_MARKER_V1:
+        if position + 2 > len(data):
+            return None
+        return dialect.HEADER_LEN_V1 + data[position + 1] + 2
+    return None

@@ -43,7 +43,7 @@ class TelemetrySample(NamedTuple):
         )
 
     def to_payload(self) -> dict[str, float]:
-        """The Zenoh ``telemetry`` payload (DESIGN.md section 3)."""
+        """The Zenoh ``telemetry`` payload (docs/zenoh.md)."""
         return {
             "t": self.t,
             "depth": self.depth,

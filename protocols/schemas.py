@@ -9,8 +9,15 @@ from typing import Any
 
 import jsonschema
 
-SCHEMA_NAMES = ("telemetry", "umodel", "command_ballast", "setpoint", "control", "health")
-
+SCHEMA_NAMES = (
+    "telemetry",
+    "umodel",
+    "command_ballast",
+    "setpoint",
+    "control",
+    "health",
+    "decision_inputs",
+)
 
 @cache
 def load_schema(name: str) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Unit conversions shared by the emulator and the service (DESIGN.md section 2)."""
+"""Unit conversions shared by the emulator and the service (docs/mavlink.md)."""
 
 from __future__ import annotations
 

@@ -14,8 +14,9 @@ from typing import Any
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
-from hil_service.service import HilService, ServiceConfig
+from hil_service.service import HilService
 from hil_service.zenoh_bus import NullBus
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect

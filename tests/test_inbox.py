@@ -50,3 +50,39 @@ def test_malformed_inputs_are_counted():
     assert inbox.rejected == 6
     assert inbox.get(1).setpoints == {"depth": None, "pitch": None}
     assert inbox.get(1).enabled is None
+
+
+def test_a_setpoint_never_changes_the_control_flag():
+    """Control off stays off when a setpoint arrives (``serve --control`` would otherwise
+    fall back to its default, on)."""
+    inbox = Inbox()
+    put(inbox, "glider/1/control", {"enabled": False})
+    put(inbox, "glider/1/setpoint/depth", {"value": 20.0})
+    put(inbox, "glider/1/setpoint/pitch", {"value": None})
+    assert inbox.get(1).enabled is False
+    assert inbox.get(1).setpoints == {"depth": 20.0, "pitch": None}
+
+
+def test_every_refusal_names_the_key_and_why():
+    inbox = Inbox()
+    cases = [
+        (
+            "glider/x/setpoint/depth",
+            b'{"value": 1}',
+            "glider/x/setpoint/depth: not a setpoint or control key",
+        ),
+        ("glider/1/setpoint/depth", b"{not json", "glider/1/setpoint/depth: Expecting"),
+        ("glider/1/setpoint/depth", b'{"value": "deep"}', "glider/1/setpoint/depth: "),
+        ("glider/1/setpoint/depth", b'{"value": NaN}', "glider/1/setpoint/depth: non-finite"),
+        ("glider/1/setpoint/roll", b'{"value": 1}', "glider/1/setpoint/roll: not a setpoint or"),
+        ("glider/1", b'{"enabled": true}', "glider/1: not a setpoint or control key"),
+        ("glider/1/setpoint", b'{"value": 3}', "glider/1/setpoint: not a setpoint or control"),
+        ("glider/1/speed", b'{"enabled": true}', "glider/1/speed: not a setpoint or control"),
+    ]
+    for n, (key, raw, reason) in enumerate(cases, start=1):
+        inbox.accept(key, raw)
+        assert inbox.rejected == n, key
+        assert inbox.last_rejection.startswith(reason), (key, inbox.last_rejection)
+    # None of them set anything.
+    assert inbox.get(1).enabled is None
+    assert inbox.get(1).setpoints == {"depth": None, "pitch": None}

@@ -112,3 +112,34 @@ def test_schemas_accept_real_payloads_and_reject_wrong_ones():
         validate("control", {"enabled": "yes"})
     with pytest.raises(ValueError):
         validate("setpoint", {"value": "deep"})
+
+
+def test_ballast_command_fields_on_the_wire():
+    """Every field of the COMMAND_LONG the service sends, as decoded by the vehicle."""
+    from protocols.mapping import AUTOPILOT_COMPONENT, is_ballast_command
+
+    mapping = TelemetryMapping()
+    frame = MavlinkCodec(255, 191).pack(mapping.ballast_command(BallastCommand(1.0, math.nan), 7))
+    (message,) = MavlinkCodec(7, 1).parse(frame, datagram=True)
+    assert is_ballast_command(message)
+    assert (message.target_system, message.target_component) == (7, AUTOPILOT_COMPONENT)
+    assert message.command == dialect.MAV_CMD_DO_SET_ACTUATOR
+    assert message.confirmation == 0  # a first transmission, never a retry
+    assert message.param1 == 0.5  # 1.0 model unit at the default full scale 2.0
+    assert math.isnan(message.param2)  # pitch left unchanged
+    assert all(
+        math.isnan(p) for p in (message.param3, message.param4, message.param5, message.param6)
+    )
+    assert message.param7 == 0.0  # actuator set 0: the ballast pair, not another set
+
+
+def test_only_do_set_actuator_commands_are_ballast_commands():
+    from protocols.mapping import is_ballast_command
+
+    nan = math.nan
+    arm = dialect.MAVLink_command_long_message(
+        1, 1, dialect.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, nan, nan, nan, nan, 0
+    )
+    assert not is_ballast_command(arm)
+    ack = dialect.MAVLink_command_ack_message(dialect.MAV_CMD_DO_SET_ACTUATOR, 0, 0, 0, 1, 1)
+    assert not is_ballast_command(ack)  # the right command number, another message

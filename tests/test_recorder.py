@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 
 import pytest
@@ -39,32 +38,80 @@ def test_rotates_by_size_and_every_file_is_complete(tmp_path):
     assert total == 5000 and recorder.status.dropped == 0
 
 
+class StoppedClock:
+    """A monotonic clock that moves only when the test says so."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def wait_until(predicate, timeout: float = 10.0) -> bool:
+    """Poll ``predicate`` (the recorder's writer thread works asynchronously)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
 def test_unwritable_directory_is_reported_and_recording_resumes(tmp_path):
-    if os.geteuid() == 0:
-        target = tmp_path / "not-a-dir"
-        target.write_text("a file where the log directory should be")
-    else:
-        target = tmp_path / "ro"
-        target.mkdir(mode=0o500)
-    recorder = McapRecorder(target, flush_interval=0.05).start()
+    # As root a read-only directory is still writable: a file where the directory should be
+    # fails for everyone.
+    target = tmp_path / "not-a-dir"
+    target.write_text("a file where the log directory should be")
+    clock = StoppedClock()
+    recorder = McapRecorder(target, flush_interval=0.05, clock=clock).start()
     recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out")
-    deadline = time.monotonic() + 5
-    while not recorder.status.error and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert recorder.status.error, "the failure was not reported"
-    assert recorder.status.dropped >= 1
-    # The disk comes back: the next records go to a new file.
-    if target.is_file():
-        target.unlink()
-    else:
-        target.chmod(0o700)
-    time.sleep(2.1)  # the recorder retries every 2 s
+    assert wait_until(lambda: recorder.status.dropped == 1), "the record was not dropped"
+    assert "NotADirectoryError" in recorder.status.error or "FileExistsError" in (
+        recorder.status.error
+    ), recorder.status.error
+    # The disk comes back, but the retry interval (2 s) has not passed: still dropped.
+    target.unlink()
     recorder.zenoh("glider/1/telemetry", {"t": 1.0}, "out")
+    assert wait_until(lambda: recorder.status.dropped == 2)
+    assert not target.exists()
+    # Two seconds later the next records go to a new file.
+    clock.now += 2.0
+    recorder.zenoh("glider/1/telemetry", {"t": 2.0}, "out")
     recorder.close()
     files = list(target.glob("*.mcap"))
     assert len(files) == 1
     messages, _ = read_all(files[0])
-    assert [m.json() for m in messages] == [{"t": 1.0}]
+    assert [m.json() for m in messages] == [{"t": 2.0}]
+    assert recorder.status.error == "" and recorder.status.dropped == 2
+
+
+def test_rotates_by_age_on_the_recorder_clock(tmp_path):
+    """``--log-max-s``: a file older than ``max_seconds`` is finished and a new one begun."""
+    clock = StoppedClock()
+    recorder = McapRecorder(tmp_path, max_seconds=60.0, flush_interval=0.02, clock=clock).start()
+    recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out")
+    assert wait_until(lambda: recorder.status.records == 1)
+    clock.now += 59.0  # younger than max_seconds: flushes keep the same file
+    recorder.zenoh("glider/1/telemetry", {"t": 1.0}, "out")
+    assert wait_until(lambda: recorder.status.records == 2)
+    assert len(recorder.status.files) == 1
+    clock.now += 1.0
+    assert wait_until(lambda: len(list(tmp_path.glob("*.mcap"))) == 1 and _finished(tmp_path))
+    recorder.zenoh("glider/1/telemetry", {"t": 2.0}, "out")
+    recorder.close()
+    files = sorted(tmp_path.glob("*.mcap"))
+    assert len(files) == 2
+    contents = [[m.json()["t"] for m in read_all(path)[0]] for path in files]
+    assert sorted(contents) == [[0.0, 1.0], [2.0]]
+    for path in files:
+        assert read_all(path)[1].report.complete
+
+
+def _finished(directory) -> bool:
+    """The (only) file in ``directory`` has its footer: the recorder closed it."""
+    (path,) = directory.glob("*.mcap")
+    return read_all(path)[1].report.complete
 
 
 def test_reader_reports_truncation_and_corruption_with_offsets(tmp_path):
@@ -212,15 +259,13 @@ def test_after_a_failed_write_the_next_file_defines_its_channels_again(tmp_path,
         original(self, sealed)
 
     monkeypatch.setattr(recorder_module.McapFile, "write_chunk", failing_once)
-    recorder = McapRecorder(tmp_path, flush_interval=0.02).start()
+    clock = StoppedClock()
+    recorder = McapRecorder(tmp_path, flush_interval=0.02, clock=clock).start()
     recorder.raw("in", frames(1)[0])
     recorder.zenoh("glider/1/telemetry", {"t": 0.0}, "out")
-    deadline = time.monotonic() + 5
-    while recorder.status.dropped < 2 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert wait_until(lambda: recorder.status.dropped == 2)
     assert "No space left" in recorder.status.error
-    assert recorder.status.dropped == 2
-    time.sleep(2.1)  # the recorder retries every 2 s
+    clock.now += 2.0  # the recorder retries 2 s after a failure
     recorder.raw("in", frames(2)[1])
     recorder.zenoh("glider/1/telemetry", {"t": 1.0}, "out")
     recorder.close()

@@ -17,6 +17,10 @@ from tests.zenoh_peer import ZenohProbe
 from tests.zenoh_router import first_received, start_router, stop_router
 
 STALE = 1.0
+#: m: the largest one-step depth prediction error over the 30 samples after the link
+#: returns (measured 0.65 on this rig, disturbed plant under control; a lost or reset
+#: identifier is off by metres).
+RECOVERED_ERROR = 1.0
 
 
 def _emulator(processes, udp: int):
@@ -49,19 +53,17 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
         assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > 30, 20)
 
         processes.stop(first)
-        lost_at = time.monotonic()
+        # (When exactly health turns stale is tested on a simulated clock in
+        # test_service_robustness; here: that it does, and that nothing is sent meanwhile.)
         assert probe.wait_for(
-            lambda: health().get("control", {}).get("reason") == "telemetry stale",
-            STALE + 3,
+            lambda: health().get("control", {}).get("reason") == "telemetry stale", 30
         ), health().get("control")
-        stale_after = time.monotonic() - lost_at
         commands_while_down = probe.count("glider/1/command/ballast")
         before = health()["identifier"]["depth"]
-        time.sleep(1.5)
+        reports = probe.count("glider/1/health")
+        assert probe.wait_for(lambda: probe.count("glider/1/health") >= reports + 2, 10)
         assert probe.count("glider/1/command/ballast") == commands_while_down
-        assert stale_after < STALE + 2.0
 
-        down_for = time.monotonic() - lost_at
         _emulator(processes, udp)  # a rebooted autopilot: its clock starts again at 0
         assert probe.wait_for(
             lambda: probe.count("glider/1/command/ballast") > commands_while_down + 20, 30
@@ -77,15 +79,27 @@ def test_vehicle_link_lost_and_recovered(processes, tmp_path):
         after = health()
         assert after["identifier"]["depth"]["converged"]
         assert after["counters"]["restarts"] == 1
+        # Recovered: the estimates since the return are ordinary ones, and small.
+        returned = probe.count("glider/1/umodel/depth")
+        assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") >= returned + 30, 20)
+        recent = probe.payloads("glider/1/umodel/depth")[-30:]
+        assert all(e["status"] == "ok" for e in recent), [e["status"] for e in recent]
+        worst = max(abs(e["error"]) for e in recent)
+        assert worst < RECOVERED_ERROR, worst
     finally:
         probe.close()
         processes.stop_all()
 
     [log] = (tmp_path / "logs").glob("*.mcap")
-    times = [m.log_time_ns / 1e9 for m in LogReader(log).messages({"glider/1/telemetry"})]
-    gaps = [b - a for a, b in itertools.pairwise(times)]
-    assert max(gaps) > 0.8 * down_for  # the outage is visible in the log
-    assert sorted(gaps)[-2] < 1.0  # and it is the only one
+    records = [
+        (m.log_time_ns / 1e9, m.json()["t"])
+        for m in LogReader(log).messages({"glider/1/telemetry"})
+    ]
+    # The outage is in the log where the vehicle's clock restarted, and it is the longest
+    # silence there.
+    [restart] = [i for i in range(1, len(records)) if records[i][1] < records[i - 1][1]]
+    gaps = [b[0] - a[0] for a, b in itertools.pairwise(records)]
+    assert gaps.index(max(gaps)) == restart - 1
 
 
 @pytest.mark.timeout(90)
@@ -96,18 +110,21 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
     service = None
     stop = threading.Event()
     try:
-        time.sleep(1.0)
+        assert router.stdout is not None
+        assert router.stdout.readline(), "the router did not start"  # its session is open
         service = processes.start_service(
             "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-connect", endpoint,
             "--log-dir", str(tmp_path / "logs"),
         )  # fmt: skip
         vehicle = FakeVehicle(udp)
 
+        sent = [0]  # steps sent so far
+
         def stream() -> None:
-            k = 0
             while not stop.is_set():
+                k = sent[0]
                 vehicle.step(k * 1000, depth=15.0 + 0.01 * (k % 100))
-                k += 1
+                sent[0] = k + 1
                 time.sleep(0.02)
 
         sender = threading.Thread(target=stream, daemon=True)
@@ -115,9 +132,9 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
         assert first_received(router, time.monotonic() + 15) > 0, "router never heard the service"
 
         stop_router(router)
-        outage_start = time.time()
-        time.sleep(3.0)
-        outage_end = time.time()
+        outage_from = sent[0]
+        time.sleep(3.0)  # the outage (what is asserted is counted in steps, not seconds)
+        outage_to = sent[0]
         router = start_router(endpoint)
         assert first_received(router, time.monotonic() + 30) > 0, "publications did not resume"
         assert service.poll() is None
@@ -129,12 +146,9 @@ def test_zenoh_router_restart_does_not_stop_mavlink_or_logging(processes, tmp_pa
     vehicle.close()
     summary = json.loads(out.strip().splitlines()[-1])["service"]
     [log] = (tmp_path / "logs").glob("*.mcap")
-    during = [
-        m
-        for m in LogReader(log).messages({"mavlink/raw/in", "glider/1/telemetry"})
-        if outage_start + 0.5 < m.log_time_ns / 1e9 < outage_end - 0.5
-    ]
-    # 2 s of outage at 50 steps/s: MAVLink decoding and logging went on throughout.
-    assert sum(m.topic == "glider/1/telemetry" for m in during) > 50
-    assert sum(m.topic == "mavlink/raw/in" for m in during) > 150
-    assert summary["counters"]["samples"] > 200
+    logged = {m.json()["t"] for m in LogReader(log).messages({"glider/1/telemetry"})}
+    # Every step the vehicle sent while the router was away was decoded and logged.
+    assert outage_to - outage_from > 20
+    missing = [k for k in range(outage_from, outage_to) if float(k) not in logged]
+    assert missing == []
+    assert summary["counters"]["samples"] >= outage_to

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
-import time
 
 import pytest
 
@@ -13,6 +11,10 @@ from tests.zenoh_peer import ZenohProbe
 
 SPEED = 50
 BURN_IN = 300
+#: m: |mean of the last 50 depths − setpoint| after ~300 commands of a 2 m step. Measured
+#: 1.18 (the disturbed plant's depth is slow and non-minimum-phase and its identified
+#: long-horizon map poor, see the README); the control work tightens this.
+TRACK_BAND = 1.5
 
 
 @pytest.fixture
@@ -46,15 +48,18 @@ def rig(processes, tmp_path):
 
 def test_identify_command_disable_and_stale(rig, processes):
     probe: ZenohProbe = rig["probe"]
-    assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 200, 40), {
+    assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 400, 40), {
         k: len(v) for k, v in probe.received.items()
     }
 
-    # A-priori predictions beat persistence on depth after burn-in.
-    estimates = probe.payloads("glider/1/umodel/depth")[BURN_IN:]
+    # A-priori predictions over the 400 samples after burn-in: skill versus persistence of
+    # at least 0.5 (measured 0.537 here, 0.436 over the first 200; the README's 0.8 is over
+    # thousands of samples). The data is the emulator's excitation, so this is exact.
+    estimates = probe.payloads("glider/1/umodel/depth")[BURN_IN : BURN_IN + 400]
     model = sum(e["error"] ** 2 for e in estimates)
     persistence = sum((e["y"] - e["baseline_y_hat"]) ** 2 for e in estimates)
-    assert model < persistence, f"model SSE {model:.4g} vs persistence {persistence:.4g}"
+    skill = 1.0 - model / persistence
+    assert skill >= 0.5, f"skill {skill:.3f} (model SSE {model:.4g}, persistence {persistence:.4g})"
     telemetry = probe.payloads("glider/1/telemetry")
     assert {"t", "depth", "pitch", "u_depth", "u_pitch"} <= set(telemetry[-1])
     assert probe.count("glider/1/command/ballast") == 0, "commands before control enabled"
@@ -77,30 +82,35 @@ def test_identify_command_disable_and_stale(rig, processes):
     ]
     assert len(echoed) > 50 and sum(echoed) >= 0.95 * len(echoed)
     recent = [s["depth"] for s in probe.payloads("glider/1/telemetry")[-50:]]
-    # Depth has moved toward the setpoint by at least half the step (it may overshoot: the
-    # disturbed plant's depth channel is slow and non-minimum-phase, see the README).
-    moved = (sum(recent) / len(recent) - start_depth) * math.copysign(1.0, target - start_depth)
-    assert moved >= 0.5 * abs(target - start_depth), (start_depth, target, recent[-5:])
+    # Tracking band met today (TRACK_BAND): the last 50 samples' mean near the setpoint.
+    error = abs(sum(recent) / len(recent) - target)
+    assert error <= TRACK_BAND, (error, start_depth, target, recent[-5:])
 
     # Disabling control stops the commands.
     probe.put("glider/1/control", {"enabled": False})
-    time.sleep(0.5)
+    assert probe.wait_for(
+        lambda: probe.latest("glider/1/health")["control"]["reason"] == "control disabled", 10
+    )
     stopped_at = probe.count("glider/1/command/ballast")
-    time.sleep(1.5)
+    samples = probe.count("glider/1/telemetry")
+    # 50 more samples processed (published before any command would be): none commanded.
+    assert probe.wait_for(lambda: probe.count("glider/1/telemetry") > samples + 50, 10)
     assert probe.count("glider/1/command/ballast") == stopped_at
-    assert probe.payloads("glider/1/health")[-1]["control"]["reason"] == "control disabled"
 
     # Re-enable, then kill the emulator: commands stop and health says telemetry is stale.
     probe.put("glider/1/control", {"enabled": True})
     assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > stopped_at + 20, 10)
     rig["emulator"].kill()
     rig["emulator"].wait(5)
-    time.sleep(0.5)
-    after_kill = probe.count("glider/1/command/ballast")
     assert probe.wait_for(
         lambda: probe.payloads("glider/1/health")[-1]["control"]["reason"] == "telemetry stale",
-        5,
+        10,
     )
+    # Every command is sent with a sample: once stale, the count is final (two more health
+    # reports later it has not moved, and the service's own summary agrees below).
+    after_kill = probe.count("glider/1/command/ballast")
+    reports = probe.count("glider/1/health")
+    assert probe.wait_for(lambda: probe.count("glider/1/health") >= reports + 2, 10)
     assert probe.count("glider/1/command/ballast") == after_kill
     health = probe.payloads("glider/1/health")[-1]
     assert health["control"]["commanding"] is False
@@ -114,7 +124,7 @@ def test_identify_command_disable_and_stale(rig, processes):
 
 
 def check_log(log_dir, probe_telemetry):
-    """Every channel of DESIGN.md section 4 with schemas; raw frames decode to the same samples."""
+    """Every channel of docs/mcap.md with schemas; raw frames decode to the same samples."""
     from hil_service.assembler import SampleAssembler
     from hil_service.mcap.reader import LogReader
     from protocols.mavlink_io import MavlinkCodec
@@ -158,3 +168,33 @@ def check_log(log_dir, probe_telemetry):
     assert decoded == logged_telemetry
     assert decoded[: len(probe_telemetry)] == probe_telemetry[: len(decoded)]
     assert len(decoded) >= len(probe_telemetry) - 5
+
+
+@pytest.mark.timeout(120)
+def test_a_short_demo_runs_end_to_end(processes, tmp_path):
+    """`glider-hil demo`, short: service and emulator start, identify, control, and stop;
+    every command sent is acknowledged, and the log it names is a complete MCAP file."""
+    from hil_service.mcap.reader import LogReader
+
+    demo = processes.start(
+        "demo", "--duration", "12", "--speed", "50", "--log-dir", str(tmp_path), "--json"
+    )  # fmt: skip
+    out, err = demo.communicate(timeout=110)
+    assert demo.returncode == 0, err
+    lines = out.splitlines()
+    result = json.loads("\n".join(lines[lines.index("{") :]))  # after its progress lines
+    assert result["samples"] > 400
+    assert result["commands_sent"] > 0
+    # The emulator acknowledges every command it received (the last may be in flight).
+    acks = result["acks"]
+    assert acks["refused"] == 0
+    assert result["commands_sent"] - 1 <= acks["accepted"] <= result["commands_sent"]
+    assert result["control_reason_at_end"] == ""
+    # Better than persistence on both channels (measured 0.56 depth, 0.40 pitch over this
+    # short run, control included; the README's figures are for the 60 s default).
+    for channel in ("depth", "pitch"):
+        assert result["identification"][channel]["skill"] >= 0.25, result["identification"]
+    reader = LogReader(result["log"])
+    commands = sum(1 for _ in reader.messages({"mavlink/raw/out"}))
+    assert reader.report.complete
+    assert commands == result["commands_sent"]

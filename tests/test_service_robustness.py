@@ -80,10 +80,10 @@ def test_bad_mavlink_input_is_counted_in_health(processes, tmp_path):
         c = counters()
         assert c["invalid"] == 2
         assert c["out_of_order"] == 1
-        assert c["unknown_system"] >= 3
-        assert c["bad_frames"] >= 1
         health = probe.payloads("glider/1/health")[-1]
-        assert health["malformed"] >= 4
+        assert health["link_wide"]["unknown_system"] >= 3  # the link's, not vehicle 1's
+        assert health["link_wide"]["bad_frames"] >= 1
+        assert health["malformed"] == c["invalid"] + c["out_of_order"] + c["incomplete"] >= 3
         assert service.poll() is None
         # The bad samples never reached the identifier, and around the hole they left (t = 20,
         # 21, 22 s) it refilled its history instead of pairing y(23) with u(19).
@@ -128,7 +128,7 @@ def test_log_of_a_killed_service_reads_up_to_the_last_flush(processes, tmp_path)
             if first_flush_at is None and flushed_records() > 0:
                 first_flush_at = time.monotonic()
             assert k < 100_000, "the service never flushed a record"
-        sent_until = time.time_ns()
+        on_disk = flushed_records()
         service.send_signal(signal.SIGKILL)
         service.wait(5)
     finally:
@@ -141,8 +141,9 @@ def test_log_of_a_killed_service_reads_up_to_the_last_flush(processes, tmp_path)
     assert not report.complete
     assert "recovered" in report.describe()
     assert times, "nothing recovered"
-    lost_s = (sent_until - max(times)) / 1e9
-    assert lost_s < 1.5, f"lost {lost_s:.2f}s of data"
+    # Everything that was on disk before the kill reads back (what came after the last
+    # flush may be lost; how much depends on the flush interval, not asserted in wall time).
+    assert len(times) >= on_disk > 0
 
 
 def test_vehicles_split_by_system_id_with_state_and_liveliness(processes, tmp_path):
@@ -195,3 +196,29 @@ def test_bad_config_file_and_connection_string_are_clear_errors(processes, tmp_p
     _, err = process.communicate(timeout=30)
     assert process.returncode == 2
     assert "cannot open udpin:nonsense" in err and "Traceback" not in err
+
+
+def test_health_turns_stale_exactly_after_the_timeout_on_the_service_clock():
+    """Staleness on a simulated clock: fresh up to ``stale_timeout`` after the last sample,
+    stale just after, and the controllers re-arm before the next decision."""
+    from hil_service.config import ServiceConfig
+    from hil_service.inputs import Inbox
+    from hil_service.service import HilService
+    from hil_service.zenoh_bus import NullBus
+
+    now = [50.0]
+    service = HilService(ServiceConfig(stale_timeout=3.0), NullBus(), Inbox(), clock=lambda: now[0])
+    codec = MavlinkCodec(1, 1)
+    for k in range(10):
+        for message in MAPPING.encode_telemetry(TelemetrySample(1, k * 1000, 15.0, 0.0, 0.1, -0.1)):
+            service.process_datagram(codec.pack(message))
+    now[0] += 3.0
+    health = service.health(1)
+    assert health["control"]["reason"] == "control disabled"
+    assert health["telemetry_age"] == 3.0
+    assert service.vehicles[1].reset_pending is False
+    now[0] += 1e-6
+    health = service.health(1)
+    assert health["control"]["reason"] == "telemetry stale"
+    assert health["control"]["commanding"] is False
+    assert service.vehicles[1].reset_pending is True

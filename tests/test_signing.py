@@ -9,11 +9,12 @@ from pathlib import Path
 
 import pytest
 
+from hil_service.config import LinkSecurity, ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.replay import ReplayOptions, replay
-from hil_service.service import HilService, LinkSecurity, ServiceConfig
+from hil_service.service import HilService
 from hil_service.umodel import build_model
 from hil_service.zenoh_bus import NullBus
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -199,7 +200,7 @@ def test_service_requires_signed_telemetry_counts_refusals_and_logs_them(tmp_pat
         service.process_datagram(datagram)
     assert service.assembler.counters.samples == 20
     health = service.health(1)
-    counters = health["counters"]
+    counters = health["link_wide"]  # the verifier sees frames, not vehicles
     assert counters["signing_signed_accepted"] == 80
     assert counters["signing_unsigned_rejected"] == 20
     assert counters["signing_bad_signature"] == 20
@@ -226,20 +227,40 @@ def test_service_may_accept_unsigned_telemetry_when_configured():
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 5):
         service.process_datagram(datagram)
     assert service.assembler.counters.samples == 5
-    assert service.health(1)["counters"]["signing_unsigned_accepted"] == 20
+    assert service.health(1)["link_wide"]["signing_unsigned_accepted"] == 20
 
 
 def test_service_signs_the_commands_it_sends():
-    service = HilService(ServiceConfig(security=LinkSecurity(KEY)), NullBus(), Inbox())
-    frame = service.codec.pack(MAPPING.ballast_command(_command(), 1))
-    assert FrameVerifier(KEY).accept(frame)
-    assert not FrameVerifier(OTHER_KEY).accept(frame)
+    """Through the service's own send path: signed telemetry in, control on, and every
+    frame that reaches the vehicle's socket is a command signed with the link key."""
+    from hil_service.pipeline import PipelineSettings
+    from tests.test_safety_gate import BLOCKED, BURN_IN, SentFrames, plant_samples
 
-
-def _command():
-    from protocols.samples import BallastCommand
-
-    return BallastCommand(0.4, -0.2)
+    link = SentFrames()
+    config = ServiceConfig(
+        control_default=True,
+        pipeline=PipelineSettings(burn_in=BURN_IN),
+        security=LinkSecurity(KEY),
+    )
+    service = HilService(config, NullBus(), Inbox(), link=link.link)
+    service.inbox.set_setpoint(1, "depth", 16.0)
+    vehicle = MavlinkCodec(1, 1, signing_key=KEY)
+    try:
+        for sample, _ in plant_samples(BLOCKED + 10):
+            for message in MAPPING.encode_telemetry(sample):
+                service.process_datagram(vehicle.pack(message))
+        frames = link.frames
+    finally:
+        link.close()
+    assert len(frames) == 10 == service.vehicles[1].commands_sent
+    genuine, other = FrameVerifier(KEY), FrameVerifier(OTHER_KEY)
+    for frame in frames:
+        assert frame[2] & 0x01, "signed flag not set"
+        assert not other.accept(frame)
+        assert genuine.accept(frame)  # each once: timestamps increase, no replay
+    receiver = MavlinkCodec(255, 190, verifier=FrameVerifier(KEY))
+    decoded = [m for frame in frames for m in receiver.parse(frame, datagram=True)]
+    assert [m.get_type() for m in decoded] == ["COMMAND_LONG"] * 10
 
 
 class LoggingBus(NullBus):
@@ -255,7 +276,7 @@ class LoggingBus(NullBus):
 @pytest.mark.timeout(60)
 def test_a_signed_log_replays_without_the_key_and_checks_bit_for_bit(tmp_path):
     config = ServiceConfig(security=LinkSecurity(KEY))
-    recorder = McapRecorder(tmp_path, metadata={"service": json.dumps(config.to_json())}).start()
+    recorder = McapRecorder(tmp_path, metadata=config.to_metadata()).start()
     service = HilService(config, LoggingBus(recorder), Inbox(), recorder=recorder)
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 3):  # refused, logged apart
         service.process_datagram(datagram)

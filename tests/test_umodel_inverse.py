@@ -1,19 +1,15 @@
-"""Inverse solver, command shaping and IMC reference of hil_service.umodel."""
+"""Inverse solver, command shaping and reference filter of hil_service.umodel."""
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 
 from hil_service.umodel import (
     CommandShaper,
-    ImcReference,
     InverseResult,
-    build_model,
-    imc_target,
-    invert_model,
+    ReferenceFilter,
     solve_inverse,
 )
 
@@ -114,43 +110,6 @@ def test_non_finite_inputs_never_produce_nan() -> None:
         solve_inverse(quad, dquad, 0.0, 0.0, 1.0, -1.0)
 
 
-@pytest.mark.parametrize("name", ["paper", "dynamic", "rls-arx"])
-def test_invert_trained_model(name: str) -> None:
-    rng = np.random.default_rng(5)
-    model = build_model(name)
-    y1 = y2 = u = 0.0
-    for _ in range(1500):
-        y = 0.6 * y1 + 0.2 * y2 + 0.3 * u + 0.05 * u**3
-        model.step(u, y)
-        y2, y1 = y1, y
-        u = float(rng.uniform(-2, 2))
-    target = 0.9 * model.output_given_input(0.8) + 0.1 * model.output_given_input(-0.4)
-    res = invert_model(model, target, 0.0, -2.0, 2.0)
-    assert abs(model.output_given_input(res.u) - target) <= 1e-8
-    assert -2.0 <= res.u <= 2.0
-    # The fast scalar path agrees with the regressor path used by step().
-    assert model.output_given_input(res.u) == pytest.approx(model.predict(res.u), abs=1e-12)
-
-
-@pytest.mark.parametrize("name", ["paper", "dynamic", "rls-arx"])
-def test_model_derivative_matches_finite_differences(name: str) -> None:
-    rng = np.random.default_rng(11)
-    model = build_model(name)
-    for _ in range(200):
-        model.step(float(rng.uniform(-2, 2)), float(rng.normal()))
-    h = 1e-6
-    for u in (-1.7, -0.3, 0.0, 0.9, 1.95):
-        fd = (model.output_given_input(u + h) - model.output_given_input(u - h)) / (2 * h)
-        assert model.output_derivative(u) == pytest.approx(fd, rel=1e-5, abs=1e-7)
-
-
-def test_persistence_inverse_holds_input() -> None:
-    model = build_model("persistence")
-    model.step(0.0, 1.0)
-    res = invert_model(model, 3.0, 0.25, -2.0, 2.0)
-    assert (res.path, res.u) == ("fallback", 0.25)
-
-
 def test_command_shaper_rate_limit_and_saturation() -> None:
     sh = CommandShaper(-1.0, 1.0, max_rate=0.3, u_init=0.0)
     out = sh.shape(0.2)
@@ -171,37 +130,18 @@ def test_command_shaper_rate_limit_and_saturation() -> None:
         CommandShaper(1.0, 1.0)
 
 
-def test_imc_reference_filter_and_mismatch() -> None:
-    assert imc_target(2.0, 1.5, 1.0) == 1.5
-    assert imc_target(2.0, math.nan, 1.0) == 2.0
-    ref = ImcReference(a=0.5)
+def test_reference_filter() -> None:
+    ref = ReferenceFilter(a=0.5)
     # First call starts the filter at the measured output (bumpless), then moves halfway.
-    v = ref.target(setpoint=4.0, y=2.0, y_hat=1.5)
-    assert ref.value == 3.0
-    assert v == 3.0 - (2.0 - 1.5)
-    v = ref.target(setpoint=4.0, y=2.5, y_hat=2.5)
-    assert v == 3.5
-    ref.target(setpoint=math.nan, y=2.5, y_hat=2.5)  # ignored setpoint keeps the filter
+    assert ref.filter(4.0, start=2.0) == 3.0
+    assert ref.filter(4.0, start=9.0) == 3.5
+    assert ref.filter(math.nan) == 3.5  # an ignored setpoint keeps the filter
     assert ref.value == 3.5
     ref.reset(0.0)
     assert ref.filter(1.0) == 0.5
-    assert ImcReference(a=0.0).filter(7.0) == 7.0
+    assert ReferenceFilter(a=0.0).filter(7.0) == 7.0
     with pytest.raises(ValueError):
-        ImcReference(a=1.0)
-
-
-@pytest.mark.parametrize("name", ["paper", "dynamic", "rls-arx", "persistence"])
-def test_vectorised_model_output_matches_scalar(name: str) -> None:
-    rng = np.random.default_rng(17)
-    model = build_model(name)
-    for _ in range(100):
-        model.step(float(rng.uniform(-2, 2)), float(rng.normal()))
-    grid = np.linspace(-2.0, 2.0, 41)
-    vec = model.output_given_inputs(grid)  # type: ignore[attr-defined]
-    scalar = [model.output_given_input(float(u)) for u in grid]
-    assert np.allclose(vec, scalar, rtol=1e-12, atol=1e-12)
-    again = model.output_given_inputs(grid)  # type: ignore[attr-defined]  (cached design)
-    assert np.array_equal(vec, again)
+        ReferenceFilter(a=1.0)
 
 
 def _wavy(u: float) -> float:  # interior extrema, e.g. a maximum near u = 0.52

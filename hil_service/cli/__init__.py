@@ -15,6 +15,9 @@ VERBS: dict[str, tuple[str, str]] = {
     "replay": ("hil_service.cli.replay", "replay a log through the service path (--check)"),
     "info": ("hil_service.cli.info", "duration, channels and configuration of a log"),
     "report": ("hil_service.cli.report", "figures and a Markdown summary from a log"),
+    "import": ("hil_service.cli.import_tlog", "a telemetry log (.tlog) into an MCAP log"),
+    "router": ("hil_service.cli.router", "a Zenoh router for services on several processes"),
+    "fleet": ("hil_service.cli.fleet", "live table of every served vehicle on the Zenoh network"),
 }
 
 

@@ -27,6 +27,7 @@ from hil_service.cli.processes import (
     start_verb,
     stop_process,
 )
+from hil_service.live.address import LiveAddress
 from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 
@@ -47,6 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="sign the MAVLink link both ways with a fresh key (kept in a private temp dir)",
     )
+    parser.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="the service serves a Foxglove live view on PORT (loopback unless HOST is given)",
+    )
 
 
 @dataclass
@@ -59,14 +66,15 @@ class Observations:
     health: dict[str, Any] = field(default_factory=dict)
 
     def on_sample(self, sample: Any) -> None:
-        key = str(sample.key_expr)
+        parsed = keys.parse(str(sample.key_expr))
+        kind = "" if parsed is None else parsed.kind
         payload = json.loads(sample.payload.to_bytes())
         with self.lock:
-            if key.endswith("/telemetry"):
+            if kind == keys.TELEMETRY:
                 self.telemetry.append(payload)
-            elif key.endswith("/command/ballast"):
+            elif kind == keys.COMMAND_BALLAST:
                 self.commands += 1
-            elif key.endswith("/health"):
+            elif kind == keys.HEALTH:
                 self.health = payload
 
     def latest_t(self) -> float:
@@ -103,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
             "--log-dir", args.log_dir, "--model", args.model, "--seed", str(args.seed),
             "--burn-in", str(int(0.25 * sim_total)), *signing,
+            *(["--foxglove", args.foxglove] if args.foxglove else []),
         )  # fmt: skip
     except NotReady as error:
         print(f"demo: the service did not start: {error}", file=sys.stderr)
@@ -113,7 +122,9 @@ def run(args: argparse.Namespace) -> int:
     observations = Observations()
     try:
         session = open_session(ZenohOptions(connect=(endpoint,)))
-        subscriber = session.declare_subscriber(f"glider/{SYSTEM_ID}/**", observations.on_sample)
+        subscriber = session.declare_subscriber(
+            keys.vehicle_pattern(SYSTEM_ID), observations.on_sample
+        )
         emulator = start_verb(
             "emulate", "--connect", f"udpout:127.0.0.1:{udp_port}", "--speed", str(args.speed),
             "--duration", str(sim_total), "--scenario", args.scenario, "--seed", str(args.seed),
@@ -124,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
             (t_control, {"depth": TRIM_DEPTH + 2.0, "pitch": 0.15}),
             (t_second, {"depth": TRIM_DEPTH - 1.0, "pitch": -0.1}),
         ]
+        if args.foxglove:
+            address = LiveAddress.parse(args.foxglove)
+            print(f"demo: Foxglove live view on ws://{address.host}:{address.port}", flush=True)
         print(
             f"demo: {sim_total:.0f} simulated s at {args.speed:g}x; identification until "
             f"t={t_control:.0f}s, then setpoint steps at t={t_control:.0f}s and {t_second:.0f}s",

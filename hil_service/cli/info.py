@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
+from hil_service.config import ServiceConfig
 from hil_service.mcap.reader import LogError, LogReader
 
 
@@ -34,8 +36,11 @@ def run(args: argparse.Namespace) -> int:
             topic: {"count": c["count"], "encoding": c["encoding"], "schema": c["schema"]}
             for topic, c in sorted(report.channels.items())
         },
-        "config": reader.config(),
+        "config": _config(reader.config()),
     }
+    defaults = _defaulted(reader.config(), info["config"])
+    if defaults:
+        info["config_defaults"] = defaults
     if not report.complete:
         info["recovery"] = report.describe()
     try:
@@ -43,6 +48,31 @@ def run(args: argparse.Namespace) -> int:
     except BrokenPipeError:  # `glider-hil info LOG | head`
         sys.stderr.close()
     return 0
+
+
+def _config(stored: dict[str, Any]) -> dict[str, Any]:
+    """The stored configuration as the service reads it back (defaults filled in for fields
+    an older log lacks); what the file holds when that is not a service configuration."""
+    try:
+        config = ServiceConfig.from_stored(stored)
+    except (TypeError, ValueError, KeyError) as error:
+        return {**stored, "error": f"unreadable configuration: {error}"}
+    return stored if config is None else config.stored()
+
+
+def _defaulted(stored: dict[str, Any], read: dict[str, Any]) -> list[str]:
+    """Fields of the configuration read back that the log does not hold (an older log):
+    they show the defaults, not what that service ran with."""
+    missing = []
+    for part, fields in read.items():
+        if not isinstance(fields, dict):
+            continue
+        held = stored.get(part)
+        if not isinstance(held, dict):
+            missing.append(part)
+        else:
+            missing += [f"{part}.{name}" for name in fields if name not in held]
+    return missing
 
 
 def _print(info: dict, as_json: bool) -> None:
@@ -57,3 +87,5 @@ def _print(info: dict, as_json: bool) -> None:
         print(f"  {topic:48} {channel['count']:>8}  {channel['encoding']:8}  {channel['schema']}")
     print("  configuration:")
     print("    " + json.dumps(info["config"], indent=2).replace("\n", "\n    "))
+    if "config_defaults" in info:
+        print(f"  not in this log, shown with their defaults: {', '.join(info['config_defaults'])}")

@@ -6,12 +6,15 @@ import argparse
 import json
 import sys
 
-from hil_service.inputs import Inbox
+from hil_service.builder import publishing_bus
+from hil_service.cli.serve import add_foxglove_argument, foxglove_from_args, start_live
+from hil_service.live.bus import LiveBus
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
-from hil_service.zenoh_bus import ZenohBus
+from hil_service.zenoh_bus import NullBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
+from protocols.profiles import ProfileError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,7 +28,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--check", action="store_true", help="recomputed estimates and commands must match"
     )
     parser.add_argument("--model", choices=("paper", "dynamic"), default=None)
+    parser.add_argument(
+        "--profile",
+        default=None,
+        help="vehicle profile, a built-in name or a TOML file (default: the one the log stores)",
+    )
+    parser.add_argument(
+        "--sample-period", type=float, default=None, help="periodic profiles: s between samples"
+    )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_foxglove_argument(parser)
     add_zenoh_arguments(parser)
 
 
@@ -45,13 +57,18 @@ def run(args: argparse.Namespace) -> int:
         speed=None if args.fast else args.speed,
         check=args.check,
         model=args.model,
+        profile=args.profile,
+        sample_period=args.sample_period,
         progress=_progress if args.fast and sys.stderr.isatty() else None,
     )
-    session = bus = None
+    session = bus = live = None
     try:
+        live = start_live(foxglove_from_args(args), "replay")
         if args.publish:
             session = open_session(options_from_args(args))
-            bus = ZenohBus(session, Inbox())
+            bus = publishing_bus(session)
+        if live is not None:
+            bus = LiveBus(NullBus() if bus is None else bus, live)
         tune_for_service()
         while True:
             result = replay(args.log, options, bus)
@@ -61,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"glider-hil replay: {result.recovered}", file=sys.stderr)
             if result.mismatch is not None or not args.loop:
                 break
-    except (LogError, ReplayError, OSError) as error:
+    except (LogError, ReplayError, ProfileError, OSError, ValueError) as error:
         print(f"glider-hil replay: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -69,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bus is not None:
             bus.close()
+        if live is not None:
+            live.close()
         if session is not None:
             session.close()
     report = {

@@ -1,4 +1,7 @@
-"""``glider-hil serve``: the HIL service on a MAVLink link, publishing on Zenoh, logging MCAP."""
+"""``glider-hil serve``: the HIL service on a MAVLink link, publishing on Zenoh, logging MCAP.
+
+As zenoh-python's examples: flags → ``config_from_args`` → ``main(config)``.
+"""
 
 from __future__ import annotations
 
@@ -9,19 +12,29 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
+from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
-from hil_service.inputs import Inbox, SetpointLimits
-from hil_service.mcap.recorder import McapRecorder
+from hil_service.config import (
+    LinkSecurity,
+    LogOptions,
+    ServeConfig,
+    ServiceConfig,
+    Units,
+    parse_system_ids,
+)
+from hil_service.inputs import SetpointLimits
+from hil_service.live.address import LiveAddress
 from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
-from hil_service.service import HilService, LinkSecurity, ServiceConfig
-from hil_service.zenoh_bus import ZenohBus
 from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
-from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
+from protocols.profiles import DEFAULT_PROFILE, load_profile
 from protocols.signing import load_key
-from protocols.units import InputScale, PressureDepth
+
+if TYPE_CHECKING:
+    from hil_service.live.view import LiveView
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,10 +45,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--sysid",
-        type=int,
         action="append",
         default=[],
-        help="vehicle system id to serve (repeatable; default: every vehicle on the link)",
+        metavar="IDS",
+        help="vehicle system ids to serve: N, N-M or a comma list (repeatable; default: every "
+        "vehicle on the link)",
+    )
+    parser.add_argument(
+        "--profile",
+        default=DEFAULT_PROFILE,
+        help="vehicle profile: a built-in name (glider, ardusub) or a TOML file "
+        "(docs/profiles.md; default %(default)s)",
+    )
+    parser.add_argument(
+        "--sample-period",
+        type=float,
+        default=None,
+        help="periodic profiles: s between samples on the vehicle's clock (default: the "
+        "profile's)",
     )
     parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
     parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
@@ -77,7 +104,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --signing-key: accept unsigned telemetry too (counted in health)",
     )
+    add_foxglove_argument(parser)
     add_zenoh_arguments(parser)
+
+
+def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        default=None,
+        help="serve a Foxglove live view (WebSocket) on PORT, loopback unless HOST is given",
+    )
+
+
+def foxglove_from_args(args: argparse.Namespace) -> LiveAddress | None:
+    return None if args.foxglove is None else LiveAddress.parse(args.foxglove)
+
+
+def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
+    """The started live view, announced on stderr (its URL), or None without an address."""
+    if address is None:
+        return None
+    from hil_service.live.view import LiveView  # the Foxglove SDK, only when asked for
+
+    try:
+        live = LiveView(address, name=f"glider-hil {verb}").start()
+    except Exception as error:  # foxglove raises its own error type, e.g. for a port in use
+        raise OSError(f"cannot start the Foxglove server on {address}: {error}") from error
+    print(f"glider-hil {verb}: Foxglove live view on {live.url}", file=sys.stderr, flush=True)
+    return live
 
 
 def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
@@ -100,73 +155,98 @@ def security_from_args(args: argparse.Namespace) -> LinkSecurity:
     return LinkSecurity(load_key(args.signing_key), accept_unsigned=args.accept_unsigned)
 
 
+def config_from_args(args: argparse.Namespace) -> ServeConfig:
+    """Flags → configuration; raises ValueError (or OSError for the key file) on bad ones."""
+    profile = load_profile(args.profile)
+    periodic = profile.sampling.mode == "periodic"
+    if args.sample_period is not None and not periodic:
+        raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
+    system_ids = [i for text in args.sysid for i in parse_system_ids(str(text))]
+    service = ServiceConfig(
+        system_ids=tuple(dict.fromkeys(system_ids)),
+        control_default=args.control,
+        stale_timeout=args.stale_timeout,
+        pipeline=settings_from_args(args),
+        security=security_from_args(args),
+        units=Units(args.full_scale, args.water_density, args.surface_pressure),
+        limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),
+        profile=profile if periodic else None,
+        sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
+    )
+    log = LogOptions(
+        directory=None if args.no_log else args.log_dir,
+        max_bytes=int(args.log_max_mb * 1024 * 1024),
+        max_seconds=args.log_max_s,
+    )
+    return ServeConfig(
+        service,
+        args.mavlink,
+        options_from_args(args),
+        log,
+        args.duration,
+        foxglove_from_args(args),
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        mapping = TelemetryMapping(
-            pressure=PressureDepth(args.water_density, args.surface_pressure),
-            inputs=InputScale(args.full_scale),
-        )
-        config = ServiceConfig(
-            system_ids=tuple(args.sysid),
-            control_default=args.control,
-            stale_timeout=args.stale_timeout,
-            pipeline=settings_from_args(args),
-            security=security_from_args(args),
-        )
-        zenoh_options = options_from_args(args)
-        zenoh_options.to_config()  # a bad config file is reported here, before anything opens
+        config = config_from_args(args)
+        config.zenoh.to_config()  # a bad config file is reported here, before anything opens
     except Exception as error:
         print(f"glider-hil serve: {error}", file=sys.stderr)
         return 2
+    return main(config)
+
+
+def main(config: ServeConfig) -> int:
+    """Run the service until SIGINT/SIGTERM or ``config.duration``; 2 if a part cannot open."""
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
-    recorder = None
-    if not args.no_log:
-        recorder = McapRecorder(
-            args.log_dir,
-            metadata={"service": json.dumps(config.to_json()), "mapping": json.dumps(
-                {"full_scale": args.full_scale, "water_density": args.water_density,
-                 "surface_pressure": args.surface_pressure})},
-            max_bytes=int(args.log_max_mb * 1024 * 1024),
-            max_seconds=args.log_max_s,
-        ).start()  # fmt: skip
+    recorder = open_recorder(config.service, config.log)
     try:
-        link = Link(args.mavlink, source_system=255, source_component=191)
+        link = Link(config.mavlink, source_system=255, source_component=191)
     except Exception as error:  # pymavlink raises many kinds for a bad connection string
-        print(f"glider-hil serve: cannot open {args.mavlink}: {error}", file=sys.stderr)
+        print(f"glider-hil serve: cannot open {config.mavlink}: {error}", file=sys.stderr)
         if recorder is not None:
             recorder.close()
         return 2
     try:
-        session = open_session(zenoh_options)
+        session = open_session(config.zenoh)
     except Exception as error:  # zenoh raises its own ZError for bad endpoints
         print(f"glider-hil serve: cannot open Zenoh session: {error}", file=sys.stderr)
         link.close()
         if recorder is not None:
             recorder.close()
         return 2
-    inbox = Inbox(SetpointLimits(args.min_depth, args.max_depth, args.max_pitch))
-    bus = ZenohBus(session, inbox, recorder)
-    service = HilService(config, bus, inbox, link=link, recorder=recorder, mapping=mapping)
-    tune_for_service()
-    print(f"{SERVICE_READY} on {args.mavlink}, model {args.model}", file=sys.stderr, flush=True)
-    if args.duration is not None:
-        timer = threading.Timer(args.duration, stop.set)
-        timer.daemon = True
-        timer.start()
-    started = time.monotonic()
     try:
-        service.run(stop)
-    finally:
-        summary = service.summary()
-        summary["wall_s"] = time.monotonic() - started
-        bus.close()
+        live = start_live(config.foxglove, "serve")
+    except OSError as error:
+        print(f"glider-hil serve: {error}", file=sys.stderr)
         session.close()
         link.close()
         if recorder is not None:
             recorder.close()
-            summary["log"] = recorder.report()
+        return 2
+    wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
+    tune_for_service()
+    model = config.service.pipeline.model
+    print(f"{SERVICE_READY} on {config.mavlink}, model {model}", file=sys.stderr, flush=True)
+    if config.duration is not None:
+        timer = threading.Timer(config.duration, stop.set)
+        timer.daemon = True
+        timer.start()
+    started = time.monotonic()
+    try:
+        wired.service.run(stop)
+    finally:
+        summary = wired.service.summary()
+        summary["wall_s"] = time.monotonic() - started
+        if live is not None:
+            summary["foxglove"] = live.status()
+        log = wired.close()
+        if log is not None:
+            summary["log"] = log
     print(json.dumps({"service": summary}), flush=True)
     return 0

@@ -1,4 +1,4 @@
-"""MCAP recording of all traffic (DESIGN.md section 4), off the control path.
+"""MCAP recording of all traffic (docs/mcap.md), off the control path.
 
 Producers (the control path, Zenoh callbacks) call ``raw``, ``mavlink`` and ``zenoh``: those
 encode the record and pack it into the open chunk in memory, under a lock held for a few
@@ -30,6 +30,7 @@ import json
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -94,7 +95,12 @@ class McapRecorder:
         flush_interval: float = 0.5,
         max_queue: int = 2_000_000,
         compression: CompressionType = CompressionType.ZSTD,
+        retry_interval: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
     ):
+        """``retry_interval``: s after disk trouble before a new file is tried. ``clock``
+        (monotonic s) times the retry and ``max_seconds`` rotation; tests pass a simulated
+        one. The writer's flush schedule always runs on the real monotonic clock."""
         self.log_dir = Path(log_dir)
         self.metadata = metadata or {}
         self.max_bytes = max_bytes
@@ -102,6 +108,8 @@ class McapRecorder:
         self.flush_interval = flush_interval
         self.max_queue = max_queue  # records held in memory (open and sealed chunks)
         self.compression = compression
+        self.retry_interval = retry_interval
+        self._clock = clock
         self.status = RecorderStatus()
         self._lock = threading.Lock()  # guards everything below up to _closed, and status
         self._builder = ChunkBuilder()
@@ -265,7 +273,7 @@ class McapRecorder:
 
     def _write_chunk(self, sealed: SealedChunk) -> None:
         if self._file is None and (
-            time.monotonic() < self._retry_at or not self._guarded(self._open)
+            self._clock() < self._retry_at or not self._guarded(self._open)
         ):
             self._discard(sealed)
             return
@@ -304,10 +312,10 @@ class McapRecorder:
             return False
 
     def _failed(self, error: Exception) -> None:
-        """Disk trouble: report it, drop the file, try a new one in two seconds."""
+        """Disk trouble: report it, drop the file, try a new one after ``retry_interval``."""
         self.status.error = f"{type(error).__name__}: {error}"
         self._abandon_file()
-        self._retry_at = time.monotonic() + 2.0
+        self._retry_at = self._clock() + self.retry_interval
 
     def _open(self) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -321,7 +329,7 @@ class McapRecorder:
         self._file = McapFile(self._stream, compression=self.compression)
         self._file.start(profile=PROFILE, library="glider-hil")
         self._file.add_metadata(CONFIG_METADATA, self.metadata)
-        self._opened_at = time.monotonic()
+        self._opened_at = self._clock()
         self.status.files.append(str(path))
         self.status.error = ""
 
@@ -330,7 +338,7 @@ class McapRecorder:
             return
         self._file.flush()
         too_big = self._file.tell() >= self.max_bytes
-        too_old = time.monotonic() - self._opened_at >= self.max_seconds
+        too_old = self._clock() - self._opened_at >= self.max_seconds
         if too_big or too_old:
             with self._lock:
                 self._end_file_locked()

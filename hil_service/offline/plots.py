@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 #: Units of each channel's output, for axis labels.
@@ -28,8 +29,10 @@ def prediction_figure(
     y_hat: np.ndarray,
     alpha: np.ndarray | None,
     time_unit: str = "s",
+    restarts: Sequence[float] = (),
 ) -> Path:
-    """Actual vs predicted output, the a-priori error, and the U-model coefficients."""
+    """Actual vs predicted output, the a-priori error, and the U-model coefficients;
+    ``restarts``: times at which the vehicle's clock restarted (drawn as dotted lines)."""
     unit = UNITS.get(channel, "")
     has_alpha = alpha is not None and alpha.size > 0
     rows = 2 + (2 if has_alpha and alpha.shape[1] > 1 else 1 if has_alpha else 0)
@@ -56,9 +59,10 @@ def prediction_figure(
                 axes[3].plot(t, alpha[:, i], linewidth=0.9, label=f"α{_subscript(i)}")
             axes[3].set_ylabel(f"αᵢ [{unit} per unitⁱ]")
             axes[3].legend(loc="upper right", ncol=min(alpha.shape[1] - 1, 4))
-    axes[-1].set_xlabel(f"time [{time_unit}]")
+    axes[-1].set_xlabel(_time_label(time_unit, restarts))
     for ax in axes:
         ax.grid(True, alpha=0.3)
+        _mark_restarts(ax, restarts)
     fig.suptitle(title)
     fig.savefig(path)
     return path
@@ -73,8 +77,10 @@ def tracking_figure(
     setpoint: np.ndarray | None,
     inputs: Sequence[tuple[str, np.ndarray]],
     time_unit: str = "s",
+    restarts: Sequence[float] = (),
 ) -> Path:
-    """Outputs against the setpoint (top) and the ballast inputs (bottom, model units)."""
+    """Outputs against the setpoint (top) and the ballast inputs (bottom, model units);
+    ``restarts`` as in ``prediction_figure``."""
     unit = UNITS.get(channel, "")
     fig = Figure(figsize=(_SIZE[0], 6.5), dpi=_DPI, layout="constrained")
     top, bottom = fig.subplots(2, 1, sharex=True)
@@ -97,13 +103,25 @@ def tracking_figure(
             label=label,
         )
     bottom.set_ylabel("ballast input [model units]")
-    bottom.set_xlabel(f"time [{time_unit}]")
+    bottom.set_xlabel(_time_label(time_unit, restarts))
     bottom.legend(loc="upper right")
     for ax in (top, bottom):
         ax.grid(True, alpha=0.3)
+        _mark_restarts(ax, restarts)
     fig.suptitle(title)
     fig.savefig(path)
     return path
+
+
+def _time_label(unit: str, restarts: Sequence[float]) -> str:
+    if not restarts:
+        return f"time [{unit}]"
+    return f"time [{unit}], run on across {len(restarts)} clock restart(s) (dotted)"
+
+
+def _mark_restarts(ax: Axes, restarts: Sequence[float]) -> None:
+    for x in restarts:
+        ax.axvline(x, color="dimgrey", linestyle=":", linewidth=1.2)
 
 
 def _subscript(i: int) -> str:

@@ -2,9 +2,11 @@
 
 The raw MAVLink frames of ``mavlink/raw/in`` go through ``HilService.process_datagram``
 exactly as they did live; the control inputs each decision used come from the log's
-decision-inputs channel, applied at the same sample; the identifier configuration is
-rebuilt from the log's metadata. With ``check``, every recomputed estimate and command is
-compared, as published bytes, with the recorded one, and the first difference is reported.
+decision-inputs channel, applied at the same sample; the service configuration is
+rebuilt from the log's metadata (``ServiceConfig.from_stored``) and the service wired by
+``hil_service.builder`` as ``serve`` wires it. With ``check``, every recomputed estimate and
+command is compared, as published bytes, with the recorded one, and the first difference
+is reported.
 Timed replay sleeps to absolute deadlines derived from the log's timestamps, so it does not
 drift over long logs.
 """
@@ -19,18 +21,19 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from hil_service.builder import wire
+from hil_service.config import ServiceConfig, stored_profile
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.mcap.reader import LogMessage, LogReader
-from hil_service.pipeline import PipelineSettings
-from hil_service.service import HilService, ServiceConfig
+from hil_service.mcap.recorder import RAW_TOPIC
+from hil_service.service import HilService
 from hil_service.zenoh_bus import Bus, NullBus
-from protocols import payload_json
-from protocols.mapping import TelemetryMapping
+from protocols import keys, payload_json
+from protocols.profiles import Profile, load_profile
 from protocols.samples import TelemetrySample
-from protocols.units import InputScale, PressureDepth
 
-RAW_IN = "mavlink/raw/in"
-CHECKED_KINDS = ("umodel", "command")
+RAW_IN = RAW_TOPIC.format(direction="in")
+CHECKED_KINDS = (keys.UMODEL, keys.COMMAND_BALLAST)
 
 
 class ReplayError(Exception):
@@ -42,6 +45,8 @@ class ReplayOptions:
     speed: float | None = None  # None: as fast as possible
     check: bool = False
     model: str | None = None  # override the stored model (disables bit-for-bit checking)
+    profile: str | None = None  # a vehicle profile (name or file); default: the log's own
+    sample_period: float | None = None  # periodic profiles; default: the log's or profile's
     progress: Callable[[int, int], None] | None = None  # (bytes read, file size)
 
 
@@ -128,36 +133,8 @@ class RecordingBus(NullBus):
 
 
 def _kind(key: str) -> str:
-    parts = key.split("/")
-    return parts[2] if len(parts) > 2 and parts[0] == "glider" else ""
-
-
-def stored_mapping(stored: dict[str, Any]) -> TelemetryMapping:
-    """The unit conversions the live service used (defaults when the log has none)."""
-    mapping = stored.get("mapping")
-    if not mapping:
-        return TelemetryMapping()
-    return TelemetryMapping(
-        pressure=PressureDepth(mapping["water_density"], mapping["surface_pressure"]),
-        inputs=InputScale(mapping["full_scale"]),
-    )
-
-
-def stored_config(stored: dict[str, Any]) -> ServiceConfig | None:
-    """The service configuration stored in a log's metadata, or None when there is none."""
-    config = stored.get("service")
-    if config is None:
-        return None
-    return ServiceConfig(
-        system_ids=tuple(config.get("system_ids", ())),
-        control_default=config.get("control_default", False),
-        stale_timeout=config.get("stale_timeout", 3.0),
-        pipeline=PipelineSettings.from_json(config["pipeline"]),
-    )
-
-
-def _is_decision_inputs(topic: str) -> bool:
-    return topic.startswith("glider-hil/") and topic.endswith("/decision-inputs")
+    parsed = keys.parse(key)
+    return "" if parsed is None else parsed.kind
 
 
 def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> ReplayResult:
@@ -194,9 +171,13 @@ class _Replay:
                     pending = None
                     break
                 pending = message
-            elif _is_decision_inputs(topic):
-                self.inbox.add_event(int(topic.split("/")[1]), message.json())
-            elif self.options.check and _kind(topic) in CHECKED_KINDS:
+                continue
+            parsed = keys.parse(topic)
+            if parsed is None:
+                continue
+            if parsed.kind == keys.DECISION_INPUTS:
+                self.inbox.add_event(parsed.system_id, message.json())
+            elif self.options.check and parsed.kind in CHECKED_KINDS:
                 self.to_compare.append(message)
         if pending is not None:
             self._feed(pending)
@@ -227,26 +208,40 @@ class _Replay:
     def _start(self) -> HilService:
         """The service as the log's metadata describes it (metadata precedes all messages)."""
         stored = self.reader.config()
-        config = stored_config(stored)
+        config = ServiceConfig.from_stored(stored)
         if config is None:
             if self.options.check:
                 raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
             config = ServiceConfig()
         if self.options.model is not None:
             config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
-        self.service = HilService(
-            config,
-            self.recording,
-            self.inbox,
-            mapping=stored_mapping(stored),
-            send_commands=False,
-        )
+        profile = self._profile(stored)
+        if profile is not None and profile.sampling.mode == "periodic":
+            recorded = (stored.get("service") or {}).get("profile") or {}
+            period = (
+                self.options.sample_period
+                or recorded.get("sample_period")
+                or profile.sampling.period
+            )
+            config = replace(config, profile=profile, sample_period=period)
+        wired = wire(config, inbox=self.inbox, bus=self.recording, send_commands=False)
+        self.service = wired.service
         return self.service
+
+    def _profile(self, stored: dict[str, Any]) -> Profile | None:
+        """``--profile``, else the profile the log stores (serve and import store theirs)."""
+        if self.options.profile is not None:
+            return load_profile(self.options.profile)
+        return stored_profile(stored)
 
     def _finish(self) -> ReplayResult:
         result, report, service = self.result, self.reader.report, self.service
         assert service is not None
-        result.samples = service.assembler.counters.samples
+        result.samples = (
+            service.assembler.counters.samples
+            if service.periodic is None
+            else service.periodic.counters.samples
+        )
         result.complete = report.complete
         if report.ended and not report.complete:
             # Only a read that reached the end can tell a damaged file (--check stops early).

@@ -1,7 +1,14 @@
-"""A report from a service log: scores per vehicle and channel, figures, ``report.md``."""
+"""A report from a service log: scores per vehicle and channel, figures, ``report.md``.
+
+A vehicle that rebooted during the log restarted its clock: the report covers every run of
+it (a segment). Scores are over all segments; the figures put the segments one after
+another on a clock that runs on (a segment starts one step after the previous one ended),
+with each restart marked, so a log without a restart is drawn on its own clock unchanged.
+"""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from hil_service.config import ServiceConfig
 from hil_service.experiment.identification import (
     CONVERGENCE_BAND,
     control_horizon,
@@ -41,6 +49,7 @@ class ChannelSummary:
     fit: float | None = None
     k_step_nmse: float | None = None
     horizon: int | None = None
+    segments: int = 1  # runs of the vehicle's clock (restarts + 1)
 
 
 @dataclass(frozen=True)
@@ -50,10 +59,56 @@ class Report:
     summaries: list[ChannelSummary]
 
 
-def _burn_in(config: dict[str, Any]) -> int:
-    pipeline = (config.get("service") or {}).get("pipeline") or {}
-    value = pipeline.get("burn_in", DEFAULT_BURN_IN)
-    return int(value) if isinstance(value, int) and value >= 0 else DEFAULT_BURN_IN
+def _burn_in(stored: dict[str, Any]) -> int:
+    """The burn-in the service ran with, from the log's stored configuration."""
+    try:
+        config = ServiceConfig.from_stored(stored)
+    except (TypeError, ValueError, KeyError, AttributeError):  # unreadable: the default
+        config = None
+    value = DEFAULT_BURN_IN if config is None else config.pipeline.burn_in
+    return value if isinstance(value, int) and value >= 0 else DEFAULT_BURN_IN
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One run of a vehicle's clock: telemetry_t[start:stop]."""
+
+    start: int
+    stop: int
+    t_first: float
+    t_last: float
+
+
+def segments(vehicle: VehicleSeries) -> list[Segment]:
+    starts = vehicle.segment_starts or ([0] if vehicle.telemetry_t else [])
+    stops = [*starts[1:], len(vehicle.telemetry_t)]
+    t = vehicle.telemetry_t
+    return [Segment(a, b, t[a], t[b - 1]) for a, b in zip(starts, stops, strict=True) if b > a]
+
+
+def running_clock(vehicle: VehicleSeries) -> tuple[np.ndarray, list[float]]:
+    """Each telemetry record's time on a clock that runs on across restarts, and where on
+    it each restart is. A segment starts one typical step after the previous one ended."""
+    t = np.asarray(vehicle.telemetry_t, dtype=float)
+    clock = t.copy()
+    parts = segments(vehicle)
+    steps = np.concatenate([np.diff(t[p.start : p.stop]) for p in parts] or [np.zeros(0)])
+    step = float(np.median(steps)) if steps.size else 0.0
+    restarts: list[float] = []
+    for previous, part in itertools.pairwise(parts):
+        offset = clock[previous.stop - 1] + step - t[part.start]
+        clock[part.start : part.stop] += offset
+        restarts.append(float(clock[part.start]) - step / 2)
+    return clock, restarts
+
+
+def _on_samples(indexes: list[int], values: list[float], size: int) -> np.ndarray:
+    """Values tied to telemetry positions, as an array over all telemetry (NaN elsewhere)."""
+    aligned = np.full(size, np.nan)
+    for k, value in zip(indexes, values, strict=True):
+        if 0 <= k < size:
+            aligned[k] = value
+    return aligned
 
 
 #: Fewer gap-free samples than this and the multi-step figures are not computed.
@@ -106,11 +161,13 @@ def summarise(
             continue
         stats.add(float(y), float(y - y_hat), float(y - base))
     error = data["y"] - data["y_hat"]
-    outputs = dict(zip(series.t, series.y, strict=True))
+    # The output of the sample each command answered, matched by position in the log (a
+    # time alone is ambiguous once the vehicle's clock restarted).
+    outputs = {k: y for k, y in zip(series.index, series.y, strict=True) if k >= 0}
     gaps = []
     commands = vehicle.commands
-    for t, setpoint in zip(commands.t, commands.setpoint[channel], strict=True):
-        y = outputs.get(t)
+    for k, setpoint in zip(commands.index, commands.setpoint[channel], strict=True):
+        y = outputs.get(k)
         if y is not None and math.isfinite(setpoint):
             gaps.append(y - setpoint)
     gap = np.asarray(gaps)
@@ -126,6 +183,7 @@ def summarise(
         tracking_mae=float(np.mean(np.abs(gap))) if gap.size else None,
         tracking_rms=float(np.sqrt(np.mean(gap**2))) if gap.size else None,
         **_multistep_fields(vehicle, channel, config),
+        segments=max(len(segments(vehicle)), 1),
     )
 
 
@@ -143,16 +201,26 @@ def _figures(vehicle: VehicleSeries, channel: str, out: Path) -> list[Path]:
     if not series.t:
         return []
     data = series.arrays()
+    clock, restarts = running_clock(vehicle)
+    if vehicle.telemetry_t:
+        # Estimates whose sample has no telemetry record in the log cannot be placed.
+        placed = np.asarray([0 <= k < clock.size for k in series.index], dtype=bool)
+        t = clock[np.asarray(series.index, dtype=int)[placed]]
+    else:  # no telemetry recorded at all: the estimates' own times
+        placed = np.ones(len(series.t), dtype=bool)
+        t = data["t"]
+    alpha = data["alpha"][placed] if data["alpha"].size else data["alpha"]
     name = f"glider{vehicle.system_id}_{channel}"
     paths = [
         prediction_figure(
             out / f"{name}_identification.png",
             f"glider {vehicle.system_id} {channel}: {series.model} model, a-priori prediction",
             channel,
-            data["t"],
-            data["y"],
-            data["y_hat"],
-            data["alpha"],
+            t,
+            data["y"][placed],
+            data["y_hat"][placed],
+            alpha,
+            restarts=restarts,
         )
     ]
     if any(math.isfinite(u) for u in vehicle.commands.u[channel]):
@@ -161,29 +229,22 @@ def _figures(vehicle: VehicleSeries, channel: str, out: Path) -> list[Path]:
 
 
 def _control_figure(path: Path, vehicle: VehicleSeries, channel: str) -> Path:
-    """Setpoint and output on the telemetry clock; commanded and applied ballast below."""
-    index = {t: k for k, t in enumerate(vehicle.telemetry_t)}
-
-    def on_telemetry_clock(times: list[float], values: list[float]) -> np.ndarray:
-        aligned = np.full(len(index), np.nan)
-        for t, value in zip(times, values, strict=True):
-            k = index.get(t)
-            if k is not None:
-                aligned[k] = value
-        return aligned
-
+    """Setpoint and output per telemetry sample; commanded and applied ballast below."""
+    clock, restarts = running_clock(vehicle)
+    size = clock.size
     series, commands = vehicle.channels[channel], vehicle.commands
     return tracking_figure(
         path,
         f"glider {vehicle.system_id} {channel}: setpoint, output and ballast",
         channel,
-        np.asarray(vehicle.telemetry_t),
-        [(f"measured {channel}", on_telemetry_clock(series.t, series.y))],
-        on_telemetry_clock(commands.t, commands.setpoint[channel]),
+        clock,
+        [(f"measured {channel}", _on_samples(series.index, series.y, size))],
+        _on_samples(commands.index, commands.setpoint[channel], size),
         [
             ("applied (telemetry)", np.asarray(vehicle.applied[channel])),
-            ("commanded", on_telemetry_clock(commands.t, commands.u[channel])),
+            ("commanded", _on_samples(commands.index, commands.u[channel], size)),
         ],
+        restarts=restarts,
     )
 
 
@@ -197,6 +258,8 @@ def _link_lines(vehicle: VehicleSeries) -> list[str]:
         return ["No health publication was recorded for this vehicle."]
     link = health.get("link") or {}
     counters = health.get("counters") or {}
+    # Logs written before health was per vehicle keep the link's counters in "counters".
+    link_wide = health.get("link_wide") or counters
     loss = link.get("loss_fraction", health.get("packet_loss"))
     return [
         f"- packet loss: {_fmt(loss * 100 if isinstance(loss, (int, float)) else None, '.2f')} % "
@@ -207,13 +270,42 @@ def _link_lines(vehicle: VehicleSeries) -> list[str]:
         f"- samples: {counters.get('samples', '–')} complete, "
         f"{counters.get('incomplete', '–')} incomplete steps, "
         f"{counters.get('out_of_order', '–')} out of order, "
-        f"{counters.get('invalid', '–')} invalid",
-        f"- frames: {counters.get('bad_frames', '–')} bad, "
-        f"{counters.get('unknown_frames', '–')} unknown; "
-        f"commands sent {counters.get('commands_sent', '–')}, "
+        f"{counters.get('invalid', '–')} invalid, "
+        f"{counters.get('restarts', '–')} clock restarts",
+        f"- commands sent {counters.get('commands_sent', '–')}, "
         f"acknowledged {counters.get('acks_accepted', '–')}, "
         f"refused {counters.get('acks_refused', '–')}",
+        f"- the whole link (every vehicle on it): {link_wide.get('bad_frames', '–')} bad "
+        f"frames, {link_wide.get('unknown_frames', '–')} unknown, "
+        f"{link_wide.get('unknown_system', '–')} messages of systems not served",
     ]
+
+
+def _segment_lines(vehicle: VehicleSeries) -> list[str]:
+    """The runs of the vehicle's clock, when it restarted (a reboot) during the log."""
+    parts = segments(vehicle)
+    if len(parts) < 2:
+        return []
+    lines = [
+        "",
+        "### Vehicle clock",
+        "",
+        f"The vehicle's clock restarted {len(parts) - 1} "
+        f"time{'s' if len(parts) > 2 else ''} (a reboot): the log holds {len(parts)} "
+        "segments, all scored; the figures show them one after another, each restart marked "
+        "by a dotted line.",
+        "",
+        "| segment | vehicle time | samples | commands |",
+        "|---:|---|---:|---:|",
+    ]
+    commands = vehicle.commands.index
+    for number, part in enumerate(parts, start=1):
+        sent = sum(part.start <= k < part.stop for k in commands)
+        lines.append(
+            f"| {number} | {part.t_first:g} – {part.t_last:g} s | {part.stop - part.start} "
+            f"| {sent} |"
+        )
+    return lines
 
 
 def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[Path]) -> str:
@@ -251,6 +343,7 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
         )
     for system_id, vehicle in sorted(series.vehicles.items()):
         lines += ["", f"## Glider {system_id}", "", "### Link", "", *_link_lines(vehicle)]
+        lines += _segment_lines(vehicle)
         for channel in CHANNELS:
             own = [f for f in figures if f.name.startswith(f"glider{system_id}_{channel}_")]
             if not own:

@@ -3,12 +3,16 @@
 Reads the decoded Zenoh publications the service recorded (``glider/{id}/telemetry``,
 ``umodel/{channel}``, ``command/ballast``, ``health``), not the raw MAVLink: a report shows
 what the service computed at the time, under the configuration stored in the log.
+
+A vehicle that reboots starts its clock again, so telemetry times repeat across a restart:
+a restart is a telemetry time at or before the previous one, and each estimate and command
+is tied to the telemetry record of its own sample by position in the log (``index``), never
+by its time alone.
 """
 
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,9 +20,10 @@ from typing import Any
 import numpy as np
 
 from hil_service.mcap.reader import LogReader, ReadReport
+from protocols import keys
 
-CHANNELS = ("depth", "pitch")
-_TOPIC = re.compile(r"^glider/(\d+)/(telemetry|umodel/(depth|pitch)|command/ballast|health)$")
+CHANNELS = keys.CHANNELS
+_SERIES_KINDS = frozenset({keys.TELEMETRY, keys.UMODEL, keys.COMMAND_BALLAST, keys.HEALTH})
 
 
 @dataclass
@@ -30,6 +35,7 @@ class ChannelSeries:
     alpha: list[list[float]] = field(default_factory=list)
     status: list[str] = field(default_factory=list)
     model: str = ""
+    index: list[int] = field(default_factory=list)  # of the sample in telemetry_t, -1: none
 
     def arrays(self) -> dict[str, np.ndarray]:
         width = max((len(a) for a in self.alpha), default=0)
@@ -51,6 +57,7 @@ class CommandSeries:
     u: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
     setpoint: dict[str, list[float]] = field(default_factory=lambda: {ch: [] for ch in CHANNELS})
     saturated: int = 0
+    index: list[int] = field(default_factory=list)  # of the sample in telemetry_t, -1: none
 
 
 @dataclass
@@ -63,6 +70,14 @@ class VehicleSeries:
     )
     commands: CommandSeries = field(default_factory=CommandSeries)
     last_health: dict[str, Any] | None = None
+    #: Where in telemetry_t each run of the vehicle's clock starts (a restart: a reboot).
+    segment_starts: list[int] = field(default_factory=list)
+    #: Time → position in telemetry_t, for the current segment only.
+    _in_segment: dict[float, int] = field(default_factory=dict, repr=False)
+
+    def sample_index(self, t: float) -> int:
+        """Position in telemetry_t of the latest sample stamped ``t`` (-1: not recorded)."""
+        return self._in_segment.get(t, -1)
 
 
 @dataclass
@@ -84,34 +99,38 @@ def load_series(path: str | Path) -> LogSeries:
     vehicles: dict[int, VehicleSeries] = {}
     skipped = 0
     for message in reader.messages():
-        match = _TOPIC.match(message.topic)
-        if not match:
+        parsed = keys.parse(message.topic)
+        if parsed is None or parsed.kind not in _SERIES_KINDS:
             continue
-        system_id = int(match.group(1))
-        vehicle = vehicles.setdefault(system_id, VehicleSeries(system_id))
+        vehicle = vehicles.setdefault(parsed.system_id, VehicleSeries(parsed.system_id))
         try:
             payload = message.json()
-            _add(vehicle, match.group(2), match.group(3), payload)
+            _add(vehicle, parsed.kind, parsed.channel, payload)
         except (ValueError, TypeError, KeyError, AttributeError):
             skipped += 1
     return LogSeries(Path(path), reader.report, reader.config(), vehicles, skipped)
 
 
 def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[str, Any]) -> None:
-    if kind == "telemetry":
+    if kind == keys.TELEMETRY:
         t = _number(payload["t"])
         applied = {ch: _number(payload[f"u_{ch}"]) for ch in CHANNELS}
+        if not vehicle.telemetry_t or not t > vehicle.telemetry_t[-1]:
+            vehicle.segment_starts.append(len(vehicle.telemetry_t))
+            vehicle._in_segment.clear()
+        vehicle._in_segment[t] = len(vehicle.telemetry_t)
         vehicle.telemetry_t.append(t)
         for ch in CHANNELS:
             vehicle.applied[ch].append(applied[ch])
-    elif kind == "health":
+    elif kind == keys.HEALTH:
         vehicle.last_health = dict(payload)
-    elif kind == "command/ballast":
+    elif kind == keys.COMMAND_BALLAST:
         commands = vehicle.commands
         t = _number(payload["t"])
         setpoints = payload.get("setpoints") or {}
         values = {ch: payload.get(f"u_{ch}") for ch in CHANNELS}
         commands.t.append(t)
+        commands.index.append(vehicle.sample_index(t))
         for ch in CHANNELS:
             commands.u[ch].append(_number(values[ch]))
             commands.setpoint[ch].append(_number(setpoints.get(ch)))
@@ -122,6 +141,7 @@ def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[s
         t, y, y_hat = (_number(payload[k]) for k in ("t", "y", "y_hat"))
         baseline = _number(payload.get("baseline_y_hat"))
         series.t.append(t)
+        series.index.append(vehicle.sample_index(t))
         series.y.append(y)
         series.y_hat.append(y_hat)
         series.baseline_y_hat.append(baseline)

@@ -4,14 +4,12 @@ No I/O: numpy and the standard library only; deterministic for a given seed.
 """
 
 from .guards import DIVERGENCE_ACTIONS, DivergenceMonitor, GuardConfig
+from .interface import PredictiveModel
 from .inverse import (
     CommandShaper,
-    ImcReference,
     InverseResult,
-    InvertibleModel,
+    ReferenceFilter,
     ShapedCommand,
-    imc_target,
-    invert_model,
     solve_inverse,
 )
 from .models import (
@@ -28,7 +26,7 @@ from .models import (
     from_config,
     paper_preset,
 )
-from .nlms import DEFAULT_EPS, NLMS, nlms_gain, nlms_update
+from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
 from .rls import RLS
 
@@ -45,22 +43,18 @@ __all__ = [
     "Estimate",
     "GaussianRBF",
     "GuardConfig",
-    "ImcReference",
     "InverseResult",
-    "InvertibleModel",
     "OneStepModel",
     "PaperUModel",
     "PersistenceModel",
+    "PredictiveModel",
+    "ReferenceFilter",
     "RlsArxModel",
     "ShapedCommand",
     "Status",
     "build_model",
     "evenly_spaced_centres",
     "from_config",
-    "imc_target",
-    "invert_model",
-    "nlms_gain",
-    "nlms_update",
     "paper_preset",
     "solve_inverse",
 ]

@@ -1,4 +1,4 @@
-"""The identifier interface the service, the forecast and the inverse controller rely on.
+"""The identifier interfaces the service and the controller rely on.
 
 A module of its own, kept interpreted: ``runtime_checkable`` needs a protocol class that
 CPython built, and ``models`` is compiled (see ``setup.py``).
@@ -9,12 +9,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
+    from .dynamics import ModelDynamics
     from .models import Estimate
 
 
 @runtime_checkable
 class OneStepModel(Protocol):
-    """One-step-ahead identifier: a-priori prediction, update, and the map the inverse uses."""
+    """One-step-ahead identifier (every model, baselines included): a-priori prediction,
+    update, history handling after gaps, configuration and state."""
 
     @property
     def name(self) -> str: ...
@@ -28,12 +30,15 @@ class OneStepModel(Protocol):
 
     def observe_only(self, u_prev: float, y: float) -> bool: ...
 
-    def output_given_input(self, u: float) -> float: ...
-
-    def output_derivative(self, u: float) -> float: ...
-
     def config(self) -> dict[str, Any]: ...
 
     def snapshot(self) -> dict[str, Any]: ...
 
     def reset(self) -> None: ...
+
+
+@runtime_checkable
+class PredictiveModel(OneStepModel, Protocol):
+    """What the controller uses: an identifier that also gives its multi-step map."""
+
+    def dynamics(self) -> ModelDynamics: ...

@@ -1,7 +1,7 @@
 """U-model inverse control: solve model(u) = v for the next input, then shape the command.
 
 The solver is a pure function of two callables, f(u) and f'(u), so it can be tested on plain
-polynomials and used with any identifier through ``invert_model``.
+polynomials; the predictive inverse passes a model's static input map (:mod:`.predictive`).
 
 * Newton–Raphson on the full model (RBF term included, analytic derivative) started from the
   previous input u0 (clamped into [u_min, u_max]): fast and smooth in the common case.
@@ -26,18 +26,15 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Literal, Protocol
+from typing import Literal
 
 import numpy as np
 
 __all__ = [
     "CommandShaper",
-    "ImcReference",
     "InverseResult",
-    "InvertibleModel",
+    "ReferenceFilter",
     "ShapedCommand",
-    "imc_target",
-    "invert_model",
     "solve_inverse",
 ]
 
@@ -56,12 +53,6 @@ class InverseResult:
     iterations: int
     residual: float
     saturated: bool
-
-
-class InvertibleModel(Protocol):
-    def output_given_input(self, u: float) -> float: ...
-
-    def output_derivative(self, u: float) -> float: ...
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
@@ -411,22 +402,6 @@ def solve_inverse(
     return _fallback(f, df, f_vec, v, start, u_min, u_max, tol_abs, grid_points, refine_iter, d2f)
 
 
-def invert_model(
-    model: InvertibleModel,
-    v: float,
-    u0: float,
-    u_min: float,
-    u_max: float,
-    **kwargs: Any,
-) -> InverseResult:
-    """``solve_inverse`` on a model's ŷ(t+1)(u), its analytic derivative and, if the model
-    has one, its vectorised ``output_given_inputs`` for the fallback grid."""
-    kwargs.setdefault("f_vec", getattr(model, "output_given_inputs", None))
-    return solve_inverse(
-        model.output_given_input, model.output_derivative, v, u0, u_min, u_max, **kwargs
-    )
-
-
 @dataclass(frozen=True, slots=True)
 class ShapedCommand:
     """``saturated``: the request lay outside [u_min, u_max]; ``rate_limited``: the change
@@ -477,17 +452,8 @@ class CommandShaper:
         return ShapedCommand(u, sat, limited)
 
 
-def imc_target(filtered_setpoint: float, y: float, y_hat: float) -> float:
-    """IMC target v = r_f − (y − ŷ): the model must aim off by the current mismatch.
-
-    A non-finite y or ŷ contributes no correction (the target stays finite if r_f is).
-    """
-    mismatch = y - y_hat
-    return filtered_setpoint - mismatch if math.isfinite(mismatch) else filtered_setpoint
-
-
-class ImcReference:
-    """First-order reference filter r_f ← a·r_f + (1 − a)·r plus the IMC mismatch term.
+class ReferenceFilter:
+    """First-order reference filter r_f ← a·r_f + (1 − a)·r.
 
     ``a`` ∈ [0, 1): 0 = no filtering; larger = smoother, slower reference. The filter starts
     from ``initial`` if given, else from the first measured output (bumpless start).
@@ -519,7 +485,3 @@ class ImcReference:
             rf = self.a * rf + (1.0 - self.a) * setpoint
         self._rf = rf
         return rf
-
-    def target(self, setpoint: float, y: float, y_hat: float) -> float:
-        """v = filtered setpoint − (y − ŷ), with ŷ the a-priori prediction of this y."""
-        return imc_target(self.filter(setpoint, start=y), y, y_hat)

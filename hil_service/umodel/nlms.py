@@ -11,12 +11,11 @@ default, which is negligible next to φᵀφ for the U-model regressors (the RBF
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 from .reproducible import dot
 
-__all__ = ["DEFAULT_EPS", "NLMS", "nlms_gain", "nlms_update"]
+__all__ = ["DEFAULT_EPS", "NLMS"]
 
 DEFAULT_EPS = 1e-6
 
@@ -26,30 +25,6 @@ def _check(mu: float, eps: float) -> None:
         raise ValueError(f"NLMS step size mu must satisfy 0 < mu < 2, got {mu!r}")
     if not (math.isfinite(eps) and eps > 0.0):
         raise ValueError(f"NLMS regulariser eps must be finite and > 0, got {eps!r}")
-
-
-def nlms_gain(phi: Sequence[float], error: float, mu: float, eps: float = DEFAULT_EPS) -> float:
-    """Scalar g such that the update is θ ← θ + g·φ."""
-    return mu * error / (eps + dot(phi, phi))
-
-
-def nlms_update(
-    theta: Sequence[float],
-    phi: Sequence[float],
-    error: float,
-    mu: float,
-    eps: float = DEFAULT_EPS,
-) -> list[float]:
-    """Pure NLMS update: returns the new θ as a list, leaves the inputs untouched.
-
-    Plain floats on purpose: for ~20-30 parameters a list comprehension beats numpy's
-    per-call overhead, and the result is bit-reproducible.
-    """
-    _check(mu, eps)
-    if len(theta) != len(phi):
-        raise ValueError("theta and phi must have the same length")
-    g = mu * error / (eps + dot(phi, phi))
-    return [t + g * p for t, p in zip(theta, phi, strict=True)]
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +44,9 @@ class NLMS:
     def update_with_terms(
         self, theta: list[float], phi: list[float], error: float
     ) -> tuple[list[float], float, float]:
-        """The new θ, with the gain g and φᵀφ it used (the per-sample path)."""
+        """The new θ, with the gain g and φᵀφ it used (the per-sample path; the one place
+        the NLMS gain is computed). Plain floats: for ~20-30 parameters a list
+        comprehension beats numpy's per-call overhead, and the result is bit-reproducible."""
         phi_sq = dot(phi, phi)
         g = self.mu * error / (self.eps + phi_sq)
         return [t + g * p for t, p in zip(theta, phi)], g, phi_sq  # noqa: B905 - hot path

@@ -7,9 +7,8 @@ Convention (Abbasi et al. 2015, eq. 8)::
 
 The per-sample paths (``values_list`` for the adaptive update, ``weighted`` for the inverse
 solver's Newton iterations) use plain floats and ``math.exp``: for 17 centres that is cheaper
-than a handful of numpy dispatches. numpy is used where many inputs are evaluated at once
-(``weighted_grid``, the inverse solver's fallback grid) and for tests (``values``,
-``derivatives``).
+than a handful of numpy dispatches. numpy is used for tests (``values``, ``derivatives``);
+the inverse solver's fallback grid is built by :func:`.reproducible.gaussian_columns`.
 """
 
 from __future__ import annotations
@@ -20,8 +19,6 @@ from bisect import bisect_left, bisect_right
 from collections.abc import Sequence
 
 import numpy as np
-
-from .reproducible import gaussian_columns, linear_combination
 
 __all__ = ["GaussianRBF", "evenly_spaced_centres"]
 
@@ -79,8 +76,7 @@ class GaussianRBF:
     def values_list(self, u: float) -> list[float]:
         """Φ(u) as a new list of floats (hot path of the adaptive update).
 
-        The last input's values are kept: the controller's forecast evaluates Φ(u(k)) and
-        the identifier's next step needs the same Φ(u(k)) for its regressor.
+        The last input's values are kept: a held input needs the same Φ(u) again.
         """
         last = self._last
         if last[0] == u:
@@ -90,10 +86,6 @@ class GaussianRBF:
         values = [exp(-(u - c) * (u - c) * k) for c in self.centres]
         self._last = (u, tuple(values))
         return values
-
-    def weighted_grid(self, us: np.ndarray, weights: Sequence[float]) -> np.ndarray:
-        """Σ w_j Φ_j(u) for every u in ``us`` at once (used for dense grids)."""
-        return linear_combination(gaussian_columns(us, self.centres, self.beta), weights)
 
     def _window(
         self, u: float, weights: Sequence[float]

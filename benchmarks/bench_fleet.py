@@ -1,0 +1,211 @@
+"""The fleet targets of issue 17, on this machine: N vehicles at 10 samples/s each, two
+service processes (half the system ids each, ``--sysid`` ranges), one Zenoh router
+(``glider-hil router``), one emulator process (``emulate --vehicles N``), a subscriber on
+the router. Printed per fleet size:
+
+* loss: samples the services assembled (their summaries) against telemetry the subscriber
+  on the router received, and against the steps the emulator sent;
+* fleet coverage: vehicles listed by ``glider-hil fleet --json`` mid-run, of N;
+* telemetry → command latency (p50, p99, max): measured in the emulator, from sending a
+  step's last telemetry datagram to receiving the command that answers it (control on,
+  a depth setpoint for every vehicle, after ``--burn-in`` samples);
+* the largest fleet of the sizes tried whose p99 stays under 20 ms.
+
+The emulated vehicles step spread evenly over the 100 ms period, as independent vehicles'
+clocks are; ``--phase-locked`` makes them all step at once (each service then receives its
+whole fleet's telemetry in one burst, and the last vehicle of the burst waits for the others).
+
+Run: .venv/bin/python benchmarks/bench_fleet.py [--sizes 100,150,200] [--seconds 40]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import zenoh  # noqa: E402
+
+from hil_service.cli.processes import (  # noqa: E402
+    last_json,
+    start_service,
+    start_verb,
+    stop_process,
+    wait_for_line,
+)
+from hil_service.cli.router import ROUTER_READY  # noqa: E402
+from plant_emulator.fleet import connection_for  # noqa: E402
+from protocols import keys  # noqa: E402
+
+RATE = 10.0  # samples/s per vehicle (plant period 1 s at speed 10)
+TARGET_MS = 20.0
+BURN_IN = 50
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def client_session(router: str) -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("connect/endpoints", json.dumps([router]))
+    return zenoh.open(config)
+
+
+class Counts:
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.telemetry: Counter[int] = Counter()
+        self.commands: Counter[int] = Counter()
+
+    def on_telemetry(self, sample: zenoh.Sample) -> None:
+        parsed = keys.parse(str(sample.key_expr))
+        if parsed is not None:
+            with self.lock:
+                self.telemetry[parsed.system_id] += 1
+
+    def on_command(self, sample: zenoh.Sample) -> None:
+        parsed = keys.parse(str(sample.key_expr))
+        if parsed is not None:
+            with self.lock:
+                self.commands[parsed.system_id] += 1
+
+
+def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict[str, Any]:
+    router = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    processes: list[subprocess.Popen[str]] = []
+    session = None
+    try:
+        router_process = start_verb("router", "--listen", router)
+        processes.append(router_process)
+        wait_for_line(router_process, ROUTER_READY, 60)
+        # The services' --sysid ranges are the emulator's blocks (connection_for).
+        udp = [free_port(socket.SOCK_DGRAM) for _ in range(2)]
+        block = [connection_for(i, vehicles, [0, 1]) for i in range(vehicles)]
+        ranges = [
+            f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in (0, 1)
+        ]
+        services = []
+        for sysids, port in zip(ranges, udp, strict=True):
+            service = start_service(
+                "--mavlink", f"udpin:127.0.0.1:{port}", "--sysid", sysids,
+                "--zenoh-connect", router, "--zenoh-mode", "client", "--no-log",
+                "--burn-in", str(BURN_IN), "--control", timeout=120,
+            )  # fmt: skip
+            processes.append(service)
+            services.append(service)
+        session = client_session(router)
+        counts = Counts()
+        subscribers = [
+            session.declare_subscriber(f"{keys.ROOT}/*/{keys.TELEMETRY}", counts.on_telemetry),
+            session.declare_subscriber(f"{keys.ROOT}/*/{keys.COMMAND_BALLAST}", counts.on_command),
+        ]
+        time.sleep(1.0)  # the subscriptions reach the router and the services
+        for system_id in range(1, vehicles + 1):
+            session.put(keys.setpoint(system_id, "depth"), json.dumps({"value": 16.0}))
+        emulator = start_verb(
+            "emulate", "--vehicles", str(vehicles), "--sysid", "1", "--speed", str(RATE),
+            "--duration", str(seconds * RATE), "--scenario", "paper",
+            *(["--phase-locked"] if phase_locked else []),
+            *[arg for port in udp for arg in ("--fleet-connect", f"udpout:127.0.0.1:{port}")],
+        )  # fmt: skip
+        processes.append(emulator)
+        started = time.monotonic()
+        # Mid-run, once every vehicle has had time to appear: what `fleet` lists.
+        time.sleep(max(0.0, seconds * 0.6))
+        fleet = subprocess.run(
+            [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-connect", router,
+             "--json", "--wait", "3"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        listed = json.loads(fleet.stdout)["vehicles"] if fleet.returncode == 0 else []
+        emulator_out, emulator_err = emulator.communicate(timeout=seconds * 4 + 120)
+        wall = time.monotonic() - started
+        time.sleep(1.0)  # the last publications reach the subscriber
+        for subscriber in subscribers:
+            subscriber.undeclare()
+        summaries = []
+        for service in services:
+            out, _ = stop_process(service)
+            summaries.append(last_json(out, "service"))
+        emulated = last_json(emulator_out, "emulator")
+        if not emulated:
+            raise RuntimeError(f"the emulator printed no summary:\n{emulator_err[-2000:]}")
+        assembled = sum(s.get("counters", {}).get("samples", 0) for s in summaries)
+        with counts.lock:
+            received = sum(counts.telemetry.values())
+            seen = len(counts.telemetry)
+            commands = sum(counts.commands.values())
+        return {
+            "vehicles": vehicles,
+            "phase_locked": phase_locked,
+            "wall_s": round(wall, 1),
+            "steps_sent": emulated["steps"],
+            "samples_assembled_by_services": assembled,
+            "telemetry_received_on_router": received,
+            "loss_services_to_subscriber": round(1 - received / assembled, 6)
+            if assembled
+            else None,
+            "loss_emulator_to_services": round(1 - assembled / emulated["steps"], 6),
+            "vehicles_seen_by_subscriber": seen,
+            "fleet_listed": len(listed),
+            "fleet_coverage": round(len(listed) / vehicles, 3),
+            "commands_published": commands,
+            "latency": emulated["latency"],
+        }
+    finally:
+        if session is not None:
+            session.close()
+        for process in reversed(processes):
+            if process.poll() is None:
+                stop_process(process)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--sizes", default="100,150,200", help="fleet sizes, comma separated")
+    parser.add_argument("--seconds", type=float, default=40.0, help="wall s per fleet size")
+    parser.add_argument(
+        "--phase-locked",
+        action="store_true",
+        help="all vehicles step at the same instant (default: spread over the period)",
+    )
+    args = parser.parse_args()
+    results = []
+    for size in (int(s) for s in args.sizes.split(",")):
+        result = run_fleet(size, args.seconds, args.phase_locked)
+        print(json.dumps(result), flush=True)
+        results.append(result)
+    meeting = [
+        r["vehicles"]
+        for r in results
+        if r["latency"].get("count") and r["latency"]["p99_ms"] < TARGET_MS
+    ]
+    print(
+        json.dumps(
+            {
+                "target_p99_ms": TARGET_MS,
+                "largest_fleet_meeting_target": max(meeting) if meeting else None,
+                "sizes_tried": [r["vehicles"] for r in results],
+            }
+        )
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

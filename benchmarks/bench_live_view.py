@@ -1,0 +1,134 @@
+"""End-to-end throughput with the Foxglove live view on and a viewer connected, against the
+same path without the live view, in the same run (issue 17's target: at least 80 %).
+
+The path is ``serve``'s (``hil_service.builder.wire``: MAVLink datagrams → sample → both
+identifiers → Zenoh publish → MCAP write); the viewer is the reference client
+(``tests/foxglove_client/client.js``, ``@foxglove/ws-protocol``) subscribed to telemetry,
+estimates and commands and validating every message, a real WebSocket on loopback. Runs
+alternate (off, on, stalled, off, on, stalled, …; stalled: the viewer is stopped with
+SIGSTOP once subscribed, a viewer that holds its connection and never reads again) so that
+machine load hits all alike; medians and the ratios of medians are printed, with the live
+view's own counters (offered, sent, dropped).
+
+Run: .venv/bin/python benchmarks/bench_live_view.py [--samples N] [--repeats R]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.bench_service import telemetry_datagrams  # noqa: E402
+from hil_service.builder import open_recorder, wire  # noqa: E402
+from hil_service.config import LogOptions, ServiceConfig  # noqa: E402
+from hil_service.live.view import LiveAddress, LiveView  # noqa: E402
+from hil_service.process_tuning import tune_for_service  # noqa: E402
+from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
+
+CLIENT = ROOT / "tests" / "foxglove_client" / "client.js"
+WARM_UP = 200  # samples fed before timing: the viewer subscribes to the channels they create
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def one_run(
+    warm: list[bytes], datagrams: list[bytes], live_on: bool, stalled: bool = False
+) -> dict[str, object]:
+    """Throughput of the timed datagrams; with ``stalled``, the viewer is stopped (SIGSTOP)
+    once subscribed: it holds its connection but never reads again."""
+    config = ServiceConfig()
+    session = open_session(ZenohOptions())
+    with tempfile.TemporaryDirectory() as log_dir:
+        recorder = open_recorder(config, LogOptions(directory=log_dir), {"bench": "1"})
+        live = viewer = None
+        if live_on:
+            live = LiveView(LiveAddress("127.0.0.1", free_tcp_port())).start()
+            viewer = subprocess.Popen(
+                [shutil.which("node") or "node", str(CLIENT), live.url, "1000000000", "600",
+                 "telemetry", "umodel", "command/ballast"],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+        wired = wire(config, session=session, recorder=recorder, live=live)
+        tune_for_service()
+        service = wired.service
+        for data in warm:
+            service.process_datagram(data)
+        if live is not None:
+            deadline = time.monotonic() + 30
+            while not live.watched():  # the viewer has seen the channels and subscribed
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the viewer did not subscribe within 30 s")
+                time.sleep(0.05)
+            if stalled and viewer is not None:
+                viewer.send_signal(signal.SIGSTOP)
+        before = service.assembler.counters.samples
+        t0 = time.perf_counter()
+        for data in datagrams:
+            service.process_datagram(data)
+        elapsed = time.perf_counter() - t0
+        samples = service.assembler.counters.samples - before
+        status = live.status() if live is not None else None
+        if viewer is not None:
+            if stalled:
+                viewer.send_signal(signal.SIGCONT)
+            viewer.terminate()
+            viewer.communicate(timeout=10)
+        wired.close()
+    return {"samples_per_s": samples / elapsed, "live": status}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--samples", type=int, default=5000)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    if shutil.which("node") is None or not (CLIENT.parent / "node_modules").is_dir():
+        print("needs node and `make foxglove-client`", file=sys.stderr)
+        return 2
+    everything = telemetry_datagrams(WARM_UP + args.samples)
+    split = len(everything) * WARM_UP // (WARM_UP + args.samples)
+    warm, datagrams = everything[:split], everything[split:]
+    off, on, stalled, live_status = [], [], [], []
+    for _ in range(args.repeats):
+        off.append(one_run(warm, datagrams, False)["samples_per_s"])
+        result = one_run(warm, datagrams, True)
+        on.append(result["samples_per_s"])
+        live_status.append(result["live"])
+        result = one_run(warm, datagrams, True, stalled=True)
+        stalled.append(result["samples_per_s"])
+        live_status.append(result["live"])
+    report = {
+        "samples": args.samples,
+        "repeats": args.repeats,
+        "without_live_view_samples_per_s": [round(x) for x in off],
+        "with_viewer_samples_per_s": [round(x) for x in on],
+        "median_without": round(statistics.median(off)),
+        "median_with_viewer": round(statistics.median(on)),
+        "ratio_with_to_without": round(statistics.median(on) / statistics.median(off), 3),
+        "with_stalled_viewer_samples_per_s": [round(x) for x in stalled],
+        "median_with_stalled_viewer": round(statistics.median(stalled)),
+        "ratio_stalled_to_without": round(statistics.median(stalled) / statistics.median(off), 3),
+        "live_view": live_status,
+    }
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,224 @@
+"""A companion computer's manners towards its autopilot: heartbeat and stream requests.
+
+MAVLink asks an onboard computer to send HEARTBEAT at 1 Hz as ``MAV_TYPE_ONBOARD_CONTROLLER``
+/ ``MAV_AUTOPILOT_INVALID`` from the vehicle's system id and ``MAV_COMP_ID_ONBOARD_COMPUTER``
+(191): routers (mavlink-router, MAVProxy) learn routes from heartbeats. And companion
+software asks for what it needs rather than hoping for it: ``MAV_CMD_SET_MESSAGE_INTERVAL``
+for each message of the profile at the sample rate, one request at a time (a COMMAND_ACK
+does not say which message it is for); ``REQUEST_DATA_STREAM`` for a message whose request
+the vehicle refuses or leaves unanswered; everything again after a reboot (the vehicle's
+``time_boot_ms`` goes back) or an outage (nothing heard for ``outage`` s).
+
+Pure: no sockets, no clock of its own. The caller passes ``now`` (monotonic s), sends what
+``poll`` returns through a codec with the identity above, and shows every received message
+to ``on_message``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from protocols.mavlink_io import MavMessage, dialect, message_id
+from protocols.profiles import AUTOPILOT_COMPONENT, Profile, message_clock
+
+COMPANION_COMPONENT = dialect.MAV_COMP_ID_ONBOARD_COMPUTER
+#: ArduPilot's REQUEST_DATA_STREAM group of each message (the fallback request).
+DATA_STREAM_GROUP = {
+    "ATTITUDE": dialect.MAV_DATA_STREAM_EXTRA1,
+    "VFR_HUD": dialect.MAV_DATA_STREAM_EXTRA2,
+    "SCALED_PRESSURE": dialect.MAV_DATA_STREAM_RAW_SENSORS,
+    "SCALED_PRESSURE2": dialect.MAV_DATA_STREAM_RAW_SENSORS,
+    "SERVO_OUTPUT_RAW": dialect.MAV_DATA_STREAM_RC_CHANNELS,
+    "ACTUATOR_OUTPUT_STATUS": dialect.MAV_DATA_STREAM_EXTRA3,
+}
+REFUSALS = frozenset(
+    {
+        dialect.MAV_RESULT_DENIED,
+        dialect.MAV_RESULT_UNSUPPORTED,
+        dialect.MAV_RESULT_FAILED,
+    }
+)
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    heartbeat_period: float = 1.0  # s
+    ack_timeout: float = 1.0  # s for a COMMAND_ACK before asking again
+    attempts: int = 2  # SET_MESSAGE_INTERVAL sends before falling back
+    outage: float = 3.0  # s of silence after which the streams are asked for again
+    reboot_step: float = 2.0  # s: time_boot_ms going back this much is a reboot
+
+
+@dataclass
+class CompanionCounters:
+    heartbeats: int = 0
+    interval_requests: int = 0
+    data_stream_requests: int = 0
+    unanswered: int = 0  # SET_MESSAGE_INTERVAL requests that timed out
+    acks: dict[str, int] = field(default_factory=dict)  # result name → count
+    rerequests: dict[str, int] = field(default_factory=dict)  # reboot/outage → count
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "heartbeats": self.heartbeats,
+            "interval_requests": self.interval_requests,
+            "data_stream_requests": self.data_stream_requests,
+            "unanswered": self.unanswered,
+            "acks": dict(self.acks),
+            "rerequests": dict(self.rerequests),
+        }
+
+
+@dataclass
+class _Request:
+    name: str
+    state: str = "pending"  # pending → sent → accepted | refused → data_stream
+    sent_at: float = 0.0
+    attempts: int = 0
+
+
+class Companion:
+    """Heartbeat and stream requests for one vehicle."""
+
+    def __init__(
+        self,
+        profile: Profile,
+        sample_period: float,
+        target_system: int,
+        config: CompanionConfig | None = None,
+    ):
+        if not (math.isfinite(sample_period) and sample_period > 0):
+            raise ValueError(f"sample period must be positive, got {sample_period}")
+        self.profile = profile
+        self.target_system = target_system
+        self.config = config or CompanionConfig()
+        self.intervals = profile.intervals(sample_period)
+        self.counters = CompanionCounters()
+        self.requests = [_Request(name) for name in self.intervals]
+        self._next_heartbeat: float | None = None
+        self._last_heard: float | None = None
+        self._last_boot_s: float | None = None
+        self._refused_command = False  # SET_MESSAGE_INTERVAL unsupported altogether
+
+    @property
+    def states(self) -> dict[str, str]:
+        return {r.name: r.state for r in self.requests}
+
+    # ---- sending ------------------------------------------------------------------------
+    def heartbeat(self) -> MavMessage:
+        return dialect.MAVLink_heartbeat_message(
+            dialect.MAV_TYPE_ONBOARD_CONTROLLER,
+            dialect.MAV_AUTOPILOT_INVALID,
+            0,
+            0,
+            dialect.MAV_STATE_ACTIVE,
+            3,
+        )
+
+    def poll(self, now: float) -> list[MavMessage]:
+        """What to send now: a heartbeat when due, and the next stream request."""
+        out = []
+        if self._next_heartbeat is None or now >= self._next_heartbeat:
+            out.append(self.heartbeat())
+            self.counters.heartbeats += 1
+            period = self.config.heartbeat_period
+            base = now if self._next_heartbeat is None else self._next_heartbeat
+            self._next_heartbeat = base + period * max(1, math.ceil((now - base) / period))
+        if self._last_heard is None:
+            return out  # nobody to ask yet
+        refused = next((r for r in self.requests if r.state == "refused"), None)
+        if refused is not None:
+            out.append(self._data_stream(refused))
+            return out
+        in_flight = next((r for r in self.requests if r.state == "sent"), None)
+        if in_flight is not None:
+            if now - in_flight.sent_at < self.config.ack_timeout:
+                return out
+            self.counters.unanswered += 1
+            if in_flight.attempts >= self.config.attempts:
+                out.append(self._data_stream(in_flight))
+                return out
+            out.append(self._interval(in_flight, now))
+            return out
+        pending = next((r for r in self.requests if r.state == "pending"), None)
+        if pending is not None:
+            if self._refused_command:
+                out.append(self._data_stream(pending))
+            else:
+                out.append(self._interval(pending, now))
+        return out
+
+    def _interval(self, request: _Request, now: float) -> MavMessage:
+        request.state = "sent"
+        request.sent_at = now
+        request.attempts += 1
+        self.counters.interval_requests += 1
+        interval_us = round(self.intervals[request.name] * 1e6)
+        return dialect.MAVLink_command_long_message(
+            self.target_system,
+            AUTOPILOT_COMPONENT,
+            dialect.MAV_CMD_SET_MESSAGE_INTERVAL,
+            0,
+            float(message_id(request.name)),
+            float(interval_us),
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+
+    def _data_stream(self, request: _Request) -> MavMessage:
+        request.state = "data_stream"
+        self.counters.data_stream_requests += 1
+        group = DATA_STREAM_GROUP.get(request.name, dialect.MAV_DATA_STREAM_ALL)
+        hz = max(1, round(1.0 / self.intervals[request.name]))
+        return dialect.MAVLink_request_data_stream_message(
+            self.target_system, AUTOPILOT_COMPONENT, group, hz, 1
+        )
+
+    # ---- receiving ----------------------------------------------------------------------
+    def on_message(self, message: MavMessage, now: float) -> None:
+        if message.get_srcSystem() != self.target_system:
+            return
+        if message.get_srcComponent() == COMPANION_COMPONENT:
+            return  # our own kind, not the autopilot
+        if self._last_heard is not None and now - self._last_heard > self.config.outage:
+            self._ask_again("outage")
+        self._last_heard = now
+        clock = message_clock(message)
+        if clock is not None and clock[0] == "ms32":
+            boot_s = clock[1] / 1000
+            back = (
+                self._last_boot_s is not None
+                and boot_s < self._last_boot_s - self.config.reboot_step
+            )
+            if back:
+                self._ask_again("reboot")
+            self._last_boot_s = boot_s
+        if message.get_type() == "COMMAND_ACK":
+            self._ack(message)
+
+    def _ack(self, message: MavMessage) -> None:
+        if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return
+        result = dialect.enums["MAV_RESULT"].get(message.result)
+        name = result.name if result is not None else str(message.result)
+        self.counters.acks[name] = self.counters.acks.get(name, 0) + 1
+        in_flight = next((r for r in self.requests if r.state == "sent"), None)
+        if in_flight is None:
+            return
+        if message.result == dialect.MAV_RESULT_ACCEPTED:
+            in_flight.state = "accepted"
+        elif message.result in REFUSALS:
+            if message.result == dialect.MAV_RESULT_UNSUPPORTED:
+                self._refused_command = True  # the others go by REQUEST_DATA_STREAM too
+            in_flight.state = "refused"
+
+    def _ask_again(self, why: str) -> None:
+        self.counters.rerequests[why] = self.counters.rerequests.get(why, 0) + 1
+        self._refused_command = False
+        for request in self.requests:
+            request.state = "pending"
+            request.attempts = 0

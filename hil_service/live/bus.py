@@ -1,0 +1,33 @@
+"""A ``Bus`` that also offers every publication to the live view.
+
+It wraps the service's real bus (Zenoh, or nothing for replay without ``--publish``): the
+inner bus publishes as before, then the payload is handed to ``LiveView.offer`` (a deque
+append). Keys and payloads are the ones the MCAP log records on the same topics.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from hil_service.zenoh_bus import Bus
+
+if TYPE_CHECKING:
+    from hil_service.live.view import LiveView
+
+
+class LiveBus:
+    def __init__(self, inner: Bus, live: LiveView):
+        self.inner = inner
+        self.live = live
+
+    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+        self.inner.publish(key, payload, reliable)
+        self.live.offer(key, payload, time.time_ns())
+
+    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
+        self.inner.declare_vehicle(system_id, state)
+
+    def close(self) -> None:
+        self.inner.close()

@@ -1,0 +1,174 @@
+"""Telemetry samples from a vehicle that streams asynchronously, as its profile describes.
+
+The periodic counterpart of ``hil_service.assembler.SampleAssembler`` (lockstep): one
+``StreamSampler`` per vehicle (system id) fed with the profile's readings and clock stamps,
+each complete tick turned into a ``TelemetrySample`` (``time_boot_ms``: the tick's time,
+increasing across reboots and clock wraps). Its counters carry the lockstep assembler's
+names (``samples``, ``incomplete``, ``out_of_order``, ``invalid``, ``unknown_system``,
+``restarts``) so that ``health`` reads either, plus the reasons for incomplete samples.
+
+One message may complete several ticks (after a gap), so ``add_all`` returns a list.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from hil_service.sampler import SamplerConfig, StreamSampler, Tick
+from protocols.mavlink_io import MavMessage
+from protocols.profiles import Profile, message_clock
+from protocols.samples import TelemetrySample
+
+DEPTH_RANGE = (-50.0, 11_000.0)  # m, as the lockstep assembler
+
+
+@dataclass
+class ProfileAssemblyCounters:
+    samples: int = 0
+    incomplete: int = 0
+    out_of_order: int = 0  # stamps discarded as jumps nobody confirmed
+    invalid: int = 0
+    unknown_system: int = 0
+    restarts: int = 0  # clock segments: reboots and outages
+    reasons: dict[str, int] = field(default_factory=dict)
+    fallbacks: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "samples": self.samples,
+            "incomplete": self.incomplete,
+            "out_of_order": self.out_of_order,
+            "invalid": self.invalid,
+            "unknown_system": self.unknown_system,
+            "restarts": self.restarts,
+            "incomplete_reasons": dict(self.reasons),
+            "fallbacks": dict(self.fallbacks),
+        }
+
+
+class ProfileAssembler:
+    """Groups telemetry by system id and samples it periodically; no I/O."""
+
+    def __init__(
+        self,
+        profile: Profile,
+        sample_period: float | None = None,
+        system_ids: Iterable[int] | None = None,
+        max_vehicles: int = 32,
+    ):
+        period = sample_period if sample_period is not None else profile.sampling.period
+        if period is None:
+            raise ValueError(f"profile {profile.name!r} has no sample period: give one")
+        self.profile = profile
+        self.config = SamplerConfig(
+            period=period,
+            staleness=profile.staleness(period),
+            optional=profile.optional_signals(),
+            delay=profile.sampling.delay,
+        )
+        self.allowed = frozenset(system_ids) if system_ids else None
+        self.max_vehicles = max_vehicles
+        self._samplers: dict[int, StreamSampler] = {}
+        self._readable = frozenset(profile.messages())
+        self._counters = ProfileAssemblyCounters()  # unknown_system only
+        self._samples: dict[int, int] = {}  # per system id
+        self._invalid: dict[int, int] = {}  # per system id
+
+    @property
+    def system_ids(self) -> list[int]:
+        return sorted(self._samplers)
+
+    @property
+    def counters(self) -> ProfileAssemblyCounters:
+        """Totals over all vehicles, with the messages of systems not served."""
+        total = ProfileAssemblyCounters(unknown_system=self._counters.unknown_system)
+        for system_id in self._samplers:
+            one = self.counters_for(system_id)
+            total.samples += one.samples
+            total.incomplete += one.incomplete
+            total.out_of_order += one.out_of_order
+            total.invalid += one.invalid
+            total.restarts += one.restarts
+            for key, n in one.reasons.items():
+                total.reasons[key] = total.reasons.get(key, 0) + n
+            for key, n in one.fallbacks.items():
+                total.fallbacks[key] = total.fallbacks.get(key, 0) + n
+        return total
+
+    def counters_for(self, system_id: int) -> ProfileAssemblyCounters:
+        """One vehicle's counters (all zero for a vehicle not seen)."""
+        counted = ProfileAssemblyCounters(
+            samples=self._samples.get(system_id, 0), invalid=self._invalid.get(system_id, 0)
+        )
+        sampler = self._samplers.get(system_id)
+        if sampler is not None:
+            c = sampler.counters
+            counted.incomplete = c.incomplete
+            counted.out_of_order = c.discarded
+            counted.invalid += c.invalid
+            counted.restarts = c.segments
+            counted.reasons = dict(c.reasons)
+            counted.fallbacks = dict(c.fallbacks)
+        return counted
+
+    def add_all(self, message: MavMessage) -> list[TelemetrySample]:
+        """Take one decoded message; the samples that became due."""
+        if message.get_type() not in self._readable:
+            return []
+        system_id = int(message.get_srcSystem())
+        sampler = self._sampler(system_id)
+        if sampler is None:
+            return []
+        try:
+            readings = self.profile.readings(message)
+        except (TypeError, ValueError, IndexError, AttributeError):
+            self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
+            return []
+        samples = []
+        for tick in sampler.observe(readings, message_clock(message)):
+            sample = self._build(system_id, tick)
+            if sample is not None:
+                samples.append(sample)
+        return samples
+
+    def _sampler(self, system_id: int) -> StreamSampler | None:
+        if self.allowed is not None and system_id not in self.allowed:
+            self._counters.unknown_system += 1
+            return None
+        sampler = self._samplers.get(system_id)
+        if sampler is None:
+            if len(self._samplers) >= self.max_vehicles:
+                self._counters.unknown_system += 1
+                return None
+            sampler = self._samplers[system_id] = StreamSampler(self.config)
+        return sampler
+
+    def _build(self, system_id: int, tick: Tick) -> TelemetrySample | None:
+        values = tick.values
+        if values is None:
+            return None
+        sample = TelemetrySample(
+            system_id=system_id,
+            time_boot_ms=round(tick.t * 1000),
+            depth=values["depth"],
+            pitch=values["pitch"],
+            u_depth=values["u_depth"],
+            u_pitch=values["u_pitch"],
+            pitch_rate=values.get("pitch_rate", 0.0),
+            climb=values.get("climb", 0.0),
+        )
+        full_scale = self.profile.ballast.full_scale * (1 + 1e-6)
+        plausible = (
+            sample.is_finite()
+            and DEPTH_RANGE[0] <= sample.depth <= DEPTH_RANGE[1]
+            and abs(sample.pitch) <= math.pi
+            and abs(sample.u_depth) <= full_scale
+            and abs(sample.u_pitch) <= full_scale
+        )
+        if not plausible:
+            self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
+            return None
+        self._samples[system_id] = self._samples.get(system_id, 0) + 1
+        return sample

@@ -1,0 +1,137 @@
+"""The service-side pieces (companion manners, periodic sampling, DO_SET_SERVO commands)
+against `glider-hil emulate --profile ardusub` on loopback UDP, across a µs-clock wrap."""
+
+from __future__ import annotations
+
+import itertools
+
+from hil_service.cli.processes import last_json
+from hil_service.pipeline import PipelineSettings
+from protocols.mavlink_io import dialect
+from protocols.profiles import load_profile
+from tests.ardusub_client import ArduSubClient
+
+SPEED = 5.0
+PERIOD = 0.1
+US32_SPAN = (1 << 32) / 1e6
+PROFILE = load_profile("ardusub")
+
+
+def test_companion_samples_ardusub_streams_and_commands_servos_across_a_wrap(processes):
+    client = ArduSubClient(PROFILE, PERIOD)
+    peer = client.peer
+    emulator = processes.start(
+        "emulate",
+        "--profile",
+        "ardusub",
+        "--connect",
+        f"udpout:127.0.0.1:{client.port}",
+        "--speed",
+        str(SPEED),
+        "--period",
+        str(PERIOD),
+        "--uptime",
+        f"{US32_SPAN - 20:.3f}",
+        "--duration",
+        "600",
+        "--excitation",
+        "prbs",
+        "--seed",
+        "2",
+        "--command-timeout",
+        "1000",
+    )
+    try:
+        # Until every stream runs at the sample rate (the vehicle accepted each request).
+        client.run(30.0, lambda: set(client.companion.states.values()) == {"accepted"})
+        assert set(client.companion.states.values()) == {"accepted"}
+        assert client.companion.counters.acks == {"MAV_RESULT_ACCEPTED": 4}
+        # Then 40 simulated seconds, across the wrap of SERVO_OUTPUT_RAW's µs clock.
+        client.run(0.5)  # the new rates take effect within a message interval
+        first_sample, first_usec = len(client.samples), len(client.servo_usec)
+        for command in PROFILE.command_messages(1.0, -0.5, target_system=1):
+            peer.send(command)
+        client.run(40.0 / SPEED)
+        samples = client.samples[first_sample:]
+        usec = client.servo_usec[first_usec:]
+        assert any(b < a for a, b in itertools.pairwise(usec)), "no µs wrap seen"
+        expected = round((samples[-1].t - samples[0].t) / PERIOD) + 1
+        ratio = len(samples) / expected
+        print(
+            f"\nardusub streams: {len(samples)} samples formed of {expected} expected "
+            f"({100 * ratio:.1f} %), counters {client.assembler.counters.as_dict()}"
+        )
+        assert ratio >= 0.95
+        times = [s.t for s in samples]
+        assert all(b > a for a, b in itertools.pairwise(times))
+        # DO_SET_SERVO, one per channel, accepted; the outputs read back what was commanded
+        # (1700 µs = 1.0 model units, 1400 µs = −0.5) after the actuator's rate limit.
+        servo_acks = [a for a in client.acks if a.command == dialect.MAV_CMD_DO_SET_SERVO]
+        assert [a.result for a in servo_acks] == [dialect.MAV_RESULT_ACCEPTED] * 2
+        assert abs(samples[-1].u_depth - 1.0) < 0.01 and abs(samples[-1].u_pitch + 0.5) < 0.01
+        # The vehicle saw the companion's heartbeats, as an onboard controller's.
+        out, _ = processes.stop(emulator)
+        heartbeats = last_json(out, "emulator")["gcs"]["heartbeats"]
+        assert heartbeats.get("MAV_TYPE_ONBOARD_CONTROLLER", 0) >= 5
+    finally:
+        client.close()
+
+
+def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes):
+    """Identification on ArduSub-style streams sampled every 0.1 s, then inverse control
+    of a depth and pitch step through DO_SET_SERVO, across a µs-clock wrap."""
+    speed, identify, control = 10.0, 60.0, 150.0  # simulated s
+    client = ArduSubClient(PROFILE, PERIOD, PipelineSettings(burn_in=int(0.8 * identify / PERIOD)))
+    emulator = processes.start(
+        "emulate",
+        "--profile",
+        "ardusub",
+        "--connect",
+        f"udpout:127.0.0.1:{client.port}",
+        "--speed",
+        str(speed),
+        "--period",
+        str(PERIOD),
+        "--uptime",
+        f"{US32_SPAN - identify:.3f}",
+        "--excitation",
+        "prbs",
+        "--seed",
+        "1",
+        "--command-timeout",
+        "5",
+        "--fallback",
+        "hold",
+        "--trim-depth",
+        "15",
+    )
+    try:
+        client.run(30.0, lambda: set(client.companion.states.values()) == {"accepted"})
+        # By samples, not wall time: on a loaded machine the emulator runs behind its speed.
+        goal = len(client.samples) + round(identify / PERIOD)
+        client.run(6 * identify / speed, lambda: len(client.samples) >= goal)
+        health = client.pipeline.identifier_health()
+        assert all(health[ch]["converged"] for ch in ("depth", "pitch")), health
+        assert all(health[ch]["skill"] > 0.2 for ch in ("depth", "pitch")), health
+        start = len(client.samples)
+        client.setpoints = {"depth": 16.0, "pitch": 0.1}
+        goal = start + round(control / PERIOD)
+        client.run(6 * control / speed, lambda: len(client.samples) >= goal)
+        usec = client.servo_usec
+        assert any(b < a for a, b in itertools.pairwise(usec)), "no µs wrap seen"
+        # Mean |y − setpoint| over the second half of the step.
+        tail = client.samples[start + (len(client.samples) - start) // 2 :]
+        depth_error = sum(abs(s.depth - 16.0) for s in tail) / len(tail)
+        pitch_error = sum(abs(s.pitch - 0.1) for s in tail) / len(tail)
+        print(
+            f"\nardusub closed loop: skill depth {health['depth']['skill']}, pitch "
+            f"{health['pitch']['skill']}; mean |error| depth {depth_error:.3f} m, "
+            f"pitch {pitch_error:.5f} rad; {client.commands_sent} DO_SET_SERVO"
+        )
+        assert depth_error < 0.3 and pitch_error < 0.01
+        out, _ = processes.stop(emulator)
+        summary = last_json(out, "emulator")
+        assert summary["commands_accepted"] == client.commands_sent > 0
+        assert summary["commands_rejected"] == 0
+    finally:
+        client.close()

@@ -1,0 +1,126 @@
+"""The MAVLink side of issue 14's defects: a file is not a link, and the vehicle gets the
+command before Zenoh does."""
+
+from __future__ import annotations
+
+import select
+import socket
+import time
+from typing import Any
+
+import pytest
+
+from hil_service.config import ServiceConfig
+from hil_service.mcap.reader import LogReader
+from hil_service.offline.replay import ReplayInbox
+from hil_service.service import HilService
+from hil_service.zenoh_bus import NullBus
+from protocols import keys
+from protocols.mavlink_io import Link, MavlinkCodec
+from tests.conftest import DATA, free_udp_port
+
+# ---- a file is not a link ----------------------------------------------------------------
+
+
+def _refusal(processes, connection: str) -> str:
+    process = processes.start("serve", "--mavlink", connection, "--no-log")
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 2, err
+    assert "Traceback" not in err, err
+    assert "glider-hil serve:" in err
+    assert "udpin:HOST:PORT" in err and "serial device" in err  # what is accepted
+    return err
+
+
+def test_serve_refuses_a_tlog_naming_what_it_accepts(processes, tmp_path):
+    tlog = tmp_path / "dive.tlog"
+    tlog.write_bytes(bytes(range(256)) * 8)  # pymavlink would open this as a log to read
+    err = _refusal(processes, str(tlog))
+    assert f"{tlog} is a file, not a link" in err
+
+
+def test_serve_refuses_any_regular_file_and_a_missing_log(processes, tmp_path):
+    other = tmp_path / "telemetry.dat"
+    other.write_bytes(b"\xfd" * 100)
+    assert f"{other} is a file, not a link" in _refusal(processes, str(other))
+    missing = tmp_path / "gone.tlog"  # a log name that does not exist is no device either
+    assert f"{missing} is a file, not a link" in _refusal(processes, str(missing))
+
+
+@pytest.mark.parametrize(
+    "connection",
+    ["udpin:127.0.0.1:14550", "udpout:10.0.0.2:14550", "tcp:127.0.0.1:5760", "/dev/ttyUSB0"],
+)
+def test_links_pass_the_check(connection):
+    from protocols.mavlink_io import check_link
+
+    check_link(connection)  # raises on a file
+
+
+def test_a_udp_link_still_opens(tmp_path):
+    link = Link(f"udpin:127.0.0.1:{free_udp_port()}")
+    try:
+        assert link.datagram and link.fileno() >= 0
+    finally:
+        link.close()
+
+
+# ---- the vehicle first, then Zenoh ---------------------------------------------------------
+
+
+class OrderBus(NullBus):
+    """A bus that, at the n-th command publish, looks whether n command datagrams have
+    reached the vehicle's socket (waiting up to ``patience``: a send that comes only after
+    the publish never arrives in time)."""
+
+    def __init__(self, vehicle: socket.socket, patience: float = 0.5):
+        self.vehicle = vehicle
+        self.patience = patience
+        self.commands: list[bool] = []  # per command publish: was its datagram there?
+        self.frames: list[bytes] = []
+
+    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+        if not key.endswith("/command/ballast"):
+            return
+        wanted = len(self.commands) + 1
+        deadline = time.monotonic() + self.patience
+        while len(self.frames) < wanted:
+            left = max(0.0, deadline - time.monotonic())
+            ready, _, _ = select.select([self.vehicle], [], [], left)
+            if not ready:
+                break
+            self.frames.append(self.vehicle.recv(65536))
+        self.commands.append(len(self.frames) >= wanted)
+
+
+def test_the_command_reaches_the_vehicle_before_it_is_published_on_zenoh():
+    """The recorded frames and control inputs of a closed-loop fixture drive a service whose
+    commands go to a real UDP socket; the bus checks that socket at each command publish."""
+    path = DATA / "disturbed.mcap"
+    reader = LogReader(path)
+    inbox = ReplayInbox()
+    for message in reader.messages():
+        parsed = keys.parse(message.topic)
+        if parsed is not None and parsed.kind == keys.DECISION_INPUTS:
+            inbox.add_event(parsed.system_id, message.json())
+    config = ServiceConfig.from_stored(reader.config())  # read with the messages
+    assert config is not None
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.bind(("127.0.0.1", 0))
+    link = Link(f"udpout:127.0.0.1:{vehicle.getsockname()[1]}")
+    bus = OrderBus(vehicle)
+    service = HilService(config, bus, inbox, link=link)
+    try:
+        for message in LogReader(path).messages({"mavlink/raw/in"}):
+            service.process_datagram(message.data)
+            if len(bus.commands) >= 3:
+                break
+    finally:
+        link.close()
+        vehicle.close()
+    assert len(bus.commands) == 3, "the fixture's commands were not recomputed"
+    assert bus.commands == [True, True, True]
+    # And what reached the socket is the ballast command itself.
+    decoded = [MavlinkCodec(1, 1).parse(frame, datagram=True) for frame in bus.frames]
+    assert [m.get_type() for ms in decoded for m in ms] == ["COMMAND_LONG"] * 3
+    assert service.vehicles[1].commands_sent == 3

@@ -1,0 +1,89 @@
+"""Zenoh flags given on the command line win over ``--zenoh-config`` (issue 14)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+
+import zenoh
+
+from hil_service.zenoh_config import (
+    ZenohOptions,
+    add_zenoh_arguments,
+    open_session,
+    options_from_args,
+)
+from tests.conftest import free_tcp_port
+
+
+def _parse(*argv: str) -> ZenohOptions:
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    return options_from_args(parser.parse_args(list(argv)))
+
+
+def _file(tmp_path, nowhere: str) -> str:
+    """A client that must reach a router at ``nowhere`` (nothing listens there)."""
+    path = tmp_path / "client.json5"
+    path.write_text(
+        "{ mode: 'client',"
+        f"  connect: {{ endpoints: ['{nowhere}'] }},"
+        "  scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"
+    )
+    return str(path)
+
+
+def _get(config: zenoh.Config, key: str) -> object:
+    return json.loads(config.get_json(key))
+
+
+def test_flags_are_applied_over_the_config_file(tmp_path):
+    nowhere = f"tcp/127.0.0.1:{free_tcp_port()}"
+    listen = f"tcp/127.0.0.1:{free_tcp_port()}"
+    config_file = _file(tmp_path, nowhere)
+    config = _parse(
+        "--zenoh-config", config_file, "--zenoh-mode", "peer", "--zenoh-listen", listen
+    ).to_config()
+    assert _get(config, "mode") == "peer"
+    assert _get(config, "listen/endpoints") == [listen]
+    assert _get(config, "connect/endpoints") == [nowhere]  # the file's, no flag given
+    assert _get(config, "scouting/multicast/enabled") is False
+
+
+def test_file_without_flags_keeps_its_mode(tmp_path):
+    nowhere = f"tcp/127.0.0.1:{free_tcp_port()}"
+    config = _parse("--zenoh-config", _file(tmp_path, nowhere)).to_config()
+    assert _get(config, "mode") == "client"
+    defaults = _parse().to_config()
+    assert _get(defaults, "mode") == "peer"
+    assert _get(defaults, "scouting/multicast/enabled") is False
+
+
+def test_a_session_from_file_and_flags_listens_on_the_flags_endpoint(tmp_path):
+    """The file alone is a client with no router (it cannot open); the flags make it a peer
+    listening on an endpoint of its own, which another session reaches."""
+    nowhere = f"tcp/127.0.0.1:{free_tcp_port()}"
+    listen = f"tcp/127.0.0.1:{free_tcp_port()}"
+    options = _parse(
+        "--zenoh-config", _file(tmp_path, nowhere), "--zenoh-mode", "peer",
+        "--zenoh-listen", listen,
+    )  # fmt: skip
+    session = open_session(options)
+    other = None
+    try:
+        received = threading.Event()
+        subscriber = session.declare_subscriber("test/flags", lambda _s: received.set())
+        other = open_session(ZenohOptions(connect=(listen,)))
+        publisher = other.declare_publisher("test/flags")
+        for _ in range(50):  # until the subscription has propagated (5 s at most)
+            publisher.put(b"hello")
+            if received.wait(0.1):
+                break
+        assert received.is_set(), "nothing arrived on the flag's endpoint"
+        publisher.undeclare()
+        subscriber.undeclare()
+    finally:
+        if other is not None:
+            other.close()
+        session.close()

@@ -1,0 +1,117 @@
+"""`serve --profile ardusub --sample-period 0.1` against `emulate --profile ardusub` over real
+UDP, Zenoh on a loopback endpoint: the service asks for the streams it needs, sends its
+heartbeat as the vehicle's companion, samples across a µs-clock wrap, identifies, and
+controls depth and pitch through DO_SET_SERVO."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import pytest
+
+from hil_service.mcap.reader import LogReader
+from tests.conftest import free_tcp_port, free_udp_port
+from tests.zenoh_peer import ZenohProbe
+
+SPEED = 10
+PERIOD = 0.1
+BURN_IN = 400
+US32_SPAN = (1 << 32) / 1e6
+
+
+@pytest.mark.timeout(400)
+def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, tmp_path):
+    udp, zport = free_udp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    service = processes.start_service(
+        "--mavlink",
+        f"udpin:127.0.0.1:{udp}",
+        "--zenoh-listen",
+        endpoint,
+        "--log-dir",
+        str(tmp_path / "logs"),
+        "--burn-in",
+        str(BURN_IN),
+        "--profile",
+        "ardusub",
+        "--sample-period",
+        str(PERIOD),
+        "--sysid",
+        "1",
+    )
+    probe = ZenohProbe(endpoint)
+    try:
+        emulator = processes.start(
+            "emulate",
+            "--profile",
+            "ardusub",
+            "--connect",
+            f"udpout:127.0.0.1:{udp}",
+            "--speed",
+            str(SPEED),
+            "--period",
+            str(PERIOD),
+            "--uptime",
+            f"{US32_SPAN - 50:.3f}",
+            "--excitation",
+            "prbs",
+            "--seed",
+            "1",
+            "--command-timeout",
+            "5",
+            "--fallback",
+            "hold",
+            "--trim-depth",
+            "15",
+        )
+        # Identification: samples every 0.1 s of the vehicle's clock, estimates after burn-in.
+        assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 100, 120)
+        health = probe.payloads("glider/1/health")[-1]
+        assert health["companion"]["stream_requests"] == {
+            "SCALED_PRESSURE2": "accepted",
+            "VFR_HUD": "accepted",
+            "ATTITUDE": "accepted",
+            "SERVO_OUTPUT_RAW": "accepted",
+        }
+        assert health["companion"]["acks"] == {"MAV_RESULT_ACCEPTED": 4}
+        assert health["identifier"]["depth"]["converged"], health["identifier"]
+        # Control through DO_SET_SERVO: a depth and pitch step.
+        start = probe.count("glider/1/telemetry")
+        probe.put("glider/1/setpoint/depth", {"value": 16.0})
+        probe.put("glider/1/setpoint/pitch", {"value": 0.1})
+        probe.put("glider/1/control", {"enabled": True})
+        assert probe.wait_for(lambda: probe.count("glider/1/telemetry") > start + 1500, 240)
+        telemetry = probe.payloads("glider/1/telemetry")
+        tail = telemetry[start + 750 : start + 1500]
+        depth_error = sum(abs(s["depth"] - 16.0) for s in tail) / len(tail)
+        pitch_error = sum(abs(s["pitch"] - 0.1) for s in tail) / len(tail)
+        times = [s["t"] for s in telemetry]
+        expected = round((times[-1] - times[0]) / PERIOD) + 1
+        print(
+            f"\nserve --profile ardusub: {len(telemetry)}/{expected} samples; mean |error| "
+            f"depth {depth_error:.3f} m, pitch {pitch_error:.5f} rad"
+        )
+        assert len(telemetry) >= 0.95 * expected
+        assert all(b > a for a, b in itertools.pairwise(times))
+        # Within half the 1 m step on average (no control leaves 1 m), pitch on target.
+        assert depth_error < 0.5 and pitch_error < 0.01
+        emulator_out, _ = processes.stop(emulator)
+        vehicle = json.loads(emulator_out.strip().splitlines()[-1])["emulator"]
+        assert vehicle["gcs"]["heartbeats"].get("MAV_TYPE_ONBOARD_CONTROLLER", 0) >= 5
+        assert vehicle["commands_accepted"] > 1000 and vehicle["commands_rejected"] == 0
+        out, err = processes.stop(service)
+        assert service.returncode == 0, err
+        summary = json.loads(out.strip().splitlines()[-1])["service"]
+        assert summary["vehicles"]["1"]["acks"]["accepted"] >= 0.95 * vehicle["commands_accepted"]
+    finally:
+        probe.close()
+    # The log stores the profile; its outgoing frames are the companion's (sysid 1, comp 191).
+    (log,) = sorted((tmp_path / "logs").glob("*.mcap"))
+    reader = LogReader(log)
+    out_frames = [m for m in reader.messages({"mavlink/json/out/HEARTBEAT"})]
+    assert out_frames and all(
+        m.json()["_header"]["system_id"] == 1 and m.json()["_header"]["component_id"] == 191
+        for m in out_frames
+    )
+    assert reader.config()["profile"]["name"] == "ardusub"
