@@ -129,7 +129,7 @@ def multistep_from_log(
     try:
         settings = PipelineSettings.from_json(stored)
         model_config = VehiclePipeline(settings).configs()[channel]
-        horizon = settings.control.horizon.get(channel, control_horizon(channel))
+        horizon = control_horizon(channel)  # the predictive inverse derives its own at run time
     except (TypeError, ValueError, KeyError, AttributeError):
         return None
     outputs = dict(zip(vehicle.channels[channel].t, vehicle.channels[channel].y, strict=True))
