@@ -97,6 +97,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.vehicles != 1 or args.fleet_connect:
+        if args.profile != DEFAULT_PROFILE:
+            print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
+            return 2
+        if args.period is None:
+            args.period = 1.0  # the glider profile's plant step
         return run_fleet(args)
     try:
         profile = load_profile(args.profile)

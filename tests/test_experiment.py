@@ -158,7 +158,16 @@ def test_cli_json_carries_the_documented_keys(capsys):
     assert (data["scenario"], data["channel"]) == ("nonlinear", "pitch")
     assert set(data["models"]) == {"paper", "dynamic", "rls-arx", "persistence"}
     for scores in data["models"].values():
-        assert set(scores) == {"nmse", "skill", "converged_at"}
+        assert set(scores) == {
+            "nmse",
+            "skill",
+            "converged_at",
+            "fit",
+            "k_step_nmse",
+            "horizon",
+            "fit_split",
+            "k_step_windows",
+        }
 
 
 def test_cli_table_and_plots(tmp_path, capsys):

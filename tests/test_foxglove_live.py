@@ -41,7 +41,8 @@ def test_channel_schemas_are_the_logs() -> None:
     assert schema is not None and schema.name == "glider-hil.telemetry"
     assert json.loads(schema.data) == load_schema("telemetry")
     assert channel_schema("glider/7/umodel/depth").name == "glider-hil.umodel"
-    assert channel_schema("glider-hil/7/decision-inputs") is None
+    assert channel_schema("glider-hil/7/decision-inputs").name == "glider-hil.decision_inputs"
+    assert channel_schema("glider/7/service") is None  # a liveliness token: no payload
 
 
 def _node_client() -> list[str]:

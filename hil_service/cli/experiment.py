@@ -2,9 +2,13 @@
 
 Runs the emulator's plant models in-process (no sockets). By default: every model
 (``paper``, ``dynamic``, ``rls-arx``, ``persistence``) on the same samples, scored on the
-a-priori one-step prediction after a burn-in. ``--closed-loop`` tracks setpoint steps with
-the inverse controller and compares with the reference-only plant; ``--bench`` prints how
-many samples per second one channel identifies and inverts on one core.
+a-priori one-step prediction after a burn-in, and on the free-run fit and k-step NMSE of
+the model frozen at ``--fit-split`` (``experiment/multistep.py``). ``--closed-loop`` tracks
+setpoint steps with the inverse controller and compares with the reference-only plant and
+with the oracle, a known-model constrained controller (``experiment/oracle.py``);
+``--scenario random`` runs it on a seeded family of plants it was not tuned on.
+``--bench`` prints how many samples per second one channel identifies and inverts on one
+core.
 """
 
 from __future__ import annotations
@@ -24,6 +28,11 @@ from hil_service.experiment.identification import (
     IdentificationSettings,
     run_identification,
 )
+from hil_service.experiment.random_loop import (
+    DEFAULT_PLANTS,
+    RandomResult,
+    run_random_closed_loop,
+)
 from hil_service.experiment.speed import measure_all
 from hil_service.offline.plots import prediction_figure, tracking_figure
 from plant_emulator.excitation import EXCITATIONS
@@ -33,7 +42,12 @@ from protocols import compiled
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scenario", choices=(*SCENARIOS, "all"), default="paper")
+    parser.add_argument(
+        "--scenario",
+        choices=(*SCENARIOS, "random", "all"),
+        default="paper",
+        help="'random': a seeded family of plants (closed loop only)",
+    )
     parser.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
     parser.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
     parser.add_argument("--seed", type=int, default=0)
@@ -65,6 +79,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--step-every", type=int, default=800, help="closed loop: samples between setpoint steps"
     )
+    parser.add_argument(
+        "--no-oracle",
+        action="store_true",
+        help="closed loop: skip the known-model oracle (an LP per sample: slow)",
+    )
+    parser.add_argument(
+        "--plants",
+        type=int,
+        default=DEFAULT_PLANTS,
+        help=f"scenario random: plants per run (default {DEFAULT_PLANTS})",
+    )
+    parser.add_argument(
+        "--fit-split",
+        type=int,
+        default=None,
+        help="identification: free-run fit and k-step NMSE after this sample (default: half)",
+    )
+    parser.add_argument(
+        "--horizon",
+        type=int,
+        default=None,
+        help="identification: k of the k-step NMSE (default: the controller's horizon)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -85,6 +122,8 @@ def _choices(value: str, options: tuple[str, ...]) -> tuple[str, ...]:
 
 # ---- identification ----------------------------------------------------------------------
 def _identification(args: argparse.Namespace) -> int:
+    if args.scenario == "random":
+        raise ValueError("--scenario random is a closed-loop scenario (add --closed-loop)")
     results = []
     for scenario in _choices(args.scenario, SCENARIOS):
         for channel in _choices(args.channel, CHANNELS):
@@ -95,6 +134,8 @@ def _identification(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 burn_in=args.burn_in,
                 excitation=args.excitation,
+                fit_split=args.fit_split,
+                horizon=args.horizon,
             )
             result = run_identification(settings)
             results.append(result)
@@ -119,16 +160,19 @@ def identification_table(results: list[IdentificationResult]) -> str:
     first = results[0].settings
     lines = [
         f"one-step a-priori prediction, {first.samples} samples, burn-in "
-        f"{first.effective_burn_in}, seed {first.seed}, excitation {first.excitation}",
+        f"{first.effective_burn_in}, seed {first.seed}, excitation {first.excitation}; "
+        f"free-run fit % and k-step NMSE of the model frozen at sample "
+        f"{first.effective_fit_split}, on the samples after it",
         f"{'scenario':10s} {'channel':7s} {'model':12s} {'NMSE':>10s} {'skill':>8s} "
-        f"{'converged_at':>12s}",
+        f"{'converged_at':>12s} {'fit %':>9s} {'k':>4s} {'k-step NMSE':>12s}",
     ]
     for result in results:
         for name, trace in result.models.items():
             lines.append(
                 f"{result.settings.scenario:10s} {result.settings.channel:7s} {name:12s} "
                 f"{_fmt(trace.nmse, '.5f'):>10s} {_fmt(trace.skill, '.3f'):>8s} "
-                f"{_fmt(trace.converged_at, 'd', 'never'):>12s}"
+                f"{_fmt(trace.converged_at, 'd', 'never'):>12s} {_fmt(trace.fit, '.1f'):>9s} "
+                f"{result.settings.effective_horizon:>4d} {_fmt(trace.k_step_nmse, '.4g'):>12s}"
             )
     return "\n".join(lines)
 
@@ -153,7 +197,7 @@ def _identification_plots(result: IdentificationResult, directory: Path) -> None
 # ---- closed loop -------------------------------------------------------------------------
 def _closed_loop(args: argparse.Namespace) -> int:
     scenarios = _choices(args.scenario, SCENARIOS)
-    results = []
+    results: list[ClosedLoopResult | RandomResult] = []
     for scenario in scenarios:
         settings = ClosedLoopSettings(
             scenario=scenario,
@@ -162,13 +206,54 @@ def _closed_loop(args: argparse.Namespace) -> int:
             identify=args.identify,
             step_every=args.step_every,
             excitation=args.excitation,
+            oracle=not args.no_oracle,
         )
+        if scenario == "random":
+            random_result = run_random_closed_loop(settings, plants=args.plants)
+            results.append(random_result)
+            continue
         result = run_closed_loop(settings)
         results.append(result)
         if args.plots:
             _closed_loop_plots(result, args.plots)
-    _emit(results, args.json, lambda rs: "\n\n".join(closed_loop_table(r) for r in rs))
+    _emit(results, args.json, lambda rs: "\n\n".join(_closed_loop_text(r) for r in rs))
     return 0
+
+
+def _closed_loop_text(result: ClosedLoopResult | RandomResult) -> str:
+    if isinstance(result, RandomResult):
+        return random_table(result)
+    return closed_loop_table(result)
+
+
+def random_table(result: RandomResult) -> str:
+    s = result.settings
+    data = result.as_json()
+    summary = data["summary"]
+    lines = [
+        f"closed loop, scenario random ({summary['plants']} plants, two per vehicle, seed "
+        f"{s.seed}), {s.samples} samples ({s.identify} identifying, then a setpoint step every "
+        f"{s.step_every}); IAE in output units·s, ratios to the oracle",
+        f"{'plant':>5s} {'ch':5s} {'inverse':>10s} {'ref-only':>10s} {'oracle':>10s} "
+        f"{'inv/orc':>8s} {'ref/orc':>8s} {'div':>4s} {'nonfin':>6s}  plant",
+    ]
+    for row in result.rows:
+        r = row.as_json()
+        lines.append(
+            f"{row.spec.index:>5d} {row.channel:5s} {r['inverse_iae']:10.3f} "
+            f"{r['reference_only_iae']:10.3f} {_fmt(r['oracle_iae'], '10.3f'):>10s} "
+            f"{_fmt(r['iae_ratio_oracle'], '.3f'):>8s} "
+            f"{_fmt(r['reference_only_ratio_oracle'], '.3f'):>8s} {row.divergences:>4d} "
+            f"{row.non_finite_commands:>6d}  {row.spec.describe()}"
+        )
+    lines.append(
+        f"inverse / oracle: median {_fmt(summary['median_ratio'], '.3f')}, max "
+        f"{_fmt(summary['max_ratio'], '.3f')}, {summary['above_2x']} plants above 2×; "
+        f"identifier divergences {summary['divergences']}; non-finite commands "
+        f"{summary['non_finite_commands']}; blocked steps {summary['blocked_steps']}; "
+        f"oracle LP failures {summary['oracle_failures']}"
+    )
+    return "\n".join(lines)
 
 
 def closed_loop_table(result: ClosedLoopResult) -> str:
@@ -181,8 +266,10 @@ def closed_loop_table(result: ClosedLoopResult) -> str:
         f"{'settled':>8s}",
     ]
     for ch in CHANNELS:
-        for run_name in ("inverse", "reference_only"):
+        for run_name in ("inverse", "reference_only", "oracle"):
             m = data["channels"][ch][run_name]
+            if m is None:
+                continue
             lines.append(
                 f"{ch:7s} {run_name:15s} {m['iae']:10.2f} {_fmt(m['overshoot_pct'], '.1f'):>10s}"
                 f" {_fmt(m['settling_s'], '.0f'):>10s} {m['settled_steps']:>4d}/{m['steps']:<3d}"
@@ -195,9 +282,16 @@ def closed_loop_table(result: ClosedLoopResult) -> str:
                 f"controller does better on these steps)"
             )
         lines.append(f"{ch:7s} IAE inverse / reference-only = {_fmt(entry['iae_ratio'], '.3f')}")
+        if entry["oracle"] is not None:
+            ratio = entry["oracle_ratio"]
+            lines.append(
+                f"{ch:7s} IAE / oracle: inverse {_fmt(ratio['inverse'], '.3f')}, reference-only "
+                f"{_fmt(ratio['reference_only'], '.3f')}"
+            )
     lines.append(
         f"solver paths {data['solver_paths']}; blocked steps {data['blocked_steps']}; "
-        f"identifier divergences {data['divergences']}"
+        f"identifier divergences {data['divergences']}; non-finite commands "
+        f"{data['non_finite_commands']}; oracle LP failures {data['oracle_failures']}"
     )
     return "\n".join(lines)
 
@@ -214,11 +308,13 @@ def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
             [
                 ("inverse control", result.inverse.y[ch]),
                 ("reference only", result.reference_only.y[ch]),
+                *([("oracle", result.oracle.y[ch])] if result.oracle is not None else []),
             ],
             result.inverse.setpoint[ch],
             [
                 ("inverse control", result.inverse.u[ch]),
                 ("reference only", result.reference_only.u[ch]),
+                *([("oracle", result.oracle.u[ch])] if result.oracle is not None else []),
             ],
         )
 

@@ -1,10 +1,12 @@
 """Closed-loop experiment: setpoint steps tracked by the inverse controller.
 
-Two runs on identical plants (same scenario and seed, so the same disturbance): the
-service's pipeline (``dynamic`` U-model identified online, then IMC inverse control), and
-the stabilised plant driven by its reference alone (the ballast input set to the setpoint
-divided by the inner loop's DC gain). Both start from the same excitation phase, so the
-identifier has something to learn from before control starts.
+Three runs on identical plants (same scenario and seed, so the same disturbance): the
+service's pipeline (``dynamic`` U-model identified online, then IMC inverse control), the
+stabilised plant driven by its reference alone (the ballast input set to the setpoint
+divided by the inner loop's DC gain), and the oracle (``oracle.py``: a constrained
+receding-horizon controller that knows the plant's model, the yardstick the others are
+divided by). All start from the same excitation phase, so the identifier has something to
+learn from before control starts.
 """
 
 from __future__ import annotations
@@ -12,16 +14,33 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import control
 import numpy as np
 
+from hil_service.experiment.oracle import KnownPlant, OracleController, OracleSettings, identity
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from plant_emulator.actuator import BallastActuator
 from plant_emulator.excitation import build_channel_excitations
-from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS, open_loop_plant
+from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS, ClosedLoopChannel, open_loop_plant
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.samples import TelemetrySample
+
+#: The oracle's settings on the emulator's channels, tuned on seed 0 (``docs/control.md``):
+#: depth looks 600 samples ahead (its non-minimum-phase zero at z = 1.0045 has a time scale
+#: of ~220 samples) with blocks of 4 samples at first (finer ones measured worse), and
+#: estimates the disturbance slowly; pitch is fast and needs no blocking.
+GLIDER_ORACLE: dict[str, OracleSettings] = {
+    "depth": OracleSettings(
+        horizon=600,
+        blocks=(4, 4, 4, 4, 4, 4, 8, 8, 16, 16, 32, 64, 128),
+        disturbance_tau=5000.0,
+        cost_stride=4,
+        terminal=True,
+    ),
+    "pitch": OracleSettings(horizon=30, blocks=(1,) * 14 + (16,), disturbance_tau=1.0),
+}
 
 #: Setpoint sequences cycled through, one step every ``step_every`` samples. Depth in
 #: metres (the trim depth is 15 m), pitch in radians.
@@ -38,6 +57,9 @@ class ClosedLoopSettings:
     step_every: int = 800
     settle_band: float = 0.1  # settled once |error| stays within this share of the step
     excitation: str = "steps"
+    # Also run the known-model yardstick (an LP per sample: slow). The CLI turns it on;
+    # off by default here so that library callers and tests pay for it only when asked.
+    oracle: bool = False
 
     def __post_init__(self) -> None:
         if self.identify < 1 or self.samples <= self.identify + 1:
@@ -79,6 +101,8 @@ class RunTrace:
     setpoint: dict[str, np.ndarray]
     u: dict[str, np.ndarray]
     metrics: dict[str, StepMetrics] = field(default_factory=dict)
+    #: Per channel, commands with a NaN or infinite value (the channel held its position).
+    non_finite_commands: dict[str, int] = field(default_factory=lambda: dict.fromkeys(CHANNELS, 0))
 
 
 @dataclass
@@ -91,6 +115,16 @@ class ClosedLoopResult:
     divergences: dict[str, int]
     nmp_bound: dict[str, float | None]
     identifier: dict[str, Any]
+    oracle: RunTrace | None = None
+    oracle_failures: int = 0  # LP solves that did not return an optimum (input held)
+
+    def oracle_ratio(self, channel: str, run: str) -> float | None:
+        """IAE of ``run`` ("inverse" or "reference_only") over the oracle's, or None."""
+        if self.oracle is None:
+            return None
+        base = self.oracle.metrics[channel].iae
+        trace = self.inverse if run == "inverse" else self.reference_only
+        return round(trace.metrics[channel].iae / base, 4) if base > 0 else None
 
     def iae_lower_bound(self, channel: str) -> float | None:
         """The least IAE any causal controller could reach on the inverse run's steps."""
@@ -107,7 +141,12 @@ class ClosedLoopResult:
             channels[ch] = {
                 "inverse": inv.as_json(),
                 "reference_only": ref.as_json(),
+                "oracle": None if self.oracle is None else self.oracle.metrics[ch].as_json(),
                 "iae_ratio": round(inv.iae / ref.iae, 4) if ref.iae > 0 else None,
+                "oracle_ratio": {
+                    "inverse": self.oracle_ratio(ch, "inverse"),
+                    "reference_only": self.oracle_ratio(ch, "reference_only"),
+                },
                 "iae_lower_bound": self.iae_lower_bound(ch),
                 "iae_bound_per_unit_step": _round(self.nmp_bound[ch]),
             }
@@ -120,6 +159,8 @@ class ClosedLoopResult:
             "solver_paths": self.solver_paths,
             "blocked_steps": self.blocked,
             "divergences": self.divergences,
+            "non_finite_commands": self.inverse.non_finite_commands,
+            "oracle_failures": self.oracle_failures,
             "identifier": self.identifier,
         }
 
@@ -128,10 +169,13 @@ def _round(value: float | None, digits: int = 4) -> float | None:
     return None if value is None else round(value, digits)
 
 
-def setpoint_schedule(settings: ClosedLoopSettings) -> dict[str, np.ndarray]:
+def setpoint_schedule(
+    settings: ClosedLoopSettings, levels_by_channel: dict[str, tuple[float, ...]] | None = None
+) -> dict[str, np.ndarray]:
     """Setpoints per sample: NaN while identifying, then a step every ``step_every``."""
     schedules = {}
-    for ch, levels in (("depth", DEPTH_SETPOINTS), ("pitch", PITCH_SETPOINTS)):
+    chosen = levels_by_channel or {"depth": DEPTH_SETPOINTS, "pitch": PITCH_SETPOINTS}
+    for ch, levels in chosen.items():
         values = np.full(settings.samples, np.nan)
         for k in range(settings.identify, settings.samples):
             index = (k - settings.identify) // settings.step_every
@@ -199,16 +243,27 @@ def step_metrics(
 Controller = Callable[[int, TelemetrySample], tuple[float, float] | None]
 
 
+class SteppedPlant(Protocol):
+    """What a closed-loop run steps: ``GliderPlant`` or ``RandomVehicle``."""
+
+    loops: dict[str, ClosedLoopChannel]
+    actuators: dict[str, BallastActuator]
+
+    def step(self, u_depth: float, u_pitch: float) -> TelemetrySample: ...
+
+
 def _drive(
     settings: ClosedLoopSettings,
-    plant_config: PlantConfig,
+    plant: SteppedPlant,
     schedule: dict[str, np.ndarray],
     controller: Controller,
 ) -> RunTrace:
     """Run one plant: its excitation while identifying, then the controller's commands.
 
     The controller sees every sample, identification phase included (so an identifier can
-    learn from it); its answer is used from ``settings.identify`` on.
+    learn from it); its answer is used from ``settings.identify`` on. A command with a
+    non-finite value is counted and that channel holds its position (the actuator ignores
+    it, as the emulator's does).
     """
     n = settings.samples
     trace = RunTrace(
@@ -216,7 +271,6 @@ def _drive(
         setpoint=schedule,
         u={ch: np.empty(n) for ch in CHANNELS},
     )
-    plant = GliderPlant(plant_config)
     excitation = build_channel_excitations(settings.excitation, settings.seed)
     command = (0.0, 0.0)
     for k in range(n):
@@ -228,16 +282,71 @@ def _drive(
         if k < settings.identify:
             command = (excitation["depth"].value(k), excitation["pitch"].value(k))
         elif requested is not None:
+            for ch, value in zip(CHANNELS, requested, strict=True):
+                if not math.isfinite(value):
+                    trace.non_finite_commands[ch] += 1
             command = requested
     return trace
 
 
-def run_closed_loop(
-    settings: ClosedLoopSettings, pipeline_settings: PipelineSettings | None = None
-) -> ClosedLoopResult:
-    schedule = setpoint_schedule(settings)
-    plant_config = PlantConfig(scenario=settings.scenario, seed=settings.seed)
-    period = plant_config.period
+def known_plant(plant: SteppedPlant, channel: str, trim: float) -> KnownPlant:
+    """The oracle's knowledge of one channel: its model, actuator limits and pump map."""
+    loop, actuator = plant.loops[channel], plant.actuators[channel]
+    return KnownPlant(
+        a=np.array(loop.a_cl, dtype=float),
+        b=np.array(loop.b_cl, dtype=float),
+        c=np.array(loop.c_cl, dtype=float),
+        d=float(loop.d_cl),
+        trim=trim,
+        pump=actuator.nonlinearity or identity,
+        u_limit=actuator.limit,
+        rate_limit=actuator.rate_limit,
+    )
+
+
+def oracle_run(
+    settings: ClosedLoopSettings,
+    plant: SteppedPlant,
+    schedule: dict[str, np.ndarray],
+    oracle_settings: dict[str, OracleSettings],
+    trims: dict[str, float],
+) -> tuple[RunTrace, int]:
+    """The oracle on ``plant`` (fresh, at rest): its trace and the LP solves that failed."""
+    oracles = {
+        ch: OracleController(known_plant(plant, ch, trims[ch]), oracle_settings[ch])
+        for ch in CHANNELS
+    }
+
+    def control(k: int, sample: TelemetrySample) -> tuple[float, float] | None:
+        for ch in CHANNELS:
+            oracles[ch].observe(sample.output(ch), sample.input(ch))
+        if k < settings.identify:
+            return None
+        return (
+            oracles["depth"].command(float(schedule["depth"][k]), sample.u_depth),
+            oracles["pitch"].command(float(schedule["pitch"][k]), sample.u_pitch),
+        )
+
+    trace = _drive(settings, plant, schedule, control)
+    return trace, sum(o.failures for o in oracles.values())
+
+
+@dataclass
+class InverseRun:
+    trace: RunTrace
+    paths: dict[str, int]
+    blocked: int
+    divergences: dict[str, int]
+    identifier: dict[str, Any]
+
+
+def inverse_run(
+    settings: ClosedLoopSettings,
+    plant: SteppedPlant,
+    schedule: dict[str, np.ndarray],
+    pipeline_settings: PipelineSettings | None,
+) -> InverseRun:
+    """The service's pipeline (identifier + inverse controller) on ``plant``."""
     pipeline = VehiclePipeline(pipeline_settings or PipelineSettings(seed=settings.seed))
     paths: dict[str, int] = {}
     blocked = 0
@@ -256,6 +365,31 @@ def run_closed_loop(
         paths[mode] = paths.get(mode, 0) + 1
         return decision.command.u_depth, decision.command.u_pitch
 
+    trace = _drive(settings, plant, schedule, inverse_control)
+    return InverseRun(
+        trace=trace,
+        paths=paths,
+        blocked=blocked,
+        divergences={ch: p.divergences for ch, p in pipeline.channels.items()},
+        identifier=pipeline.identifier_health(),
+    )
+
+
+def score(trace: RunTrace, settings: ClosedLoopSettings, period: float) -> None:
+    for ch in CHANNELS:
+        trace.metrics[ch] = step_metrics(
+            trace.y[ch], trace.setpoint[ch], settings.identify, settings.settle_band, period
+        )
+
+
+def run_closed_loop(
+    settings: ClosedLoopSettings,
+    pipeline_settings: PipelineSettings | None = None,
+    oracle_settings: dict[str, OracleSettings] | None = None,
+) -> ClosedLoopResult:
+    schedule = setpoint_schedule(settings)
+    plant_config = PlantConfig(scenario=settings.scenario, seed=settings.seed)
+    period = plant_config.period
     trim = plant_config.trim_depth
     gains = {ch: DEFAULT_DESIGNS[ch].dc_gain for ch in CHANNELS}
 
@@ -265,21 +399,30 @@ def run_closed_loop(
             float(schedule["pitch"][k]) / gains["pitch"],
         )
 
-    inverse = _drive(settings, plant_config, schedule, inverse_control)
-    reference_only = _drive(settings, plant_config, schedule, reference_only_control)
-
-    for run in (inverse, reference_only):
-        for ch in CHANNELS:
-            run.metrics[ch] = step_metrics(
-                run.y[ch], run.setpoint[ch], settings.identify, settings.settle_band, period
-            )
+    inverse = inverse_run(settings, GliderPlant(plant_config), schedule, pipeline_settings)
+    reference_only = _drive(settings, GliderPlant(plant_config), schedule, reference_only_control)
+    oracle: RunTrace | None = None
+    failures = 0
+    if settings.oracle:
+        oracle, failures = oracle_run(
+            settings,
+            GliderPlant(plant_config),
+            schedule,
+            oracle_settings or GLIDER_ORACLE,
+            {"depth": trim, "pitch": 0.0},
+        )
+    for run in (inverse.trace, reference_only, oracle):
+        if run is not None:
+            score(run, settings, period)
     return ClosedLoopResult(
         settings=settings,
-        inverse=inverse,
+        inverse=inverse.trace,
         reference_only=reference_only,
-        solver_paths=paths,
-        blocked=blocked,
-        divergences={ch: p.divergences for ch, p in pipeline.channels.items()},
+        solver_paths=inverse.paths,
+        blocked=inverse.blocked,
+        divergences=inverse.divergences,
         nmp_bound={ch: nmp_iae_bound(ch, period) for ch in CHANNELS},
-        identifier=pipeline.identifier_health(),
+        identifier=inverse.identifier,
+        oracle=oracle,
+        oracle_failures=failures,
     )

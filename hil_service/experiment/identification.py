@@ -3,17 +3,24 @@
 The emulator's plant runs in-process (no sockets) under its own excitation; each model of
 ``MODEL_NAMES`` sees the same (u(t−1), y(t)) pairs and is scored on its a-priori one-step
 prediction. This is the paper's experiment (figures 9–12) with the baselines beside it.
+
+Beside the one-step scores, each model gets the multi-step figures of ``multistep.py``:
+the free-run fit (percent) and the k-step-ahead NMSE at the control horizon, on the
+samples after ``fit_split`` (default: the second half), the model frozen as the online
+identifier had it at ``fit_split``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from hil_service.pipeline import DEFAULT_MODEL_OPTIONS
-from hil_service.umodel import MODEL_NAMES, build_model, paper_preset
+from hil_service.experiment.multistep import MultiStepScores, multistep_scores
+from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
+from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
 from hil_service.umodel.scoring import ErrorStats
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
@@ -31,6 +38,8 @@ class IdentificationSettings:
     seed: int = 0
     burn_in: int | None = None  # default: a fifth of the samples
     excitation: str = "steps"
+    fit_split: int | None = None  # multi-step scores after this sample; default: half
+    horizon: int | None = None  # k of the k-step NMSE; default: the control horizon
 
     def __post_init__(self) -> None:
         if self.channel not in CHANNELS:
@@ -39,10 +48,40 @@ class IdentificationSettings:
             raise ValueError(f"samples must be at least 10, got {self.samples}")
         if self.burn_in is not None and not 0 <= self.burn_in < self.samples - 1:
             raise ValueError(f"burn_in must be in 0..{self.samples - 2}, got {self.burn_in}")
+        if self.fit_split is not None and not 1 <= self.fit_split <= self.samples - 2:
+            raise ValueError(f"fit_split must be in 1..{self.samples - 2}, got {self.fit_split}")
+        if self.horizon is not None and not 1 <= self.horizon < self.samples // 2:
+            raise ValueError(f"horizon must be in 1..{self.samples // 2 - 1}, got {self.horizon}")
 
     @property
     def effective_burn_in(self) -> int:
         return self.samples // 5 if self.burn_in is None else self.burn_in
+
+    @property
+    def effective_fit_split(self) -> int:
+        return self.samples // 2 if self.fit_split is None else self.fit_split
+
+    @property
+    def effective_horizon(self) -> int:
+        """The k-step horizon: given, or the controller's horizon on this channel (capped
+        so that the validation segment holds several windows)."""
+        if self.horizon is not None:
+            return self.horizon
+        return max(
+            1, min(control_horizon(self.channel), (self.samples - self.effective_fit_split) // 4)
+        )
+
+
+#: Used when ``ControlSettings`` has no fixed horizon for a channel.
+FALLBACK_HORIZON = {"depth": 150, "pitch": 3}
+
+
+def control_horizon(channel: str) -> int:
+    """The horizon the service's controller looks ahead on ``channel`` (its default)."""
+    horizon = getattr(ControlSettings(), "horizon", None)
+    if isinstance(horizon, dict) and isinstance(horizon.get(channel), int):
+        return int(horizon[channel])
+    return FALLBACK_HORIZON[channel]
 
 
 @dataclass
@@ -58,9 +97,25 @@ class ModelTrace:
     nmse: float | None = None
     skill: float | None = None
     converged_at: int | None = None
+    multistep: MultiStepScores | None = None
+
+    @property
+    def fit(self) -> float | None:
+        return None if self.multistep is None else self.multistep.fit
+
+    @property
+    def k_step_nmse(self) -> float | None:
+        return None if self.multistep is None else self.multistep.k_step_nmse
 
     def scores(self) -> dict[str, float | int | None]:
-        return {"nmse": self.nmse, "skill": self.skill, "converged_at": self.converged_at}
+        scores: dict[str, float | int | None] = {
+            "nmse": self.nmse,
+            "skill": self.skill,
+            "converged_at": self.converged_at,
+        }
+        if self.multistep is not None:
+            scores.update(self.multistep.as_json())
+        return scores
 
 
 @dataclass
@@ -77,6 +132,8 @@ class IdentificationResult:
             "samples": self.settings.samples,
             "seed": self.settings.seed,
             "burn_in": self.settings.effective_burn_in,
+            "fit_split": self.settings.effective_fit_split,
+            "horizon": self.settings.effective_horizon,
             "models": {name: trace.scores() for name, trace in self.models.items()},
         }
 
@@ -99,6 +156,11 @@ def converged_at(error: np.ndarray, y: np.ndarray, band: float = CONVERGENCE_BAN
         return 0
     last = int(outside[-1])
     return None if last == error.size - 1 else last + 1
+
+
+def _factory(config: dict[str, Any]) -> Callable[[], OneStepModel]:
+    """Fresh models of ``config`` (same seed: the same initial parameters)."""
+    return lambda: from_config(config)
 
 
 def run_identification(settings: IdentificationSettings) -> IdentificationResult:
@@ -147,5 +209,12 @@ def run_identification(settings: IdentificationSettings) -> IdentificationResult
             nmse=stats[name].nmse(),
             skill=stats[name].skill(),
             converged_at=converged_at(errors[name], ys),
+            multistep=multistep_scores(
+                _factory(model.config()),
+                us,
+                ys,
+                settings.effective_fit_split,
+                settings.effective_horizon,
+            ),
         )
     return result

@@ -17,9 +17,16 @@ from typing import Any
 import numpy as np
 
 from hil_service.config import ServiceConfig
-from hil_service.experiment.identification import CONVERGENCE_BAND, converged_at
+from hil_service.experiment.identification import (
+    CONVERGENCE_BAND,
+    control_horizon,
+    converged_at,
+)
+from hil_service.experiment.multistep import MultiStepScores, longest_contiguous, multistep_scores
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
 from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
+from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.umodel import from_config
 from hil_service.umodel.scoring import ErrorStats
 
 DEFAULT_BURN_IN = 300
@@ -37,6 +44,11 @@ class ChannelSummary:
     commands: int
     tracking_mae: float | None  # mean |y − setpoint| over commanded samples
     tracking_rms: float | None
+    # Free-run fit (%) and k-step NMSE of the logged model re-identified on the first half
+    # of the longest gap-free stretch and frozen (hil_service/experiment/multistep.py).
+    fit: float | None = None
+    k_step_nmse: float | None = None
+    horizon: int | None = None
     segments: int = 1  # runs of the vehicle's clock (restarts + 1)
 
 
@@ -99,7 +111,46 @@ def _on_samples(indexes: list[int], values: list[float], size: int) -> np.ndarra
     return aligned
 
 
-def summarise(vehicle: VehicleSeries, channel: str, burn_in: int) -> ChannelSummary:
+#: Fewer gap-free samples than this and the multi-step figures are not computed.
+MIN_FIT_SAMPLES = 40
+
+
+def multistep_from_log(
+    vehicle: VehicleSeries, channel: str, config: dict[str, Any]
+) -> MultiStepScores | None:
+    """The multi-step figures of the model the log's configuration describes, or None.
+
+    The model is rebuilt from the stored pipeline settings (same seed and options as the
+    service's), on the applied inputs (telemetry) and the outputs the identifier saw.
+    """
+    stored = (config.get("service") or {}).get("pipeline")
+    if not isinstance(stored, dict):
+        return None
+    try:
+        settings = PipelineSettings.from_json(stored)
+        model_config = VehiclePipeline(settings).configs()[channel]
+        horizon = control_horizon(channel)  # the predictive inverse derives its own at run time
+    except (TypeError, ValueError, KeyError, AttributeError):
+        return None
+    outputs = dict(zip(vehicle.channels[channel].t, vehicle.channels[channel].y, strict=True))
+    rows = [
+        (t, outputs[t], u)
+        for t, u in zip(vehicle.telemetry_t, vehicle.applied[channel], strict=True)
+        if t in outputs and math.isfinite(outputs[t]) and math.isfinite(u)
+    ]
+    start, stop = longest_contiguous([r[0] for r in rows])
+    n = stop - start
+    if n < MIN_FIT_SAMPLES:
+        return None
+    y = np.array([r[1] for r in rows[start:stop]])
+    u = np.array([r[2] for r in rows[start:stop]])
+    k = max(1, min(int(horizon), n // 8))
+    return multistep_scores(lambda: from_config(model_config), u, y, n // 2, k)
+
+
+def summarise(
+    vehicle: VehicleSeries, channel: str, burn_in: int, config: dict[str, Any] | None = None
+) -> ChannelSummary:
     series = vehicle.channels[channel]
     data = series.arrays()
     stats = ErrorStats(burn_in=burn_in)
@@ -131,8 +182,18 @@ def summarise(vehicle: VehicleSeries, channel: str, burn_in: int) -> ChannelSumm
         commands=sum(math.isfinite(u) for u in commands.u[channel]),
         tracking_mae=float(np.mean(np.abs(gap))) if gap.size else None,
         tracking_rms=float(np.sqrt(np.mean(gap**2))) if gap.size else None,
+        **_multistep_fields(vehicle, channel, config),
         segments=max(len(segments(vehicle)), 1),
     )
+
+
+def _multistep_fields(
+    vehicle: VehicleSeries, channel: str, config: dict[str, Any] | None
+) -> dict[str, Any]:
+    scores = None if config is None else multistep_from_log(vehicle, channel, config)
+    if scores is None:
+        return {}
+    return {"fit": scores.fit, "k_step_nmse": scores.k_step_nmse, "horizon": scores.horizon}
 
 
 def _figures(vehicle: VehicleSeries, channel: str, out: Path) -> list[Path]:
@@ -258,20 +319,25 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
         f"- scores after a burn-in of {burn_in} samples; skill = 1 − MSE(model) / "
         "MSE(persistence); convergence = first sample after which the a-priori error stays "
         f"within {CONVERGENCE_BAND:.0%} of the output's range",
+        "- fit = free-run (simulation) fit, 100·(1 − ‖y − ŷ_sim‖ / ‖y − mean y‖) %, and k-step "
+        "NMSE at the control horizon k: the model re-identified from the log on the first half "
+        "of its longest gap-free stretch, frozen, scored on the second half",
     ]
     if series.skipped:
         lines.append(f"- {series.skipped} publications could not be read and were skipped")
     lines += [
         "",
-        "| glider | channel | model | samples | NMSE | skill | converged at | commands "
-        "| tracking MAE | tracking RMS |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| glider | channel | model | samples | NMSE | skill | fit % | k | k-step NMSE "
+        "| converged at | commands | tracking MAE | tracking RMS |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summaries:
         unit = UNITS[s.channel]
         lines.append(
             f"| {s.system_id} | {s.channel} | {s.model} | {s.samples} | {_fmt(s.nmse, '.5f')} "
-            f"| {_fmt(s.skill, '.3f')} | {_fmt(s.converged_at, 'd') if s.samples else '–'} "
+            f"| {_fmt(s.skill, '.3f')} | {_fmt(s.fit, '.1f')} | {_fmt(s.horizon, 'd')} "
+            f"| {_fmt(s.k_step_nmse, '.4g')} "
+            f"| {_fmt(s.converged_at, 'd') if s.samples else '–'} "
             f"| {s.commands} | {_fmt(s.tracking_mae, '.3f')} {unit if s.tracking_mae else ''} "
             f"| {_fmt(s.tracking_rms, '.3f')} {unit if s.tracking_rms else ''} |"
         )
@@ -298,7 +364,7 @@ def write_report(log: str | Path, out: str | Path) -> Report:
         for channel in CHANNELS:
             if not vehicle.channels[channel].t:
                 continue
-            summaries.append(summarise(vehicle, channel, burn_in))
+            summaries.append(summarise(vehicle, channel, burn_in, series.config))
             figures += _figures(vehicle, channel, directory)
     path = directory / "report.md"
     path.write_text(markdown(series, summaries, figures), encoding="utf-8")

@@ -1,0 +1,219 @@
+"""Seeded families of stable plants the controller was not tuned on (``--scenario random``).
+
+Each plant is a discrete transfer function of order 2 or 3, strictly proper:
+
+    G(z) = g · N(z) / D(z),   D with poles of modulus 0.5–0.995 (real, or a complex pair),
+    N = 1, or (z − z₀) with a non-minimum-phase zero z₀ ∈ [1.05, 3],
+
+scaled so that G(1), the DC gain, is in 0.2–5 (log-uniform), behind the same kind of
+ballast actuator as the glider's (amplitude and rate limits) with an optional pump map
+(a dead zone and/or a cubic term). Sample periods differ between vehicles. A vehicle
+carries two such plants, one on each telemetry channel, so the service's pipeline runs on
+them unchanged; depth is reported around a trim depth as on the glider.
+
+Everything is drawn from ``numpy.random.default_rng(seed)``: the same seed gives the same
+family, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from plant_emulator.actuator import BallastActuator, PumpNonlinearity
+from plant_emulator.models import CHANNELS, ClosedLoopChannel
+from protocols.samples import TelemetrySample
+
+POLE_RANGE = (0.5, 0.995)
+DC_GAIN_RANGE = (0.2, 5.0)
+NMP_ZERO_RANGE = (1.05, 3.0)
+DEAD_ZONE_RANGE = (0.05, 0.3)
+CUBIC_RANGE = (0.02, 0.2)
+PERIODS = (0.1, 0.2, 0.5, 1.0, 2.0)
+#: Chance that a plant gets each optional feature.
+P_NMP, P_DEAD_ZONE, P_CUBIC, P_COMPLEX = 0.3, 0.3, 0.3, 0.4
+#: Largest pole angle of a complex pair (rad): a lightly oscillating, not a ringing, plant.
+MAX_POLE_ANGLE = 0.5
+
+
+@dataclass(frozen=True)
+class RandomPlantSpec:
+    """One drawn plant; ``poles`` as (real, imaginary) pairs, conjugates listed once each."""
+
+    index: int
+    order: int
+    poles: tuple[tuple[float, float], ...]
+    zero: float | None  # non-minimum-phase zero, or None
+    dc_gain: float
+    dead_zone: float
+    cubic: float
+    period: float
+
+    def den(self) -> np.ndarray:
+        roots: list[complex] = []
+        for re, im in self.poles:
+            roots.append(complex(re, im))
+            if im != 0.0:
+                roots.append(complex(re, -im))
+        return np.real(np.poly(roots))
+
+    def num(self) -> np.ndarray:
+        """Numerator (descending powers, same length as ``den``, leading zero: strictly proper)."""
+        den = self.den()
+        shape = np.array([1.0]) if self.zero is None else np.array([1.0, -self.zero])
+        gain = self.dc_gain * float(np.sum(den)) / float(np.sum(shape))
+        num = np.zeros(den.size)
+        num[-shape.size :] = gain * shape
+        return num
+
+    def pole_moduli(self) -> list[float]:
+        return [math.hypot(re, im) for re, im in self.poles]
+
+    def pump(self) -> PumpNonlinearity | None:
+        if self.dead_zone == 0.0 and self.cubic == 0.0:
+            return None
+        return PumpNonlinearity(dead_zone=self.dead_zone, cubic=self.cubic)
+
+    def describe(self) -> str:
+        poles = ", ".join(
+            f"{re:.3f}" if im == 0.0 else f"{math.hypot(re, im):.3f}∠±{math.atan2(im, re):.2f}"
+            for re, im in self.poles
+        )
+        parts = [f"order {self.order}", f"poles {poles}", f"DC {self.dc_gain:.2f}"]
+        if self.zero is not None:
+            parts.append(f"zero {self.zero:.2f}")
+        if self.dead_zone:
+            parts.append(f"dead zone {self.dead_zone:.2f}")
+        if self.cubic:
+            parts.append(f"cubic {self.cubic:.2f}")
+        parts.append(f"T {self.period:g} s")
+        return ", ".join(parts)
+
+    def as_json(self) -> dict[str, object]:
+        return {
+            "index": self.index,
+            "order": self.order,
+            "poles": [list(p) for p in self.poles],
+            "zero": self.zero,
+            "dc_gain": self.dc_gain,
+            "dead_zone": self.dead_zone,
+            "cubic": self.cubic,
+            "period": self.period,
+        }
+
+    def channel_model(self, channel: str) -> ClosedLoopChannel:
+        """The plant as the emulator's channel type (controllable canonical form)."""
+        den, num = self.den(), self.num()
+        n = den.size - 1
+        a = np.zeros((n, n))
+        a[0, :] = -den[1:]
+        a[1:, :-1] = np.eye(n - 1)
+        b = np.zeros(n)
+        b[0] = 1.0
+        c = num[1:].astype(float)
+        return ClosedLoopChannel(
+            channel=channel,
+            dt=self.period,
+            a_cl=a,
+            b_cl=b,
+            c_cl=c,
+            d_cl=0.0,
+            gain_k=np.zeros(n),
+            ref_gain=1.0,
+        )
+
+
+def _draw_poles(rng: np.random.Generator, order: int) -> tuple[tuple[float, float], ...]:
+    lo, hi = POLE_RANGE
+    poles: list[tuple[float, float]] = []
+    remaining = order
+    if rng.random() < P_COMPLEX:
+        modulus = float(rng.uniform(lo, hi))
+        angle = float(rng.uniform(0.05, MAX_POLE_ANGLE))
+        poles.append((modulus * math.cos(angle), modulus * math.sin(angle)))
+        remaining -= 2
+    poles += [(float(rng.uniform(lo, hi)), 0.0) for _ in range(remaining)]
+    return tuple(poles)
+
+
+def draw_plant(rng: np.random.Generator, index: int, period: float) -> RandomPlantSpec:
+    order = int(rng.integers(2, 4))
+    poles = _draw_poles(rng, order)
+    zero = float(rng.uniform(*NMP_ZERO_RANGE)) if rng.random() < P_NMP else None
+    dc = float(math.exp(rng.uniform(math.log(DC_GAIN_RANGE[0]), math.log(DC_GAIN_RANGE[1]))))
+    dead_zone = float(rng.uniform(*DEAD_ZONE_RANGE)) if rng.random() < P_DEAD_ZONE else 0.0
+    cubic = float(rng.uniform(*CUBIC_RANGE)) if rng.random() < P_CUBIC else 0.0
+    return RandomPlantSpec(index, order, poles, zero, dc, dead_zone, cubic, period)
+
+
+def draw_family(seed: int, plants: int = 20) -> list[tuple[RandomPlantSpec, RandomPlantSpec]]:
+    """``plants`` plants (rounded up to even) as (depth, pitch) pairs, one pair per vehicle."""
+    if plants < 1:
+        raise ValueError(f"plants must be at least 1, got {plants}")
+    rng = np.random.default_rng(seed)
+    pairs = []
+    for v in range((plants + 1) // 2):
+        period = float(PERIODS[int(rng.integers(len(PERIODS)))])
+        pairs.append((draw_plant(rng, 2 * v, period), draw_plant(rng, 2 * v + 1, period)))
+    return pairs
+
+
+@dataclass(frozen=True)
+class RandomVehicleConfig:
+    depth: RandomPlantSpec
+    pitch: RandomPlantSpec
+    trim_depth: float = 15.0
+    input_limit: float = 2.0
+    rate_limit: float = 0.5
+
+    @property
+    def period(self) -> float:
+        return self.depth.period
+
+    @property
+    def scenario(self) -> str:
+        return "random"
+
+    def spec(self, channel: str) -> RandomPlantSpec:
+        return self.depth if channel == "depth" else self.pitch
+
+
+class RandomVehicle:
+    """A vehicle with a random plant on each channel; the same stepping as ``GliderPlant``."""
+
+    def __init__(self, config: RandomVehicleConfig, system_id: int = 1):
+        if config.depth.period != config.pitch.period:
+            raise ValueError("both channels of a vehicle share its sample period")
+        self.config = config
+        self.system_id = system_id
+        self.loops = {ch: config.spec(ch).channel_model(ch) for ch in CHANNELS}
+        self.actuators = {
+            ch: BallastActuator(
+                limit=config.input_limit,
+                rate_limit=config.rate_limit,
+                nonlinearity=config.spec(ch).pump(),
+            )
+            for ch in CHANNELS
+        }
+        self.k = 0
+
+    def step(self, u_depth: float, u_pitch: float) -> TelemetrySample:
+        """Apply the commanded inputs for one period (see ``GliderPlant.step``)."""
+        outputs, applied = {}, {}
+        for ch, command in (("depth", u_depth), ("pitch", u_pitch)):
+            actuator = self.actuators[ch]
+            effective = actuator.apply(command)
+            applied[ch] = actuator.position
+            outputs[ch] = self.loops[ch].step(effective)
+        t = self.k * self.config.period
+        self.k += 1
+        return TelemetrySample(
+            system_id=self.system_id,
+            time_boot_ms=round(t * 1000.0),
+            depth=self.config.trim_depth + outputs["depth"],
+            pitch=outputs["pitch"],
+            u_depth=applied["depth"],
+            u_pitch=applied["pitch"],
+        )
