@@ -14,7 +14,6 @@ starts afresh rather than dropping it forever. Everything is counted per vehicle
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
@@ -27,11 +26,10 @@ from protocols.mapping import (
     step_time_ms,
 )
 from protocols.mavlink_io import MavMessage
-from protocols.samples import TelemetrySample
+from protocols.samples import TelemetrySample, is_plausible
 
 MAX_PENDING_STEPS = 4
 REBOOT_STEPS = 3
-DEPTH_RANGE = (-50.0, 11_000.0)  # m: above the surface by a wave crest .. the deepest trench
 
 
 @dataclass
@@ -208,12 +206,5 @@ class SampleAssembler:
             )
         except (TypeError, ValueError, IndexError, AttributeError):
             return None
-        full_scale = self.mapping.inputs.full_scale * (1 + 1e-6)
-        plausible = (
-            sample.is_finite()
-            and DEPTH_RANGE[0] <= sample.depth <= DEPTH_RANGE[1]
-            and abs(sample.pitch) <= math.pi
-            and abs(sample.u_depth) <= full_scale
-            and abs(sample.u_pitch) <= full_scale
-        )
+        plausible = is_plausible(sample, self.mapping.inputs.full_scale)
         return sample if plausible else None

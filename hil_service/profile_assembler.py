@@ -12,16 +12,13 @@ One message may complete several ticks (after a gap), so ``add_all`` returns a l
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from hil_service.sampler import SamplerConfig, StreamSampler, Tick
 from protocols.mavlink_io import MavMessage
 from protocols.profiles import Profile, message_clock
-from protocols.samples import TelemetrySample
-
-DEPTH_RANGE = (-50.0, 11_000.0)  # m, as the lockstep assembler
+from protocols.samples import TelemetrySample, is_plausible
 
 
 @dataclass
@@ -159,14 +156,7 @@ class ProfileAssembler:
             pitch_rate=values.get("pitch_rate", 0.0),
             climb=values.get("climb", 0.0),
         )
-        full_scale = self.profile.ballast.full_scale * (1 + 1e-6)
-        plausible = (
-            sample.is_finite()
-            and DEPTH_RANGE[0] <= sample.depth <= DEPTH_RANGE[1]
-            and abs(sample.pitch) <= math.pi
-            and abs(sample.u_depth) <= full_scale
-            and abs(sample.u_pitch) <= full_scale
-        )
+        plausible = is_plausible(sample, self.profile.ballast.full_scale)
         if not plausible:
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return None

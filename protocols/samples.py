@@ -56,6 +56,23 @@ class TelemetrySample(NamedTuple):
         return self._asdict()
 
 
+#: Depths a sample may report, m: above the surface by a wave crest .. the deepest trench.
+DEPTH_RANGE = (-50.0, 11_000.0)
+
+
+def is_plausible(sample: TelemetrySample, full_scale: float) -> bool:
+    """Finite, a depth in ``DEPTH_RANGE``, |pitch| ≤ π and both inputs within the actuator's
+    full scale (model units, with a rounding margin): what either assembler passes on."""
+    limit = full_scale * (1 + 1e-6)
+    return (
+        sample.is_finite()
+        and DEPTH_RANGE[0] <= sample.depth <= DEPTH_RANGE[1]
+        and abs(sample.pitch) <= math.pi
+        and abs(sample.u_depth) <= limit
+        and abs(sample.u_pitch) <= limit
+    )
+
+
 @dataclass(frozen=True)
 class BallastCommand:
     """A ballast command in model units; NaN leaves that channel unchanged."""
