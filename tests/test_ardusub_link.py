@@ -135,7 +135,9 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
         assert depth_error < 1.0 and pitch_error < 0.05
         out, _ = processes.stop(emulator)
         summary = last_json(out, "emulator")
-        assert summary["commands_accepted"] == client.commands_sent > 0
+        # The last DO_SET_SERVO may still be in flight when the emulator is stopped.
+        assert client.commands_sent - 1 <= summary["commands_accepted"] <= client.commands_sent
+        assert client.commands_sent > 0
         assert summary["commands_rejected"] == 0
     finally:
         client.close()
