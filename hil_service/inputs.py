@@ -90,30 +90,37 @@ class Inbox:
             self.rejected += 1
             self.last_rejection = reason
 
-    def accept(self, key: str, raw: bytes) -> None:
-        """Parse one received setpoint/control message; bad ones are counted, never raised."""
+    def accept(self, key: str, raw: bytes) -> str:
+        """Parse one received setpoint/control message; bad ones are counted, never raised.
+
+        Returns why it was refused, or "" when it was taken: the recorder keeps accepted
+        inputs on their own channel and refused ones, with this reason, apart.
+        """
+        reason = self._apply(key, raw)
+        if reason:
+            self.reject(reason)
+        return reason
+
+    def _apply(self, key: str, raw: bytes) -> str:
+        """Take the input if it is valid; otherwise why not (nothing changed then)."""
         parsed = keys.parse(key)
         if parsed is None or parsed.kind not in (keys.SETPOINT, keys.CONTROL):
-            self.reject(f"{key}: not a setpoint or control key")
-            return
+            return f"{key}: not a setpoint or control key"
         try:
             payload = json.loads(raw)
         except ValueError as error:
-            self.reject(f"{key}: {error}")
-            return
+            return f"{key}: {error}"
         errors = validation_errors(keys.SCHEMA_FOR_KIND[parsed.kind], payload)
         if errors:
-            self.reject(f"{key}: {errors[0]}")
-            return
+            return f"{key}: {errors[0]}"
         if parsed.channel is not None:  # a setpoint
             value = payload["value"]
             if value is not None and not math.isfinite(value):
-                self.reject(f"{key}: non-finite setpoint")
-                return
+                return f"{key}: non-finite setpoint"
             violation = "" if value is None else self.limits.violation(parsed.channel, value)
             if violation:
-                self.reject(f"{key}: refused: {violation}")
-                return
+                return f"{key}: refused: {violation}"
             self.set_setpoint(parsed.system_id, parsed.channel, value)
         else:
             self.set_enabled(parsed.system_id, bool(payload["enabled"]))
+        return ""

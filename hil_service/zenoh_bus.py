@@ -61,13 +61,15 @@ class ZenohBus:
         # Runs on a Zenoh thread: parse and store only, never block.
         key = str(sample.key_expr)
         raw = sample.payload.to_bytes()
-        if self.recorder is not None:
-            try:
-                payload: Any = json.loads(raw)
-            except ValueError:
-                payload = {"raw": raw.decode("utf-8", "replace")}
-            self.recorder.zenoh(key, payload, "in")
-        self.inbox.accept(key, raw)
+        reason = self.inbox.accept(key, raw)
+        if self.recorder is None:
+            return
+        if reason:  # kept apart, so each input channel holds only what its schema allows
+            text = raw.decode("utf-8", "replace")
+            refused = {"key": key, "text": text, "reason": reason}
+            self.recorder.zenoh(keys.rejected_inputs(), refused, "in")
+        else:
+            self.recorder.zenoh(key, json.loads(raw), "in")
 
     def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
         publisher = self._publishers.get(key)

@@ -25,6 +25,7 @@ HEALTH = "health"
 STATE = "state"
 SERVICE = "service"
 DECISION_INPUTS = "decision-inputs"
+REJECTED_INPUTS = "rejected-inputs"  # service-wide log channel: no system id
 
 #: Kinds followed by ``/{channel}``.
 CHANNEL_KINDS = frozenset({UMODEL, SETPOINT})
@@ -89,6 +90,11 @@ def decision_inputs(system_id: int) -> str:
     """MCAP channel of the control inputs each decision used (recorded on change)."""
     _check(system_id)
     return f"{LOG_ROOT}/{system_id}/{DECISION_INPUTS}"
+
+
+def rejected_inputs() -> str:
+    """Log channel of the inputs the service refused (any key, valid or not), with why."""
+    return f"{LOG_ROOT}/{REJECTED_INPUTS}"
 
 
 def vehicle_pattern(system_id: int) -> str:
@@ -171,5 +177,7 @@ SCHEMA_FOR_KIND = {
 
 def schema_for_key(key: str) -> str | None:
     """The schema name of a concrete key, or None for keys without a JSON payload schema."""
+    if key == rejected_inputs():
+        return "rejected_input"
     parsed = parse(key)
     return None if parsed is None else SCHEMA_FOR_KIND.get(parsed.kind)

@@ -17,6 +17,7 @@ SCHEMA_NAMES = (
     "control",
     "health",
     "decision_inputs",
+    "rejected_input",
 )
 
 @cache

@@ -42,7 +42,19 @@ def _send_inputs(endpoint: str, inbox: Inbox) -> None:
     try:
         puts = [(f"glider/1/setpoint/{ch}", {"value": v}) for ch, v in SETPOINTS.items()]
         puts.append(("glider/1/control", {"enabled": True}))
+        # Refused inputs first (not JSON, against its schema, outside the limits): kept in
+        # the log apart from the setpoint and control channels, whose schemas they fail.
+        refused = [
+            ("glider/1/setpoint/depth", b"deep"),
+            ("glider/1/setpoint/pitch", b'{"value": "steep"}'),
+            ("glider/1/control", b'{"enabled": 1}'),
+        ]
+        for key, raw in refused:
+            operator.put(key, raw)
         deadline = time.monotonic() + 10
+        while inbox.rejected < len(refused) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert inbox.rejected == len(refused), inbox.last_rejection
         while time.monotonic() < deadline:
             for key, payload in puts:
                 operator.put(key, json.dumps(payload))
@@ -176,6 +188,7 @@ def test_report_tracks_each_command_against_its_own_segment(rebooted_log, tmp_pa
 
 def test_every_json_channel_has_a_schema_that_its_payloads_match(rebooted_log):
     seen: dict[str, int] = {}
+    refused: list[dict] = []
     validators: dict[int, jsonschema.protocols.Validator] = {}
     with open(rebooted_log, "rb") as stream:
         for schema, channel, message in make_reader(stream).iter_messages():
@@ -192,6 +205,8 @@ def test_every_json_channel_has_a_schema_that_its_payloads_match(rebooted_log):
             errors = [e.message for e in validator.iter_errors(json.loads(message.data))]
             assert not errors, f"{channel.topic}: {errors[0]}"
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == "glider-hil/rejected-inputs":
+                refused.append(json.loads(message.data))
     for topic in (
         "glider-hil/1/decision-inputs",
         "glider/1/telemetry",
@@ -200,7 +215,14 @@ def test_every_json_channel_has_a_schema_that_its_payloads_match(rebooted_log):
         "glider/1/health",
         "glider/1/setpoint/depth",
         "glider/1/control",
+        "glider-hil/rejected-inputs",
         "mavlink/json/in/ATTITUDE",
         "mavlink/json/out/COMMAND_LONG",
     ):
         assert seen.get(topic, 0) > 0, f"no {topic} in the log: {sorted(seen)}"
+    assert sorted((r["key"], r["text"]) for r in refused) == [
+        ("glider/1/control", '{"enabled": 1}'),
+        ("glider/1/setpoint/depth", "deep"),
+        ("glider/1/setpoint/pitch", '{"value": "steep"}'),
+    ]
+    assert all(r["reason"].startswith(r["key"] + ": ") for r in refused), refused

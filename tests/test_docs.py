@@ -189,6 +189,8 @@ def recorded_log(tmp_path_factory) -> Path:
             return current.enabled is True and None not in current.setpoints.values()
 
         _wait(inputs_arrived, "the operator's inputs")
+        operator.put(keys.setpoint(SYSTEM_ID, "depth"), b'{"value": "deep"}')  # refused
+        _wait(lambda: wired.inbox.rejected >= 1, "the refused input")
         codec = MavlinkCodec(SYSTEM_ID, 1, signing_key=KEY)
         for datagram in _telemetry(MavlinkCodec(SYSTEM_ID, 1), 2):  # unsigned: refused
             wired.service.process_datagram(datagram)

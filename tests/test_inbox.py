@@ -23,6 +23,7 @@ def test_valid_inputs_are_stored_per_vehicle():
     put(inbox, "glider/1/setpoint/depth", {"value": None})  # clears it
     assert inbox.get(1).setpoints["depth"] is None
     assert inbox.rejected == 0
+    assert inbox.accept("glider/2/control", b'{"enabled": false}') == ""  # taken: no reason
 
 
 def test_setpoints_outside_the_limits_are_refused_with_a_reason_not_clipped():
@@ -80,9 +81,10 @@ def test_every_refusal_names_the_key_and_why():
         ("glider/1/speed", b'{"enabled": true}', "glider/1/speed: not a setpoint or control"),
     ]
     for n, (key, raw, reason) in enumerate(cases, start=1):
-        inbox.accept(key, raw)
+        returned = inbox.accept(key, raw)  # what the recorder files the input under
         assert inbox.rejected == n, key
         assert inbox.last_rejection.startswith(reason), (key, inbox.last_rejection)
+        assert returned == inbox.last_rejection
     # None of them set anything.
     assert inbox.get(1).enabled is None
     assert inbox.get(1).setpoints == {"depth": None, "pitch": None}
