@@ -23,6 +23,7 @@ def test_valid_inputs_are_stored_per_vehicle():
     put(inbox, "glider/1/setpoint/depth", {"value": None})  # clears it
     assert inbox.get(1).setpoints["depth"] is None
     assert inbox.rejected == 0
+    assert inbox.last_rejection == ""  # health shows last_rejected_input once one is refused
     assert inbox.accept("glider/2/control", b'{"enabled": false}') == ""  # taken: no reason
 
 

@@ -463,3 +463,33 @@ def test_an_estimate_the_log_lacks_is_named(tmp_path, replay_log):
     # What the replay computed is the record that was left out, bit for bit.
     assert mismatch.recomputed == estimates[last].decode()
     assert mismatch.t == json.loads(estimates[last])["t"]
+
+
+def test_a_periodic_profile_log_replays_with_the_samplers_count(tmp_path):
+    """An ArduSub-style dive (each stream every 0.1 s, from a tlog) replays through the
+    periodic sampler, and the result counts that sampler's samples (the lockstep assembler
+    forms none from such streams)."""
+    from hil_service.offline.tlog_import import import_tlog
+    from protocols.mavlink_io import MavlinkCodec, dialect
+    from protocols.profiles import load_profile
+
+    profile = load_profile("ardusub")
+    vehicle = MavlinkCodec(1, 1)
+    t0_us, steps, data = 1_700_000_000_000_000, 60, b""
+    for k in range(steps):
+        ms = 1000 + 100 * k
+        hpa = profile.pressure.pressure_hpa(10.0 + 0.01 * k)
+        for i, message in enumerate(
+            (
+                dialect.MAVLink_attitude_message(ms, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0),
+                dialect.MAVLink_scaled_pressure2_message(ms, hpa, 0.0, 1500, 0),
+                dialect.MAVLink_servo_output_raw_message(ms * 1000, 0, *([1500] * 16)),
+            )
+        ):
+            data += (t0_us + (ms + i) * 1000).to_bytes(8, "big") + vehicle.pack(message)
+    tlog = tmp_path / "dive.tlog"
+    tlog.write_bytes(data)
+    import_tlog(tlog, tmp_path / "dive.mcap", profile)
+    result = replay_module.replay(tmp_path / "dive.mcap", replay_module.ReplayOptions())
+    assert result.complete
+    assert steps - 3 <= result.samples <= steps, result.samples
