@@ -87,6 +87,8 @@ class LiveView:
         self.encode_errors = 0  # MAVLink messages whose JSON could not be made (skipped)
         self._pending: deque[tuple[str, Any, int]] = deque()
         self._channels: dict[str, Any] = {}  # Channel, or BaseChannel for schemaless ones
+        self._raw: dict[str, Any] = {}  # direction → its raw MAVLink channel
+        self._decoded: dict[tuple[str, str], Any] = {}  # (direction, type) → JSON channel
         self._context = foxglove.Context()
         self._server: Any = None
         self._inputs: list[Any] = []
@@ -139,7 +141,11 @@ class LiveView:
         """A MAVLink message the service received (``in``) or sent (``out``), or a frame it
         refused (``rejected``, no message): streamed raw and, for a message, decoded. The
         frame defaults to the message's own bytes. Never blocks (as ``offer``)."""
-        self.offer(_MAVLINK, (direction, message, frame), t_ns)
+        self.offered += 1  # as offer, inlined: this runs for every frame
+        if len(self._pending) >= self.max_pending:
+            self.dropped += 1
+            return
+        self._pending.append((_MAVLINK, (direction, message, frame), t_ns))
 
     def watched(self) -> bool:
         """Whether a client subscribes to at least one channel now."""
@@ -181,9 +187,9 @@ class LiveView:
         ]
 
     def _raw_channel(self, direction: str) -> Any:
-        topic = RAW_TOPIC.format(direction=direction)
-        channel = self._channels.get(topic)
+        channel = self._raw.get(direction)
         if channel is None:
+            topic = RAW_TOPIC.format(direction=direction)
             # No schema, as in the log (a MAVLink frame describes itself). foxglove.Channel
             # refuses a schemaless channel unless its encoding is json; the context's own
             # constructor (what Channel calls) takes one.
@@ -197,13 +203,13 @@ class LiveView:
                     "direction": direction,
                 },
             )
-            self._channels[topic] = channel
+            self._channels[topic] = self._raw[direction] = channel
         return channel
 
     def _json_channel(self, direction: str, message_type: str) -> Any:
-        topic = JSON_TOPIC.format(direction=direction, kind=message_type)
-        channel = self._channels.get(topic)
+        channel = self._decoded.get((direction, message_type))
         if channel is None:
+            topic = JSON_TOPIC.format(direction=direction, kind=message_type)
             schema = Schema(
                 name=f"mavlink.{message_type}",
                 encoding="jsonschema",
@@ -216,7 +222,7 @@ class LiveView:
                 context=self._context,
                 metadata={"direction": direction},
             )
-            self._channels[topic] = channel
+            self._channels[topic] = self._decoded[direction, message_type] = channel
         return channel
 
     def _log_mavlink(self, entry: tuple[str, MavMessage | None, bytes | None], t_ns: int) -> None:
