@@ -9,7 +9,14 @@ the router. Printed per fleet size:
 * telemetry → command latency (p50, p99, max): measured in the emulator, from sending a
   step's last telemetry datagram to receiving the command that answers it (control on,
   a depth setpoint for every vehicle, after ``--burn-in`` samples);
+* where the time goes: CPU seconds of each of our processes during the run (router,
+  services, emulator; per sample in ms), against the machine's CPU pressure over the same
+  interval (``/proc/pressure/cpu`` "some": the share of the time some runnable task waited
+  for a core) and the load average at the start;
 * the largest fleet of the sizes tried whose p99 stays under 20 ms.
+
+``benchmarks/fleet_stages.py`` times the stages inside one process (emulator step, service
+sample → command, the health burst) without the other processes competing.
 
 The emulated vehicles step spread evenly over the 100 ms period, as independent vehicles'
 clocks are; ``--phase-locked`` makes them all step at once (each service then receives its
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -56,6 +64,23 @@ def free_port(kind: int) -> int:
     with socket.socket(socket.AF_INET, kind) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a live process (all its threads), s."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_pressure_us() -> int | None:
+    """Total µs during which some runnable task waited for a CPU (PSI), None without PSI."""
+    try:
+        with open("/proc/pressure/cpu") as f:
+            some = f.readline().split()
+    except OSError:
+        return None
+    return int(some[-1].partition("=")[2])
 
 
 def client_session(router: str) -> zenoh.Session:
@@ -125,6 +150,10 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         )  # fmt: skip
         processes.append(emulator)
         started = time.monotonic()
+        load_average = os.getloadavg()[0]
+        ours = {"router": router_process, "service_1": services[0], "service_2": services[1]}
+        cpu_before = {name: cpu_seconds(p.pid) for name, p in ours.items()}
+        pressure_before = cpu_pressure_us()
         # Mid-run, once every vehicle has had time to appear: what `fleet` lists.
         time.sleep(max(0.0, seconds * 0.6))
         fleet = subprocess.run(
@@ -135,6 +164,8 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         listed = json.loads(fleet.stdout)["vehicles"] if fleet.returncode == 0 else []
         emulator_out, emulator_err = emulator.communicate(timeout=seconds * 4 + 120)
         wall = time.monotonic() - started
+        cpu = {name: cpu_seconds(p.pid) - cpu_before[name] for name, p in ours.items()}
+        pressure_after = cpu_pressure_us()
         time.sleep(1.0)  # the last publications reach the subscriber
         for subscriber in subscribers:
             subscriber.undeclare()
@@ -166,6 +197,27 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             "fleet_coverage": round(len(listed) / vehicles, 3),
             "commands_published": commands,
             "latency": emulated["latency"],
+            "late_steps": emulated.get("late_steps"),
+            "load_average_1min_at_start": round(load_average, 2),
+            "cpu_pressure_some": None
+            if pressure_before is None or pressure_after is None
+            else round((pressure_after - pressure_before) / 1e6 / wall, 3),
+            "cpu_s": {
+                **{name: round(value, 2) for name, value in cpu.items()},
+                "emulator": emulated.get("cpu_s"),
+            },
+            "cpu_ms_per_sample": {
+                "each_service": round(
+                    1000 * (cpu["service_1"] + cpu["service_2"]) / max(assembled, 1), 3
+                ),
+                "router": round(1000 * cpu["router"] / max(assembled, 1), 3),
+                "emulator_per_step": round(
+                    1000 * (emulated.get("cpu_s") or 0.0) / max(emulated["steps"], 1), 3
+                ),
+            },
+            "cores_used_by_the_fleet": round(
+                (sum(cpu.values()) + (emulated.get("cpu_s") or 0.0)) / wall, 2
+            ),
         }
     finally:
         if session is not None:

@@ -10,7 +10,11 @@ SIGSTOP once subscribed, a viewer that holds its connection and never reads agai
 machine load hits all alike; medians and the ratios of medians are printed, with the live
 view's own counters (offered, sent, dropped).
 
+``--without-mavlink`` leaves the MAVLink channels out of the live view (the service's
+``live_mavlink`` hook unset), to see what streaming them costs.
+
 Run: .venv/bin/python benchmarks/bench_live_view.py [--samples N] [--repeats R]
+     [--without-mavlink]
 """
 
 from __future__ import annotations
@@ -48,7 +52,11 @@ def free_tcp_port() -> int:
 
 
 def one_run(
-    warm: list[bytes], datagrams: list[bytes], live_on: bool, stalled: bool = False
+    warm: list[bytes],
+    datagrams: list[bytes],
+    live_on: bool,
+    stalled: bool = False,
+    mavlink: bool = True,
 ) -> dict[str, object]:
     """Throughput of the timed datagrams; with ``stalled``, the viewer is stopped (SIGSTOP)
     once subscribed: it holds its connection but never reads again."""
@@ -67,6 +75,8 @@ def one_run(
         wired = wire(config, session=session, recorder=recorder, live=live)
         tune_for_service()
         service = wired.service
+        if not mavlink:
+            service.live_mavlink = None
         for data in warm:
             service.process_datagram(data)
         if live is not None:
@@ -97,6 +107,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--without-mavlink", action="store_true", help="no MAVLink channels")
     args = parser.parse_args()
     if shutil.which("node") is None or not (CLIENT.parent / "node_modules").is_dir():
         print("needs node and `make foxglove-client`", file=sys.stderr)
@@ -107,15 +118,17 @@ def main() -> int:
     off, on, stalled, live_status = [], [], [], []
     for _ in range(args.repeats):
         off.append(one_run(warm, datagrams, False)["samples_per_s"])
-        result = one_run(warm, datagrams, True)
+        mavlink = not args.without_mavlink
+        result = one_run(warm, datagrams, True, mavlink=mavlink)
         on.append(result["samples_per_s"])
         live_status.append(result["live"])
-        result = one_run(warm, datagrams, True, stalled=True)
+        result = one_run(warm, datagrams, True, stalled=True, mavlink=mavlink)
         stalled.append(result["samples_per_s"])
         live_status.append(result["live"])
     report = {
         "samples": args.samples,
         "repeats": args.repeats,
+        "mavlink_channels": not args.without_mavlink,
         "without_live_view_samples_per_s": [round(x) for x in off],
         "with_viewer_samples_per_s": [round(x) for x in on],
         "median_without": round(statistics.median(off)),

@@ -90,6 +90,9 @@ def wire(
     service = HilService(
         config, bus, inbox, link=link, recorder=recorder, send_commands=send_commands
     )
+    if live is not None:
+        service.live_counters = live.counters
+        service.live_mavlink = live.offer_mavlink
     return Wired(service, inbox, bus, recorder, link, session, live)
 
 

@@ -28,6 +28,9 @@ from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
 
+#: Who also sees each MAVLink frame: (direction, message or None, frame or None, time ns).
+MavlinkTap = Callable[[str, MavMessage | None, bytes | None, int], None]
+
 
 @dataclass
 class VehicleRuntime:
@@ -87,20 +90,32 @@ class HilService:
         self.vehicles: dict[int, VehicleRuntime] = {}
         self._next_health = 0.0
         self._lock = threading.Lock()  # guards snapshots read by the state queryable
+        #: The live view's counters (``LiveView.counters``) when one runs: health's
+        #: ``service_wide`` carries them (builder.wire sets it).
+        self.live_counters: Callable[[], dict[str, int]] | None = None
+        #: The live view's MAVLink feed (``LiveView.offer_mavlink``): direction, message,
+        #: frame, time; every frame received, refused and sent, as the log records them.
+        self.live_mavlink: MavlinkTap | None = None
 
     # ---- the per-datagram path --------------------------------------------------------
     def process_datagram(self, data: bytes, datagram: bool = True) -> list[TelemetrySample]:
         now_ns = time.time_ns()
         samples = []
         messages = self.codec.parse(data, datagram=datagram)
+        live = self.live_mavlink
         if self.recorder is not None:
             # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
             for frame in self.codec.last_rejected:
                 self.recorder.raw("rejected", frame, now_ns)
+        if live is not None:
+            for frame in self.codec.last_rejected:
+                live("rejected", None, frame, now_ns)
         for message in messages:
             if self.recorder is not None:
                 self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
                 self.recorder.mavlink("in", message, now_ns)
+            if live is not None:
+                live("in", message, None, now_ns)
             if self.periodic is not None:
                 samples.extend(self._process_periodic(message))
                 continue
@@ -202,6 +217,8 @@ class HilService:
             now_ns = time.time_ns()
             self.recorder.raw("out", frame, now_ns)
             self.recorder.mavlink("out", message, now_ns)
+        if self.live_mavlink is not None:
+            self.live_mavlink("out", message, frame, time.time_ns())
 
     def _on_ack(self, message: MavMessage) -> None:
         vehicle = self.vehicles.get(message.get_srcSystem())
@@ -318,11 +335,14 @@ class HilService:
         return counters
 
     def _service_wide(self) -> dict[str, int]:
-        """Counters of the service as a whole: refused operator inputs, log records."""
+        """Counters of the service as a whole: refused operator inputs, log records, the
+        live view's messages (with ``--foxglove``)."""
         counters = {"setpoints_rejected": self.inbox.rejected}
         if self.recorder is not None:
             counters["log_records"] = self.recorder.status.records
             counters["log_dropped"] = self.recorder.status.dropped
+        if self.live_counters is not None:
+            counters.update(self.live_counters())
         return counters
 
     def state(self, system_id: int) -> dict[str, Any]:

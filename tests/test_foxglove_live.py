@@ -24,6 +24,8 @@ from tests.zenoh_peer import ZenohProbe
 
 CLIENT_DIR = Path(__file__).resolve().parent / "foxglove_client"
 KINDS = ("telemetry", "umodel", "command/ballast")
+#: The MAVLink channels of the log, streamed too (raw frames: schemaless ``mavlink2``).
+MAVLINK_KINDS = ("mavlink/raw/in", "mavlink/raw/out", "mavlink/json/in", "mavlink/json/out")
 BURN_IN = 200
 
 
@@ -70,7 +72,7 @@ def test_reference_client_validates_live_messages(processes, tmp_path) -> None:
         # The service publishes commands once its identifier has converged.
         assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > 0, 60)
         result = subprocess.run(
-            [*client, f"ws://127.0.0.1:{fox}", "50", "30", *KINDS],
+            [*client, f"ws://127.0.0.1:{fox}", "50", "30", *KINDS, *MAVLINK_KINDS],
             capture_output=True,
             text=True,
             timeout=60,
@@ -81,7 +83,7 @@ def test_reference_client_validates_live_messages(processes, tmp_path) -> None:
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     assert summary["subprotocol"] == "foxglove.sdk.v1"
     assert summary["complete"], summary
-    for kind in KINDS:
+    for kind in (*KINDS, *MAVLINK_KINDS):
         counts = summary["kinds"][kind]
         assert counts["valid"] >= 50 and counts["invalid"] == 0, (kind, summary["errors"])
     advertised = {c["topic"]: c for c in summary["advertised"]}
@@ -91,6 +93,19 @@ def test_reference_client_validates_live_messages(processes, tmp_path) -> None:
         ("glider/1/umodel/pitch", "glider-hil.umodel"),
         ("glider/1/command/ballast", "glider-hil.command_ballast"),
         ("glider/1/setpoint/depth", "glider-hil.setpoint"),  # an input, streamed too
+    ):
+        assert advertised[topic]["encoding"] == "json"
+        assert advertised[topic]["schemaName"] == schema
+        assert advertised[topic]["schemaEncoding"] == "jsonschema"
+    # The log's MAVLink channels: raw frames without a schema, each message type decoded
+    # under its generated schema (docs/mcap.md), in and out.
+    for direction in ("in", "out"):
+        raw = advertised[f"mavlink/raw/{direction}"]
+        assert raw["encoding"] == "mavlink2" and raw["schemaLength"] == 0, raw
+    for topic, schema in (
+        ("mavlink/json/in/ATTITUDE", "mavlink.ATTITUDE"),
+        ("mavlink/json/in/SCALED_PRESSURE2", "mavlink.SCALED_PRESSURE2"),
+        ("mavlink/json/out/COMMAND_LONG", "mavlink.COMMAND_LONG"),
     ):
         assert advertised[topic]["encoding"] == "json"
         assert advertised[topic]["schemaName"] == schema

@@ -3,8 +3,10 @@
 // Usage: node client.js URL MIN_MESSAGES TIMEOUT_S KIND...
 // Connects with the subprotocol foxglove.sdk.v1 (foxglove-sdk 0.30 refuses the client's
 // default foxglove.websocket.v1), subscribes to every advertised channel whose topic is
-// glider/{id}/{KIND}..., validates each message against the JSON Schema the server advertised
-// for its channel (ajv, draft 2020-12), and prints one JSON summary when every KIND has
+// glider/{id}/{KIND}... or, for a KIND outside glider/ (mavlink/raw, mavlink/json/in),
+// {KIND}..., validates each message against the JSON Schema the server advertised for its
+// channel (ajv, draft 2020-12) or, on a schemaless mavlink2 channel, as one whole MAVLink 2
+// frame (magic, length, signature flag), and prints one JSON summary when every KIND has
 // MIN_MESSAGES valid messages or TIMEOUT_S has passed.
 "use strict";
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
@@ -31,9 +33,16 @@ const validators = new Map(); // schema text -> compiled validator (channels sha
 
 function kindOf(topic) {
   const parts = topic.split("/");
-  if (parts[0] !== "glider" || parts.length < 3) return null;
-  const rest = parts.slice(2).join("/");
+  const rest = parts[0] === "glider" && parts.length >= 3 ? parts.slice(2).join("/") : topic;
   return kinds.find((k) => rest === k || rest.startsWith(k + "/")) ?? null;
+}
+
+// A MAVLink 2 frame, whole: magic 0xFD, header 10 bytes, payload, CRC 2, signature 13 when
+// the incompatibility flag 0x01 is set.
+function validMavlink2(bytes) {
+  if (bytes.length < 12 || bytes[0] !== 0xfd) return false;
+  const signed = (bytes[2] & 0x01) !== 0;
+  return bytes.length === 10 + bytes[1] + 2 + (signed ? 13 : 0);
 }
 
 function done() {
@@ -80,9 +89,16 @@ client.on("advertise", (channels) => {
       encoding: channel.encoding,
       schemaName: channel.schemaName,
       schemaEncoding: channel.schemaEncoding,
+      schemaLength: (channel.schema ?? "").length,
     });
     const kind = kindOf(channel.topic);
     if (kind === null) continue;
+    if (channel.encoding === "mavlink2") {
+      const id = client.subscribe(channel.id);
+      bySubscription.set(id, { topic: channel.topic, kind, raw: true });
+      summary.subscribed.push(channel.topic);
+      continue;
+    }
     let validate = validators.get(channel.schema);
     try {
       if (validate === undefined) {
@@ -103,6 +119,20 @@ client.on("message", ({ subscriptionId, data }) => {
   if (sub === undefined) return;
   const counts = summary.kinds[sub.kind];
   counts.messages += 1;
+  if (sub.raw) {
+    const bytes = new Uint8Array(data.buffer, data.byteOffset, data.byteLength);
+    if (validMavlink2(bytes)) {
+      counts.valid += 1;
+    } else {
+      counts.invalid += 1;
+      if (summary.errors.length < 20) summary.errors.push(`${sub.topic}: not one MAVLink 2 frame`);
+    }
+    if (done()) {
+      clearTimeout(timer);
+      finish(client, 0);
+    }
+    return;
+  }
   let payload;
   try {
     payload = JSON.parse(decoder.decode(data));
