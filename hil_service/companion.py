@@ -9,6 +9,9 @@ does not say which message it is for); ``REQUEST_DATA_STREAM`` for a message who
 the vehicle refuses or leaves unanswered; everything again after a reboot (the vehicle's
 ``time_boot_ms`` goes back) or an outage (nothing heard for ``outage`` s).
 
+Every profile gets the heartbeat; a lockstep one (``glider``: the vehicle streams as it is,
+``profile=None`` here) no stream requests.
+
 Pure: no sockets, no clock of its own. The caller passes ``now`` (monotonic s), sends what
 ``poll`` returns through a codec with the identity above, and shows every received message
 to ``on_message``.
@@ -79,21 +82,25 @@ class _Request:
 
 
 class Companion:
-    """Heartbeat and stream requests for one vehicle."""
+    """Heartbeat and stream requests for one vehicle (heartbeat only without a profile)."""
 
     def __init__(
         self,
-        profile: Profile,
-        sample_period: float,
+        profile: Profile | None,
+        sample_period: float | None,
         target_system: int,
         config: CompanionConfig | None = None,
     ):
-        if not (math.isfinite(sample_period) and sample_period > 0):
+        if profile is not None and not (
+            sample_period is not None and math.isfinite(sample_period) and sample_period > 0
+        ):
             raise ValueError(f"sample period must be positive, got {sample_period}")
         self.profile = profile
         self.target_system = target_system
         self.config = config or CompanionConfig()
-        self.intervals = profile.intervals(sample_period)
+        self.intervals: dict[str, float] = (
+            {} if profile is None or sample_period is None else profile.intervals(sample_period)
+        )
         self.counters = CompanionCounters()
         self.requests = [_Request(name) for name in self.intervals]
         self._next_heartbeat: float | None = None

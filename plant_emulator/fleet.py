@@ -3,10 +3,12 @@
 System ids run from ``--sysid`` (``sysid … sysid+N-1``), seeds from ``--seed`` (one per
 vehicle, so their excitations and disturbances are independent). Each vehicle is an
 ``Autopilot`` on its own thread, as ``emulate`` runs one; the vehicles of one connection share
-its socket, as vehicles behind one radio or MAVLink router do (``SharedLink``): a service on
-``udpin`` answers the address it last heard from, so vehicles on sockets of their own would
-get each other's commands. One dispatcher thread per shared link hands each received command
-to the vehicle it targets. Each autopilot measures telemetry → command latency
+its socket, as vehicles behind one radio or MAVLink router do (``SharedLink``; a service on
+``udpin`` sends each vehicle's commands to the address that vehicle's frames came from, so
+vehicles on sockets of their own work too). One dispatcher thread per shared link hands each
+received command to the vehicle it targets, and counts the heartbeats it hears by sender
+(``"SYSID/COMPID"``: the service's, one per vehicle it serves, from the vehicle's system id
+and component 191). Each autopilot measures telemetry → command latency
 (``TimedAutopilot``; printed at the end with the per-vehicle statistics).
 ``--fleet-connect`` (repeatable) splits the vehicles in contiguous, equal blocks over several
 links, e.g. one per service; without it every vehicle uses ``--connect``.
@@ -25,6 +27,7 @@ from typing import Any
 
 from plant_emulator.autopilot import Autopilot, AutopilotConfig
 from plant_emulator.excitation import build_channel_excitations
+from plant_emulator.gcs import count_heartbeat
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping, command_target_system, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
@@ -99,6 +102,7 @@ class SharedLink:
         self.link = Link(connection, source_system=1, source_component=1)
         self.ports: dict[int, VehiclePort] = {}
         self.unrouted = 0  # received messages that target none of our vehicles
+        self.heartbeats: dict[str, int] = {}  # by sender, "SYSID/COMPID"
         self._codec = MavlinkCodec(255, 0)  # decoding only (signatures: each vehicle's codec)
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -124,6 +128,9 @@ class SharedLink:
             if not data:
                 continue
             for message in self._codec.parse(data, datagram=True):
+                if message.get_type() == "HEARTBEAT":
+                    count_heartbeat(self.heartbeats, message)
+                    continue
                 target = command_target_system(message) if is_ballast_command(message) else -1
                 port = self.ports.get(target)
                 if port is None:
@@ -135,6 +142,14 @@ class SharedLink:
         self._stop.set()
         self._thread.join(5.0)
         self.link.close()
+
+
+def _merged(counts: list[dict[str, int]]) -> dict[str, int]:
+    merged: dict[str, int] = {}
+    for count in counts:
+        for key, value in count.items():
+            merged[key] = merged.get(key, 0) + value
+    return merged
 
 
 def connection_for(index: int, vehicles: int, connections: list[str]) -> str:
@@ -275,6 +290,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         "steps": steps,
         "latency": latency,
         "unrouted": sum(shared.unrouted for shared in links.values()),
+        "heartbeats": _merged([shared.heartbeats for shared in links.values()]),
         "per_vehicle": per_vehicle,
     }
     print(json.dumps({"emulator": summary}), flush=True)
