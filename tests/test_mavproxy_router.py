@@ -85,8 +85,10 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
         "--log-dir", str(tmp_path / "logs"), "--burn-in", str(BURN_IN),
         "--profile", "ardusub", "--sample-period", str(PERIOD), "--sysid", "1",
     )  # fmt: skip
-    # A ground station's own stream-rate requests would override the companion's.
-    router, console = _mavproxy(tmp_path, master, udp, tlog, "--streamrate=-1")
+    # MAVProxy at its default stream rate: as a ground station it lowers every stream to
+    # 4 Hz with REQUEST_DATA_STREAM (at start and every 15 s); the companion notices each
+    # stream falling below the rate it asked for and asks again.
+    router, console = _mavproxy(tmp_path, master, udp, tlog)
     probe = ZenohProbe(endpoint)
     try:
         emulator = processes.start(
@@ -114,6 +116,7 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
         probe.put("glider/1/control", {"enabled": True})
         assert probe.wait_for(lambda: probe.count("glider/1/telemetry") > start + CONTROL, 180)
         telemetry = probe.payloads("glider/1/telemetry")
+        companion = probe.latest("glider/1/health")["companion"]
     finally:
         probe.close()
         _stop_mavproxy(router, console)
@@ -129,10 +132,14 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
     pitch_error = sum(abs(s["pitch"] - 0.1) for s in tail) / len(tail)
     print(
         f"\nserve through MAVProxy: {len(measured)}/{expected} samples once the streams were "
-        f"accepted; skill depth {health['depth']['skill']:.3f}, pitch "
+        f"accepted, streams asked for again {companion['rerequests']} ({companion['slow_streams']}"
+        f" found slow); skill depth {health['depth']['skill']:.3f}, pitch "
         f"{health['pitch']['skill']:.3f}; mean |error| depth {depth_error:.3f} m, pitch "
         f"{pitch_error:.5f} rad"
     )
+    # MAVProxy lowered the streams at least once after they were accepted, the companion
+    # asked again, and sampling kept up anyway.
+    assert companion["rerequests"].get("rate", 0) >= 1, companion
     assert len(measured) >= 0.95 * expected
     assert all(b > a for a, b in itertools.pairwise(times))
     # Within 0.7 m of the 1 m step on average (no control leaves 1 m), pitch on target.
