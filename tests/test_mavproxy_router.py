@@ -174,6 +174,10 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
     assert servo_senders == {(1, 191)}  # MAVProxy sends commands of its own, never these
     code, stdout, stderr = _run("info", str(log))
     assert code == 0 and "mavlink/raw/in" in stdout, stderr
+    # `report` identifies from the telemetry: the tlog holds none of the service's estimates.
+    code, stdout, stderr = _run("report", str(log), "-o", str(tmp_path / "report"))
+    assert code == 0 and "identified offline" in stdout, stderr
+    assert (tmp_path / "report" / "glider1_depth_identification.png").exists()
     # `replay --profile ardusub` samples and identifies the vehicle's streams again.
     code, stdout, stderr = _run("replay", str(log), "--profile", "ardusub", "--fast", "--json")
     assert code == 0, stderr
