@@ -10,7 +10,8 @@ the vehicle refuses or leaves unanswered; everything again after a reboot (the v
 ``time_boot_ms`` goes back) or an outage (nothing heard for ``outage`` s); and a stream again
 when its measured rate stays below ``rate_fraction`` of the one requested for
 ``slow_windows`` windows of ``rate_window`` s of the vehicle's clock (so an emulator at any
-speed is measured alike, and a vehicle dropping a few messages under load is not asked): a
+speed is measured alike; one window by default: each window of delay costs a second of
+samples, and asking a vehicle that only dropped a few messages again is harmless): a
 ground station such as MAVProxy lowers every stream with its own ``REQUEST_DATA_STREAM``
 (MAVProxy: at its ``streamrate``, every 15 s). A stream not heard at all in a window is
 left alone (a vehicle without that sensor: the profile's fallback serves); one that stays
@@ -61,7 +62,7 @@ class CompanionConfig:
     reboot_step: float = 2.0  # s: time_boot_ms going back this much is a reboot
     rate_window: float = 1.0  # s of the vehicle's clock over which stream rates are measured
     rate_fraction: float = 0.6  # of the requested rate: below it a window is slow
-    slow_windows: int = 2  # consecutive slow windows before the stream is asked again
+    slow_windows: int = 1  # consecutive slow windows before the stream is asked again
 
 
 @dataclass
