@@ -147,7 +147,7 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
     assert all(b > a for a, b in itertools.pairwise(times))
     # Pitch on target. Depth is printed, not asserted: each time MAVProxy lowers the streams
     # a second or two of samples is lost, the identifier refills its lags and the vehicle
-    # may fall back to hold; mean |error| over five runs 0.26-1.88 m (0.26 m with
+    # may fall back to hold; mean |error| over five runs 0.26-1.88 m (0.26 m once with
     # --streamrate=-1, no lowering), where no control leaves 1 m.
     assert pitch_error < 0.05
     # Commands as DO_SET_SERVO through the router, from the companion's identity.
