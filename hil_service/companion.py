@@ -7,7 +7,19 @@ software asks for what it needs rather than hoping for it: ``MAV_CMD_SET_MESSAGE
 for each message of the profile at the sample rate, one request at a time (a COMMAND_ACK
 does not say which message it is for); ``REQUEST_DATA_STREAM`` for a message whose request
 the vehicle refuses or leaves unanswered; everything again after a reboot (the vehicle's
-``time_boot_ms`` goes back) or an outage (nothing heard for ``outage`` s).
+``time_boot_ms`` goes back) or an outage (nothing heard for ``outage`` s); and a stream again
+when its measured rate stays below ``rate_fraction`` of the one requested for
+``slow_windows`` windows of ``rate_window`` s of the vehicle's clock (so an emulator at any
+speed is measured alike; one window by default: each window of delay costs a second of
+samples, and asking a vehicle that only dropped a few messages again is harmless): a
+ground station such as MAVProxy lowers every stream with its own ``REQUEST_DATA_STREAM``
+(MAVProxy: at its ``streamrate``, every 15 s). A stream not heard at all in a window is
+left alone (a vehicle without that sensor: the profile's fallback serves); one that stays
+slow after being asked again is watched over windows twice as long each time (up to 32),
+so a vehicle that cannot go faster is not asked every second.
+
+Every profile gets the heartbeat; a lockstep one (``glider``: the vehicle streams as it is,
+``profile=None`` here) no stream requests.
 
 Pure: no sockets, no clock of its own. The caller passes ``now`` (monotonic s), sends what
 ``poll`` returns through a codec with the identity above, and shows every received message
@@ -48,6 +60,9 @@ class CompanionConfig:
     attempts: int = 2  # SET_MESSAGE_INTERVAL sends before falling back
     outage: float = 3.0  # s of silence after which the streams are asked for again
     reboot_step: float = 2.0  # s: time_boot_ms going back this much is a reboot
+    rate_window: float = 1.0  # s of the vehicle's clock over which stream rates are measured
+    rate_fraction: float = 0.6  # of the requested rate: below it a window is slow
+    slow_windows: int = 1  # consecutive slow windows before the stream is asked again
 
 
 @dataclass
@@ -57,7 +72,8 @@ class CompanionCounters:
     data_stream_requests: int = 0
     unanswered: int = 0  # SET_MESSAGE_INTERVAL requests that timed out
     acks: dict[str, int] = field(default_factory=dict)  # result name → count
-    rerequests: dict[str, int] = field(default_factory=dict)  # reboot/outage → count
+    rerequests: dict[str, int] = field(default_factory=dict)  # reboot/outage/rate → count
+    slow_streams: dict[str, int] = field(default_factory=dict)  # message → times found slow
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -67,6 +83,7 @@ class CompanionCounters:
             "unanswered": self.unanswered,
             "acks": dict(self.acks),
             "rerequests": dict(self.rerequests),
+            "slow_streams": dict(self.slow_streams),
         }
 
 
@@ -76,26 +93,40 @@ class _Request:
     state: str = "pending"  # pending → sent → accepted | refused → data_stream
     sent_at: float = 0.0
     attempts: int = 0
+    # Rate watch, on the vehicle's clock, once the request is accepted (or sent as a
+    # REQUEST_DATA_STREAM): where the current window started, and arrivals since.
+    watch_from: float | None = None
+    count: int = 0
+    backoff: float = 1.0  # window length in rate_windows
+    slow: int = 0  # consecutive slow windows
+
+
+SETTLED = ("accepted", "data_stream")
 
 
 class Companion:
-    """Heartbeat and stream requests for one vehicle."""
+    """Heartbeat and stream requests for one vehicle (heartbeat only without a profile)."""
 
     def __init__(
         self,
-        profile: Profile,
-        sample_period: float,
+        profile: Profile | None,
+        sample_period: float | None,
         target_system: int,
         config: CompanionConfig | None = None,
     ):
-        if not (math.isfinite(sample_period) and sample_period > 0):
+        if profile is not None and not (
+            sample_period is not None and math.isfinite(sample_period) and sample_period > 0
+        ):
             raise ValueError(f"sample period must be positive, got {sample_period}")
         self.profile = profile
         self.target_system = target_system
         self.config = config or CompanionConfig()
-        self.intervals = profile.intervals(sample_period)
+        self.intervals: dict[str, float] = (
+            {} if profile is None or sample_period is None else profile.intervals(sample_period)
+        )
         self.counters = CompanionCounters()
         self.requests = [_Request(name) for name in self.intervals]
+        self._by_name = {r.name: r for r in self.requests}
         self._next_heartbeat: float | None = None
         self._last_heard: float | None = None
         self._last_boot_s: float | None = None
@@ -170,7 +201,7 @@ class Companion:
         )
 
     def _data_stream(self, request: _Request) -> MavMessage:
-        request.state = "data_stream"
+        self._settle(request, "data_stream")
         self.counters.data_stream_requests += 1
         group = DATA_STREAM_GROUP.get(request.name, dialect.MAV_DATA_STREAM_ALL)
         hz = max(1, round(1.0 / self.intervals[request.name]))
@@ -187,6 +218,10 @@ class Companion:
         if self._last_heard is not None and now - self._last_heard > self.config.outage:
             self._ask_again("outage")
         self._last_heard = now
+        kind = message.get_type()
+        request = self._by_name.get(kind)
+        if request is not None and request.watch_from is not None:
+            request.count += 1
         clock = message_clock(message)
         if clock is not None and clock[0] == "ms32":
             boot_s = clock[1] / 1000
@@ -197,8 +232,46 @@ class Companion:
             if back:
                 self._ask_again("reboot")
             self._last_boot_s = boot_s
-        if message.get_type() == "COMMAND_ACK":
+            self._watch_rates(boot_s)
+        if kind == "COMMAND_ACK":
             self._ack(message)
+
+    def _watch_rates(self, t: float) -> None:
+        """Ask again for a settled stream arriving below ``rate_fraction`` of its rate."""
+        config = self.config
+        for request in self.requests:
+            if request.state not in SETTLED:
+                continue
+            start = request.watch_from
+            if start is None or t < start:  # newly settled, or the clock went back
+                request.watch_from, request.count = t, 0
+                continue
+            span = t - start
+            if span < config.rate_window * request.backoff:
+                continue
+            expected = span / self.intervals[request.name]
+            slow = 0 < request.count < config.rate_fraction * expected
+            request.slow = request.slow + 1 if slow else 0
+            if request.slow >= config.slow_windows:
+                self.counters.slow_streams[request.name] = (
+                    self.counters.slow_streams.get(request.name, 0) + 1
+                )
+                self.counters.rerequests["rate"] = self.counters.rerequests.get("rate", 0) + 1
+                request.backoff = min(request.backoff * 2, 32.0)
+                self._reset(request)
+                continue
+            if request.count > 0 and not slow:
+                request.backoff = 1.0
+            request.watch_from, request.count = t, 0
+
+    def _settle(self, request: _Request, state: str) -> None:
+        request.state = state
+        request.watch_from, request.count = None, 0
+
+    def _reset(self, request: _Request) -> None:
+        request.state = "pending"
+        request.attempts = 0
+        request.watch_from, request.count, request.slow = None, 0, 0
 
     def _ack(self, message: MavMessage) -> None:
         if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -210,7 +283,7 @@ class Companion:
         if in_flight is None:
             return
         if message.result == dialect.MAV_RESULT_ACCEPTED:
-            in_flight.state = "accepted"
+            self._settle(in_flight, "accepted")
         elif message.result in REFUSALS:
             if message.result == dialect.MAV_RESULT_UNSUPPORTED:
                 self._refused_command = True  # the others go by REQUEST_DATA_STREAM too
@@ -220,5 +293,5 @@ class Companion:
         self.counters.rerequests[why] = self.counters.rerequests.get(why, 0) + 1
         self._refused_command = False
         for request in self.requests:
-            request.state = "pending"
-            request.attempts = 0
+            request.backoff = 1.0
+            self._reset(request)

@@ -25,7 +25,7 @@ from hil_service.profile_assembler import ProfileAssembler
 from hil_service.zenoh_bus import Bus
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
-from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
+from protocols.mavlink_io import Address, Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
 
 #: Who also sees each MAVLink frame: (direction, message or None, frame or None, time ns).
@@ -70,16 +70,20 @@ class HilService:
         self.clock = clock
         self.send_commands = send_commands and link is not None
         self.periodic: ProfileAssembler | None = None
+        #: Each served vehicle's companion (heartbeat; stream requests on periodic profiles).
         self.companions: dict[int, Companion] = {}
-        system_id = config.service_system_id
+        #: What the service sends to a vehicle is framed as that vehicle's companion (its
+        #: system id, component 191), one codec (sequence, signing stream) per vehicle.
+        self._senders: dict[int, MavlinkCodec] = {}
+        #: Where each vehicle's frames last came from (udpin): its replies go there.
+        self._routes: dict[int, Address] = {}
         if config.profile is not None:
             self.periodic = ProfileAssembler(
                 config.profile, config.sample_period, config.system_ids or None
             )
-            if len(config.system_ids) == 1:
-                system_id = config.system_ids[0]  # a companion speaks as its vehicle
+        # Decoding (and checking signatures) only: nothing is sent under this identity.
         self.codec = MavlinkCodec.for_link(
-            system_id,
+            config.service_system_id,
             SERVICE_COMPONENT,
             config.security.key,
             accept_unsigned=config.security.accept_unsigned,
@@ -98,7 +102,11 @@ class HilService:
         self.live_mavlink: MavlinkTap | None = None
 
     # ---- the per-datagram path --------------------------------------------------------
-    def process_datagram(self, data: bytes, datagram: bool = True) -> list[TelemetrySample]:
+    def process_datagram(
+        self, data: bytes, datagram: bool = True, source: Address = None
+    ) -> list[TelemetrySample]:
+        """``source``: the address the datagram came from (``Link.recv_from``), where what
+        the service sends to the systems in it goes (None: the link's peer)."""
         now_ns = time.time_ns()
         samples = []
         messages = self.codec.parse(data, datagram=datagram)
@@ -110,6 +118,9 @@ class HilService:
         if live is not None:
             for frame in self.codec.last_rejected:
                 live("rejected", None, frame, now_ns)
+        if source is not None:
+            for message in messages:
+                self._routes[message.get_srcSystem()] = source
         for message in messages:
             if self.recorder is not None:
                 self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
@@ -152,11 +163,6 @@ class HilService:
             return []
         samples = self.periodic.add_all(message)
         for sample in samples:
-            if sample.system_id not in self.companions and self.config.profile is not None:
-                period = self.periodic.config.period
-                self.companions[sample.system_id] = Companion(
-                    self.config.profile, period, sample.system_id
-                )
             self.process_sample(sample)
         return samples
 
@@ -203,16 +209,23 @@ class HilService:
                 for message in self.config.profile.command_messages(
                     command.u_depth, command.u_pitch, system_id
                 ):
-                    self._send(message)
+                    self._send(message, system_id)
             elif self.send_commands:
-                self._send(self.mapping.ballast_command(decision.command, system_id))
+                self._send(self.mapping.ballast_command(decision.command, system_id), system_id)
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
 
-    def _send(self, message: MavMessage) -> None:
+    def _send(self, message: MavMessage, system_id: int) -> None:
+        """``message`` to vehicle ``system_id``, as its companion, where its frames came from."""
         assert self.link is not None
-        frame = self.codec.pack(message)
-        self.link.send(frame)
+        codec = self._senders.get(system_id)
+        if codec is None:
+            codec = MavlinkCodec(
+                system_id, SERVICE_COMPONENT, signing_key=self.config.security.key
+            )
+            self._senders[system_id] = codec
+        frame = codec.pack(message)
+        self.link.send_to(frame, self._routes.get(system_id))
         if self.recorder is not None:
             now_ns = time.time_ns()
             self.recorder.raw("out", frame, now_ns)
@@ -232,6 +245,8 @@ class HilService:
             pipeline = VehiclePipeline(self.config.pipeline)
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle
+            period = None if self.periodic is None else self.periodic.config.period
+            self.companions[system_id] = Companion(self.config.profile, period, system_id)
             self.bus.declare_vehicle(system_id, lambda: self.state(system_id))
         return vehicle
 
@@ -240,9 +255,9 @@ class HilService:
         """Health at ``health_period``; call often (the run loop does every 0.1 s at most)."""
         now = self.clock()
         if self.link is not None:
-            for companion in self.companions.values():
+            for system_id, companion in self.companions.items():
                 for message in companion.poll(now):
-                    self._send(message)
+                    self._send(message, system_id)
         if now < self._next_health:
             return
         self._next_health = now + self.config.health_period
@@ -408,7 +423,7 @@ class HilService:
         assert self.link is not None
         while not stop.is_set():
             if self.link.wait(0.1):
-                data = self.link.recv()
+                data, source = self.link.recv_from()
                 if data:
-                    self.process_datagram(data, datagram=self.link.datagram)
+                    self.process_datagram(data, self.link.datagram, source)
             self.tick()

@@ -3,8 +3,10 @@
 System ids run from ``--sysid`` (``sysid … sysid+N-1``), seeds from ``--seed`` (one per
 vehicle, so their excitations and disturbances are independent). Each vehicle is an
 ``Autopilot``; the vehicles of one connection share its socket, as vehicles behind one radio
-or MAVLink router do (``SharedLink``): a service on ``udpin`` answers the address it last
-heard from, so vehicles on sockets of their own would get each other's commands.
+or MAVLink router do (``SharedLink``): a service on ``udpin`` sends each vehicle's commands
+to the address that vehicle's frames came from, so vehicles on sockets of their own work too.
+Heartbeats heard are counted by sender (``"SYSID/COMPID"``: the service's, one per vehicle
+it serves, from the vehicle's system id and component 191).
 
 One thread runs the whole fleet (``FleetScheduler``): a heap of step and heartbeat deadlines,
 and one ``select`` over the shared sockets between them; a received command is parsed and
@@ -36,6 +38,7 @@ from typing import Any
 
 from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, AutopilotConfig
 from plant_emulator.excitation import build_channel_excitations
+from plant_emulator.gcs import count_heartbeat
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping, command_target_system, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
@@ -90,6 +93,7 @@ class SharedLink:
         self.link = Link(connection, source_system=1, source_component=1)
         self.autopilots: dict[int, TimedAutopilot] = {}
         self.unrouted = 0  # received messages that target none of our vehicles
+        self.heartbeats: dict[str, int] = {}  # by sender, "SYSID/COMPID"
         self._codec = MavlinkCodec(255, 0)  # decoding only (signatures: each vehicle's codec)
 
     def port(self) -> VehiclePort:
@@ -112,6 +116,9 @@ class SharedLink:
             count += 1
             arrived = clock()
             for message in self._codec.parse(data, datagram=True):
+                if message.get_type() == "HEARTBEAT":
+                    count_heartbeat(self.heartbeats, message)
+                    continue
                 target = command_target_system(message) if is_ballast_command(message) else -1
                 autopilot = self.autopilots.get(target)
                 if autopilot is None:
@@ -196,6 +203,12 @@ class FleetScheduler:
                 by_fd[fd].receive(clock)
         for link in self.links:  # what has arrived by the end, as Autopilot.run does
             link.receive(clock)
+def _merged(counts: list[dict[str, int]]) -> dict[str, int]:
+    merged: dict[str, int] = {}
+    for count in counts:
+        for key, value in count.items():
+            merged[key] = merged.get(key, 0) + value
+    return merged
 
 
 def connection_for(index: int, vehicles: int, connections: list[str]) -> str:
@@ -338,6 +351,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         "unrouted": sum(shared.unrouted for shared in links.values()),
         "late_steps": scheduler.late_steps,
         "cpu_s": round(time.process_time() - cpu_at_start, 3),  # while the fleet ran
+        "heartbeats": _merged([shared.heartbeats for shared in links.values()]),
         "per_vehicle": per_vehicle,
     }
     print(json.dumps({"emulator": summary}), flush=True)

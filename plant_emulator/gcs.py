@@ -16,7 +16,8 @@ does, for an emulator whose real settings are its parameters:
 * MAVLink FTP → a NAK (no file system), so a GCS falls back to ``PARAM_REQUEST_LIST``;
 * ``TIMESYNC`` requests are answered.
 
-Heartbeats seen are counted by MAV_TYPE (the service's own, as an onboard controller).
+Heartbeats seen are counted by MAV_TYPE (the service's own, as an onboard controller) and by
+sender (``"SYSID/COMPID"``: a companion speaks from its vehicle's system id, component 191).
 """
 
 from __future__ import annotations
@@ -68,7 +69,8 @@ class GcsCounters:
     commands_unsupported: int = 0
     ftp_naks: int = 0
     timesyncs: int = 0
-    heartbeats: dict[str, int] = field(default_factory=dict)
+    heartbeats: dict[str, int] = field(default_factory=dict)  # by MAV_TYPE
+    heartbeat_sources: dict[str, int] = field(default_factory=dict)  # by "SYSID/COMPID"
 
     def as_dict(self) -> dict[str, object]:
         return dict(self.__dict__)
@@ -116,6 +118,7 @@ class GroundStationManners:
             name = dialect.enums["MAV_TYPE"].get(message.type)
             label = name.name if name is not None else str(message.type)
             self.counters.heartbeats[label] = self.counters.heartbeats.get(label, 0) + 1
+            count_heartbeat(self.counters.heartbeat_sources, message)
             return True
         target = getattr(message, "target_system", None)
         if target is not None and target not in (0, self.system_id):
@@ -250,6 +253,12 @@ class GroundStationManners:
             return  # an answer, not a request
         self.counters.timesyncs += 1
         self.send(dialect.MAVLink_timesync_message(int(self.clock() * 1e9), message.ts1))
+
+
+def count_heartbeat(sources: dict[str, int], message: MavMessage) -> None:
+    """Count a HEARTBEAT under its sender, ``"SYSID/COMPID"``."""
+    source = f"{message.get_srcSystem()}/{message.get_srcComponent()}"
+    sources[source] = sources.get(source, 0) + 1
 
 
 def _text(value: object) -> str:

@@ -8,8 +8,10 @@ a serial device), so attaching to a real vehicle is a connection string, nothing
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +30,9 @@ V2_MIN_FRAME = dialect.HEADER_LEN_V2 + 2  # header and checksum, empty payload
 MAVLINK_VERSION = 2
 
 MavMessage = Any  # pymavlink generates one class per message; they share MAVLink_message
+#: Where a datagram came from (a UDP socket address), or None on a stream or an unknown peer.
+Address = tuple[Any, ...] | None
+UDP_MAX_DATAGRAM = 65535
 
 
 @dataclass
@@ -279,8 +284,35 @@ class Link:
             return b""
         return data if isinstance(data, bytes) else bytes(data, "latin-1")
 
+    def recv_from(self) -> tuple[bytes, Address]:
+        """Like ``recv``, with the sender's address when this end listens on UDP (``udpin``),
+        so a reply can go back to the peer that spoke (``send_to``); None otherwise."""
+        udp = self._file
+        if not (self.datagram and udp.udp_server):
+            return self.recv(), None
+        try:
+            data, address = udp.port.recvfrom(UDP_MAX_DATAGRAM)
+        except OSError:
+            return b"", None
+        # pymavlink's own bookkeeping, so ``send`` (to every peer heard) keeps working.
+        udp.clients.add(address)
+        udp.clients_last_alive[address] = time.time()
+        return bytes(data), address
+
     def send(self, frame: bytes) -> None:
+        """To the link's peer (``udpin``: every peer heard from, as pymavlink does)."""
         self._file.write(frame)
+
+    def send_to(self, frame: bytes, address: Address) -> None:
+        """To ``address`` (one heard by ``recv_from``) on a listening UDP link; without an
+        address, or on any other link, as ``send``."""
+        udp = self._file
+        if address is None or not (self.datagram and udp.udp_server):
+            self.send(frame)
+            return
+        # As pymavlink's write: a peer gone away is not the sender's error.
+        with contextlib.suppress(OSError):
+            udp.port.sendto(frame, address)
 
     def close(self) -> None:
         self._file.close()

@@ -124,3 +124,85 @@ def test_asked_again_after_a_reboot_and_after_an_outage():
     echo = wire(US, dialect.MAVLink_attitude_message(5, 0, 0, 0, 0, 0, 0))
     companion.on_message(echo, 100.0)
     assert companion.counters.rerequests == {"reboot": 1, "outage": 1}
+
+
+def _stream(name: str, ms: int):
+    if name == "ATTITUDE":
+        return attitude(ms)
+    if name == "SCALED_PRESSURE2":
+        message = dialect.MAVLink_scaled_pressure2_message(ms, 1163.0, 0, 1500, 0)
+    elif name == "SERVO_OUTPUT_RAW":
+        message = dialect.MAVLink_servo_output_raw_message(ms * 1000, 0, *([1500] * 16))
+    else:
+        message = dialect.MAVLink_vfr_hud_message(0, 0, 0, 0, -15.0, 0)
+    return wire(VEHICLE, message)
+
+
+class StreamingVehicle:
+    """Streams each message at its rate (Hz on its own clock, None: never), accepts
+    SET_MESSAGE_INTERVAL up to ``max_hz``; a ground station may lower rates with ``lower``."""
+
+    def __init__(self, rates: dict[str, float | None], max_hz: float = 50.0):
+        self.rates = dict(rates)
+        self.max_hz = max_hz
+        self.due = dict.fromkeys(rates, 0.0)
+
+    def answer(self, message):
+        if message.get_type() != "COMMAND_LONG":
+            return None
+        name = {
+            dialect.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
+            dialect.MAVLINK_MSG_ID_SCALED_PRESSURE2: "SCALED_PRESSURE2",
+            dialect.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: "SERVO_OUTPUT_RAW",
+            dialect.MAVLINK_MSG_ID_VFR_HUD: "VFR_HUD",
+        }[int(message.param1)]
+        if self.rates[name] is not None:
+            self.rates[name] = min(1e6 / message.param2, self.max_hz)
+        return ack(dialect.MAV_RESULT_ACCEPTED)
+
+    def lower(self, hz: float) -> None:
+        self.rates = {k: (None if v is None else hz) for k, v in self.rates.items()}
+
+    def run(self, companion, start: float, seconds: float, step: float = 0.01) -> None:
+        """Vehicle time = ``now`` here (boot at 0); the companion polled every ``step``."""
+        for i in range(round(seconds / step)):
+            t = start + i * step
+            for name, hz in self.rates.items():
+                if hz is not None and t >= self.due[name]:
+                    companion.on_message(_stream(name, int(t * 1000)), t)
+                    self.due[name] = max(self.due[name] + 1 / hz, t)
+            for message in companion.poll(t):
+                reply = self.answer(wire(US, message))
+                if reply is not None:
+                    companion.on_message(reply, t + 0.001)
+
+
+def test_a_stream_lowered_by_a_ground_station_is_asked_for_again():
+    companion = Companion(PROFILE, 0.1, 1)
+    # Default ArduSub-like rates; the vehicle has no Bar30 (SCALED_PRESSURE2 never comes).
+    vehicle = StreamingVehicle(
+        {"ATTITUDE": 4.0, "SCALED_PRESSURE2": None, "VFR_HUD": 4.0, "SERVO_OUTPUT_RAW": 4.0}
+    )
+    vehicle.run(companion, 1.0, 5.0)
+    assert set(companion.states.values()) == {"accepted"}
+    assert vehicle.rates["ATTITUDE"] == pytest.approx(10.0)
+    assert companion.counters.rerequests == {}  # at the requested rate: nothing to ask
+    vehicle.lower(4.0)  # MAVProxy's REQUEST_DATA_STREAM at its streamrate
+    vehicle.run(companion, 6.0, 3.5)
+    # After two slow windows (1 s each of the vehicle's clock) every lowered stream is asked
+    # again; the one never heard is left to the profile's fallback.
+    assert companion.counters.rerequests == {"rate": 3}
+    assert companion.counters.slow_streams == {"ATTITUDE": 1, "VFR_HUD": 1, "SERVO_OUTPUT_RAW": 1}
+    assert all(hz == pytest.approx(10.0) for hz in vehicle.rates.values() if hz is not None)
+    vehicle.run(companion, 9.5, 10.0)
+    assert companion.counters.rerequests == {"rate": 3}  # back at the rate: not asked again
+    assert companion.counters.as_dict()["slow_streams"]["ATTITUDE"] == 1
+
+
+def test_a_vehicle_that_cannot_go_faster_is_asked_ever_less_often():
+    companion = Companion(PROFILE, 0.1, 1)
+    vehicle = StreamingVehicle(dict.fromkeys(PROFILE.intervals(0.1), 4.0), max_hz=5.0)
+    vehicle.run(companion, 1.0, 40.0)
+    # Two slow windows of 1, then 2, 4, 8 s: 4 requests per stream in 40 s, not 20.
+    assert 3 <= companion.counters.slow_streams["ATTITUDE"] <= 6, companion.counters.slow_streams
+    assert companion.counters.interval_requests <= 4 * 7

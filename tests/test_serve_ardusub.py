@@ -74,7 +74,10 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
             "ATTITUDE": "accepted",
             "SERVO_OUTPUT_RAW": "accepted",
         }
-        assert health["companion"]["acks"] == {"MAV_RESULT_ACCEPTED": 4}
+        # One accepted request per stream, and more if a stream fell below its rate (the
+        # emulator falls behind on a loaded machine): every one accepted.
+        acks = health["companion"]["acks"]
+        assert set(acks) == {"MAV_RESULT_ACCEPTED"} and acks["MAV_RESULT_ACCEPTED"] >= 4, acks
         assert health["identifier"]["depth"]["converged"], health["identifier"]
         # Control through DO_SET_SERVO: a depth and pitch step.
         start = probe.count("glider/1/telemetry")

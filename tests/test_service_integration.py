@@ -195,6 +195,7 @@ def test_a_short_demo_runs_end_to_end(processes, tmp_path):
     for channel in ("depth", "pitch"):
         assert result["identification"][channel]["skill"] >= 0.25, result["identification"]
     reader = LogReader(result["log"])
-    commands = sum(1 for _ in reader.messages({"mavlink/raw/out"}))
+    # The service also sends its heartbeat as the vehicle's companion: count the commands.
+    commands = sum(1 for _ in reader.messages({"mavlink/json/out/COMMAND_LONG"}))
     assert reader.report.complete
     assert commands == result["commands_sent"]

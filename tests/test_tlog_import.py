@@ -102,3 +102,72 @@ def test_a_frame_failing_its_checksum_is_counted_and_skipped(tmp_path, capsys):
     assert report["records"] == 20
     assert main(["import", str(tlog), "-o", str(tmp_path / "crc.mcap")]) == 2  # exists
     assert main(["import", str(tmp_path / "absent.tlog"), "-o", str(tmp_path / "x.mcap")]) == 2
+
+
+class _Capture:
+    """A link that keeps what the emulated vehicle sends (no socket: a recorded dive)."""
+
+    datagram = True
+
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def send(self, frame: bytes) -> None:
+        self.frames.append(frame)
+
+
+def ardusub_dive_tlog(path, steps: int) -> int:
+    """A tlog of the ArduSub-style emulator on PRBS, every stream at 10 Hz, as a ground
+    station records it (heartbeats included); the number of plant steps (0.1 s each)."""
+    from plant_emulator.autopilot import AutopilotConfig
+    from plant_emulator.excitation import build_channel_excitations
+    from plant_emulator.plant import GliderPlant, PlantConfig
+    from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
+
+    profile = load_profile("ardusub")
+    link = _Capture()
+    vehicle = ArduSubAutopilot(
+        GliderPlant(PlantConfig(period=0.1, seed=5)),
+        link,
+        build_channel_excitations("prbs", seed=5),
+        profile,
+        AutopilotConfig(system_id=1),
+        StreamConfig(rates_hz=dict.fromkeys(DEFAULT_RATES_HZ, 10.0), seed=5),
+    )
+    data = b""
+    for k in range(steps):
+        if k % 10 == 0:
+            vehicle._send(vehicle.mapping.heartbeat(vehicle=True))
+        vehicle.step()
+        vehicle._send_due(vehicle.sim_time())
+        for frame in link.frames:
+            data += struct.pack(">Q", T0 + k * 100_000) + frame
+        link.frames.clear()
+    path.write_bytes(data)
+    return steps
+
+
+def test_report_on_an_imported_tlog_identifies_from_its_telemetry(tmp_path, capsys):
+    tlog, log, out = tmp_path / "dive.tlog", tmp_path / "dive.mcap", tmp_path / "report"
+    steps = ardusub_dive_tlog(tlog, 1500)
+    assert main(["import", str(tlog), "-o", str(log), "--profile", "ardusub"]) == 0
+    # The imported log holds the vehicle's frames only: no estimate of the service's.
+    assert not any(m.topic.startswith("glider/") for m in LogReader(log).messages())
+    capsys.readouterr()
+    assert main(["report", str(log), "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "identified offline" in printed
+    text = (out / "report.md").read_text()
+    assert "- identified offline: the log holds no estimate records" in text
+    rows = {
+        cells[1]: cells
+        for line in text.splitlines()
+        if line.startswith("| 1 |")
+        for cells in [[c.strip() for c in line.strip("|").split("|")]]
+    }
+    assert set(rows) == {"depth", "pitch"}, text
+    for channel, cells in rows.items():
+        samples, skill = int(cells[3]), float(cells[5])
+        assert samples >= 0.9 * steps, (channel, samples)
+        assert skill > 0, (channel, skill)  # better than persistence, after the burn-in
+    assert (out / "glider1_depth_identification.png").exists()

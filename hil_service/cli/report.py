@@ -32,6 +32,8 @@ def run(args: argparse.Namespace) -> int:
     if not report.summaries:
         print(f"glider-hil report: {args.log} holds no identifier publications", file=sys.stderr)
         return 1
+    if report.offline:
+        print(f"{args.log} holds no estimates: identified offline from its telemetry")
     for s in report.summaries:
         skill = "-" if s.skill is None else f"{s.skill:.3f}"
         print(f"glider {s.system_id} {s.channel}: {s.samples} samples, skill {skill}")

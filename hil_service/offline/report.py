@@ -23,6 +23,7 @@ from hil_service.experiment.identification import (
     converged_at,
 )
 from hil_service.experiment.multistep import MultiStepScores, longest_contiguous, multistep_scores
+from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
 from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
@@ -57,6 +58,16 @@ class Report:
     markdown: Path
     figures: list[Path]
     summaries: list[ChannelSummary]
+    #: True when the log held no estimates (an imported tlog) and its telemetry was run
+    #: through the identifier here (``hil_service.offline.identify``).
+    offline: bool = False
+
+
+OFFLINE_NOTE = (
+    "- identified offline: the log holds no estimate records (an imported telemetry log), so "
+    "its raw frames were run through the service's path as `glider-hil replay` runs them, "
+    "with the profile and configuration the log stores; no commands were sent"
+)
 
 
 def _burn_in(stored: dict[str, Any]) -> int:
@@ -355,6 +366,11 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
 
 def write_report(log: str | Path, out: str | Path) -> Report:
     series = load_series(log)
+    offline = False
+    if not has_estimates(series):
+        identified = identify_offline(log, series)
+        if identified is not None and has_estimates(identified):
+            series, offline = identified, True
     directory = Path(out)
     directory.mkdir(parents=True, exist_ok=True)
     burn_in = _burn_in(series.config)
@@ -367,5 +383,10 @@ def write_report(log: str | Path, out: str | Path) -> Report:
             summaries.append(summarise(vehicle, channel, burn_in, series.config))
             figures += _figures(vehicle, channel, directory)
     path = directory / "report.md"
-    path.write_text(markdown(series, summaries, figures), encoding="utf-8")
-    return Report(path, figures, summaries)
+    text = markdown(series, summaries, figures)
+    if offline:
+        lines = text.split("\n")
+        at = next((i for i, line in enumerate(lines) if line.startswith("- log:")), 1)
+        text = "\n".join([*lines[: at + 1], OFFLINE_NOTE, *lines[at + 1 :]])
+    path.write_text(text, encoding="utf-8")
+    return Report(path, figures, summaries, offline)
