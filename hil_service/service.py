@@ -19,6 +19,7 @@ from hil_service.companion import Companion
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
+from hil_service.lockstep import LockstepResponder
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
 from hil_service.profile_assembler import ProfileAssembler
@@ -86,6 +87,10 @@ class HilService:
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}
         self._next_health = 0.0
+        #: Lockstep with the glider profile's emulator (docs/lockstep.md); None: periodic.
+        self.lockstep: LockstepResponder | None = (
+            None if self.periodic is not None else LockstepResponder(config.lockstep)
+        )
         self._lock = threading.Lock()  # guards snapshots read by the state queryable
 
     # ---- the per-datagram path --------------------------------------------------------
@@ -118,6 +123,8 @@ class HilService:
         if message.get_type() == MSG_ACK:
             self._on_ack(message)
             return None
+        if self.lockstep is not None:
+            self.lockstep.observe(message)
         sample = self.assembler.add(message)
         if sample is not None:
             self.process_sample(sample)
@@ -193,6 +200,8 @@ class HilService:
                 self._send(self.mapping.ballast_command(decision.command, system_id))
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
+        if self.lockstep is not None and self.send_commands:
+            self.lockstep.after_sample(sample, self._send)  # after the command, never before
 
     def _send(self, message: MavMessage) -> None:
         assert self.link is not None
@@ -360,6 +369,7 @@ class HilService:
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
+            **({} if self.lockstep is None else {"lockstep": self.lockstep.as_dict()}),
             "companions": {
                 str(system_id): {**c.counters.as_dict(), "stream_requests": c.states}
                 for system_id, c in self.companions.items()
