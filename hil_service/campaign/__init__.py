@@ -1,0 +1,1 @@
+"""``glider-hil campaign``: many lockstep HIL missions, scored, summarised and compared."""

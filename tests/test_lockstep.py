@@ -1,0 +1,106 @@
+"""Lockstep HIL (docs/lockstep.md): the handshake on the wire, and same seed, same run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from hil_service.campaign.hil_run import run_hil
+from hil_service.campaign.mission import Mission
+from hil_service.cli.processes import last_json
+from hil_service.mcap.reader import LogReader
+from protocols.lockstep import announces_lockstep, lockstep_heartbeat, release, released_time
+from protocols.mapping import TelemetryMapping
+from tests.conftest import free_tcp_port, free_udp_port
+
+pytestmark = pytest.mark.wire
+
+#: Short, but long enough for the identifier to converge and the controller to command.
+MISSION = Mission("disturbed", seed=3, steps=600, identify=350, step_every=80)
+
+
+def test_wire_messages_are_the_standard_ones() -> None:
+    assert announces_lockstep(lockstep_heartbeat())
+    assert not announces_lockstep(TelemetryMapping().heartbeat(vehicle=True))
+    message = release(1_234_000)
+    assert message.get_type() == "SYSTEM_TIME"
+    assert message.time_unix_usec == 0
+    assert released_time(message) == 1_234_000
+    assert released_time(lockstep_heartbeat()) is None
+
+
+def _payloads(path: str) -> dict[str, list[object]]:
+    """What a run decided, by channel, without wall-clock content: every payload but the
+    health (wall clock) and the vehicle's heartbeats (1 Hz wall clock), and without the
+    vehicle's MAVLink sequence numbers (they count those heartbeats)."""
+    channels: dict[str, list[object]] = {}
+    for message in LogReader(path).messages():
+        topic = message.topic
+        if topic.endswith("/health") or topic in ("mavlink/raw/in", "mavlink/json/in/HEARTBEAT"):
+            continue
+        if topic.startswith("mavlink/json/in/"):
+            payload = json.loads(message.data)
+            payload["_header"].pop("seq")
+            channels.setdefault(topic, []).append(payload)
+        else:
+            channels.setdefault(topic, []).append(message.data)
+    return channels
+
+
+def test_two_lockstep_runs_with_the_same_seed_are_the_same_bit_for_bit(tmp_path: Path) -> None:
+    first = run_hil(MISSION, tmp_path / "a")
+    second = run_hil(MISSION, tmp_path / "b")
+    for outcome in (first, second):
+        assert outcome.failure is None
+        assert outcome.lockstep == {"released": 600, "timeouts": 0, "stale_releases": 0}
+        assert outcome.service["vehicles"]["1"]["commands_sent"] > 100
+    assert first.log_path is not None and second.log_path is not None
+    a, b = _payloads(first.log_path), _payloads(second.log_path)
+    for topic in ("glider/1/telemetry", "glider/1/umodel/depth", "glider/1/command/ballast"):
+        assert len(a[topic]) > 100, topic
+    assert a.keys() == b.keys()
+    for topic in a:
+        assert a[topic] == b[topic], f"{topic} differs between the two runs"
+    for channel in ("depth", "pitch"):
+        assert (first.trace.y[channel] == second.trace.y[channel]).all()
+
+
+def test_emulate_lockstep_with_serve_announced_automatically(processes, tmp_path) -> None:
+    udp, zport = free_udp_port(), free_tcp_port()
+    service = processes.start_service(
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
+        "--no-log",
+    )  # fmt: skip
+    emulator = processes.start(
+        "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--lockstep",
+        "--duration", "300", "--scenario", "disturbed", "--lockstep-timeout", "30",
+    )  # fmt: skip
+    out, err = emulator.communicate(timeout=120)
+    assert emulator.returncode == 0, err
+    emulated = last_json(out, "emulator")
+    assert emulated["steps"] == 300
+    # Every step waited for its release; none had to time out (30 s: a loaded machine).
+    assert emulated["lockstep"] == {"released": 300, "timeouts": 0, "stale_releases": 0}
+    served = last_json(processes.stop(service)[0], "service")
+    assert served["lockstep"] == {"active": True, "announced": True, "releases": 300}
+
+
+def test_emulate_lockstep_without_a_service_times_out_and_goes_on(processes) -> None:
+    emulator = processes.start(
+        "emulate", "--connect", f"udpout:127.0.0.1:{free_udp_port()}", "--lockstep",
+        "--duration", "3", "--lockstep-timeout", "0.05",
+    )  # fmt: skip
+    out, err = emulator.communicate(timeout=60)
+    assert emulator.returncode == 0, err
+    emulated = last_json(out, "emulator")
+    assert emulated["steps"] == 3
+    assert emulated["lockstep"]["timeouts"] == 3
+
+
+def test_lockstep_refuses_what_it_cannot_do(processes) -> None:
+    emulator = processes.start("emulate", "--lockstep", "--profile", "ardusub")
+    _, err = emulator.communicate(timeout=60)
+    assert emulator.returncode == 2
+    assert "--lockstep needs the glider profile" in err
