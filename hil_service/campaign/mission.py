@@ -202,4 +202,3 @@ def oracle_trace(mission: Mission) -> tuple[Trace, int]:
         settings = GLIDER_ORACLE
     run, failures = oracle_run(mission.settings(), plant, mission.schedule(), settings, trims)
     return Trace(y=run.y, u=run.u), failures
-
