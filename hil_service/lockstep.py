@@ -2,8 +2,9 @@
 
 Active from the start with ``serve --lockstep`` (``ServiceConfig.lockstep``), or from the
 first vehicle heartbeat that announces lockstep (``MAV_MODE_FLAG_HIL_ENABLED``). Once active,
-every sample the service has finished with (identified, decided, its command sent) is
-answered with a release (``SYSTEM_TIME`` carrying the sample's timestamp). Nothing else in
+every sample the service has finished with (identified, decided) is released: by its
+command, which the vehicle takes as the release, or, when the service sends none, by
+``SYSTEM_TIME`` carrying the sample's timestamp. Nothing else in
 the service changes: the identifier and the controller see the samples they always see.
 """
 
@@ -20,7 +21,8 @@ class LockstepResponder:
     def __init__(self, forced: bool = False) -> None:
         self.active = forced
         self.announced = False  # a vehicle heartbeat announced lockstep
-        self.releases = 0
+        self.releases = 0  # SYSTEM_TIME sent
+        self.released_by_command = 0
 
     def observe(self, message: MavMessage) -> None:
         """Look for the announcement in a received message (cheap for every other one)."""
@@ -28,11 +30,22 @@ class LockstepResponder:
             self.announced = True
             self.active = True
 
-    def after_sample(self, sample: TelemetrySample, send: Callable[[MavMessage], None]) -> None:
-        """The service has finished with ``sample``: release its step (when active)."""
+    def after_sample(
+        self, sample: TelemetrySample, commanded: bool, send: Callable[[MavMessage], None]
+    ) -> None:
+        """The service has finished with ``sample``: release its step (when active) unless
+        the command it has just sent for it does."""
         if self.active:
-            send(release(sample.time_boot_ms))
-            self.releases += 1
+            if commanded:
+                self.released_by_command += 1
+            else:
+                send(release(sample.time_boot_ms))
+                self.releases += 1
 
     def as_dict(self) -> dict[str, object]:
-        return {"active": self.active, "announced": self.announced, "releases": self.releases}
+        return {
+            "active": self.active,
+            "announced": self.announced,
+            "releases": self.releases,
+            "released_by_command": self.released_by_command,
+        }

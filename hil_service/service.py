@@ -201,7 +201,8 @@ class HilService:
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
         if self.lockstep is not None and self.send_commands:
-            self.lockstep.after_sample(sample, self._send)  # after the command, never before
+            commanded = decision.command is not None and decision.payload is not None
+            self.lockstep.after_sample(sample, commanded, self._send)  # after the command
 
     def _send(self, message: MavMessage) -> None:
         assert self.link is not None

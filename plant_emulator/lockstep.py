@@ -1,12 +1,12 @@
 """The emulator's side of lockstep (docs/lockstep.md): step k+1 waits for the service.
 
 ``LockstepRunner.run`` replaces ``Autopilot.run``'s wall-clock schedule: it computes a plant
-step, sends its telemetry, then reads the link until the service releases that step
-(``SYSTEM_TIME`` carrying the step's timestamp, after its command if it sends one) or until
-``timeout`` wall-clock seconds have passed, which is counted and the run goes on. Commands
-that arrive before the release are handled as always (``Autopilot.handle_message``), so the
-step after the release is computed with them: the vehicle applies the service's answer to
-step k at step k+1, exactly as the in-process experiment does.
+step, sends its telemetry (one datagram, ``BatchedLink``), then reads the link until the
+service releases that step, with a ballast command or, when it sends none, ``SYSTEM_TIME``
+carrying the step's timestamp, or until ``timeout`` wall-clock seconds have passed, which is
+counted and the run goes on. A command is handled as always (``Autopilot.handle_message``),
+so the next step is computed with it: the vehicle applies the service's answer to step k at
+step k+1, exactly as the in-process experiment does.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, AutopilotStats
-from protocols.lockstep import lockstep_heartbeat, released_time, step_time
+from protocols.lockstep import BatchedLink, lockstep_heartbeat, released_time, step_time
+from protocols.mapping import command_target_system, is_ballast_command
 from protocols.mavlink_io import MavMessage
 
 DEFAULT_TIMEOUT = 1.0  # wall s a step waits for its release
@@ -28,7 +29,8 @@ DEFAULT_TIMEOUT = 1.0  # wall s a step waits for its release
 class LockstepStats:
     """What the handshake did: releases on time, timeouts, releases of other steps."""
 
-    released: int = 0
+    released: int = 0  # by SYSTEM_TIME
+    released_by_command: int = 0
     timeouts: int = 0
     #: Releases naming a step other than the one waited for (late, after a timeout).
     stale_releases: int = 0
@@ -54,12 +56,23 @@ class LockstepRunner:
         self.stats = LockstepStats()
         self._waiting: int | None = None  # the step time awaiting its release
         self._released = False
+        self.link = BatchedLink(autopilot.link)  # type: ignore[arg-type]
+        autopilot.link = self.link  # type: ignore[assignment]
         autopilot.lockstep = self
 
     def offer(self, message: MavMessage) -> bool:
-        """Take ``message`` if it is a release (True); the autopilot handles the rest."""
+        """Take ``message`` if it is a ``SYSTEM_TIME`` release (True); a ballast command for
+        this vehicle releases the step too, and is left to the autopilot (False)."""
         released = released_time(message)
         if released is None:
+            if (
+                self._waiting is not None
+                and not self._released
+                and is_ballast_command(message)
+                and command_target_system(message) in (0, self.autopilot.config.system_id)
+            ):
+                self._released = True
+                self.stats.released_by_command += 1
             return False
         if self._waiting is not None and released == self._waiting and not self._released:
             self._released = True
@@ -72,7 +85,7 @@ class LockstepRunner:
         """Step until ``duration`` simulated seconds have passed or ``stop`` is set."""
         stop = stop or threading.Event()
         autopilot = self.autopilot
-        link = autopilot.link
+        link = self.link
         duration = autopilot.config.duration
         total_steps = (
             None
@@ -89,6 +102,7 @@ class LockstepRunner:
                 autopilot.stats.heartbeats += 1
                 next_heartbeat = now + HEARTBEAT_PERIOD
             sample = autopilot.step()
+            link.flush()
             self._waiting = step_time(sample.time_boot_ms)
             self._released = False
             deadline = self.clock() + self.timeout
@@ -101,5 +115,7 @@ class LockstepRunner:
                     data = link.recv()
                     if data:
                         autopilot.handle_bytes(data)
+                        link.flush()  # the acknowledgements
             self._waiting = None
+        link.flush()
         return autopilot.stats

@@ -54,8 +54,14 @@ def test_two_lockstep_runs_with_the_same_seed_are_the_same_bit_for_bit(tmp_path:
     second = run_hil(MISSION, tmp_path / "b")
     for outcome in (first, second):
         assert outcome.failure is None
-        assert outcome.lockstep == {"released": 600, "timeouts": 0, "stale_releases": 0}
-        assert outcome.service["vehicles"]["1"]["commands_sent"] > 100
+        commands = outcome.service["vehicles"]["1"]["commands_sent"]
+        assert commands > 100
+        # Every step released: by its command when the service sent one, else SYSTEM_TIME.
+        assert outcome.lockstep == {
+            "released": 600 - commands, "released_by_command": commands,
+            "timeouts": 0, "stale_releases": 0,
+        }  # fmt: skip
+        assert outcome.service["lockstep"]["releases"] == 600 - commands
     assert first.log_path is not None and second.log_path is not None
     a, b = _payloads(first.log_path), _payloads(second.log_path)
     for topic in ("glider/1/telemetry", "glider/1/umodel/depth", "glider/1/command/ballast"):
@@ -82,9 +88,13 @@ def test_emulate_lockstep_with_serve_announced_automatically(processes, tmp_path
     emulated = last_json(out, "emulator")
     assert emulated["steps"] == 300
     # Every step waited for its release; none had to time out (30 s: a loaded machine).
-    assert emulated["lockstep"] == {"released": 300, "timeouts": 0, "stale_releases": 0}
+    assert emulated["lockstep"] == {
+        "released": 300, "released_by_command": 0, "timeouts": 0, "stale_releases": 0,
+    }  # fmt: skip
     served = last_json(processes.stop(service)[0], "service")
-    assert served["lockstep"] == {"active": True, "announced": True, "releases": 300}
+    assert served["lockstep"] == {
+        "active": True, "announced": True, "releases": 300, "released_by_command": 0,
+    }  # fmt: skip
 
 
 def test_emulate_lockstep_without_a_service_times_out_and_goes_on(processes) -> None:
