@@ -18,7 +18,9 @@ from plant_emulator.models import CHANNELS
 DIVERGENCE_FACTOR = 10.0
 
 #: The columns of runs.csv, in order (per-channel ones are expanded for depth and pitch).
-RUN_COLUMNS = ("scenario", "seed", "status", "reason", "steps", "wall_s", "steps_per_s")
+RUN_COLUMNS = (
+    "scenario", "seed", "status", "reason", "steps", "wall_s", "cpu_s", "steps_per_s",
+)  # fmt: skip
 CHANNEL_COLUMNS = (
     "iae",
     "iae_reference",

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import sys
 import time
 import traceback
@@ -129,11 +130,23 @@ def _write_row(directory: Path, row: dict[str, Any]) -> None:
     partial.replace(directory / RUN_FILE)
 
 
+def _cpu_seconds() -> float:
+    """CPU time of this worker and its reaped children (the mission's service)."""
+    total = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        usage = resource.getrusage(who)
+        total += usage.ru_utime + usage.ru_stime
+    return total
+
+
 def _worker(spec: CampaignSpec, mission: Mission) -> None:
     """The forked worker's body; it leaves with os._exit, never returning to the caller."""
     code = 1
     try:
-        _write_row(run_dir(spec, mission), execute(spec, mission))
+        cpu = _cpu_seconds()
+        row = execute(spec, mission)
+        row["cpu_s"] = round(_cpu_seconds() - cpu, 3)  # the worker's and its service's
+        _write_row(run_dir(spec, mission), row)
         code = 0
     finally:
         os._exit(code)

@@ -26,6 +26,10 @@ def _values(rows: list[dict[str, Any]], key: str) -> list[float]:
     ]
 
 
+def _numbers(rows: list[dict[str, Any]], key: str) -> list[float]:
+    return [float(r[key]) for r in rows if isinstance(r.get(key), (int, float))]
+
+
 def _fmt(value: float | None, digits: int = 3) -> str:
     return "—" if value is None else f"{value:.{digits}g}"
 
@@ -98,6 +102,10 @@ def summary_markdown(
         f"lockstep HIL over loopback UDP; oracle {'on' if spec['oracle'] else 'off'}"
         + (f"; {wall_s:.0f} s wall" if wall_s is not None else "")
         + ".",
+        "",
+        f"Per mission: median wall {_fmt(_median(_numbers(rows, 'wall_s')))} s, median CPU "
+        f"{_fmt(_median(_numbers(rows, 'cpu_s')))} s (the worker, its emulator and its "
+        "service, scoring included).",
         "",
         "Ratios are the HIL run's IAE over the yardstick's on the same plant, disturbance and "
         "setpoints (below 1: better). Medians with the 10–90 % range, over the runs that "
