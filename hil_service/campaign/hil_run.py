@@ -273,6 +273,16 @@ def run_hil(
     summary_path = run_dir / SERVICE_SUMMARY
     if summary_path.exists():
         outcome.service = json.loads(summary_path.read_text())
+    counted = outcome.service.get("counters", {})
+    dropped = {k: counted.get(k, 0) for k in ("invalid", "incomplete", "out_of_order")}
+    if (
+        outcome.failure is not None
+        and "stopped answering" in outcome.failure
+        and any(dropped.values())
+    ):
+        # A sample the service drops is never released (docs/lockstep.md): say which.
+        named = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in dropped.items() if n)
+        outcome.failure += f": the service dropped samples ({named})"
     logs = sorted(run_dir.glob("*.mcap"))
     outcome.log_path = str(logs[-1]) if logs else None
     return outcome
