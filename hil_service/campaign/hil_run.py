@@ -101,8 +101,20 @@ def service_config(mission: Mission) -> ServiceConfig:
     )
 
 
+def _die_with_parent() -> None:
+    """Ask Linux for SIGTERM when the worker dies (killed mid-mission): no orphan service."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the worker's own cleanup has to do
+        pass
+
+
 def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
     """The forked service: open, say the port on ``ready_fd``, serve until SIGTERM."""
+    _die_with_parent()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -202,7 +202,11 @@ class Progress:
 def run_campaign(
     spec: CampaignSpec, on_row: Callable[[dict[str, Any]], None] | None = None
 ) -> list[dict[str, Any]]:
-    """Every mission's row (finished ones read back when resuming), in mission order."""
+    """Every mission's row (finished ones read back when resuming), in mission order.
+
+    Waits for any child (``os.waitpid(-1)``): call it from a process whose only children
+    are its workers (the ``campaign`` verb's), not from one that runs other subprocesses.
+    """
     spec.out.mkdir(parents=True, exist_ok=True)
     (spec.out / "campaign.json").write_text(json.dumps(spec.to_json(), indent=1))
     missions = spec.missions()
