@@ -9,9 +9,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hil_service.campaign.compare import compare, t_interval
+from hil_service.campaign.metrics import divergence
+from hil_service.campaign.mission import Mission, Trace
 from hil_service.campaign.runner import parse_seeds
 from hil_service.cli.processes import last_json
 
@@ -141,3 +144,16 @@ def test_seeds_parse_and_refuse() -> None:
     assert parse_seeds("0-3,7") == (0, 1, 2, 3, 7)
     with pytest.raises(ValueError, match="--seeds"):
         parse_seeds("3-1")
+
+
+def test_a_run_whose_output_runs_away_counts_as_diverged() -> None:
+    mission = Mission("disturbed", 0, steps=500, identify=300, step_every=60)
+    schedule = mission.schedule()
+    trace = Trace.empty(mission.steps)
+    for ch in ("depth", "pitch"):
+        trace.y[ch][:] = np.nan_to_num(schedule[ch], nan=0.0)
+    assert divergence(mission, trace, schedule) is None
+    trace.y["pitch"][450] += 100.0  # far beyond ten times the largest step (0.25 rad)
+    assert divergence(mission, trace, schedule) == "pitch error 100 at step 450"
+    trace.y["depth"][400] = np.inf
+    assert divergence(mission, trace, schedule) == "depth not finite at step 400"
