@@ -157,3 +157,15 @@ def test_a_run_whose_output_runs_away_counts_as_diverged() -> None:
     assert divergence(mission, trace, schedule) == "pitch error 100 at step 450"
     trace.y["depth"][400] = np.inf
     assert divergence(mission, trace, schedule) == "depth not finite at step 400"
+
+
+def test_oracle_on_request(tmp_path: Path) -> None:
+    out = tmp_path / "oracle"
+    done = campaign("--scenarios", "random", "--seeds", "0", *SHORT, "--oracle", "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    (row,) = rows(out)
+    assert row["status"] == "ok"
+    for ch in ("depth", "pitch"):
+        ratio = float(row[f"{ch}_iae"]) / float(row[f"{ch}_iae_oracle"])
+        assert float(row[f"{ch}_ratio_oracle"]) == pytest.approx(ratio, rel=1e-3)
+    assert row["oracle_failures"] == "0"
