@@ -9,10 +9,18 @@ import pytest
 
 from hil_service.campaign.hil_run import run_hil
 from hil_service.campaign.mission import Mission
+from hil_service.cli import main
 from hil_service.cli.processes import last_json
+from hil_service.lockstep import LockstepResponder
 from hil_service.mcap.reader import LogReader
+from plant_emulator.autopilot import Autopilot, AutopilotConfig
+from plant_emulator.excitation import build_channel_excitations
+from plant_emulator.lockstep import LockstepRunner
+from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.lockstep import announces_lockstep, lockstep_heartbeat, release, released_time
 from protocols.mapping import TelemetryMapping
+from protocols.mavlink_io import Link
+from protocols.samples import TelemetrySample
 from tests.conftest import free_tcp_port, free_udp_port
 
 pytestmark = pytest.mark.wire
@@ -97,20 +105,43 @@ def test_emulate_lockstep_with_serve_announced_automatically(processes, tmp_path
     }  # fmt: skip
 
 
-def test_emulate_lockstep_without_a_service_times_out_and_goes_on(processes) -> None:
-    emulator = processes.start(
-        "emulate", "--connect", f"udpout:127.0.0.1:{free_udp_port()}", "--lockstep",
-        "--duration", "3", "--lockstep-timeout", "0.05",
-    )  # fmt: skip
-    out, err = emulator.communicate(timeout=60)
-    assert emulator.returncode == 0, err
-    emulated = last_json(out, "emulator")
-    assert emulated["steps"] == 3
-    assert emulated["lockstep"]["timeouts"] == 3
+def test_without_a_service_each_step_times_out_and_the_emulator_goes_on() -> None:
+    link = Link(f"udpout:127.0.0.1:{free_udp_port()}", source_system=1, source_component=1)
+    plant = GliderPlant(PlantConfig(scenario="paper"))
+    autopilot = Autopilot(
+        plant, link, build_channel_excitations("steps", 0), AutopilotConfig(duration=3.0)
+    )
+    runner = LockstepRunner(autopilot, timeout=0.05)
+    try:
+        stats = runner.run()
+    finally:
+        link.close()
+    assert stats.steps == 3
+    assert runner.stats.as_dict() == {
+        "released": 0, "released_by_command": 0, "timeouts": 3, "stale_releases": 0,
+    }  # fmt: skip
 
 
-def test_lockstep_refuses_what_it_cannot_do(processes) -> None:
-    emulator = processes.start("emulate", "--lockstep", "--profile", "ardusub")
-    _, err = emulator.communicate(timeout=60)
-    assert emulator.returncode == 2
-    assert "--lockstep needs the glider profile" in err
+def test_lockstep_refuses_what_it_cannot_do(capsys) -> None:
+    assert main(["emulate", "--lockstep", "--profile", "ardusub"]) == 2
+    assert "--lockstep needs the glider profile" in capsys.readouterr().err
+    assert main(["emulate", "--lockstep", "--vehicles", "3"]) == 2
+    assert "--lockstep runs one vehicle" in capsys.readouterr().err
+
+
+def test_the_service_side_releases_only_when_active_and_not_commanded() -> None:
+    sample = TelemetrySample(1, 5000, 15.0, 0.0, 0.0, 0.0)
+    sent: list[object] = []
+    idle = LockstepResponder()
+    idle.observe(TelemetryMapping().heartbeat(vehicle=True))  # no flag: stays off
+    idle.after_sample(sample, False, sent.append)
+    assert not idle.active and sent == []
+    idle.observe(lockstep_heartbeat())
+    assert idle.active and idle.announced
+    forced = LockstepResponder(forced=True)  # serve --lockstep
+    forced.after_sample(sample, True, sent.append)  # the command released it
+    forced.after_sample(sample, False, sent.append)
+    assert [released_time(m) for m in sent] == [5000]  # type: ignore[arg-type]
+    assert forced.as_dict() == {
+        "active": True, "announced": False, "releases": 1, "released_by_command": 1,
+    }  # fmt: skip
