@@ -1,7 +1,8 @@
 """The emulator's side of lockstep (docs/lockstep.md): step k+1 waits for the service.
 
 ``LockstepRunner.run`` replaces ``Autopilot.run``'s wall-clock schedule: it computes a plant
-step, sends its telemetry (one datagram, ``BatchedLink``), then reads the link until the
+step, sends its telemetry (one datagram with the acknowledgement of the last command,
+``BatchedLink``), then reads the link until the
 service releases that step, with a ballast command or, when it sends none, ``SYSTEM_TIME``
 carrying the step's timestamp, or until ``timeout`` wall-clock seconds have passed, which is
 counted and the run goes on. A command is handled as always (``Autopilot.handle_message``),
@@ -114,8 +115,9 @@ class LockstepRunner:
                 if link.wait(min(remaining, 0.2)):
                     data = link.recv()
                     if data:
+                        # Its acknowledgement goes with the next step's telemetry: the same
+                        # order, one datagram (and one wake-up of the service) less per step.
                         autopilot.handle_bytes(data)
-                        link.flush()  # the acknowledgements
             self._waiting = None
         link.flush()
         return autopilot.stats
