@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hil_service.campaign import SCENARIOS
 from hil_service.experiment.closed_loop import (
     GLIDER_ORACLE,
     ClosedLoopSettings,
@@ -32,8 +33,6 @@ from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS
 from plant_emulator.plant import GliderPlant, PlantConfig
 from plant_emulator.random_plants import RandomVehicle, RandomVehicleConfig, draw_family
 from protocols.samples import TelemetrySample
-
-SCENARIOS = ("paper", "disturbed", "nonlinear", "random")
 
 
 class RandomPlant:

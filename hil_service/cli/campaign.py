@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from hil_service.campaign.mission import SCENARIOS
+from hil_service.campaign import SCENARIOS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
