@@ -79,6 +79,11 @@ def test_two_lockstep_runs_with_the_same_seed_are_the_same_bit_for_bit(tmp_path:
         assert a[topic] == b[topic], f"{topic} differs between the two runs"
     for channel in ("depth", "pitch"):
         assert (first.trace.y[channel] == second.trace.y[channel]).all()
+    # The service saw every step the vehicle computed, once, in order: nothing was skipped
+    # or waited out, and pitch (a float on the wire as in the plant) is the plant's own.
+    telemetry = [json.loads(data) for data in a["glider/1/telemetry"]]  # type: ignore[arg-type]
+    assert [p["t"] for p in telemetry] == [float(k) for k in range(600)]
+    assert [p["pitch"] for p in telemetry] == pytest.approx(list(first.trace.y["pitch"]), abs=1e-6)
 
 
 def test_emulate_lockstep_with_serve_announced_automatically(processes, tmp_path) -> None:
