@@ -148,7 +148,7 @@ def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
     return 0
 
 
-def _wait_ready(fd: int, pid: int, timeout: float) -> int | None:
+def _wait_ready(fd: int, timeout: float) -> int | None:
     """The port the service says it listens on, or None if it died or stayed silent."""
     deadline = time.monotonic() + timeout
     seen = b""
@@ -225,7 +225,7 @@ def run_hil(
     started = time.monotonic()
     trace = Trace.empty(mission.steps)
     try:
-        port = _wait_ready(read_fd, pid, READY_TIMEOUT)
+        port = _wait_ready(read_fd, READY_TIMEOUT)
     finally:
         os.close(read_fd)
     if port is None:
