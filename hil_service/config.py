@@ -103,6 +103,9 @@ class ServiceConfig:
     #: computer (heartbeat, stream requests). None: the lockstep ``glider`` contract.
     profile: Profile | None = None
     sample_period: float | None = None
+    #: Release every step from the start (docs/lockstep.md); without it, lockstep starts
+    #: when a vehicle announces it. Live only: not stored (replay sends nothing).
+    lockstep: bool = False
 
     def mapping(self) -> TelemetryMapping:
         return self.units.mapping()

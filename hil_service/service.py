@@ -19,6 +19,7 @@ from hil_service.companion import Companion
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
+from hil_service.lockstep import LockstepResponder
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
 from hil_service.profile_assembler import ProfileAssembler
@@ -93,6 +94,10 @@ class HilService:
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}
         self._next_health = 0.0
+        #: Lockstep with the glider profile's emulator (docs/lockstep.md); None: periodic.
+        self.lockstep: LockstepResponder | None = (
+            None if self.periodic is not None else LockstepResponder(config.lockstep)
+        )
         self._lock = threading.Lock()  # guards snapshots read by the state queryable
         #: The live view's counters (``LiveView.counters``) when one runs: health's
         #: ``service_wide`` carries them (builder.wire sets it).
@@ -144,6 +149,8 @@ class HilService:
         if message.get_type() == MSG_ACK:
             self._on_ack(message)
             return None
+        if self.lockstep is not None:
+            self.lockstep.observe(message)
         sample = self.assembler.add(message)
         if sample is not None:
             self.process_sample(sample)
@@ -214,6 +221,9 @@ class HilService:
                 self._send(self.mapping.ballast_command(decision.command, system_id), system_id)
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
+        if self.lockstep is not None and self.send_commands:
+            commanded = decision.command is not None and decision.payload is not None
+            self.lockstep.after_sample(sample, commanded, self._send)  # after the command
 
     def _send(self, message: MavMessage, system_id: int) -> None:
         """``message`` to vehicle ``system_id``, as its companion, where its frames came from."""
@@ -395,6 +405,7 @@ class HilService:
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
+            **({} if self.lockstep is None else {"lockstep": self.lockstep.as_dict()}),
             "companions": {
                 str(system_id): {**c.counters.as_dict(), "stream_requests": c.states}
                 for system_id, c in self.companions.items()

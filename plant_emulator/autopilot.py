@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from plant_emulator.excitation import Excitation
 from plant_emulator.gcs import GroundStationManners, Parameter
@@ -29,6 +30,9 @@ from protocols.mapping import (
 )
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, dialect
 from protocols.samples import TelemetrySample
+
+if TYPE_CHECKING:
+    from plant_emulator.lockstep import LockstepRunner
 
 #: Messages that change the vehicle: never accepted unsigned when a key is set.
 COMMAND_MESSAGE_IDS = frozenset(
@@ -118,6 +122,8 @@ class Autopilot:
             always_signed=COMMAND_MESSAGE_IDS,
         )
         self.stats = AutopilotStats()
+        #: Set by ``plant_emulator.lockstep.LockstepRunner``: it takes the releases.
+        self.lockstep: LockstepRunner | None = None
         self._external = {"depth": math.nan, "pitch": math.nan}
         self._last_command_t: float | None = None  # simulated time of the last command
         self._external_active = False
@@ -163,6 +169,8 @@ class Autopilot:
             self.handle_message(message)
 
     def handle_message(self, message: MavMessage) -> None:
+        if self.lockstep is not None and self.lockstep.offer(message):
+            return
         if not is_ballast_command(message):
             if not self.manners.handle(message):
                 self.stats.ignored_messages += 1

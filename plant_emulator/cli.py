@@ -11,6 +11,7 @@ import threading
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
+from plant_emulator.lockstep import DEFAULT_TIMEOUT, LockstepRunner
 from plant_emulator.plant import GliderPlant, PlantConfig
 from plant_emulator.scenarios import SCENARIOS
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
@@ -92,11 +93,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
     )
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="step k+1 only once the service has finished with step k (docs/lockstep.md); "
+        "as fast as the loop allows, --speed is ignored",
+    )
+    parser.add_argument(
+        "--lockstep-timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT,
+        metavar="S",
+        help="wall s a step waits for the service before going on, counted (default %(default)s)",
+    )
     add_fleet_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.vehicles != 1 or args.fleet_connect:
+        if args.lockstep:
+            print("glider-hil emulate: --lockstep runs one vehicle", file=sys.stderr)
+            return 2
         if args.profile != DEFAULT_PROFILE:
             print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
             return 2
@@ -106,6 +123,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         profile = load_profile(args.profile)
         periodic = profile.sampling.mode == "periodic"
+        if args.lockstep and periodic:
+            raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
+        if not (args.lockstep_timeout > 0):
+            raise ValueError("--lockstep-timeout must be positive")
         period = args.period
         if period is None:
             period = profile.sampling.period if periodic and profile.sampling.period else 1.0
@@ -163,19 +184,23 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         autopilot = Autopilot(plant, link, excitations, config, mapping, on_step=on_step)
+    lockstep = LockstepRunner(autopilot, args.lockstep_timeout) if args.lockstep else None
+    pace = "in lockstep" if lockstep is not None else f"at {args.speed:g}x"
     print(
         f"emulating glider sysid {args.sysid} ({args.scenario}, {args.excitation}, profile "
-        f"{profile.name}) on {args.connect} at {args.speed:g}x",
+        f"{profile.name}) on {args.connect} {pace}",
         file=sys.stderr,
         flush=True,
     )
     try:
-        stats = autopilot.run(stop)
+        stats = autopilot.run(stop) if lockstep is None else lockstep.run(stop)
     finally:
         link.close()
     summary = stats.as_dict(autopilot.codec)
     summary["gcs"] = autopilot.manners.counters.as_dict()
     if isinstance(autopilot, ArduSubAutopilot):
         summary["streams_sent"] = dict(autopilot.sent)
+    if lockstep is not None:
+        summary["lockstep"] = lockstep.stats.as_dict()
     print(json.dumps({"emulator": summary}), flush=True)
     return 0

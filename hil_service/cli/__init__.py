@@ -17,6 +17,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "report": ("hil_service.cli.report", "figures and a Markdown summary from a log"),
     "import": ("hil_service.cli.import_tlog", "a telemetry log (.tlog) into an MCAP log"),
     "router": ("hil_service.cli.router", "a Zenoh router for services on several processes"),
+    "campaign": ("hil_service.cli.campaign", "many lockstep HIL missions, scored; compare two"),
     "fleet": ("hil_service.cli.fleet", "live table of every served vehicle on the Zenoh network"),
 }
 

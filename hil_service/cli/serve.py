@@ -72,6 +72,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     control.add_argument("--no-control", dest="control", action="store_false")
     parser.set_defaults(control=False)
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="release every step to the vehicle from the start (docs/lockstep.md; default: "
+        "when the vehicle announces lockstep)",
+    )
     parser.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
     parser.add_argument("--burn-in", type=int, default=None, help="samples before control")
     parser.add_argument("--log-dir", default="logs", help="MCAP directory (default logs)")
@@ -162,6 +168,8 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
     if args.sample_period is not None and not periodic:
         raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
     system_ids = [i for text in args.sysid for i in parse_system_ids(str(text))]
+    if args.lockstep and periodic:
+        raise ValueError(f"--lockstep needs the glider profile; {profile.name} is periodic")
     service = ServiceConfig(
         system_ids=tuple(dict.fromkeys(system_ids)),
         control_default=args.control,
@@ -172,6 +180,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),
         profile=profile if periodic else None,
         sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
+        lockstep=args.lockstep,
     )
     log = LogOptions(
         directory=None if args.no_log else args.log_dir,

@@ -1,0 +1,124 @@
+"""Lockstep HIL throughput, printed (not a timed test).
+
+1. Closed-loop steps/s of one vehicle in lockstep over loopback UDP (the campaign's mission:
+   forked service with its MCAP log, emulator in this process), beside the in-process
+   closed loop of ``experiment --closed-loop`` (``inverse_run``: the same pipeline on the
+   same plant, no link) measured in the same run. Run it on one core:
+
+       taskset -c 0 .venv/bin/python benchmarks/bench_lockstep.py --steps 3600
+
+2. ``--campaign N``: wall time of a campaign of N seeds x the scenarios (default
+   disturbed,nonlinear) with ``--jobs``, start-up included (the ``glider-hil campaign``
+   process, as a user runs it):
+
+       .venv/bin/python benchmarks/bench_lockstep.py --campaign 50 --jobs 2
+
+Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from hil_service.campaign.hil_run import run_hil  # noqa: E402
+from hil_service.campaign.mission import Mission  # noqa: E402
+from hil_service.experiment.closed_loop import inverse_run  # noqa: E402
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process and of its reaped children (the forked service)."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def in_process_rate(mission: Mission) -> dict[str, float]:
+    settings = mission.settings()
+    started, cpu = time.perf_counter(), cpu_seconds()
+    run = inverse_run(settings, mission.plant(), mission.schedule(), None)
+    elapsed, used = time.perf_counter() - started, cpu_seconds() - cpu
+    assert run.trace.y["depth"].size == mission.steps
+    return {"steps_per_s": round(mission.steps / elapsed),
+            "steps_per_cpu_s": round(mission.steps / used)}  # fmt: skip
+
+
+def lockstep_rate(mission: Mission, log: bool) -> dict[str, object]:
+    cpu = cpu_seconds()
+    with tempfile.TemporaryDirectory() as directory:
+        outcome = run_hil(mission, Path(directory), log=log)
+    used = cpu_seconds() - cpu
+    if outcome.failure is not None:
+        raise RuntimeError(outcome.failure)
+    commands = outcome.service["vehicles"]["1"]["commands_sent"]
+    return {
+        "steps_per_s": round(mission.steps / outcome.wall_s),
+        # Both processes' CPU time: what the loop costs, whatever else the machine runs.
+        "steps_per_cpu_s": round(mission.steps / used),
+        "wall_s": round(outcome.wall_s, 3),
+        "commands_sent": commands,
+        "timeouts": outcome.lockstep["timeouts"],
+    }
+
+
+def campaign_wall(seeds: int, scenarios: str, steps: int, jobs: int) -> dict[str, object]:
+    with tempfile.TemporaryDirectory() as directory:
+        started = time.monotonic()
+        done = subprocess.run(
+            [sys.executable, "-m", "hil_service.cli", "campaign", "--scenarios", scenarios,
+             "--seeds", f"0-{seeds - 1}", "--steps", str(steps), "--jobs", str(jobs),
+             "-o", str(Path(directory) / "c")],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        wall = time.monotonic() - started
+    result = json.loads(done.stdout.strip().splitlines()[-1])["campaign"]
+    return {"missions": result["runs"], "ok": result["ok"], "wall_s": round(wall, 1),
+            "jobs": jobs, "steps": steps, "scenarios": scenarios}  # fmt: skip
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--steps", type=int, default=3600)
+    parser.add_argument("--scenario", default="disturbed")
+    parser.add_argument("--repeats", type=int, default=3, help="best of N (a shared machine)")
+    parser.add_argument("--campaign", type=int, default=0, metavar="SEEDS")
+    parser.add_argument("--scenarios", default="disturbed,nonlinear")
+    parser.add_argument("--jobs", type=int, default=2)
+    args = parser.parse_args()
+    if args.campaign:
+        print(json.dumps({"campaign": campaign_wall(args.campaign, args.scenarios, args.steps,
+                                                    args.jobs)}))  # fmt: skip
+        return 0
+    mission = Mission(args.scenario, 0, args.steps, args.steps // 3, max(2, args.steps // 6))
+    in_process = [in_process_rate(mission) for _ in range(args.repeats)]
+    logged = [lockstep_rate(mission, log=True) for _ in range(args.repeats)]
+    unlogged = [lockstep_rate(mission, log=False) for _ in range(args.repeats)]
+    affinity = sorted(os.sched_getaffinity(0))
+    print(
+        json.dumps(
+            {
+                "cores": affinity,
+                "steps": args.steps,
+                "scenario": args.scenario,
+                "load_average_1min": round(os.getloadavg()[0], 2),
+                "in_process": max(in_process, key=lambda r: r["steps_per_s"]),
+                "lockstep_udp_logged": max(logged, key=lambda r: r["steps_per_s"]),
+                "lockstep_udp_no_log": max(unlogged, key=lambda r: r["steps_per_s"]),
+            }
+        )
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

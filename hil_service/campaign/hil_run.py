@@ -1,0 +1,309 @@
+"""One lockstep HIL mission over loopback UDP: the service in a forked process, the emulator
+in this one.
+
+The service is ``HilService`` wired by ``hil_service.builder`` as ``serve`` wires it, with
+two differences that keep the run reproducible and cheap: setpoints come from the mission's
+schedule, keyed by the sample's own timestamp (``ScheduledInbox``), instead of Zenoh, and
+publications are recorded to the MCAP log without a Zenoh session (``RecordingBus``). The
+emulator is ``Autopilot`` driven by ``LockstepRunner``. A forked child starts in
+milliseconds (the modules are already imported), which is what makes a campaign of short
+missions fast; the service is a real process, so a test can kill it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import socket
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_service.builder import open_recorder, wire
+from hil_service.campaign.mission import Mission, Trace
+from hil_service.config import LogOptions, ServiceConfig
+from hil_service.inputs import ControlInputs, Inbox
+from hil_service.mcap.recorder import McapRecorder
+from hil_service.pipeline import PipelineSettings
+from plant_emulator.autopilot import Autopilot, AutopilotConfig
+from plant_emulator.lockstep import LockstepRunner
+from protocols import payload_json
+from protocols.mavlink_io import Link
+from protocols.samples import TelemetrySample
+
+SERVICE_SUMMARY = "service.json"
+SERVICE_ERROR = "service-error.txt"
+#: Consecutive lockstep timeouts (the service alive) after which a run is given up.
+MAX_CONSECUTIVE_TIMEOUTS = 5
+READY_TIMEOUT = 60.0  # wall s for the forked service to open its link and log
+STOP_TIMEOUT = 30.0  # wall s for it to close its log and exit after SIGTERM
+
+
+class ScheduledInbox(Inbox):
+    """Setpoints from the mission's schedule at the sample's own step: deterministic."""
+
+    def __init__(self, schedule: dict[str, np.ndarray], period: float):
+        super().__init__()
+        self.schedule = schedule
+        self.period_ms = period * 1000.0
+        self.steps = len(next(iter(schedule.values())))
+        self._cache: dict[int, ControlInputs] = {}
+
+    def inputs_for(self, sample: TelemetrySample) -> ControlInputs:
+        k = round(sample.time_boot_ms / self.period_ms)
+        k = min(max(k, 0), self.steps - 1)
+        setpoints: dict[str, float | None] = {}
+        for channel, values in self.schedule.items():
+            value = float(values[k])
+            setpoints[channel] = value if np.isfinite(value) else None
+        key = hash(tuple(setpoints.values()))
+        cached = self._cache.get(key)
+        if cached is None or cached.setpoints != setpoints:
+            cached = ControlInputs(setpoints, True)
+            self._cache[key] = cached
+        return cached
+
+    def get(self, system_id: int) -> ControlInputs:
+        return ControlInputs({"depth": None, "pitch": None}, True)
+
+
+class RecordingBus:
+    """Every publication into the log, byte for byte as Zenoh would carry it; no Zenoh."""
+
+    def __init__(self, recorder: McapRecorder | None):
+        self.recorder = recorder
+
+    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+        if self.recorder is not None:
+            self.recorder.zenoh_encoded(key, payload_json.encode(payload), "out")
+
+    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def service_config(mission: Mission) -> ServiceConfig:
+    return ServiceConfig(
+        system_ids=(1,),
+        control_default=True,
+        pipeline=PipelineSettings(seed=mission.seed),
+        lockstep=True,
+    )
+
+
+def _die_with_parent() -> None:
+    """Ask Linux for SIGTERM when the worker dies (killed mid-mission): no orphan service."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the worker's own cleanup has to do
+        pass
+
+
+def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
+    """The forked service: open, say the port on ``ready_fd``, serve until SIGTERM."""
+    _die_with_parent()
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    config = service_config(mission)
+    recorder = open_recorder(
+        config,
+        LogOptions(directory=str(run_dir) if log else None),
+        extra={"campaign.mission": json.dumps(mission.__dict__)},
+    )
+    link = Link("udpin:127.0.0.1:0", source_system=255, source_component=191)
+    with socket.socket(fileno=os.dup(link.fileno())) as bound:
+        port = bound.getsockname()[1]
+    inbox = ScheduledInbox(mission.schedule(), mission.period)
+    wired = wire(config, link=link, recorder=recorder, inbox=inbox, bus=RecordingBus(recorder))
+    os.write(ready_fd, f"{port}\n".encode())
+    os.close(ready_fd)
+    try:
+        wired.service.run(stop)
+        # What the vehicle sent before it stopped (the last acknowledgement) is in the
+        # socket already (loopback delivers on send): take it, so every run logs it.
+        while link.wait(0.0):
+            data = link.recv()
+            if not data:
+                break
+            wired.service.process_datagram(data, datagram=link.datagram)
+    finally:
+        summary = wired.service.summary()
+        report = wired.close()
+        summary["log"] = report
+        (run_dir / SERVICE_SUMMARY).write_text(json.dumps(summary))
+    return 0
+
+
+def _wait_ready(fd: int, timeout: float) -> int | None:
+    """The port the service says it listens on, or None if it died or stayed silent."""
+    deadline = time.monotonic() + timeout
+    seen = b""
+    while b"\n" not in seen:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return None
+        ready, _, _ = select.select([fd], [], [], min(remaining, 0.5))
+        if ready:
+            chunk = os.read(fd, 64)
+            if not chunk:
+                return None
+            seen += chunk
+    return int(seen.split(b"\n")[0])
+
+
+def _exited(pid: int) -> int | None:
+    """The wait status if ``pid`` has exited (reaped now), else None."""
+    done, status = os.waitpid(pid, os.WNOHANG)
+    return status if done == pid else None
+
+
+def _describe(status: int) -> str:
+    if os.WIFSIGNALED(status):
+        return f"killed by signal {os.WTERMSIG(status)}"
+    return f"exited with {os.WEXITSTATUS(status)}"
+
+
+def _stop_service(pid: int, timeout: float = STOP_TIMEOUT) -> int:
+    """SIGTERM, then SIGKILL when it does not exit in time; the wait status."""
+    os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = _exited(pid)
+        if status is not None:
+            return status
+        time.sleep(0.01)  # a bounded poll for the child's exit, not a pacing sleep
+    os.kill(pid, signal.SIGKILL)
+    return os.waitpid(pid, 0)[1]
+
+
+@dataclass
+class HilOutcome:
+    trace: Trace
+    wall_s: float
+    emulator: dict[str, Any] = field(default_factory=dict)
+    lockstep: dict[str, int] = field(default_factory=dict)
+    service: dict[str, Any] = field(default_factory=dict)
+    failure: str | None = None
+    log_path: str | None = None
+
+
+def run_hil(
+    mission: Mission,
+    run_dir: Path,
+    timeout: float = 1.0,
+    kill_service_at: int | None = None,
+    log: bool = True,
+) -> HilOutcome:
+    """The mission in lockstep over loopback; failures are returned, never raised."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    read_fd, write_fd = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the service
+        os.close(read_fd)
+        code = 1
+        try:
+            code = _serve(mission, run_dir, write_fd, log)
+        except BaseException:
+            (run_dir / SERVICE_ERROR).write_text(traceback.format_exc())
+        finally:
+            os._exit(code)
+    os.close(write_fd)
+    started = time.monotonic()
+    trace = Trace.empty(mission.steps)
+    try:
+        port = _wait_ready(read_fd, READY_TIMEOUT)
+    finally:
+        os.close(read_fd)
+    if port is None:
+        status = _exited(pid)
+        if status is None:
+            status = _stop_service(pid, 5.0)
+        return HilOutcome(
+            trace, time.monotonic() - started, failure=_service_failure(run_dir, status)
+        )
+    outcome = HilOutcome(trace, 0.0)
+    link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    stop = threading.Event()
+    plant = mission.plant()
+    autopilot = Autopilot(
+        plant,  # type: ignore[arg-type]  # RandomPlant has everything Autopilot uses
+        link,
+        mission.excitations(),
+        AutopilotConfig(system_id=1, duration=mission.steps * mission.period),
+    )
+    runner = LockstepRunner(autopilot, timeout)
+    state = {"timeouts": 0, "consecutive": 0, "status": None}
+
+    def on_step(sample: TelemetrySample) -> None:
+        k = autopilot.stats.steps - 1
+        trace.record(k, sample)
+        if kill_service_at is not None and k == kill_service_at:
+            os.kill(pid, signal.SIGKILL)  # fault injection (tests): the service dies here
+        if runner.stats.timeouts > state["timeouts"]:
+            state["timeouts"] = runner.stats.timeouts
+            state["consecutive"] += 1
+            status = _exited(pid)
+            if status is not None:
+                state["status"] = status
+                outcome.failure = f"service {_describe(status)} at step {k}"
+                stop.set()
+            elif state["consecutive"] >= MAX_CONSECUTIVE_TIMEOUTS:
+                outcome.failure = f"service stopped answering at step {k}"
+                stop.set()
+        else:
+            state["consecutive"] = 0
+
+    autopilot.on_step = on_step
+    try:
+        runner.run(stop)
+    finally:
+        link.close()
+    outcome.wall_s = time.monotonic() - started
+    status = state["status"] if state["status"] is not None else _exited(pid)
+    if status is None:
+        status = _stop_service(pid)
+    elif outcome.failure is None:
+        outcome.failure = f"service {_describe(status)} before the end"
+    if outcome.failure is None and not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0):
+        outcome.failure = _service_failure(run_dir, status)
+    outcome.emulator = autopilot.stats.as_dict(autopilot.codec)
+    outcome.lockstep = runner.stats.as_dict()
+    summary_path = run_dir / SERVICE_SUMMARY
+    if summary_path.exists():
+        outcome.service = json.loads(summary_path.read_text())
+    counted = outcome.service.get("counters", {})
+    dropped = {k: counted.get(k, 0) for k in ("invalid", "incomplete", "out_of_order")}
+    if (
+        outcome.failure is not None
+        and "stopped answering" in outcome.failure
+        and any(dropped.values())
+    ):
+        # A sample the service drops is never released (docs/lockstep.md): say which.
+        named = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in dropped.items() if n)
+        outcome.failure += f": the service dropped samples ({named})"
+    logs = sorted(run_dir.glob("*.mcap"))
+    outcome.log_path = str(logs[-1]) if logs else None
+    return outcome
+
+
+def _service_failure(run_dir: Path, status: int) -> str:
+    error = run_dir / SERVICE_ERROR
+    detail = ""
+    if error.exists():
+        lines = error.read_text().strip().splitlines()
+        detail = f": {lines[-1]}" if lines else ""
+    return f"service {_describe(status)}{detail}"

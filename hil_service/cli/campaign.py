@@ -1,0 +1,151 @@
+"""``glider-hil campaign``: many lockstep HIL missions, scored against reference-only control
+and (``--oracle``) the known-model oracle; ``campaign compare DIR_A DIR_B`` pairs two.
+
+    glider-hil campaign --scenarios disturbed,nonlinear,random --seeds 0-49 --steps 3600 \\
+        --jobs 2 -o DIR [--resume] [--oracle]
+    glider-hil campaign compare DIR_A DIR_B [--json]
+
+Writes DIR/runs.csv, DIR/runs.json, DIR/summary.md, DIR/iae_ratios.png and one MCAP log per
+run under DIR/runs/SCENARIO-sSEED/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from hil_service.campaign import SCENARIOS
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "action",
+        nargs="?",
+        choices=("run", "compare"),
+        default="run",
+        help="run a campaign (default) or compare two campaign directories",
+    )
+    parser.add_argument("dirs", nargs="*", metavar="DIR", help="compare: DIR_A DIR_B")
+    parser.add_argument(
+        "--scenarios",
+        default="disturbed,nonlinear,random",
+        help=f"comma list of {', '.join(SCENARIOS)} (default %(default)s)",
+    )
+    parser.add_argument("--seeds", default="0-49", help="N, N-M or a comma list (default 0-49)")
+    parser.add_argument("--steps", type=int, default=3600, help="plant steps per mission")
+    parser.add_argument(
+        "--identify",
+        type=int,
+        default=None,
+        help="steps of open-loop excitation before the setpoints start (default steps/3)",
+    )
+    parser.add_argument(
+        "--step-every",
+        type=int,
+        default=None,
+        help="steps between setpoint steps (default steps/6)",
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="missions at a time (default 2)")
+    parser.add_argument("-o", "--out", default=None, help="campaign directory")
+    parser.add_argument("--resume", action="store_true", help="skip missions already recorded")
+    parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="also run the known-model oracle offline per mission (an LP per step: slow)",
+    )
+    parser.add_argument(
+        "--lockstep-timeout",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="wall s a step waits for the service (default %(default)s)",
+    )
+    parser.add_argument("--no-figures", action="store_true", help="no PNG")
+    parser.add_argument(
+        "--kill-service",
+        action="append",
+        default=[],
+        metavar="RUN_ID:STEP",
+        help=argparse.SUPPRESS,  # fault injection for tests: SIGKILL that run's service
+    )
+    parser.add_argument("--json", action="store_true", help="compare: print JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.action == "compare":
+        return _compare(args)
+    from hil_service.campaign.runner import CampaignSpec, parse_seeds, run_campaign
+    from hil_service.campaign.summary import write_outputs
+
+    try:
+        if args.dirs:
+            raise ValueError(f"unexpected arguments {args.dirs}")
+        if args.out is None:
+            raise ValueError("-o DIR is required")
+        scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
+        unknown = [s for s in scenarios if s not in SCENARIOS]
+        if unknown:
+            raise ValueError(f"unknown scenarios {unknown}; choose from {SCENARIOS}")
+        kills = {}
+        for item in args.kill_service:
+            run_id, _, step = item.rpartition(":")
+            kills[run_id] = int(step)
+        spec = CampaignSpec(
+            scenarios=scenarios,
+            seeds=parse_seeds(args.seeds),
+            out=Path(args.out),
+            steps=args.steps,
+            jobs=args.jobs,
+            identify=args.identify,
+            step_every=args.step_every,
+            oracle=args.oracle,
+            timeout=args.lockstep_timeout,
+            resume=args.resume,
+            kill_service=kills,
+        )
+        if not args.resume and (spec.out / "runs").exists():
+            raise ValueError(f"{spec.out} already holds runs: --resume, or another -o")
+    except ValueError as error:
+        print(f"glider-hil campaign: {error}", file=sys.stderr)
+        return 2
+    started = time.monotonic()
+    rows = run_campaign(spec)
+    wall = time.monotonic() - started
+    write_outputs(spec.out, rows, spec.to_json(), figures=not args.no_figures, wall_s=wall)
+    counts = {k: sum(r.get("status") == k for r in rows) for k in ("ok", "diverged", "failed")}
+    print(
+        json.dumps(
+            {
+                "campaign": {
+                    "runs": len(rows),
+                    **counts,
+                    "wall_s": round(wall, 1),
+                    "out": str(spec.out),
+                }
+            }
+        ),
+        flush=True,
+    )
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from hil_service.campaign.compare import compare, format_table, load_runs
+
+    if len(args.dirs) != 2:
+        print("glider-hil campaign compare: give DIR_A DIR_B", file=sys.stderr)
+        return 2
+    try:
+        a, b = (load_runs(Path(d)) for d in args.dirs)
+    except ValueError as error:
+        print(f"glider-hil campaign compare: {error}", file=sys.stderr)
+        return 2
+    results = compare(a, b)
+    if args.json:
+        print(json.dumps({"compare": results}))
+    else:
+        print(format_table(results, args.dirs[0], args.dirs[1]))
+    return 0

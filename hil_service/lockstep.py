@@ -1,0 +1,51 @@
+"""The service's side of lockstep (docs/lockstep.md): release each step once it is decided.
+
+Active from the start with ``serve --lockstep`` (``ServiceConfig.lockstep``), or from the
+first vehicle heartbeat that announces lockstep (``MAV_MODE_FLAG_HIL_ENABLED``). Once active,
+every sample the service has finished with (identified, decided) is released: by its
+command, which the vehicle takes as the release, or, when the service sends none, by
+``SYSTEM_TIME`` carrying the sample's timestamp. Nothing else in
+the service changes: the identifier and the controller see the samples they always see.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from protocols.lockstep import announces_lockstep, release
+from protocols.mavlink_io import MavMessage
+from protocols.samples import TelemetrySample
+
+
+class LockstepResponder:
+    def __init__(self, forced: bool = False) -> None:
+        self.active = forced
+        self.announced = False  # a vehicle heartbeat announced lockstep
+        self.releases = 0  # SYSTEM_TIME sent
+        self.released_by_command = 0
+
+    def observe(self, message: MavMessage) -> None:
+        """Look for the announcement in a received message (cheap for every other one)."""
+        if not self.announced and announces_lockstep(message):
+            self.announced = True
+            self.active = True
+
+    def after_sample(
+        self, sample: TelemetrySample, commanded: bool, send: Callable[[MavMessage], None]
+    ) -> None:
+        """The service has finished with ``sample``: release its step (when active) unless
+        the command it has just sent for it does."""
+        if self.active:
+            if commanded:
+                self.released_by_command += 1
+            else:
+                send(release(sample.time_boot_ms))
+                self.releases += 1
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "active": self.active,
+            "announced": self.announced,
+            "releases": self.releases,
+            "released_by_command": self.released_by_command,
+        }

@@ -1,0 +1,171 @@
+"""``glider-hil campaign``: a few short lockstep missions, their tables, summary and figure; a
+mission whose service is killed; ``--resume``; ``campaign compare``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_service.campaign.compare import compare, t_interval
+from hil_service.campaign.metrics import divergence
+from hil_service.campaign.mission import Mission, Trace
+from hil_service.campaign.runner import parse_seeds
+from hil_service.cli.processes import last_json
+
+pytestmark = pytest.mark.wire
+
+#: Short missions: enough for the identifier to converge and the controller to command.
+SHORT = ("--steps", "500", "--identify", "300", "--step-every", "60", "--no-figures")
+
+
+def campaign(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "hil_service.cli", "campaign", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def rows(directory: Path) -> list[dict[str, str]]:
+    with (directory / "runs.csv").open() as handle:
+        return list(csv.DictReader(handle))
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """Two scenarios x two seeds, figures on; the service of disturbed seed 1 is killed."""
+    out = tmp_path_factory.mktemp("campaign") / "a"
+    done = campaign(
+        "--scenarios", "disturbed,random", "--seeds", "0-1", "--steps", "500",
+        "--identify", "300", "--step-every", "60", "--jobs", "2", "-o", str(out),
+        "--kill-service", "disturbed-s0001:400", "--lockstep-timeout", "2",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert last_json(done.stdout, "campaign")["runs"] == 4
+    return out
+
+
+def test_a_campaign_writes_its_tables_summary_figure_and_logs(small: Path) -> None:
+    table = rows(small)
+    assert [(r["scenario"], r["seed"]) for r in table] == [
+        ("disturbed", "0"), ("disturbed", "1"), ("random", "0"), ("random", "1"),
+    ]  # fmt: skip
+    ok = [r for r in table if r["status"] == "ok"]
+    assert len(ok) == 3
+    for r in ok:
+        assert float(r["depth_iae"]) > 0 and float(r["depth_iae_reference"]) > 0
+        ratio = float(r["depth_iae"]) / float(r["depth_iae_reference"])
+        assert float(r["depth_ratio_reference"]) == pytest.approx(ratio, rel=1e-3)
+        assert int(r["commands_sent"]) > 0
+        assert r["lockstep_timeouts"] == "0"
+        assert (small / r["log"]).stat().st_size > 0
+    assert json.loads((small / "runs.json").read_text())[0]["scenario"] == "disturbed"
+    summary = (small / "summary.md").read_text()
+    assert "| disturbed | 2 | 1 | 0 | 1 | depth |" in summary
+    assert "![IAE ratios per scenario](iae_ratios.png)" in summary
+    assert (small / "iae_ratios.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_mission_whose_service_is_killed_is_failed_and_the_others_finish(small: Path) -> None:
+    killed = next(r for r in rows(small) if r["scenario"] == "disturbed" and r["seed"] == "1")
+    assert killed["status"] == "failed"
+    assert "killed by signal 9" in killed["reason"]
+    assert "runs not ok" in (small / "summary.md").read_text().lower()
+    assert "killed by signal 9" in (small / "summary.md").read_text()
+
+
+def test_resume_runs_only_what_is_missing(small: Path, tmp_path: Path) -> None:
+    refused = campaign("--scenarios", "disturbed", "--seeds", "0", *SHORT, "-o", str(small))
+    assert refused.returncode == 2 and "--resume" in refused.stderr
+    before = {r["seed"]: r for r in rows(small) if r["scenario"] == "disturbed"}
+    # Seeds 0-2 of disturbed: 0 and 1 are recorded (1 failed: recorded too), only 2 runs.
+    done = campaign(
+        "--scenarios", "disturbed", "--seeds", "0-2", *SHORT, "-o", str(small), "--resume",
+        "--jobs", "1",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    after = {r["seed"]: r for r in rows(small)}
+    assert after.keys() == {"0", "1", "2"}
+    assert after["0"]["wall_s"] == before["0"]["wall_s"]  # read back, not run again
+    assert after["1"]["status"] == "failed"
+    assert after["2"]["status"] == "ok"
+
+
+def test_compare_of_two_campaigns_of_the_same_revision_finds_no_difference(
+    tmp_path: Path,
+) -> None:
+    for name in ("a", "b"):
+        done = campaign(
+            "--scenarios", "random", "--seeds", "0-1", *SHORT, "-o", str(tmp_path / name)
+        )
+        assert done.returncode == 0, done.stderr
+    printed = subprocess.run(
+        [sys.executable, "-m", "hil_service.cli", "campaign", "compare", str(tmp_path / "a"),
+         str(tmp_path / "b"), "--json"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert printed.returncode == 0, printed.stderr
+    results = {r["metric"]: r for r in last_json(printed.stdout, "compare")}
+    # Same revision, same seeds: lockstep runs are reproducible, so every difference is 0.
+    for metric in ("depth_iae", "pitch_iae", "depth_ratio_reference"):
+        assert results[metric]["pairs"] == 2
+        assert results[metric]["mean_difference"] == 0.0
+        assert results[metric]["ci95"] == [0.0, 0.0]
+    table = subprocess.run(
+        [sys.executable, "-m", "hil_service.cli", "campaign", "compare", str(tmp_path / "a"),
+         str(tmp_path / "b")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert "| random | depth_iae | 2 | +0 |" in table.stdout
+
+
+def test_t_interval_and_pairing_by_seed() -> None:
+    # Differences 1, 2, 3: mean 2, s = 1, t(0.975, 2) = 4.3027: 2 ± 4.3027/sqrt(3).
+    low, high = t_interval([1.0, 2.0, 3.0])
+    assert (low, high) == pytest.approx((2 - 2.48418, 2 + 2.48418), abs=1e-4)
+    assert t_interval([1.0]) is None
+    a = [{"scenario": "x", "seed": s, "status": "ok", "depth_iae": 10.0} for s in range(3)]
+    b = [{"scenario": "x", "seed": s, "status": "ok", "depth_iae": 10.0 - s} for s in (2, 0, 1)]
+    b.append({"scenario": "x", "seed": 9, "status": "ok", "depth_iae": 0.0})  # no pair
+    (result,) = [r for r in compare(a, b) if r["metric"] == "depth_iae"]
+    assert result["pairs"] == 3
+    assert result["mean_difference"] == pytest.approx(-1.0)
+    assert result["b_better"] == 2
+
+
+def test_seeds_parse_and_refuse() -> None:
+    assert parse_seeds("0-3,7") == (0, 1, 2, 3, 7)
+    with pytest.raises(ValueError, match="--seeds"):
+        parse_seeds("3-1")
+
+
+def test_a_run_whose_output_runs_away_counts_as_diverged() -> None:
+    mission = Mission("disturbed", 0, steps=500, identify=300, step_every=60)
+    schedule = mission.schedule()
+    trace = Trace.empty(mission.steps)
+    for ch in ("depth", "pitch"):
+        trace.y[ch][:] = np.nan_to_num(schedule[ch], nan=0.0)
+    assert divergence(mission, trace, schedule) is None
+    trace.y["pitch"][450] += 100.0  # far beyond ten times the largest step (0.25 rad)
+    assert divergence(mission, trace, schedule) == "pitch error 100 at step 450"
+    trace.y["depth"][400] = np.inf
+    assert divergence(mission, trace, schedule) == "depth not finite at step 400"
+
+
+def test_oracle_on_request(tmp_path: Path) -> None:
+    out = tmp_path / "oracle"
+    done = campaign("--scenarios", "random", "--seeds", "0", *SHORT, "--oracle", "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    (row,) = rows(out)
+    assert row["status"] == "ok"
+    for ch in ("depth", "pitch"):
+        ratio = float(row[f"{ch}_iae"]) / float(row[f"{ch}_iae_oracle"])
+        assert float(row[f"{ch}_ratio_oracle"]) == pytest.approx(ratio, rel=1e-3)
+    assert row["oracle_failures"] == "0"
