@@ -223,7 +223,9 @@ class HilService:
             vehicle.commands_sent += 1
         if self.lockstep is not None and self.send_commands:
             commanded = decision.command is not None and decision.payload is not None
-            self.lockstep.after_sample(sample, commanded, self._send)  # after the command
+            self.lockstep.after_sample(  # after the command
+                sample, commanded, lambda message: self._send(message, system_id)
+            )
 
     def _send(self, message: MavMessage, system_id: int) -> None:
         """``message`` to vehicle ``system_id``, as its companion, where its frames came from."""
