@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hil_service.cli.processes import free_port, start_service, start_verb, stop_process
+from hil_service.cli.processes import end_group, free_port, start_service, start_verb, stop_process
 from protocols.compiled import ENV_INTERPRETED, flag, stale_modules
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -50,13 +50,13 @@ class ProcessGroup:
         self.processes: list[subprocess.Popen[str]] = []
 
     def start(self, *args: str) -> subprocess.Popen[str]:
-        process = start_verb(*args)
+        process = start_verb(*args, own_group=True)  # its children end with it
         self.processes.append(process)
         return process
 
     def start_service(self, *args: str, timeout: float = 60.0) -> subprocess.Popen[str]:
         """``serve ARGS…``, returned once it says it is ready (never a fixed sleep)."""
-        process = start_service(*args, timeout=timeout)
+        process = start_service(*args, timeout=timeout, own_group=True)
         self.processes.append(process)
         return process
 
@@ -69,6 +69,8 @@ class ProcessGroup:
         for process in self.processes:
             if process.poll() is None:
                 self.stop(process)
+            else:
+                end_group(process)  # what it started and left behind
 
 
 @pytest.fixture

@@ -47,5 +47,5 @@ def test_demo_serves_the_live_view(processes, tmp_path) -> None:
     assert summary["complete"], summary
     assert summary["kinds"]["telemetry"]["invalid"] == 0 and not summary["errors"], summary
     assert "glider/1/telemetry" in summary["subscribed"]
-    out, _ = processes.stop(demo)
+    out, _ = processes.stop(demo, timeout=60)  # the demo stops its emulator, then its service
     assert f"ws://127.0.0.1:{fox}" in out  # the demo says where the view is

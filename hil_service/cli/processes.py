@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import select
@@ -20,15 +21,23 @@ def free_port(kind: int) -> int:
         return sock.getsockname()[1]
 
 
-def start_verb(*args: str) -> subprocess.Popen[str]:
-    """``glider-hil ARGS…`` with this interpreter, output captured, unbuffered."""
-    return subprocess.Popen(
+def start_verb(*args: str, own_group: bool = False) -> subprocess.Popen[str]:
+    """``glider-hil ARGS…`` with this interpreter, output captured, unbuffered.
+
+    ``own_group``: the child leads a process group of its own, which ``stop_process`` ends
+    as a whole, so a verb that starts processes of its own (``demo``) leaves none behind
+    even when it has to be killed.
+    """
+    process = subprocess.Popen(
         [sys.executable, "-m", "hil_service.cli", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        start_new_session=own_group,
     )
+    process.leads_group = own_group  # type: ignore[attr-defined]
+    return process
 
 
 #: What ``serve`` prints on stderr once its MAVLink link, Zenoh session and log are open.
@@ -69,9 +78,11 @@ def wait_for_line(process: subprocess.Popen[str], marker: str, timeout: float = 
     return text
 
 
-def start_service(*args: str, timeout: float = 60.0) -> subprocess.Popen[str]:
+def start_service(
+    *args: str, timeout: float = 60.0, own_group: bool = False
+) -> subprocess.Popen[str]:
     """``glider-hil serve ARGS…``, returned once it says it is ready (see ``SERVICE_READY``)."""
-    process = start_verb("serve", *args)
+    process = start_verb("serve", *args, own_group=own_group)
     try:
         wait_for_line(process, SERVICE_READY, timeout)
     except NotReady:
@@ -89,6 +100,18 @@ def stop_process(process: subprocess.Popen[str], timeout: float = 15.0) -> tuple
     except subprocess.TimeoutExpired:
         process.kill()
         return process.communicate(timeout=5)
+    finally:
+        end_group(process)
+
+
+def end_group(process: subprocess.Popen[str]) -> None:
+    """SIGKILL whatever is left of the group ``process`` leads (started with ``own_group``):
+    its children, when it ended before stopping them. The group outlives its leader, so
+    its id is still this pid's while any member is alive."""
+    if not getattr(process, "leads_group", False):
+        return
+    with contextlib.suppress(ProcessLookupError, PermissionError):  # nothing left
+        os.killpg(process.pid, signal.SIGKILL)
 
 
 def last_json(text: str, key: str) -> dict[str, Any]:
