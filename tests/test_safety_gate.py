@@ -555,9 +555,12 @@ def test_the_diverging_sample_is_not_commanded_nor_those_after_it(in_process):
             frames = [codec.pack(m) for m in MAPPING.encode_telemetry(edited)]
         sent.append(feed(service, link, frames))
         reasons.append(service.vehicles[1].control_reason)
+        if k == burst.stop - 1:  # what health says of the identifier at the tripping sample
+            tripped = service.vehicles[1].pipeline.identifier_health()["depth"]
     assert sent[BLOCKED : burst.start] == [1] * 40
     assert sent[burst.start : burst.stop] == [1] * 9 + [0]
     assert reasons[burst.stop - 1] == "identifier diverged (depth)"
+    assert tripped["divergences"] == 1 and tripped["converged"] is False
     assert sent[burst.stop :] == [0] * 40
     assert all(r.startswith("identifier not converged (depth:") for r in reasons[burst.stop :])
 
