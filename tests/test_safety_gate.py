@@ -446,6 +446,27 @@ def test_a_command_only_once_recent_skill_reaches_the_minimum(in_process):
     assert len(commands_in(link.frames)) == 600 - first
 
 
+def _first_commanded(in_process, min_skill: float) -> tuple[int | None, list]:
+    service, link = in_process(PipelineSettings(burn_in=BURN_IN, min_skill=min_skill))
+    service.inbox.set_setpoint(1, "depth", 16.0)
+    skills = []
+    for k, (_, frames) in enumerate(plant_samples(600)):
+        sent = feed(service, link, frames)
+        skills.append(service.vehicles[1].pipeline.channels["depth"].stats.recent_skill())
+        if sent:
+            return k, skills
+    return None, skills
+
+
+def test_a_recent_skill_exactly_at_the_minimum_opens_the_gate(in_process):
+    """The minimum is inclusive: with ``min_skill`` set to the very skill the identifier
+    has at the sample where the gate opened for a lower minimum, it opens there too."""
+    first, skills = _first_commanded(in_process, 0.5)
+    assert first is not None and skills[first] > 0.5
+    again, _ = _first_commanded(in_process, skills[first])  # the same data, bit for bit
+    assert again == first
+
+
 def test_commands_start_exactly_after_the_burn_in(in_process):
     service, link = in_process(PipelineSettings(burn_in=BURN_IN))
     service.inbox.set_setpoint(1, "pitch", 0.05)
