@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import random
 import socket
 from collections.abc import Callable
 
@@ -232,27 +231,17 @@ def test_divergence_stops_commands_until_skill_is_back(make_rig):
     first_sample_with_setpoints(rig, 1.0, 0.05)
     assert rig.stream(BLOCKED - 1 + 40) == 40  # commanding normally
 
-    # Absurd (but valid) depths in a seeded random order: an alternating pattern is not a
-    # divergence for an RLS identifier, which learns it within a few samples.
-    pattern = random.Random(1)
-    depths = [10_000.0] + [10_000.0 if pattern.random() < 0.5 else 0.0 for _ in range(39)]
-
+    # An alternating burst of absurd (but valid) depths. An RLS identifier learns the
+    # alternation within a few samples, so its errors alone do not trip the test; its
+    # predicted one-step jumps do (see hil_service/umodel/guards.py).
     def burst(i: int, sample: TelemetrySample) -> TelemetrySample:
-        return sample._replace(depth=depths[i])
+        return sample._replace(depth=10_000.0 if i % 2 == 0 else 0.0)
 
-    # The burst's first samples still look like a converged identifier (each is commanded);
-    # the sample that trips the divergence test is not, and neither is any after it.
-    commanded = 0
-    for i in range(40):
-        got = rig.stream(1, lambda _, sample, i=i: burst(i, sample))  # one sample at a time
-        health = rig.settle()
-        if health["identifier"]["depth"]["divergences"] == 1:
-            assert got == 0, "the sample that tripped the divergence test was commanded"
-            break
-        assert got == 1
-        commanded += 1
-    else:
-        pytest.fail("40 absurd samples never tripped the divergence test")
+    # The first nine burst samples still look like a converged identifier; the tenth
+    # trips the divergence test, and that sample is not commanded.
+    assert rig.stream(10, burst) == 9
+    health = rig.settle()
+    assert health["identifier"]["depth"]["divergences"] == 1
     assert health["control"]["reason"] == "identifier diverged (depth)"
     assert health["control"]["commanding"] is False
 
@@ -262,7 +251,7 @@ def test_divergence_stops_commands_until_skill_is_back(make_rig):
     health = rig.settle()
     assert health["control"]["reason"].startswith("identifier not converged (depth:")
     assert health["identifier"]["depth"]["recent_skill"] < 0
-    assert health["counters"]["commands_sent"] == 40 + commanded
+    assert health["counters"]["commands_sent"] == 49
 
 
 @pytest.mark.wire

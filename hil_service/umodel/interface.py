@@ -42,3 +42,8 @@ class PredictiveModel(OneStepModel, Protocol):
     """What the controller uses: an identifier that also gives its multi-step map."""
 
     def dynamics(self) -> ModelDynamics: ...
+
+    def undo_last_update(self) -> bool:
+        """Restore the parameters from before the last update (a reading found, one
+        sample later, to have been served ahead of its tick); False when not kept."""
+        ...

@@ -120,6 +120,11 @@ class _ModelBase:
     def _params_ok(self) -> bool:
         return True
 
+    def undo_last_update(self) -> bool:
+        """Restore the parameters from before the last update; False when the model keeps
+        no copy (then nothing changes)."""
+        return False
+
     def _reset_params(self) -> None:
         pass
 
@@ -509,6 +514,7 @@ class DynamicUModel(_ModelBase):
         self._tail: list[float] = []  # φ after the lag-1 powers
         self._primed = False  # the output history holds a measured level
         self._y_ref = 0.0  # the first measured level: regressors are taken relative to it
+        self._undo: tuple[list[float], list[list[float]]] | None = None
         self._reset_history()
 
     def _powers(self, u: float) -> list[float]:
@@ -545,7 +551,19 @@ class DynamicUModel(_ModelBase):
         # Before the first level is known the regressor holds no measured output: the
         # error says nothing about θ (and would bury the bias under the output's level).
         if self._primed:
+            # Kept for one sample: the pipeline undoes an update learnt from readings that
+            # turn out, on the next sample, to have been served ahead of time.
+            self._undo = (list(self._theta), [row[:] for row in self.rls.p])
             self.rls.update(self._theta, self._phi, error)
+
+    def undo_last_update(self) -> bool:
+        undo = self._undo
+        if undo is None:
+            return False
+        self._theta = undo[0]
+        self.rls.p = undo[1]
+        self._undo = None
+        return True
 
     def _params_ok(self) -> bool:
         return _norm_ok(dot(self._theta, self._theta), self.guard.param_limit)
