@@ -317,6 +317,24 @@ def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
                 *([("oracle", result.oracle.u[ch])] if result.oracle is not None else []),
             ],
         )
+        # One step as the paper shows it (output, setpoint, input): the second controlled
+        # step (the first follows the identification phase's excitation), inverse beside
+        # the oracle.
+        settings = result.settings
+        first = settings.identify + settings.step_every
+        window = slice(max(0, first - settings.step_every // 8), first + settings.step_every)
+        runs = [("inverse control", result.inverse)]
+        if result.oracle is not None:
+            runs.append(("oracle", result.oracle))
+        tracking_figure(
+            directory / f"step_{settings.scenario}_{ch}.png",
+            f"one {ch} step, scenario {settings.scenario}, seed {settings.seed}",
+            ch,
+            t[window],
+            [(label, run.y[ch][window]) for label, run in runs],
+            result.inverse.setpoint[ch][window],
+            [(label, run.u[ch][window]) for label, run in runs],
+        )
 
 
 # ---- speed -------------------------------------------------------------------------------
