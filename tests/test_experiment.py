@@ -206,6 +206,8 @@ def test_cli_closed_loop_json_and_plots(tmp_path, capsys):
     assert {p.name for p in tmp_path.glob("*.png")} == {
         "closed_loop_paper_depth.png",
         "closed_loop_paper_pitch.png",
+        "step_paper_depth.png",  # one step as the paper shows it
+        "step_paper_pitch.png",
     }
 
 

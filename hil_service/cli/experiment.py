@@ -322,6 +322,8 @@ def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
         # the oracle.
         settings = result.settings
         first = settings.identify + settings.step_every
+        if first >= settings.samples:
+            continue  # a run too short for a second step
         runs = [("inverse control", result.inverse)]
         if result.oracle is not None:
             runs.append(("oracle", result.oracle))
