@@ -9,12 +9,14 @@ with the same excitation and pipeline, and reproduces those three effects with g
 probabilities, so that each one's share of the tracking error can be measured:
 
     .venv/bin/python -m hil_service.experiment.jitter            # the table of docs/control.md
+    .venv/bin/python -m hil_service.experiment.jitter --identify 1800 --excitation steps
 
 Returns the mean |error| over the second half of the step, as the test measures it.
 """
 
 from __future__ import annotations
 
+import argparse
 import random
 import statistics
 import sys
@@ -35,19 +37,21 @@ def jittered_loop(
     input_early: float = 0.0,
     late_command: float = 0.0,
     settings: PipelineSettings | None = None,
+    identify: int = IDENTIFY,
+    excitation_name: str = "prbs",
 ) -> tuple[float, float]:
     """(mean |depth error| m, mean |pitch error| rad) over the second half of the step."""
     rng = random.Random(seed)
     plant = GliderPlant(PlantConfig(period=PERIOD, seed=seed))
-    pipeline = VehiclePipeline(settings or PipelineSettings(burn_in=IDENTIFY // 2))
-    excitation = build_channel_excitations("prbs", seed)
+    pipeline = VehiclePipeline(settings or PipelineSettings(burn_in=identify // 2))
+    excitation = build_channel_excitations(excitation_name, seed)
     truth: list[TelemetrySample] = []
     pending: list[tuple[int, tuple[float, float]]] = []  # (plant step it applies at, command)
     command = (0.0, 0.0)
     early = {"output": False, "input": False}
     share = {"output": output_early, "input": input_early}
     errors: list[tuple[float, float]] = []
-    for step in range(IDENTIFY + CONTROL + 1):
+    for step in range(identify + CONTROL + 1):
         due = [item for item in pending if item[0] <= step]
         for item in due:
             command = item[1]
@@ -69,7 +73,7 @@ def jittered_loop(
             time_boot_ms=round(k * PERIOD * 1000), u_depth=u.u_depth, u_pitch=u.u_pitch
         )
         pipeline.observe(sample)
-        if k < IDENTIFY:
+        if k < identify:
             new = (excitation["depth"].value(k), excitation["pitch"].value(k))
         else:
             decision = pipeline.decide(sample, dict(SETPOINTS), True)
@@ -96,10 +100,21 @@ CASES = {
 }
 
 
-def main(seeds: range = range(1, 7)) -> int:
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--identify", type=int, default=IDENTIFY, help="samples (10 Hz)")
+    parser.add_argument("--excitation", default="prbs", help="the emulator's excitation")
+    parser.add_argument("--seeds", type=int, default=6, help="seeds 1..N")
+    args = parser.parse_args(argv)
+    seeds = range(1, args.seeds + 1)
     print("jitter of                              depth error (mean of seeds)  per seed")
     for name, kwargs in CASES.items():
-        depth = [jittered_loop(seed, **kwargs)[0] for seed in seeds]
+        depth = [
+            jittered_loop(seed, **kwargs, identify=args.identify, excitation_name=args.excitation)[
+                0
+            ]
+            for seed in seeds
+        ]
         per_seed = " ".join(f"{d:.3f}" for d in depth)
         print(f"{name:38s} {statistics.mean(depth):8.3f} m                    {per_seed}")
     return 0
