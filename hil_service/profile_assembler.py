@@ -72,6 +72,7 @@ class ProfileAssembler:
         self._counters = ProfileAssemblyCounters()  # unknown_system only
         self._samples: dict[int, int] = {}  # per system id
         self._invalid: dict[int, int] = {}  # per system id
+        self.last_stamps: tuple[float, dict[str, float] | None] = (0.0, None)
 
     @property
     def system_ids(self) -> list[int]:
@@ -161,4 +162,5 @@ class ProfileAssembler:
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return None
         self._samples[system_id] = self._samples.get(system_id, 0) + 1
+        self.last_stamps = (tick.vehicle_t, tick.stamps)
         return sample

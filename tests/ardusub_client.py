@@ -39,6 +39,7 @@ class ArduSubClient:
         self.pipeline = VehiclePipeline(pipeline) if pipeline is not None else None
         self.setpoints: dict[str, float | None] = {"depth": None, "pitch": None}
         self.samples = []
+        self.stamps = []
         self.acks = []
         self.servo_usec = []
         self.commands_sent = 0
@@ -72,6 +73,7 @@ class ArduSubClient:
             self.servo_usec.append(message.time_usec)
         for sample in self.assembler.add_all(message):
             self.samples.append(sample)
+            self.stamps.append(self.assembler.last_stamps)
             self._sample(sample)
 
     def _sample(self, sample) -> None:
@@ -94,3 +96,21 @@ class ArduSubClient:
         ):
             self.peer.send(command)
             self.commands_sent += 1
+
+
+def stamp_report(stamps, period: float) -> str:
+    """Per signal: share of samples whose reading is the previous sample's (reused) and the
+    histogram of reading age in periods."""
+    out = []
+    signals = sorted(stamps[-1][1]) if stamps and stamps[-1][1] else []
+    for sig in signals:
+        reused, ages = 0, {}
+        for (t0, s0), (t1, s1) in zip(stamps, stamps[1:]):
+            if sig not in s1 or sig not in s0:
+                continue
+            if s1[sig] == s0[sig]:
+                reused += 1
+            a = int((t1 - s1[sig]) / period)
+            ages[a] = ages.get(a, 0) + 1
+        out.append(f"{sig}: reused {100*reused/max(1,len(stamps)-1):.1f}% ages {dict(sorted(ages.items()))}")
+    return "; ".join(out)
