@@ -113,6 +113,7 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
         goal = len(client.samples) + round(identify / PERIOD)
         client.run(6 * identify / speed, lambda: len(client.samples) >= goal)
         health = client.pipeline.identifier_health()
+        print("\nidentified:", _gains(client))
         assert all(health[ch]["converged"] for ch in ("depth", "pitch")), health
         assert all(health[ch]["skill"] > 0.2 for ch in ("depth", "pitch")), health
         start = len(client.samples)
@@ -130,6 +131,24 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
             f"{health['pitch']['skill']}; mean |error| depth {depth_error:.3f} m, "
             f"pitch {pitch_error:.5f} rad; {client.commands_sent} DO_SET_SERVO"
         )
+        from tests.ardusub_client import stamp_report
+
+        print("stamps:", stamp_report(client.stamps, PERIOD))
+        sm, st = client.samples, client.stamps
+        eq = [i for i in range(1, len(sm)) if sm[i].depth == sm[i - 1].depth]
+        same = [i for i in eq if st[i][1]["depth"] == st[i - 1][1]["depth"]]
+        print("depth equal", len(eq), "same stamp", len(same), "first", eq[:10], "phase start", start)
+        print("end:", _gains(client))
+        for part in range(start, len(sm), 150):
+            chunk = sm[part : part + 150]
+            print(
+                f"  t+{(part - start) * PERIOD:5.0f}s depth {min(s.depth for s in chunk):6.2f}.."
+                f"{max(s.depth for s in chunk):6.2f} u {min(s.u_depth for s in chunk):5.2f}.."
+                f"{max(s.u_depth for s in chunk):5.2f} pitch {min(s.pitch for s in chunk):5.2f}.."
+                f"{max(s.pitch for s in chunk):5.2f} up {min(s.u_pitch for s in chunk):5.2f}.."
+                f"{max(s.u_pitch for s in chunk):5.2f}"
+            )
+        print("pipeline:", {ch: (p.repeats, p.skipped) for ch, p in client.pipeline.channels.items()})
         # Control must not do worse than none (no control leaves the 1 m step's 1 m and the
         # 0.1 rad step's 0.1 rad). The IMC inverse on this 10 Hz profile is erratic: measured
         # depth 0.06-0.51 m in most runs and 0.86 m in one `make test` (pitch 0.018 rad), so a
@@ -143,3 +162,26 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
         assert summary["commands_rejected"] == 0
     finally:
         client.close()
+
+
+def _gains(client):
+    from hil_service.umodel.predictive import factorise, step_response
+
+    out = {}
+    for ch, p in client.pipeline.channels.items():
+        dyn = p.dynamics
+        if dyn is None:
+            out[ch] = None
+            continue
+        f = factorise(dyn, -1.0, 1.0)
+        if f is None:
+            out[ch] = "no map"
+            continue
+        gains, smap = f
+        r = step_response(dyn.ar, gains, 2000)
+        slope = (smap.value(0.5) - smap.value(-0.5))
+        out[ch] = (
+            f"dc {r[-1] * slope:.3g} at 100: {r[99] * slope:.3g} horizon "
+            f"{p.controller.horizon} d {p.controller.disturbance:.3g}"
+        )
+    return out

@@ -212,6 +212,34 @@ def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float]
     return gains, StaticMap(poly, dyn.poly_scale)
 
 
+def monotone_range(shape: StaticMap, lo: float, hi: float, points: int = 64) -> tuple[float, float]:
+    """The widest interval of [lo, hi] around its middle on which N rises (N is scaled to a
+    mean slope of +1, so a rising map is the invertible one); [lo, hi] when N does not rise
+    at the middle (nothing better is known)."""
+    step = (hi - lo) / points
+    mid = points // 2
+    if not shape.derivative(lo + mid * step) > 0.0:
+        return lo, hi
+    a = mid
+    while a > 0 and shape.derivative(lo + (a - 1) * step) > 0.0:
+        a -= 1
+    b = mid
+    while b < points and shape.derivative(lo + (b + 1) * step) > 0.0:
+        b += 1
+    return lo + a * step, lo + b * step
+
+
+def _reachable(u0: float, reach: float, lo: float, hi: float) -> tuple[float, float]:
+    """The inputs within ``reach`` of ``u0`` inside [lo, hi]; when none is (``u0`` outside
+    [lo, hi] by more than ``reach``), the one point ``reach`` towards it."""
+    a = max(lo, u0 - reach)
+    b = min(hi, u0 + reach)
+    if a <= b:
+        return a, b
+    p = u0 + reach if u0 < lo else u0 - reach
+    return p, p
+
+
 def _solve_linear(a: list[list[float]], b: list[float]) -> list[float] | None:
     """x with a·x = b by Gaussian elimination with partial pivoting (a and b are
     consumed); None when a is singular to working precision."""
@@ -338,6 +366,7 @@ class PredictiveInverse:
         "_onset",
         "_plan_state",
         "_points",
+        "_range",
         "_rho",
         "_shape",
         "_sim",
@@ -373,6 +402,7 @@ class PredictiveInverse:
         self._free_impulse: list[list[float]] = []
         self._rho = 0.0
         self._shape: StaticMap | None = None  # the input map N the plan was derived with
+        self._range = (self.u_min, self.u_max)  # where N rises (see ``monotone_range``)
         self._starts: list[int] = []  # first sample of each input block
         self._plan_state: list[int] | None = None  # the last plan's active bounds
         self._sim: list[float] | None = None  # internal model's outputs y_m(k), y_m(k−1), …
@@ -429,6 +459,7 @@ class PredictiveInverse:
             if factors is not None:
                 self._derive(dyn.ar, factors[0])
                 self._shape = factors[1]
+                self._range = monotone_range(factors[1], self.u_min, self.u_max)
         return self._horizon
 
     def _derive(self, ar: list[float], gains: list[float]) -> None:
@@ -550,6 +581,12 @@ class PredictiveInverse:
                 return u0, "hold", False
             self._derive(dyn.ar, factors[0])
             shape = self._shape = factors[1]
+            self._range = monotone_range(shape, lo_u, hi_u)
+        # Plan only where the identified map rises: a polynomial fitted on the inputs seen
+        # can turn over beyond them, and there a larger level needs a *smaller* input, so
+        # the plan's bounds and the inverse trap the input at a limit (measured on the
+        # ArduSub test: pitch held at −2 against a positive gain, 0.5 rad off).
+        lo_u, hi_u = self._range
         sim = self._sim
         if sim is None or len(sim) != len(dyn.ar):
             sim = list(dyn.outputs[: len(dyn.ar)])
@@ -573,15 +610,12 @@ class PredictiveInverse:
         lo: list[float] = []
         hi: list[float] = []
         for start in self._starts:
-            reach = self.rate * start
-            a_u = max(lo_u, u0 - reach)
-            b_u = min(hi_u, u0 + reach)
+            a_u, b_u = _reachable(u0, self.rate * start, lo_u, hi_u)
             a_w = shape.value(a_u)
             b_w = shape.value(b_u)
             lo.append(min(a_w, b_w))
             hi.append(max(a_w, b_w))
-        first_lo = max(lo_u, u0 - self.rate)
-        first_hi = min(hi_u, u0 + self.rate)
+        first_lo, first_hi = _reachable(u0, self.rate, lo_u, hi_u)
         for value in f:
             if not math.isfinite(value):
                 return u0, "hold", False
@@ -594,5 +628,5 @@ class PredictiveInverse:
         u = result.u
         if not math.isfinite(u):
             return u0, "hold", False
-        saturated = u <= lo_u or u >= hi_u
+        saturated = u <= self.u_min or u >= self.u_max
         return u, result.path, saturated
