@@ -182,6 +182,7 @@ class ChannelPipeline:
         # (see ``observe``).
         self.repeats = 0
         self.refill = 0  # samples still to refill the history after a repeat (not blocking)
+        self.input_reuses = 0  # samples whose input reading was the previous sample's
         self._y_seen = math.nan
         self._learnt_last = False  # the previous sample trained the model
 
@@ -189,6 +190,24 @@ class ChannelPipeline:
         return self.model.config()
 
     def observe(
+        self,
+        t: float,
+        y: float,
+        u_now: float,
+        follows_previous: bool = True,
+        input_reused: bool = False,
+    ) -> dict[str, Any] | None:
+        """See ``_observe``. ``input_reused``: the sampler served this sample's input from
+        the reading it served the previous sample (no newer one stamped by the tick), so
+        ``u_now`` may be the previous step's input: the next samples pair outputs with it
+        and hold it in the history. They refill the history without training instead."""
+        estimate = self._observe(t, y, u_now, follows_previous)
+        if input_reused and self.resync == 0:
+            self.input_reuses += 1
+            self.refill = max(self.refill, self.model.history_length)
+        return estimate
+
+    def _observe(
         self, t: float, y: float, u_now: float, follows_previous: bool = True
     ) -> dict[str, Any] | None:
         """Learn from one sample; None when the sample only refills the history.
@@ -336,12 +355,18 @@ class VehiclePipeline:
         }
         self.gaps = StepContinuity()
 
-    def observe(self, sample: TelemetrySample) -> dict[str, dict[str, Any]]:
-        """Estimates per channel (a channel refilling its history after a gap has none)."""
+    def observe(
+        self, sample: TelemetrySample, inputs_reused: bool = False
+    ) -> dict[str, dict[str, Any]]:
+        """Estimates per channel (a channel refilling its history after a gap has none).
+        ``inputs_reused``: the sample's input readings are the previous sample's (an
+        asynchronous sampler knows; see ``ChannelPipeline.observe``)."""
         follows = self.gaps.follows(sample.time_boot_ms)
         estimates = {}
         for ch, pipeline in self.channels.items():
-            estimate = pipeline.observe(sample.t, sample.output(ch), sample.input(ch), follows)
+            estimate = pipeline.observe(
+                sample.t, sample.output(ch), sample.input(ch), follows, inputs_reused
+            )
             if estimate is not None:
                 estimates[ch] = estimate
         return estimates

@@ -39,6 +39,9 @@ def jittered_loop(
     settings: PipelineSettings | None = None,
     identify: int = IDENTIFY,
     excitation_name: str = "prbs",
+    output_late: float = 0.0,
+    input_late: float = 0.0,
+    flag_reused: bool = False,
 ) -> tuple[float, float]:
     """(mean |depth error| m, mean |pitch error| rad) over the second half of the step."""
     rng = random.Random(seed)
@@ -50,6 +53,11 @@ def jittered_loop(
     command = (0.0, 0.0)
     early = {"output": False, "input": False}
     share = {"output": output_early, "input": input_early}
+    # A reading served late: the previous tick's served again (no newer one stamped by the
+    # tick, the link's case once stamps are placed in their clock tick), then a fresh one.
+    late = {"output": output_late, "input": input_late}
+    served = {"output": -1, "input": -1}
+    reused = False
     errors: list[tuple[float, float]] = []
     for step in range(identify + CONTROL + 1):
         due = [item for item in pending if item[0] <= step]
@@ -66,13 +74,17 @@ def jittered_loop(
                 index[reading], early[reading] = k, False  # served again: a repeat
             elif rng.random() < share[reading]:
                 index[reading], early[reading] = k + 1, True
+            elif served[reading] == k - 1 and rng.random() < late[reading]:
+                index[reading] = k - 1
             else:
                 index[reading] = k
+        reused = index["input"] == served["input"]
+        served = dict(index)
         y, u = truth[index["output"]], truth[index["input"]]
         sample = y._replace(
             time_boot_ms=round(k * PERIOD * 1000), u_depth=u.u_depth, u_pitch=u.u_pitch
         )
-        pipeline.observe(sample)
+        pipeline.observe(sample, flag_reused and reused)
         if k < identify:
             new = (excitation["depth"].value(k), excitation["pitch"].value(k))
         else:
@@ -97,6 +109,14 @@ CASES = {
     "output readings only": {"output_early": 0.08},
     "input (servo readback) readings only": {"input_early": 0.08},
     "both": {"output_early": 0.08, "input_early": 0.08, "late_command": 0.3},
+    "input readings late (reused) 3 %": {"input_late": 0.03},
+    "input late 3 %, reuse flagged": {"input_late": 0.03, "flag_reused": True},
+    "all late 3 % + latency, flagged": {
+        "input_late": 0.03, "output_late": 0.03, "late_command": 0.3, "flag_reused": True
+    },
+    "all late 3 % + latency, not flagged": {
+        "input_late": 0.03, "output_late": 0.03, "late_command": 0.3
+    },
 }
 
 
@@ -105,10 +125,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--identify", type=int, default=IDENTIFY, help="samples (10 Hz)")
     parser.add_argument("--excitation", default="prbs", help="the emulator's excitation")
     parser.add_argument("--seeds", type=int, default=6, help="seeds 1..N")
+    parser.add_argument("--cases", nargs="*", help="only these cases (substring match)")
     args = parser.parse_args(argv)
     seeds = range(1, args.seeds + 1)
     print("jitter of                              depth error (mean of seeds)  per seed")
     for name, kwargs in CASES.items():
+        if args.cases and not any(c in name for c in args.cases):
+            continue
         depth = [
             jittered_loop(seed, **kwargs, identify=args.identify, excitation_name=args.excitation)[
                 0
