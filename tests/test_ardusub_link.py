@@ -148,7 +148,7 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
                 f"{max(s.pitch for s in chunk):5.2f} up {min(s.u_pitch for s in chunk):5.2f}.."
                 f"{max(s.u_pitch for s in chunk):5.2f}"
             )
-        print("pipeline:", {ch: (p.repeats, p.skipped) for ch, p in client.pipeline.channels.items()})
+        print("pipeline:", {ch: (p.repeats, p.skipped, p.input_reuses) for ch, p in client.pipeline.channels.items()})
         # Control must not do worse than none (no control leaves the 1 m step's 1 m and the
         # 0.1 rad step's 0.1 rad). The IMC inverse on this 10 Hz profile is erratic: measured
         # depth 0.06-0.51 m in most runs and 0.86 m in one `make test` (pitch 0.018 rad), so a
