@@ -9,7 +9,7 @@ from hil_service.cli.processes import last_json
 from hil_service.pipeline import PipelineSettings
 from protocols.mavlink_io import dialect
 from protocols.profiles import load_profile
-from tests.ardusub_client import ArduSubClient
+from tests.ardusub_client import ArduSubClient, stamp_report
 
 SPEED = 5.0
 PERIOD = 0.1
@@ -131,13 +131,11 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
             f"{health['pitch']['skill']}; mean |error| depth {depth_error:.3f} m, "
             f"pitch {pitch_error:.5f} rad; {client.commands_sent} DO_SET_SERVO"
         )
-        from tests.ardusub_client import stamp_report
-
         print("stamps:", stamp_report(client.stamps, PERIOD))
         sm, st = client.samples, client.stamps
         eq = [i for i in range(1, len(sm)) if sm[i].depth == sm[i - 1].depth]
         same = [i for i in eq if st[i][1]["depth"] == st[i - 1][1]["depth"]]
-        print("depth equal", len(eq), "same stamp", len(same), "first", eq[:10], "phase start", start)
+        print(f"depth repeats {len(eq)}, of which the same reading {len(same)}")
         print("end:", _gains(client))
         for part in range(start, len(sm), 150):
             chunk = sm[part : part + 150]
@@ -148,7 +146,11 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
                 f"{max(s.pitch for s in chunk):5.2f} up {min(s.u_pitch for s in chunk):5.2f}.."
                 f"{max(s.u_pitch for s in chunk):5.2f}"
             )
-        print("pipeline:", {ch: (p.repeats, p.skipped, p.input_reuses) for ch, p in client.pipeline.channels.items()})
+        counts = {
+            ch: {"repeats": p.repeats, "skipped": p.skipped, "input_reuses": p.input_reuses}
+            for ch, p in client.pipeline.channels.items()
+        }
+        print("pipeline:", counts)
         # Control must not do worse than none (no control leaves the 1 m step's 1 m and the
         # 0.1 rad step's 0.1 rad). The IMC inverse on this 10 Hz profile is erratic: measured
         # depth 0.06-0.51 m in most runs and 0.86 m in one `make test` (pitch 0.018 rad), so a
@@ -179,7 +181,7 @@ def _gains(client):
             continue
         gains, smap = f
         r = step_response(dyn.ar, gains, 2000)
-        slope = (smap.value(0.5) - smap.value(-0.5))
+        slope = smap.value(0.5) - smap.value(-0.5)
         out[ch] = (
             f"dc {r[-1] * slope:.3g} at 100: {r[99] * slope:.3g} horizon "
             f"{p.controller.horizon} d {p.controller.disturbance:.3g}"
