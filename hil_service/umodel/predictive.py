@@ -623,6 +623,10 @@ class PredictiveInverse:
         target = plan[0]
         if not math.isfinite(target):
             return u0, "hold", False
+        if not first_lo < first_hi:
+            # Outside the rising range by more than a step: the one reachable input towards
+            # it (``_reachable``), nothing to solve.
+            return first_lo, "fallback", first_lo <= self.u_min or first_lo >= self.u_max
         # The inverse step: the input whose static map gives the planned level.
         result = solve_inverse(shape.value, shape.derivative, target, u0, first_lo, first_hi)
         u = result.u
