@@ -152,9 +152,8 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
         }
         print("pipeline:", counts)
         # Control must not do worse than none (no control leaves the 1 m step's 1 m and the
-        # 0.1 rad step's 0.1 rad). The IMC inverse on this 10 Hz profile is erratic: measured
-        # depth 0.06-0.51 m in most runs and 0.86 m in one `make test` (pitch 0.018 rad), so a
-        # tighter band fails at random; issue 15 is where the controller has to get better.
+        # 0.1 rad step's 0.1 rad). Measured since the ArduSub timing fixes (docs/control.md):
+        # depth 0.000-0.040 m in 7 runs, pitch 0.00000 rad; the band is not tightened yet.
         assert depth_error < 1.0 and pitch_error < 0.05
         out, _ = processes.stop(emulator)
         summary = last_json(out, "emulator")

@@ -6,7 +6,11 @@ reach the sampler with jitter, so a reading is sometimes served a tick early and
 on the next tick, independently for the output (depth, pitch) and the input (servo
 readback); a command sometimes takes effect one step late. This module steps the same plant
 with the same excitation and pipeline, and reproduces those three effects with given
-probabilities, so that each one's share of the tracking error can be measured:
+probabilities, so that each one's share of the tracking error can be measured. Since the
+sampler places a reading inside its clock tick, the link's remaining case is the *late*
+reading (the previous tick's served again, then a fresh one: ``output_late``,
+``input_late``); ``flag_reused`` tells the pipeline which input readings were reused, as
+the ArduSub assembler does (docs/control.md, "The ArduSub profile"):
 
     .venv/bin/python -m hil_service.experiment.jitter            # the table of docs/control.md
     .venv/bin/python -m hil_service.experiment.jitter --identify 1800 --excitation steps
