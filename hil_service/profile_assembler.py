@@ -20,6 +20,8 @@ from protocols.mavlink_io import MavMessage
 from protocols.profiles import Profile, message_clock
 from protocols.samples import TelemetrySample, is_plausible
 
+INPUT_SIGNALS = ("u_depth", "u_pitch")
+
 
 @dataclass
 class ProfileAssemblyCounters:
@@ -72,6 +74,9 @@ class ProfileAssembler:
         self._counters = ProfileAssemblyCounters()  # unknown_system only
         self._samples: dict[int, int] = {}  # per system id
         self._invalid: dict[int, int] = {}  # per system id
+        self.last_stamps: tuple[float, dict[str, float] | None] = (0.0, None)
+        # per system id: the last tick's reading stamps (None after an incomplete tick)
+        self._input_stamps: dict[int, dict[str, float] | None] = {}
 
     @property
     def system_ids(self) -> list[int]:
@@ -112,6 +117,13 @@ class ProfileAssembler:
 
     def add_all(self, message: MavMessage) -> list[TelemetrySample]:
         """Take one decoded message; the samples that became due."""
+        return [sample for sample, _ in self.add_all_flagged(message)]
+
+    def add_all_flagged(self, message: MavMessage) -> list[tuple[TelemetrySample, bool]]:
+        """Like ``add_all``, each sample with ``inputs_reused``: an input reading (the servo
+        readback) is the one the previous sample of that vehicle took (no newer one was
+        stamped by this tick), so it may hold the previous step's input. The identifier
+        must not pair outputs with it (``VehiclePipeline.observe``)."""
         if message.get_type() not in self._readable:
             return []
         system_id = int(message.get_srcSystem())
@@ -123,11 +135,19 @@ class ProfileAssembler:
         except (TypeError, ValueError, IndexError, AttributeError):
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return []
-        samples = []
+        samples: list[tuple[TelemetrySample, bool]] = []
         for tick in sampler.observe(readings, message_clock(message)):
             sample = self._build(system_id, tick)
+            stamps = tick.stamps if sample is not None else None
+            previous = self._input_stamps.get(system_id)
+            reused = (
+                stamps is not None
+                and previous is not None
+                and any(stamps.get(name) == previous.get(name) for name in INPUT_SIGNALS)
+            )
+            self._input_stamps[system_id] = stamps
             if sample is not None:
-                samples.append(sample)
+                samples.append((sample, reused))
         return samples
 
     def _sampler(self, system_id: int) -> StreamSampler | None:
@@ -161,4 +181,5 @@ class ProfileAssembler:
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return None
         self._samples[system_id] = self._samples.get(system_id, 0) + 1
+        self.last_stamps = (tick.vehicle_t, tick.stamps)
         return sample

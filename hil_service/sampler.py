@@ -75,6 +75,7 @@ class Tick(NamedTuple):
     vehicle_t: float
     values: dict[str, float] | None
     reason: str = ""
+    stamps: dict[str, float] | None = None  # signal → vehicle time of the reading used
 
 
 @dataclass
@@ -182,6 +183,14 @@ class StreamSampler:
         """The values one message carries (signal, source rank, value), stamped by
         ``clock`` (kind, raw) or None; returns the ticks that became due."""
         stamp = self._stamp(clock)
+        # A clock tick spans its resolution: a reading stamped ``raw`` was taken in
+        # [raw, raw + unit) (the vehicle truncates its clock), so it is placed at the middle.
+        # One stamped exactly at a sample time was taken after it, almost surely: with the
+        # tick's start, a reading taken just after a loop step (carrying the new state) would
+        # serve the sample before it, and the next sample would serve it again.
+        taken = stamp
+        if stamp is not None and clock is not None:
+            taken = stamp + CLOCKS[clock[0]][0] / 2
         for signal, rank, value in readings:
             if stamp is None:
                 if clock is None:
@@ -193,7 +202,8 @@ class StreamSampler:
             if not math.isfinite(value):
                 self.counters.invalid += 1
                 continue
-            self._remember((signal, rank), stamp, value)
+            assert taken is not None
+            self._remember((signal, rank), taken, value)
         return self._due()
 
     def _remember(self, key: tuple[str, int], stamp: float, value: float) -> None:
@@ -224,8 +234,9 @@ class StreamSampler:
         t = self._offset + vehicle_t
         self._last_t = t
         values: dict[str, float] = {}
+        stamps: dict[str, float] = {}
         for signal, limits in self.config.staleness.items():
-            value, reason = self._value(signal, limits, vehicle_t)
+            value, reason, stamp = self._value(signal, limits, vehicle_t)
             if reason:
                 if signal in self.config.optional:
                     values[signal] = 0.0
@@ -233,11 +244,14 @@ class StreamSampler:
                 self.counters.count(reason)
                 return Tick(t, vehicle_t, None, reason)
             values[signal] = value
+            stamps[signal] = stamp
         self.counters.samples += 1
-        return Tick(t, vehicle_t, values)
+        return Tick(t, vehicle_t, values, "", stamps)
 
-    def _value(self, signal: str, limits: tuple[float, ...], t: float) -> tuple[float, str]:
-        """The value of the first fresh source at ``t``, or a reason."""
+    def _value(
+        self, signal: str, limits: tuple[float, ...], t: float
+    ) -> tuple[float, str, float]:
+        """The value of the first fresh source at ``t`` and its stamp, or a reason."""
         seen = False
         tolerance = 1e-9
         for rank, limit in enumerate(limits):
@@ -252,5 +266,5 @@ class StreamSampler:
             if t - newest[0] <= limit + tolerance:
                 if rank:
                     self.counters.fallbacks[signal] = self.counters.fallbacks.get(signal, 0) + 1
-                return newest[1], ""
-        return math.nan, (f"{signal} stale" if seen else f"no {signal}")
+                return newest[1], "", newest[0]
+        return math.nan, (f"{signal} stale" if seen else f"no {signal}"), math.nan

@@ -168,12 +168,13 @@ class HilService:
             if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
                 self._on_ack(message)
             return []
-        samples = self.periodic.add_all(message)
-        for sample in samples:
-            self.process_sample(sample)
+        flagged = self.periodic.add_all_flagged(message)
+        samples = [sample for sample, _ in flagged]
+        for sample, inputs_reused in flagged:
+            self.process_sample(sample, inputs_reused)
         return samples
 
-    def process_sample(self, sample: TelemetrySample) -> None:
+    def process_sample(self, sample: TelemetrySample, inputs_reused: bool = False) -> None:
         vehicle = self._vehicle(sample.system_id)
         now = self.clock()
         vehicle.rate.tick(now)
@@ -181,7 +182,7 @@ class HilService:
         system_id = sample.system_id
         topics = vehicle.keys
         self.bus.publish(topics.telemetry, sample.to_payload())
-        estimates = vehicle.pipeline.observe(sample)
+        estimates = vehicle.pipeline.observe(sample, inputs_reused)
         for channel, payload in estimates.items():
             self.bus.publish(topics.umodel[channel], payload)
         inputs = self.inbox.inputs_for(sample)

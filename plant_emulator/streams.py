@@ -87,6 +87,10 @@ class ArduSubAutopilot(Autopilot):
         self._due: dict[str, float] = {}
         self.sent: dict[str, int] = dict.fromkeys(self.intervals, 0)
         self._start = 0.0
+        # The vehicle's loop runs at multiples of its period since boot (as an autopilot's
+        # scheduler does): the plant steps there, whatever ``uptime`` the clock starts at.
+        period = plant.config.period
+        self._uptime = math.ceil(self.streams.uptime / period - 1e-9) * period
         super().__init__(plant, link, excitations, config, mapping, on_step=on_step, **kwargs)
         handlers = self.manners.handlers
         handlers[dialect.MAV_CMD_DO_SET_SERVO] = self._set_servo
@@ -198,12 +202,12 @@ class ArduSubAutopilot(Autopilot):
     def sim_time(self, now: float | None = None) -> float:
         """Simulated seconds since the vehicle booted."""
         if not self._start:
-            return self.streams.uptime + self.plant.t
+            return self._uptime + self.plant.t
         now = self.clock() if now is None else now
-        wall = self.streams.uptime + (now - self._start) * self.config.speed
+        wall = self._uptime + (now - self._start) * self.config.speed
         # Never ahead of the plant's next step: an emulator running behind its speed (a
         # loaded machine) stamps what it sends with the plant's time, not the wall's.
-        return min(wall, self.streams.uptime + self.plant.t)
+        return min(wall, self._uptime + self.plant.t)
 
     def step(self) -> TelemetrySample:
         sample = self.plant.step(*self._inputs_for_step())
@@ -276,10 +280,13 @@ class ArduSubAutopilot(Autopilot):
                 next_heartbeat += max(1, math.ceil(now - next_heartbeat))
             deadline = start + self.stats.steps * wall_period
             if now >= deadline:
+                # What fell due before this step reports the state before it: a message is
+                # never stamped earlier than the reading it carries.
+                self._send_due(self.sim_time(now))
                 self.step()
                 continue
             next_due = self._send_due(self.sim_time(now))
-            due_wall = start + (next_due - self.streams.uptime) / speed
+            due_wall = start + (next_due - self._uptime) / speed
             self._receive_until(min(deadline, next_heartbeat, due_wall), stop)
         self._receive_until(self.clock(), stop)
         return self.stats

@@ -26,15 +26,18 @@ ENV_INTERPRETED = "GLIDER_HIL_INTERPRETED"  # at run time: the Python sources
 ENV_PURE_PYTHON = "GLIDER_HIL_PURE_PYTHON"  # at install time: compile nothing (setup.py)
 
 #: Every module a MAVLink sample goes through whose own Python code is a noticeable share
-#: of the time (the forecast and inverse solver are the control step).
+#: of the time (the model's multi-step map, the predictive inverse and the root solver are
+#: the control step; the list-based RLS is the dynamic model's update).
 HOT_PATH: tuple[str, ...] = (
-    "hil_service.umodel.forecast",
+    "hil_service.umodel.dynamics",
     "hil_service.umodel.guards",
     "hil_service.umodel.inverse",
     "hil_service.umodel.models",
     "hil_service.umodel.nlms",
+    "hil_service.umodel.predictive",
     "hil_service.umodel.rbf",
     "hil_service.umodel.reproducible",
+    "hil_service.umodel.rls",
     "hil_service.assembler",
     "hil_service.link_stats",
     "hil_service.mcap.writer",

@@ -5,6 +5,7 @@ commands as the profile sends them (DO_SET_SERVO per channel)."""
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -39,6 +40,7 @@ class ArduSubClient:
         self.pipeline = VehiclePipeline(pipeline) if pipeline is not None else None
         self.setpoints: dict[str, float | None] = {"depth": None, "pitch": None}
         self.samples = []
+        self.stamps = []
         self.acks = []
         self.servo_usec = []
         self.commands_sent = 0
@@ -70,18 +72,19 @@ class ArduSubClient:
             self.acks.append(message)
         elif kind == "SERVO_OUTPUT_RAW":
             self.servo_usec.append(message.time_usec)
-        for sample in self.assembler.add_all(message):
+        for sample, reused in self.assembler.add_all_flagged(message):
             self.samples.append(sample)
-            self._sample(sample)
+            self.stamps.append(self.assembler.last_stamps)
+            self._sample(sample, reused)
 
-    def _sample(self, sample) -> None:
+    def _sample(self, sample, inputs_reused: bool = False) -> None:
         self.trace.t.append(sample.t)
         self.trace.depth.append(sample.depth)
         self.trace.pitch.append(sample.pitch)
         self.trace.setpoint.append(dict(self.setpoints))
         if self.pipeline is None:
             return
-        self.pipeline.observe(sample)
+        self.pipeline.observe(sample, inputs_reused)
         enabled = any(v is not None for v in self.setpoints.values())
         decision = self.pipeline.decide(sample, self.setpoints, enabled)
         if decision.command is None:
@@ -94,3 +97,22 @@ class ArduSubClient:
         ):
             self.peer.send(command)
             self.commands_sent += 1
+
+
+def stamp_report(stamps, period: float) -> str:
+    """Per signal: share of samples whose reading is the previous sample's (reused) and the
+    histogram of reading age in periods."""
+    out = []
+    signals = sorted(stamps[-1][1]) if stamps and stamps[-1][1] else []
+    for sig in signals:
+        reused, ages = 0, {}
+        for (_, s0), (t1, s1) in itertools.pairwise(stamps):
+            if sig not in s1 or sig not in s0:
+                continue
+            if s1[sig] == s0[sig]:
+                reused += 1
+            a = int((t1 - s1[sig]) / period)
+            ages[a] = ages.get(a, 0) + 1
+        share = 100 * reused / max(1, len(stamps) - 1)
+        out.append(f"{sig}: reused {share:.1f}% ages {dict(sorted(ages.items()))}")
+    return "; ".join(out)

@@ -269,7 +269,9 @@ def test_the_documented_stored_configuration_is_what_a_log_holds(recorded_log):
     assert again == stored
 
 
-@pytest.mark.parametrize("name", ["paper", "disturbed", "nonlinear"])
+# A log recorded before the configuration module stored the setpoint limits: the replay
+# fixtures are regenerated whenever the controller changes, so one old log is kept as it was.
+@pytest.mark.parametrize("name", ["legacy-paper"])
 def test_logs_written_before_the_config_module_still_read(name, capsys):
     import json
 

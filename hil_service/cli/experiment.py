@@ -317,6 +317,42 @@ def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
                 *([("oracle", result.oracle.u[ch])] if result.oracle is not None else []),
             ],
         )
+        # One step as the paper shows it (output, setpoint, input): the second controlled
+        # step (the first follows the identification phase's excitation), inverse beside
+        # the oracle.
+        settings = result.settings
+        first = settings.identify + settings.step_every
+        if first >= settings.samples:
+            continue  # a run too short for a second step
+        runs = [("inverse control", result.inverse)]
+        if result.oracle is not None:
+            runs.append(("oracle", result.oracle))
+        # Twice the slower run's time to the settle band, so that a fast step is visible.
+        settle = max(
+            _settled_after(run.y[ch], run.setpoint[ch], first, settings) for _, run in runs
+        )
+        length = min(settings.step_every, max(20, 2 * settle))
+        window = slice(max(0, first - length // 8), first + length)
+        tracking_figure(
+            directory / f"step_{settings.scenario}_{ch}.png",
+            f"one {ch} step, scenario {settings.scenario}, seed {settings.seed}",
+            ch,
+            t[window],
+            [(label, run.y[ch][window]) for label, run in runs],
+            result.inverse.setpoint[ch][window],
+            [(label, run.u[ch][window]) for label, run in runs],
+        )
+
+
+def _settled_after(
+    y: np.ndarray, setpoint: np.ndarray, first: int, settings: ClosedLoopSettings
+) -> int:
+    """Samples after ``first`` until ``y`` stays within the settle band of the step there."""
+    stop = min(first + settings.step_every, y.size)
+    size = abs(float(setpoint[first] - setpoint[first - 1]))
+    error = np.abs(y[first:stop] - setpoint[first:stop])
+    outside = np.nonzero(~(error <= settings.settle_band * max(size, 1e-12)))[0]
+    return int(outside[-1]) + 1 if outside.size else 0
 
 
 # ---- speed -------------------------------------------------------------------------------

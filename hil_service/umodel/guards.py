@@ -4,8 +4,14 @@ Divergence is declared when any of these holds:
 
 * the prediction, the error or a parameter is non-finite;
 * the Euclidean norm ‖θ‖₂ exceeds ``param_limit``;
-* |e| > ``error_ratio`` · (scale + ``scale_floor``) for ``divergence_steps`` consecutive
-  samples, where *scale* is a robust running mean of |y|.
+* for ``divergence_steps`` consecutive samples, |e| > ``error_ratio`` · (scale +
+  ``scale_floor``) or the prediction jumps that far from the last output (|ŷ − y(t−1)|),
+  where *scale* is a robust running mean of |y|.
+
+Why the jump: a model that adapts fast (RLS) learns an alternating burst of absurd outputs
+within a few samples and then predicts it, so its errors alone drop below the limit every
+other sample and the consecutive count never completes; a prediction that jumps by fifty
+times the output's scale in one step is absurd whether it is right about the burst or not.
 
 The scale is an exponential average of |y| whose innovation is clipped to
 ``error_ratio``·scale, so a burst of absurd outputs can only raise it geometrically
@@ -68,7 +74,17 @@ class GuardConfig:
 class DivergenceMonitor:
     """Tracks the output scale and counts consecutive large a-priori errors."""
 
-    __slots__ = ("_floor", "_rate", "_ratio", "_steps", "count", "n_divergences", "scale", "seen")
+    __slots__ = (
+        "_floor",
+        "_rate",
+        "_ratio",
+        "_steps",
+        "count",
+        "last",
+        "n_divergences",
+        "scale",
+        "seen",
+    )
 
     def __init__(self, cfg: GuardConfig) -> None:
         self._ratio = float(cfg.error_ratio)
@@ -79,26 +95,31 @@ class DivergenceMonitor:
         self.seen = False
         self.count = 0
         self.n_divergences = 0
+        self.last = 0.0  # the last accepted output
 
     def reset(self) -> None:
         self.scale = 0.0
         self.seen = False
         self.count = 0
         self.n_divergences = 0
+        self.last = 0.0
 
     def observe(self, y: float, error: float) -> bool:
         """Account for one accepted sample; True when the error test declares divergence."""
         ay = abs(y)
+        last = self.last
+        self.last = y
         if not self.seen:
             self.seen = True
             self.scale = ay
             return False
         s = self.scale
-        if abs(error) > self._ratio * (s + self._floor):
+        lim = self._ratio * (s + self._floor)
+        # ŷ − y(t−1) = (y − e) − y(t−1): the one-step jump the model predicted.
+        if abs(error) > lim or abs(y - error - last) > lim:
             self.count += 1
         else:
             self.count = 0
-        lim = self._ratio * (s + self._floor)
         self.scale = s + self._rate * ((ay if ay < lim else lim) - s)
         if self.count >= self._steps:
             self.count = 0
@@ -110,5 +131,6 @@ class DivergenceMonitor:
             "scale": self.scale,
             "seen": self.seen,
             "count": self.count,
+            "last": self.last,
             "n_divergences": self.n_divergences,
         }

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
-    from .forecast import HorizonMap
+    from .dynamics import ModelDynamics
     from .models import Estimate
 
 
@@ -39,6 +39,11 @@ class OneStepModel(Protocol):
 
 @runtime_checkable
 class PredictiveModel(OneStepModel, Protocol):
-    """What the controller uses: an identifier that also gives its multi-step input map."""
+    """What the controller uses: an identifier that also gives its multi-step map."""
 
-    def horizon_map(self, u_applied: float, horizon: int) -> HorizonMap: ...
+    def dynamics(self) -> ModelDynamics: ...
+
+    def undo_last_update(self) -> bool:
+        """Restore the parameters from before the last update (a reading found, one
+        sample later, to have been served ahead of its tick); False when not kept."""
+        ...

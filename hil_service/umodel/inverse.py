@@ -1,7 +1,7 @@
 """U-model inverse control: solve model(u) = v for the next input, then shape the command.
 
 The solver is a pure function of two callables, f(u) and f'(u), so it can be tested on plain
-polynomials; the controller passes a model's multi-step map (:mod:`.forecast`).
+polynomials; the predictive inverse passes a model's static input map (:mod:`.predictive`).
 
 * Newton–Raphson on the full model (RBF term included, analytic derivative) started from the
   previous input u0 (clamped into [u_min, u_max]): fast and smooth in the common case.

@@ -5,19 +5,17 @@ u_prev = u(t−1), the input applied *before* y(t) was measured. The model first
 a-priori prediction ŷ(t) from u(t−1) and its internal history (which only contains data up
 to t−1), then reveals y(t), computes e = y(t) − ŷ(t), adapts, and finally shifts y(t) and
 u(t−1) into its history. ``predict(u)`` returns the same a-priori prediction without changing
-anything. The controller uses the U-models' multi-step input map instead
-(``horizon_map``: ŷ(k+H) as a function of the held next input, see :mod:`.forecast`).
+anything. The controller uses the U-models' multi-step map instead (``dynamics()``, see
+:mod:`.dynamics` and :mod:`.predictive`).
 
 Models (``MODEL_NAMES``):
 
 * ``paper``       — Abbasi et al. 2015: y(t) = α₀(t) + Σ_{i=1..M} α_i(t)·u^i(t−1) with
   α₀ = Σ_j w_j Φ_j(u(t−1)), Φ_j(u) = exp(−(u−c_j)²/β²) (eq. 8 convention). α_i and w are
   adapted by one NLMS on φ = [Φ(u(t−1)), u, …, u^M].
-* ``dynamic``     — as ``paper`` but α₀ also contains a bias and linear terms in
-  y(t−1..t−na)/y_scale and u(t−2..t−nb); one NLMS adapts the concatenated vector. A single
-  normalised update keeps the structure of the paper (one step size, stability 0<μ<2) and
-  is cheap; ``y_scale`` lets the caller bring large-valued outputs to O(1) so that they do
-  not dominate the normalisation φᵀφ.
+* ``dynamic``     — the same polynomial in u(t−1), with α₀ holding a bias, past output
+  levels y(t−1..t−na) and polynomials of the older inputs u(t−2..t−nb), identified by RLS
+  with forgetting: a model that holds over the control horizon (see the class).
 * ``persistence`` — ŷ(t) = y(t−1); the baseline every identifier must beat.
 * ``rls-arx``     — ARX y(t) = Σ a_i y(t−i) + Σ b_k u(t−k) + c by RLS with forgetting and a
   covariance trace bound (see :mod:`.rls`).
@@ -30,18 +28,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from operator import mul, sub
+from operator import mul
 from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 
-from .forecast import HorizonMap, horizon_response
+from .dynamics import ModelDynamics
 from .guards import DivergenceMonitor, GuardConfig
 from .interface import OneStepModel
 from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
-from .reproducible import dot, gaussian_columns, power_columns
-from .rls import RLS
+from .reproducible import dot
+from .rls import RLS, ListRLS
 
 __all__ = [
     "MODEL_NAMES",
@@ -121,6 +119,11 @@ class _ModelBase:
 
     def _params_ok(self) -> bool:
         return True
+
+    def undo_last_update(self) -> bool:
+        """Restore the parameters from before the last update; False when the model keeps
+        no copy (then nothing changes)."""
+        return False
 
     def _reset_params(self) -> None:
         pass
@@ -343,7 +346,6 @@ class _UModelCore(_ModelBase):
         self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
         self._theta_phi = 0.0  # scratch: θᵀφ of the last _predict
         self._lin: list[float] = []  # history tail of φ (dynamic model only)
-        self._stacked: tuple[np.ndarray, int, np.ndarray] | None = None
 
     def _fill(self, u: float) -> list[float]:
         phi = self.rbf.values_list(u)
@@ -387,25 +389,6 @@ class _UModelCore(_ModelBase):
     def _reset_params(self) -> None:
         self._theta = list(self._theta0)
         self._sq_norm = dot(self._theta, self._theta)
-
-    def design_rows(self, us: np.ndarray, degree: int) -> np.ndarray:
-        """[Φ_1(u)…Φ_J(u), x, x², …, x^degree] (x = poly_scale·u) as the rows of one array.
-
-        Depends on the grid only, so it is cached for the last grid (the inverse solver
-        passes the same read-only array every step); the same bits as the scalar path
-        (see :mod:`.reproducible`).
-        """
-        cached = self._stacked
-        if cached is not None and cached[1] == degree and cached[0] is us:
-            return cached[2]
-        us = np.asarray(us, dtype=float)
-        columns = gaussian_columns(us, self.rbf.centres, self.rbf.beta)
-        columns += power_columns(us * self.poly_scale, degree)
-        rows = np.array(columns, dtype=float).reshape(len(columns), us.shape[0])
-        rows.flags.writeable = False
-        if not us.flags.writeable:  # only a frozen grid can be recognised by identity
-            self._stacked = (us, degree, rows)
-        return rows
 
     def _core_options(self) -> dict[str, Any]:
         return {
@@ -454,32 +437,37 @@ class PaperUModel(_UModelCore):
     def _options(self) -> dict[str, Any]:
         return self._core_options()
 
-    def horizon_map(self, u_applied: float, horizon: int) -> HorizonMap:
-        """ŷ(k+H) = ŷ(k+1)'s static map: no output lags, one input lag, no bias."""
+    def dynamics(self) -> ModelDynamics:
+        """ŷ(t) = Σ α_i x(t−1)^i + Σ w_j Φ_j(u(t−1)): no output lags, one input lag."""
         theta = self._theta
-        return HorizonMap(
-            self.rbf, self.poly_scale, self.design_rows, 0.0, 1.0,
-            theta[: self._nr], theta[self._nr : self._np],
+        return ModelDynamics(
+            [], 0.0, [list(theta[self._nr : self._np])], self.poly_scale, [], [self._u_last],
+            self.rbf, theta[: self._nr],
         )  # fmt: skip
 
 
-class DynamicUModel(_UModelCore):
-    """U-model whose α₀ also depends on past outputs and older inputs (Zhu & Guo's U-model).
+class DynamicUModel(_ModelBase):
+    """U-model whose α₀ also depends on past outputs and older inputs (Zhu & Guo's U-model),
+    identified by recursive least squares so that it holds over the control horizon::
 
-    Incremental form: ŷ(t) = y(t−1) + θᵀφ(t) with
-    φ = [Φ(u(t−1)), x, x², …, x^M, 1, Δy(t−1)/s_y, …, Δy(t−na)/s_y,
-         for k = 2..nb: x_k, x_k², …, x_k^L],  x = u(t−1)/s_u, x_k = u(t−k)/s_u,
-    Δy(t−i) = y(t−i) − y(t−i−1). One NLMS adapts θ. Why this shape (figures in the README):
+        y(t) = α₀(t) + Σ_{m=1..M} α_m(t)·u(t−1)^m,
+        α₀(t) = c + Σ_{i=1..na} a_i·y(t−i) + Σ_{k=2..nb} Σ_{m=1..M} b_{k,m}·x(t−k)^m
 
-    * regressing on increments makes persistence the model at θ = 0 and keeps the
-      regressor zero-mean and weakly correlated, where output levels (≈ 15 m of depth)
-      make NLMS crawl;
-    * older inputs enter through polynomials of degree L, not linearly, because a static
-      input nonlinearity (the ``nonlinear`` scenario's pump) acts on every lag;
-    * s_u = 2 keeps the powers of a full-scale input at O(1) in φᵀφ.
+    with x = u/u_scale. φ = [x, x², …, x^M, 1, y(t−1)…y(t−na), x(t−2), x(t−2)², …, x(t−nb)^M]
+    and θ is adapted by RLS with forgetting (``ListRLS``). Why this shape (figures in
+    docs/control.md):
 
-    Defaults (na = nb = 5, L = 3, μ = 0.5) are the best of a sweep on the emulator's
-    scenarios (``glider-hil experiment``).
+    * output *levels*, not increments: a stable plant's steady state is then a fixed point
+      of the model (consistency: a held input gives a constant output), where the
+      increment form integrates every small input-map error over the horizon;
+    * RLS, not NLMS: the regressor mixes levels (≈ 15 m of depth) with inputs of O(1);
+      RLS is invariant to that scaling and converges in a few times n samples, NLMS crawls
+      along the badly conditioned directions that decide the long-horizon response;
+    * the same polynomial degree on every input lag: a static input nonlinearity (a pump)
+      acts on every lag, and the controller reads the lag polynomials as one static map
+      times a linear filter (see :mod:`.predictive`).
+
+    θ starts at persistence (a₁ = 1), so the first predictions are sane.
     """
 
     name: ClassVar[str] = "dynamic"
@@ -487,169 +475,174 @@ class DynamicUModel(_UModelCore):
     def __init__(
         self,
         *,
-        na: int = 5,
-        nb: int = 5,
-        lag_degree: int = 3,
-        y_scale: float = 1.0,
-        u_scale: float = 2.0,
+        na: int = 4,
+        nb: int = 4,
         degree: int = PAPER_DEGREE,
-        mu: float = PAPER_MU,
-        eps: float = DEFAULT_EPS,
-        centres: Sequence[float] | None = None,
-        beta: float = PAPER_BETA,
-        init_scale: float = 0.0,
+        u_scale: float = 2.0,
+        lam: float = 0.9999,
+        p0: float = 1000.0,
         seed: int = 0,
         guard: GuardConfig | dict[str, Any] | None = None,
     ) -> None:
-        if int(na) != na or na < 0:
-            raise ValueError("na must be an integer >= 0")
+        super().__init__(guard)
+        if int(na) != na or na < 1:
+            raise ValueError("na must be an integer >= 1")
         if int(nb) != nb or nb < 1:
             raise ValueError("nb must be an integer >= 1 (lag 1 is the U-model polynomial)")
-        if int(lag_degree) != lag_degree or lag_degree < 1:
-            raise ValueError("lag_degree must be an integer >= 1")
-        if not (math.isfinite(y_scale) and y_scale > 0.0):
-            raise ValueError("y_scale must be finite and > 0")
+        if int(degree) != degree or degree < 1:
+            raise ValueError("degree M must be an integer >= 1")
         if not (math.isfinite(u_scale) and u_scale > 0.0):
             raise ValueError("u_scale must be finite and > 0")
+        if int(seed) != seed:
+            raise ValueError("seed must be an integer")
         self.na = int(na)
         self.nb = int(nb)
-        self.lag_degree = int(lag_degree)
-        self.y_scale = float(y_scale)
+        self.degree = int(degree)
         self.u_scale = float(u_scale)
-        self._inv_ys = 1.0 / self.y_scale
-        self._levels: list[float] = []  # y(t), y(t−1), … (filled by _reset_history)
-        self._inputs: list[float] = []  # u(t−1), u(t−2), …
-        super().__init__(
-            degree=degree,
-            mu=mu,
-            eps=eps,
-            centres=centres,
-            beta=beta,
-            init_scale=init_scale,
-            seed=seed,
-            n_extra=1 + self.na + (self.nb - 1) * self.lag_degree,
-            guard=guard,
-            poly_scale=1.0 / self.u_scale,
+        self.poly_scale = 1.0 / self.u_scale
+        self.seed = int(seed)  # no random initialisation; kept for a uniform config
+        n = self.degree * self.nb + 1 + self.na
+        self.rls = ListRLS(n, lam, p0)
+        self._ia = self.degree + 1  # index of a_1 (after the lag-1 powers and the bias)
+        self._theta0: tuple[float, ...] = tuple(
+            1.0 if i == self._ia else 0.0 for i in range(n)
         )
+        self._theta: list[float] = list(self._theta0)
+        self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
+        self._levels: list[float] = []  # y(t), y(t−1), …
+        self._inputs: list[float] = []  # u(t−1), u(t−2), …
+        self._tail: list[float] = []  # φ after the lag-1 powers
+        self._primed = False  # the output history holds a measured level
+        self._y_ref = 0.0  # the first measured level: regressors are taken relative to it
+        self._undo: tuple[list[float], list[list[float]]] | None = None
         self._reset_history()
 
+    def _powers(self, u: float) -> list[float]:
+        x = u * self.poly_scale
+        out = []
+        p = 1.0
+        for _ in range(self.degree):
+            p *= x
+            out.append(p)
+        return out
+
     def _predict(self, u: float) -> float:
-        return self._levels[0] + super()._predict(u)
+        phi = self._powers(u)
+        phi += self._tail
+        self._phi = phi
+        return self._y_ref + dot(self._theta, phi)
+
+    def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        th = self._theta
+        m = self.degree
+        poly = []
+        scale = 1.0
+        for i in range(m):
+            scale *= self.poly_scale
+            poly.append(th[i] * scale)
+        a0 = y_hat
+        p = 1.0
+        for a in poly:
+            p *= u
+            a0 -= a * p
+        return (a0, *poly), tuple(th[m:])
+
+    def _adapt(self, error: float) -> None:
+        # Before the first level is known the regressor holds no measured output: the
+        # error says nothing about θ (and would bury the bias under the output's level).
+        if self._primed:
+            # Kept for one sample: the pipeline undoes an update learnt from readings that
+            # turn out, on the next sample, to have been served ahead of time.
+            self._undo = (list(self._theta), [row[:] for row in self.rls.p])
+            self.rls.update(self._theta, self._phi, error)
+
+    def undo_last_update(self) -> bool:
+        undo = self._undo
+        if undo is None:
+            return False
+        self._theta = undo[0]
+        self.rls.p = undo[1]
+        self._undo = None
+        return True
+
+    def _params_ok(self) -> bool:
+        return _norm_ok(dot(self._theta, self._theta), self.guard.param_limit)
+
+    def _reset_params(self) -> None:
+        self._theta = list(self._theta0)
+        self.rls.reset()
 
     def _lags(self) -> int:
-        # Δy regressors need na + 1 post-gap levels; the guessed u(t−1) of the first sample
-        # leaves the input lags after nb − 1 more pushes.
-        return max(self.na, self.nb - 1)
+        return max(self.na - 1, self.nb - 1)
 
     def _push(self, u: float, y: float) -> None:
-        # After the push, _levels = [y(t), y(t−1), …] and _inputs = [u(t−1), u(t−2), …]
-        # describe the regressor of the next sample.
-        levels = self._levels
-        self._levels = [y, *levels[:-1]]
-        if self.nb > 1:
-            self._inputs = [u, *self._inputs[:-1]]
-        # The tail shifts by one sample: only the newest increment and the newest input's
-        # powers are new (the same operations as a rebuild, so the same bits).
-        na, ld = self.na, self.lag_degree
-        tail = self._lin
-        new = [1.0]
-        if na:
-            new.append((y - levels[0]) * self._inv_ys)
-            new += tail[1:na]
-        if self.nb > 1:
-            x = u * self.poly_scale
-            p = 1.0
-            for _ in range(ld):
-                p *= x
-                new.append(p)
-            new += tail[1 + na : len(tail) - ld]
-        self._lin = new
-
-    def _rebuild_tail(self) -> None:
-        levels, inv = self._levels, self._inv_ys
-        tail = [1.0]
-        tail += [(levels[i] - levels[i + 1]) * inv for i in range(self.na)]
-        for past in self._inputs:
-            x = past * self.poly_scale
-            p = 1.0
-            for _ in range(self.lag_degree):
-                p *= x
-                tail.append(p)
-        self._lin = tail
-
-    def _reset_history(self) -> None:
-        self._levels = [0.0] * (self.na + 1)
-        self._inputs = [0.0] * (self.nb - 1)
+        if self._primed:
+            self._levels = [y, *self._levels[:-1]]
+        else:
+            # The first level fills the whole history: with θ at persistence the model
+            # starts from a steady state, not from a jump from 0.
+            self._levels = [y] * self.na
+            self._y_ref = y
+            self._primed = True
+        self._inputs = [u, *self._inputs[:-1]]
         self._rebuild_tail()
 
-    def ar_coefficients(self) -> list[float]:
-        """ŷ(t) = Σ c_i·y(t−i) + … with i = 1..na+1 (the increments expanded):
-        c = [1 + a_1, a_2 − a_1, …, −a_na]."""
-        start = self._np + 1
-        a = [t * self._inv_ys for t in self._theta[start : start + self.na]]
-        if not a:
-            return [1.0]
-        return [1.0 + a[0], *map(sub, a[1:], a), -a[-1]]
+    def _rebuild_tail(self) -> None:
+        tail = [1.0]
+        ref = self._y_ref
+        tail += [v - ref for v in self._levels]
+        for past in self._inputs[: self.nb - 1]:
+            tail += self._powers(past)
+        self._tail = tail
 
-    def horizon_map(self, u_applied: float, horizon: int) -> HorizonMap:
-        """ŷ(k+H) as a function of the input held from k+1 on, u(k) = ``u_applied``.
+    def _reset_history(self) -> None:
+        self._primed = False
+        self._y_ref = 0.0
+        self._levels = [0.0] * self.na
+        # u(t−1) … u(t−nb): the regressor uses the first nb − 1 (lags 2..nb of the next
+        # sample); the controller's internal model all of them.
+        self._inputs = [0.0] * self.nb
+        self._rebuild_tail()
 
-        The model is linear in its past outputs and a sum of static maps of each input lag,
-        so ŷ(k+H) = known response + Σ_L gain_L·map_L(u) (see :func:`.horizon_response`).
-        """
-        theta = self._theta
-        nr, npoly, na, nb, ld = self._nr, self._np, self.na, self.nb, self.lag_degree
-        weights = theta[:nr]
-        alphas = theta[nr:npoly]
-        base = npoly + 1 + na  # first lag-2 coefficient
-        end = base + (nb - 1) * ld
-        degree = max(self.degree, ld)
-        # Powers of the known inputs u(k) = u_applied, u(k−1), …, u(k−nb+1), flattened; the
-        # history tail of φ already holds those of the past inputs (lag_degree each).
-        x0 = u_applied * self.poly_scale
-        powers0 = [x0]
-        for _ in range(degree - 1):
-            powers0.append(powers0[-1] * x0)
-        past_powers = self._lin[1 + na :]
-        known = powers0[:ld] + past_powers
-        # Step k+j sees u(k+j−L) through lag L: known for L ≥ j. The lag blocks are
-        # contiguous in θ and the known inputs in ``known``, so each step is one scalar
-        # product. Φ(u(k)) is the identifier's next regressor too (values_list keeps it).
-        impulses = [
-            dot(theta[base:end], past_powers)
-            + dot(self.rbf.values_list(u_applied), weights)
-            + dot(alphas, powers0)
-        ]
-        for j in range(2, min(nb, horizon) + 1):
-            impulses.append(dot(theta[base + (j - 2) * ld : end], known))
-        offset, gains = horizon_response(
-            self.ar_coefficients(), self._levels, impulses, theta[npoly], horizon, nb
+    def dynamics(self) -> ModelDynamics:
+        """This instant's multi-step map (see :mod:`.dynamics`)."""
+        th = self._theta
+        m, na, nb = self.degree, self.na, self.nb
+        lag_polys = [list(th[:m])]
+        start = m + 1 + na
+        for k in range(nb - 1):
+            lag_polys.append(list(th[start + k * m : start + (k + 1) * m]))
+        ar = list(th[m + 1 : m + 1 + na])
+        # y − y_ref = c + Σ a_i (y(t−i) − y_ref) + … ⇒ bias = c + y_ref·(1 − Σ a_i).
+        bias = 1.0
+        for a in ar:
+            bias -= a
+        bias = th[m] + self._y_ref * bias
+        return ModelDynamics(
+            ar,
+            bias,
+            lag_polys,
+            self.poly_scale,
+            list(self._levels),
+            list(self._inputs),
         )
-        g1 = gains[0]
-        poly = [g1 * a for a in alphas]
-        if len(poly) < degree:
-            poly += [0.0] * (degree - len(poly))
-        lag_gains = gains[1:]
-        if lag_gains:
-            for i in range(ld):
-                poly[i] += dot(lag_gains, theta[base + i : end : ld])
-        return HorizonMap(self.rbf, self.poly_scale, self.design_rows, offset, g1, weights, poly)
 
     def _options(self) -> dict[str, Any]:
-        opts = {
+        return {
             "na": self.na,
             "nb": self.nb,
-            "lag_degree": self.lag_degree,
-            "y_scale": self.y_scale,
+            "degree": self.degree,
             "u_scale": self.u_scale,
+            "lam": self.rls.lam,
+            "p0": self.rls.p0,
+            "seed": self.seed,
         }
-        opts.update(self._core_options())
-        return opts
 
     def _state(self) -> dict[str, Any]:
-        st = super()._state()
-        st["history"] = {"outputs": list(self._levels), "inputs": list(self._inputs)}
-        return st
+        return {
+            "theta": list(self._theta),
+            "history": {"outputs": list(self._levels), "inputs": list(self._inputs)},
+        }
 
 
 class PersistenceModel(_ModelBase):

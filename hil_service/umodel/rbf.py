@@ -76,8 +76,7 @@ class GaussianRBF:
     def values_list(self, u: float) -> list[float]:
         """Φ(u) as a new list of floats (hot path of the adaptive update).
 
-        The last input's values are kept: the controller's forecast evaluates Φ(u(k)) and
-        the identifier's next step needs the same Φ(u(k)) for its regressor.
+        The last input's values are kept: a held input needs the same Φ(u) again.
         """
         last = self._last
         if last[0] == u:

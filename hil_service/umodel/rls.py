@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-__all__ = ["RLS"]
+__all__ = ["RLS", "ListRLS"]
 
 
 class RLS:
@@ -65,3 +65,78 @@ class RLS:
         p *= 0.5
         if not math.isfinite(float(np.trace(p))):
             self.reset()
+
+
+class ListRLS:
+    """The same estimator on plain float lists, for the per-sample path of the U-model.
+
+    Why lists: for the ~15 parameters of the dynamic U-model a loop over floats (compiled
+    with mypyc) beats numpy's per-call overhead, and every sum runs in a fixed order, so
+    the result does not depend on the CPU's BLAS kernels (the controller's decisions are
+    replayed bit for bit). Only the upper triangle of P is computed; the lower one is its
+    mirror, so P stays exactly symmetric. ``update`` returns the gain Pφ/(λ + φᵀPφ) applied.
+    """
+
+    __slots__ = ("lam", "n", "p", "p0", "trace_max")
+
+    def __init__(
+        self, n: int, lam: float = 0.999, p0: float = 100.0, trace_max: float | None = None
+    ) -> None:
+        if n < 1:
+            raise ValueError("RLS needs at least one parameter")
+        if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
+            raise ValueError(f"forgetting factor must satisfy 0 < lam <= 1, got {lam!r}")
+        if not (math.isfinite(p0) and p0 > 0.0):
+            raise ValueError("p0 must be finite and > 0")
+        tmax = n * p0 if trace_max is None else float(trace_max)
+        if not (math.isfinite(tmax) and tmax > 0.0):
+            raise ValueError("trace_max must be finite and > 0")
+        self.n = n
+        self.lam = float(lam)
+        self.p0 = float(p0)
+        self.trace_max = tmax
+        self.p: list[list[float]] = []
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to P = p0·I (after a divergence)."""
+        n = self.n
+        self.p = [[self.p0 if i == j else 0.0 for j in range(n)] for i in range(n)]
+
+    def update(self, theta: list[float], phi: list[float], error: float) -> bool:
+        """θ += k·e in place, P ← (P − k·(Pφ)ᵀ)/λ_eff; False (and P reset) when the
+        update is not finite."""
+        n = self.n
+        p = self.p
+        pphi = [0.0] * n
+        for i in range(n):
+            row = p[i]
+            acc = 0.0
+            for j in range(n):
+                acc += row[j] * phi[j]
+            pphi[i] = acc
+        denom = self.lam
+        for i in range(n):
+            denom += phi[i] * pphi[i]
+        if not (math.isfinite(denom) and denom > 0.0):
+            self.reset()
+            return False
+        inv = 1.0 / denom
+        k = [v * inv for v in pphi]
+        for i in range(n):
+            theta[i] += k[i] * error
+        trace = 0.0
+        for i in range(n):
+            trace += p[i][i] - k[i] * pphi[i]
+        scale = 1.0 / self.lam if trace <= self.trace_max else 1.0
+        for i in range(n):
+            row = p[i]
+            ki = k[i]
+            for j in range(i, n):
+                v = (row[j] - ki * pphi[j]) * scale
+                row[j] = v
+                p[j][i] = v
+        if not math.isfinite(trace):
+            self.reset()
+            return False
+        return True

@@ -1,7 +1,9 @@
-"""One-step prediction scores: NMSE and skill versus persistence, windowed and cumulative.
+"""Prediction scores: one-step NMSE and skill versus persistence, windowed and cumulative;
+multi-step accuracy of the free-running model over the control horizon.
 
 NMSE = mean((y − ŷ)²) / var(y); skill = 1 − MSE_model / MSE_persistence, so 0 means no
-better than "y(t) = y(t−1)" and 1 means perfect.
+better than "y(t) = y(t−1)" and 1 means perfect. Free-run fit (system identification's
+"simulation fit") = 100·(1 − ‖y − ŷ_sim‖ / ‖y − mean(y)‖).
 """
 
 from __future__ import annotations
@@ -81,3 +83,60 @@ class ErrorStats:
 
 def _round(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(f"{value:.6g}")
+
+
+class MultiStepStats:
+    """Rolling accuracy of the model's free run: the pipeline restarts a frozen copy of the
+    model from the measured outputs every ``horizon`` samples and feeds it the applied
+    inputs, so each ŷ_sim is a 1…horizon-step-ahead prediction. Over the last ``window``
+    samples: NMSE = Σ(y − ŷ_sim)² / Σ(y − ȳ)² and fit % = 100·(1 − √NMSE).
+
+    The sums are taken when asked (health is published at 1 Hz), not kept running: a
+    free run that blew up must not leave its rounding in the figures after it has left
+    the window."""
+
+    __slots__ = ("_recent", "window")
+
+    #: A free-run error beyond this (or not finite) counts as this: the fit is then very
+    #: negative, and the squares stay finite.
+    ERROR_CAP = 1e100
+
+    def __init__(self, window: int = 500) -> None:
+        self.window = window
+        self._recent: deque[tuple[float, float]] = deque(maxlen=window)
+
+    def add(self, y: float, y_sim: float) -> None:
+        if not math.isfinite(y):
+            return
+        e = y - y_sim
+        if not (math.isfinite(e) and abs(e) < self.ERROR_CAP):
+            e = self.ERROR_CAP
+        self._recent.append((y, e))
+
+    def nmse(self) -> float | None:
+        n = len(self._recent)
+        if n < 2:
+            return None
+        mean = 0.0
+        for y, _ in self._recent:
+            mean += y
+        mean /= n
+        spread = 0.0
+        squares = 0.0
+        for y, e in self._recent:
+            spread += (y - mean) * (y - mean)
+            squares += e * e
+        if not spread > 1e-12 * n * (1.0 + mean * mean):
+            return None  # a flat output: no scale to judge the fit by
+        return squares / spread
+
+    def fit(self) -> float | None:
+        nmse = self.nmse()
+        return None if nmse is None else 100.0 * (1.0 - math.sqrt(nmse))
+
+    def summary(self, horizon: int) -> dict[str, float | int | None]:
+        return {
+            "multistep_horizon": horizon,
+            "multistep_nmse": _round(self.nmse()),
+            "multistep_fit": _round(self.fit()),
+        }

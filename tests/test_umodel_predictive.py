@@ -1,0 +1,167 @@
+"""The predictive U-model inverse: its pieces, its guards, and a plant it was not tuned on."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from hil_service.umodel import build_model
+from hil_service.umodel.dynamics import ModelDynamics
+from hil_service.umodel.predictive import (
+    PredictiveInverse,
+    _solve_box_qp,
+    factorise,
+    settling_horizon,
+    step_response,
+)
+
+
+def test_step_response_of_a_first_order_lag() -> None:
+    # y(t) = 0.5 y(t−1) + 2 w(t−1): s(j) = 4·(1 − 0.5^j)
+    s = step_response([0.5], [2.0], 6)
+    assert s == pytest.approx([4.0 * (1.0 - 0.5**j) for j in range(6)])
+
+
+def test_settling_horizon_follows_the_pole() -> None:
+    fast = settling_horizon(step_response([0.5], [1.0], 400), 0.05, 2, 400)
+    slow = settling_horizon(step_response([0.98], [1.0], 400), 0.05, 2, 400)
+    assert fast == 5  # 0.5^5 < 0.05 < 0.5^4
+    assert 140 <= slow <= 150  # 0.98^148 ≈ 0.05
+    unstable = settling_horizon(step_response([1.01], [1.0], 400), 0.05, 2, 400)
+    assert unstable == 400
+
+
+def test_factorise_recovers_a_hammerstein_map() -> None:
+    shape = [0.8, 0.0, 0.15]  # N(x) = 0.8x + 0.15x³
+    gains = [0.3, -0.2, 0.05]
+    dyn = ModelDynamics([0.6], 0.0, [[g * c for c in shape] for g in gains], 0.5, [0.0], [0.0, 0.0])
+    factors = factorise(dyn, -2.0, 2.0)
+    assert factors is not None
+    g, n = factors
+    # P_L(u) = g_L·N(u) for every lag and input, whatever scale N was given.
+    for lag, u in itertools.product(range(1, 4), (-1.7, -0.2, 0.9, 2.0)):
+        assert g[lag - 1] * n.value(u) == pytest.approx(dyn.lag_value(lag, u), abs=1e-12)
+    # N is scaled to a mean slope of one over the actuator range.
+    assert (n.value(2.0) - n.value(-2.0)) / 4.0 == pytest.approx(1.0)
+
+
+def test_factorise_refuses_a_model_without_input_effect() -> None:
+    dyn = ModelDynamics([0.9], 0.0, [[0.0, 0.0], [0.0, 0.0]], 1.0, [1.0], [0.0])
+    assert factorise(dyn, -2.0, 2.0) is None
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_box_qp_is_the_minimum_over_the_box(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(3, 3))
+    h = (a @ a.T + 0.1 * np.eye(3)).tolist()
+    f = rng.normal(size=3).tolist()
+    lo, hi = [-1.0, -0.5, 0.0], [1.0, 0.5, 2.0]
+    x, state = _solve_box_qp(h, f, lo, hi)
+    assert _solve_box_qp(h, f, lo, hi, state)[0] == pytest.approx(x)  # warm start
+    assert _solve_box_qp(h, f, lo, hi, [1, -1, 1])[0] == pytest.approx(x)  # a wrong one
+    assert all(lo[i] - 1e-12 <= x[i] <= hi[i] + 1e-12 for i in range(3))
+
+    def cost(v: np.ndarray) -> float:
+        return float(0.5 * v @ np.array(h) @ v + np.array(f) @ v)
+
+    grid = np.stack(
+        np.meshgrid(*[np.linspace(lo[i], hi[i], 41) for i in range(3)]), -1
+    ).reshape(-1, 3)
+    assert cost(np.array(x)) <= min(cost(v) for v in grid) + 1e-9
+
+
+def _dynamics(ar: list[float], polys: list[list[float]], y: float) -> ModelDynamics:
+    return ModelDynamics(ar, 0.0, polys, 0.5, [y] * len(ar), [0.0] * (len(polys) - 1))
+
+
+@pytest.mark.parametrize(
+    "dyn",
+    [
+        _dynamics([math.nan], [[1.0], [0.5]], 0.0),
+        _dynamics([0.9], [[0.0], [0.0]], 0.0),
+        _dynamics([0.9], [[1e308], [-1e308]], 1e308),
+    ],
+    ids=["nan", "no-input-effect", "overflow"],
+)
+def test_guards_give_a_finite_command(dyn: ModelDynamics) -> None:
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    for setpoint in (1.0, math.nan, 1e300):
+        u, path, _ = controller.decide(dyn, 0.3, setpoint)
+        assert math.isfinite(u) and -2.0 <= u <= 2.0
+        assert path in ("newton", "fallback", "hold")
+
+
+def test_first_move_respects_amplitude_and_rate() -> None:
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    dyn = _dynamics([0.8], [[1.0, 0.0, 0.1]], 0.0)
+    u, _, _ = controller.decide(dyn, 1.9, 100.0)  # far above: wants the upper limit
+    assert u == pytest.approx(2.0)
+    u, _, _ = controller.decide(dyn, 1.9, -100.0)  # far below: one rate step down
+    assert u == pytest.approx(1.4)
+
+
+class _Hammerstein:
+    """A plant unlike the emulator's: second order, a cubic pump with a dead zone, another
+    gain and time scale. y(t) = 1.6 y(t−1) − 0.64 y(t−2) + 0.05·f(u(t−1)) + 0.03·f(u(t−2))."""
+
+    def __init__(self) -> None:
+        self.y = [0.0, 0.0]
+        self.u = [0.0, 0.0]
+
+    @staticmethod
+    def pump(u: float) -> float:
+        return math.copysign(max(abs(u) - 0.1, 0.0), u) + 0.2 * u**3
+
+    def step(self, u: float) -> float:
+        y = (
+            1.6 * self.y[0]
+            - 0.64 * self.y[1]
+            + 0.05 * self.pump(self.u[0])
+            + 0.03 * self.pump(self.u[1])
+        )
+        self.y = [y, self.y[0]]
+        self.u = [u, self.u[0]]
+        return y
+
+
+def test_tracks_a_plant_it_was_not_tuned_on() -> None:
+    plant = _Hammerstein()
+    model = build_model("dynamic")
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    rng = np.random.default_rng(3)
+    u_prev = u = 0.0
+    errors = []
+    for k in range(3000):
+        y = plant.step(u)
+        model.step(u_prev, y)
+        u_prev = u
+        if k < 1500:
+            if k % 40 == 0:
+                u = float(rng.uniform(-2.0, 2.0))
+            continue
+        controller.track(model.dynamics(), y)
+        setpoint = 1.5 if (k // 300) % 2 else -1.0
+        u, _, _ = controller.decide(model.dynamics(), u_prev, setpoint)
+        errors.append(abs(y - setpoint))
+    # Every 300-sample step ends within 2 % of the step size, and no command is non-finite.
+    for start in range(0, len(errors), 300):
+        assert max(errors[start + 250 : start + 300]) < 0.02 * 2.5
+
+
+@pytest.mark.parametrize(("na", "nb"), [(1, 1), (2, 4), (4, 4), (4, 2)])
+def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int) -> None:
+    rng = np.random.default_rng(na * 10 + nb)
+    ar = (0.9 * rng.uniform(-1, 1, na) / na).tolist()
+    polys = rng.normal(size=(nb, 3)).tolist()
+    dyn = ModelDynamics(ar, 0.7, polys, 0.5, rng.normal(size=na).tolist(),
+                        rng.uniform(-2, 2, nb).tolist())  # fmt: skip
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    controller._derive(ar, [1.0] * nb)
+    sim = rng.normal(size=na).tolist()
+    fast = controller._free_response(dyn, 0.4, sim)
+    slow = dyn.simulate_held(0.4, controller.horizon, 0.0, sim)
+    assert fast == pytest.approx([slow[j - 1] for j in controller._points], rel=1e-9, abs=1e-9)
