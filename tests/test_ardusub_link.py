@@ -151,10 +151,10 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
             for ch, p in client.pipeline.channels.items()
         }
         print("pipeline:", counts)
-        # Control must not do worse than none (no control leaves the 1 m step's 1 m and the
-        # 0.1 rad step's 0.1 rad). Measured since the ArduSub timing fixes (docs/control.md):
-        # depth 0.000-0.040 m in 7 runs, pitch 0.00000 rad; the band is not tightened yet.
-        assert depth_error < 1.0 and pitch_error < 0.05
+        # No control leaves the 1 m step's 1 m and the 0.1 rad step's 0.1 rad. Measured with
+        # the predictive inverse since the ArduSub timing fixes (docs/control.md), machine
+        # load 3-5: depth 0.000-0.127 m in 12 runs, pitch below 1e-5 rad.
+        assert depth_error < 0.4 and pitch_error < 0.01
         out, _ = processes.stop(emulator)
         summary = last_json(out, "emulator")
         # The last DO_SET_SERVO may still be in flight when the emulator is stopped.
