@@ -196,19 +196,24 @@ class ChannelPipeline:
         u_now: float,
         follows_previous: bool = True,
         input_reused: bool = False,
+        sampled: bool = False,
     ) -> dict[str, Any] | None:
         """See ``_observe``. ``input_reused``: the sampler served this sample's input from
         the reading it served the previous sample (no newer one stamped by the tick), so
         ``u_now`` may be the previous step's input: the next samples pair outputs with it
-        and hold it in the history. They refill the history without training instead."""
-        estimate = self._observe(t, y, u_now, follows_previous)
+        and hold it in the history. They refill the history without training instead.
+        ``sampled``: the sample comes from an asynchronous sampler (a periodic profile), the
+        only source whose outputs can be a reading served twice; a lockstep sample is fresh
+        by construction, and its repeated output a real one."""
+        estimate = self._observe(t, y, u_now, follows_previous, sampled)
         if input_reused and self.resync == 0:
             self.input_reuses += 1
             self.refill = max(self.refill, self.model.history_length)
         return estimate
 
     def _observe(
-        self, t: float, y: float, u_now: float, follows_previous: bool = True
+        self, t: float, y: float, u_now: float, follows_previous: bool = True,
+        sampled: bool = False,
     ) -> dict[str, Any] | None:
         """Learn from one sample; None when the sample only refills the history.
 
@@ -217,7 +222,7 @@ class ChannelPipeline:
         so the next ``history_length`` samples enter the history without training the model
         (counted as ``skipped``): a missing step is skipped, never mis-aligned.
         """
-        repeat = follows_previous and y == self._y_seen
+        repeat = sampled and follows_previous and y == self._y_seen
         self._y_seen = y
         learnt_last = self._learnt_last
         self._learnt_last = False
@@ -361,7 +366,7 @@ class VehiclePipeline:
         self.gaps = StepContinuity()
 
     def observe(
-        self, sample: TelemetrySample, inputs_reused: bool = False
+        self, sample: TelemetrySample, inputs_reused: bool = False, sampled: bool = False
     ) -> dict[str, dict[str, Any]]:
         """Estimates per channel (a channel refilling its history after a gap has none).
         ``inputs_reused``: the sample's input readings are the previous sample's (an
@@ -370,7 +375,7 @@ class VehiclePipeline:
         estimates = {}
         for ch, pipeline in self.channels.items():
             estimate = pipeline.observe(
-                sample.t, sample.output(ch), sample.input(ch), follows, inputs_reused
+                sample.t, sample.output(ch), sample.input(ch), follows, inputs_reused, sampled
             )
             if estimate is not None:
                 estimates[ch] = estimate

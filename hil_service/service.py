@@ -182,7 +182,7 @@ class HilService:
         system_id = sample.system_id
         topics = vehicle.keys
         self.bus.publish(topics.telemetry, sample.to_payload())
-        estimates = vehicle.pipeline.observe(sample, inputs_reused)
+        estimates = vehicle.pipeline.observe(sample, inputs_reused, self.periodic is not None)
         for channel, payload in estimates.items():
             self.bus.publish(topics.umodel[channel], payload)
         inputs = self.inbox.inputs_for(sample)

@@ -84,7 +84,7 @@ class ArduSubClient:
         self.trace.setpoint.append(dict(self.setpoints))
         if self.pipeline is None:
             return
-        self.pipeline.observe(sample, inputs_reused)
+        self.pipeline.observe(sample, inputs_reused, sampled=True)
         enabled = any(v is not None for v in self.setpoints.values())
         decision = self.pipeline.decide(sample, self.setpoints, enabled)
         if decision.command is None:

@@ -39,7 +39,7 @@ def _loop(seed: int, repeat_share: float) -> tuple[float, VehiclePipeline]:
             sample = plant.step(*command)
         assert sample is not None
         sample = sample._replace(time_boot_ms=round(k * PERIOD * 1000))  # the tick's time
-        pipeline.observe(sample)
+        pipeline.observe(sample, sampled=True)
         if k < IDENTIFY:
             command = (excitation["depth"].value(k), excitation["pitch"].value(k))
             continue
@@ -78,17 +78,17 @@ def test_a_repeat_undoes_the_update_learnt_from_the_early_reading() -> None:
     for k in range(200):
         samples.append(plant.step(excitation["depth"].value(k), excitation["pitch"].value(k)))
     for sample in samples[:150]:
-        pipeline.observe(sample)
+        pipeline.observe(sample, sampled=True)
     before = depth.model.snapshot()["theta"]
     early = samples[151]._replace(time_boot_ms=samples[150].time_boot_ms)  # k+1 served at k
-    pipeline.observe(early)
+    pipeline.observe(early, sampled=True)
     assert depth.model.snapshot()["theta"] != before  # learnt from it, not knowing yet
     again = early._replace(time_boot_ms=samples[151].time_boot_ms)
-    assert pipeline.observe(again) == {}  # dropped
+    assert pipeline.observe(again, sampled=True) == {}  # dropped
     assert depth.repeats == 1
     assert depth.model.snapshot()["theta"] == before  # and the update undone
     skipped = depth.skipped
     for sample in samples[152 : 152 + depth.model.history_length]:
-        assert "depth" not in pipeline.observe(sample)  # the history refills, no training
+        assert "depth" not in pipeline.observe(sample, sampled=True)  # refills, no training
     assert depth.skipped == skipped + depth.model.history_length
-    assert "depth" in pipeline.observe(samples[152 + depth.model.history_length])
+    assert "depth" in pipeline.observe(samples[152 + depth.model.history_length], sampled=True)

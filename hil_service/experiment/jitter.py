@@ -88,7 +88,7 @@ def jittered_loop(
         sample = y._replace(
             time_boot_ms=round(k * PERIOD * 1000), u_depth=u.u_depth, u_pitch=u.u_pitch
         )
-        pipeline.observe(sample, flag_reused and reused)
+        pipeline.observe(sample, flag_reused and reused, sampled=True)
         if k < identify:
             new = (excitation["depth"].value(k), excitation["pitch"].value(k))
         else:
