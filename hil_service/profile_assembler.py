@@ -74,7 +74,6 @@ class ProfileAssembler:
         self._counters = ProfileAssemblyCounters()  # unknown_system only
         self._samples: dict[int, int] = {}  # per system id
         self._invalid: dict[int, int] = {}  # per system id
-        self.last_stamps: tuple[float, dict[str, float] | None] = (0.0, None)
         # per system id: the last tick's reading stamps (None after an incomplete tick)
         self._input_stamps: dict[int, dict[str, float] | None] = {}
 
@@ -181,5 +180,4 @@ class ProfileAssembler:
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return None
         self._samples[system_id] = self._samples.get(system_id, 0) + 1
-        self.last_stamps = (tick.vehicle_t, tick.stamps)
         return sample

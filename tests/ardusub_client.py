@@ -5,7 +5,6 @@ commands as the profile sends them (DO_SET_SERVO per channel)."""
 
 from __future__ import annotations
 
-import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -40,7 +39,6 @@ class ArduSubClient:
         self.pipeline = VehiclePipeline(pipeline) if pipeline is not None else None
         self.setpoints: dict[str, float | None] = {"depth": None, "pitch": None}
         self.samples = []
-        self.stamps = []
         self.acks = []
         self.servo_usec = []
         self.commands_sent = 0
@@ -74,7 +72,6 @@ class ArduSubClient:
             self.servo_usec.append(message.time_usec)
         for sample, reused in self.assembler.add_all_flagged(message):
             self.samples.append(sample)
-            self.stamps.append(self.assembler.last_stamps)
             self._sample(sample, reused)
 
     def _sample(self, sample, inputs_reused: bool = False) -> None:
@@ -97,22 +94,3 @@ class ArduSubClient:
         ):
             self.peer.send(command)
             self.commands_sent += 1
-
-
-def stamp_report(stamps, period: float) -> str:
-    """Per signal: share of samples whose reading is the previous sample's (reused) and the
-    histogram of reading age in periods."""
-    out = []
-    signals = sorted(stamps[-1][1]) if stamps and stamps[-1][1] else []
-    for sig in signals:
-        reused, ages = 0, {}
-        for (_, s0), (t1, s1) in itertools.pairwise(stamps):
-            if sig not in s1 or sig not in s0:
-                continue
-            if s1[sig] == s0[sig]:
-                reused += 1
-            a = int((t1 - s1[sig]) / period)
-            ages[a] = ages.get(a, 0) + 1
-        share = 100 * reused / max(1, len(stamps) - 1)
-        out.append(f"{sig}: reused {share:.1f}% ages {dict(sorted(ages.items()))}")
-    return "; ".join(out)

@@ -9,7 +9,7 @@ from hil_service.cli.processes import last_json
 from hil_service.pipeline import PipelineSettings
 from protocols.mavlink_io import dialect
 from protocols.profiles import load_profile
-from tests.ardusub_client import ArduSubClient, stamp_report
+from tests.ardusub_client import ArduSubClient
 
 SPEED = 5.0
 PERIOD = 0.1
@@ -131,21 +131,6 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
             f"{health['pitch']['skill']}; mean |error| depth {depth_error:.3f} m, "
             f"pitch {pitch_error:.5f} rad; {client.commands_sent} DO_SET_SERVO"
         )
-        print("stamps:", stamp_report(client.stamps, PERIOD))
-        sm, st = client.samples, client.stamps
-        eq = [i for i in range(1, len(sm)) if sm[i].depth == sm[i - 1].depth]
-        same = [i for i in eq if st[i][1]["depth"] == st[i - 1][1]["depth"]]
-        print(f"depth repeats {len(eq)}, of which the same reading {len(same)}")
-        print("end:", _gains(client))
-        for part in range(start, len(sm), 150):
-            chunk = sm[part : part + 150]
-            print(
-                f"  t+{(part - start) * PERIOD:5.0f}s depth {min(s.depth for s in chunk):6.2f}.."
-                f"{max(s.depth for s in chunk):6.2f} u {min(s.u_depth for s in chunk):5.2f}.."
-                f"{max(s.u_depth for s in chunk):5.2f} pitch {min(s.pitch for s in chunk):5.2f}.."
-                f"{max(s.pitch for s in chunk):5.2f} up {min(s.u_pitch for s in chunk):5.2f}.."
-                f"{max(s.u_pitch for s in chunk):5.2f}"
-            )
         counts = {
             ch: {"repeats": p.repeats, "skipped": p.skipped, "input_reuses": p.input_reuses}
             for ch, p in client.pipeline.channels.items()
