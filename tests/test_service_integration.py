@@ -9,7 +9,11 @@ import pytest
 from tests.conftest import free_tcp_port, free_udp_port
 from tests.zenoh_peer import ZenohProbe
 
-SPEED = 50
+#: 25× real time: a 40 ms deadline per sample. At 50× (20 ms) a machine at load 8 delivered
+#: commands one to three samples late, a varying dead time no vehicle at 1× sees, and the
+#: depth loop oscillated ±1.6 m about the setpoint; the tracking band is the controller's at a
+#: deadline it meets.
+SPEED = 25
 BURN_IN = 300
 #: m: |mean of the last 50 depths − setpoint| after ~300 commands of a 2 m step. Measured
 #: 1.18 (the disturbed plant's depth is slow and non-minimum-phase and its identified
@@ -48,7 +52,7 @@ def rig(processes, tmp_path):
 
 def test_identify_command_disable_and_stale(rig, processes):
     probe: ZenohProbe = rig["probe"]
-    assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 400, 40), {
+    assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 400, 90), {
         k: len(v) for k, v in probe.received.items()
     }
 
@@ -69,7 +73,7 @@ def test_identify_command_disable_and_stale(rig, processes):
     target = start_depth + 2.0
     probe.put("glider/1/setpoint/depth", {"value": target})
     probe.put("glider/1/control", {"enabled": True})
-    assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > 300, 30)
+    assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > 300, 60)
     commands = probe.payloads("glider/1/command/ballast")
     assert all(c["setpoints"]["depth"] == target for c in commands)
     assert all(c["u_pitch"] is None for c in commands), "pitch had no setpoint"
@@ -108,12 +112,12 @@ def test_identify_command_disable_and_stale(rig, processes):
     stopped_at = probe.count("glider/1/command/ballast")
     samples = probe.count("glider/1/telemetry")
     # 50 more samples processed (published before any command would be): none commanded.
-    assert probe.wait_for(lambda: probe.count("glider/1/telemetry") > samples + 50, 10)
+    assert probe.wait_for(lambda: probe.count("glider/1/telemetry") > samples + 50, 20)
     assert probe.count("glider/1/command/ballast") == stopped_at
 
     # Re-enable, then kill the emulator: commands stop and health says telemetry is stale.
     probe.put("glider/1/control", {"enabled": True})
-    assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > stopped_at + 20, 10)
+    assert probe.wait_for(lambda: probe.count("glider/1/command/ballast") > stopped_at + 20, 20)
     rig["emulator"].kill()
     rig["emulator"].wait(5)
     assert probe.wait_for(
