@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import itertools
 import json
+from collections import Counter
 
 import pytest
 
 from hil_service.mcap.reader import LogReader
+from protocols.mavlink_io import dialect
 from tests.conftest import free_tcp_port, free_udp_port
 from tests.zenoh_peer import ZenohProbe
 
@@ -129,6 +131,22 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
     assert out_frames and all(
         m.json()["_header"]["system_id"] == 1 and m.json()["_header"]["component_id"] == 191
         for m in out_frames
+    )
+    # Ballast commands went out as DO_SET_SERVO, servo 9 (depth) and 10 (pitch), one per
+    # channel each time, from the same identity; the only other commands are stream requests.
+    commands = [m.json() for m in reader.messages({"mavlink/json/out/COMMAND_LONG"})]
+    servos = Counter(
+        int(c["param1"]) for c in commands if c["command"] == dialect.MAV_CMD_DO_SET_SERVO
+    )
+    assert servos[9] == servos[10] > 1000 and set(servos) == {9, 10}, servos
+    pwm = [c["param2"] for c in commands if c["command"] == dialect.MAV_CMD_DO_SET_SERVO]
+    assert all(1100 <= us <= 1900 for us in pwm) and len(set(pwm)) > 10  # µs, and varied
+    assert {c["command"] for c in commands} == {
+        dialect.MAV_CMD_DO_SET_SERVO,
+        dialect.MAV_CMD_SET_MESSAGE_INTERVAL,
+    }
+    assert all(
+        (c["_header"]["system_id"], c["_header"]["component_id"]) == (1, 191) for c in commands
     )
     assert reader.config()["profile"]["name"] == "ardusub"
     # The vehicle's µs clock wrapped while the service sampled it (telemetry `t` went on).
