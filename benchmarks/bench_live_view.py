@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import signal
 import socket
@@ -30,6 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -88,19 +90,42 @@ def one_run(
             if stalled and viewer is not None:
                 viewer.send_signal(signal.SIGSTOP)
         before = service.assembler.counters.samples
+        viewer_cpu = None if viewer is None else cpu_seconds(viewer.pid)
+        cpu0 = time.process_time()  # every thread of this process: ours, the SDK's, Zenoh's
         t0 = time.perf_counter()
         for data in datagrams:
             service.process_datagram(data)
+        pending_at_end = 0 if live is None else live.status()["pending"]
+        # The live view's thread works behind the path: the run ends when it has caught up.
+        while live is not None and live.status()["pending"]:
+            time.sleep(0.001)
         elapsed = time.perf_counter() - t0
+        cpu = time.process_time() - cpu0
+        if viewer is not None and viewer_cpu is not None:
+            viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
         samples = service.assembler.counters.samples - before
         status = live.status() if live is not None else None
+        if status is not None:
+            status["pending_when_the_path_ended"] = pending_at_end
         if viewer is not None:
             if stalled:
                 viewer.send_signal(signal.SIGCONT)
             viewer.terminate()
             viewer.communicate(timeout=10)
         wired.close()
-    return {"samples_per_s": samples / elapsed, "live": status}
+    return {
+        "samples_per_s": samples / elapsed,
+        "cpu_ms_per_sample": 1000 * cpu / samples,
+        "viewer_cpu_ms_per_sample": None if viewer_cpu is None else 1000 * viewer_cpu / samples,
+        "live": status,
+    }
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a live process (all its threads), s."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def main() -> int:
@@ -117,26 +142,52 @@ def main() -> int:
     warm, datagrams = everything[:split], everything[split:]
     off, on, stalled, live_status = [], [], [], []
     for _ in range(args.repeats):
-        off.append(one_run(warm, datagrams, False)["samples_per_s"])
+        off.append(one_run(warm, datagrams, False))
         mavlink = not args.without_mavlink
         result = one_run(warm, datagrams, True, mavlink=mavlink)
-        on.append(result["samples_per_s"])
+        on.append(result)
         live_status.append(result["live"])
         result = one_run(warm, datagrams, True, stalled=True, mavlink=mavlink)
-        stalled.append(result["samples_per_s"])
+        stalled.append(result)
         live_status.append(result["live"])
+
+    def rates(runs: list[dict[str, Any]]) -> list[float]:
+        return [run["samples_per_s"] for run in runs]
+
+    def cpu(runs: list[dict[str, Any]]) -> float:
+        return statistics.median(run["cpu_ms_per_sample"] for run in runs)
+
+    pairs = [b / a for a, b in zip(rates(off), rates(on), strict=True)]
     report = {
         "samples": args.samples,
         "repeats": args.repeats,
         "mavlink_channels": not args.without_mavlink,
-        "without_live_view_samples_per_s": [round(x) for x in off],
-        "with_viewer_samples_per_s": [round(x) for x in on],
-        "median_without": round(statistics.median(off)),
-        "median_with_viewer": round(statistics.median(on)),
-        "ratio_with_to_without": round(statistics.median(on) / statistics.median(off), 3),
-        "with_stalled_viewer_samples_per_s": [round(x) for x in stalled],
-        "median_with_stalled_viewer": round(statistics.median(stalled)),
-        "ratio_stalled_to_without": round(statistics.median(stalled) / statistics.median(off), 3),
+        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+        "without_live_view_samples_per_s": [round(x) for x in rates(off)],
+        "with_viewer_samples_per_s": [round(x) for x in rates(on)],
+        "median_without": round(statistics.median(rates(off))),
+        "median_with_viewer": round(statistics.median(rates(on))),
+        "ratio_with_to_without": round(
+            statistics.median(rates(on)) / statistics.median(rates(off)), 3
+        ),
+        # Each "with" against the "without" run just before it: load changes between pairs
+        # cancel out.
+        "ratio_per_pair": [round(x, 3) for x in pairs],
+        "median_ratio_per_pair": round(statistics.median(pairs), 3),
+        # The service's CPU per sample (all its threads, the live view's and the SDK's
+        # included): the throughput a core of its own gives, whatever the machine's load.
+        "cpu_ms_per_sample_without": round(cpu(off), 4),
+        "cpu_ms_per_sample_with_viewer": round(cpu(on), 4),
+        "cpu_bound_ratio_with_to_without": round(cpu(off) / cpu(on), 3),
+        "viewer_cpu_ms_per_sample": round(
+            statistics.median(run["viewer_cpu_ms_per_sample"] for run in on), 4
+        ),
+        "with_stalled_viewer_samples_per_s": [round(x) for x in rates(stalled)],
+        "median_with_stalled_viewer": round(statistics.median(rates(stalled))),
+        "ratio_stalled_to_without": round(
+            statistics.median(rates(stalled)) / statistics.median(rates(off)), 3
+        ),
+        "cpu_bound_ratio_stalled_to_without": round(cpu(off) / cpu(stalled), 3),
         "live_view": live_status,
     }
     print(json.dumps(report, indent=2))
