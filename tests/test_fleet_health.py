@@ -5,6 +5,8 @@ the 100-vehicle latency tail)."""
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 from collections import Counter
 from collections.abc import Callable
 from itertools import pairwise
@@ -132,3 +134,18 @@ def test_companions_are_polled_every_companion_poll_not_every_datagram():
     finally:
         link.close()
         vehicle.close()
+
+
+def test_a_verb_imports_its_own_modules_only():
+    """`fleet` (or `router`) started next to a running fleet used to import every verb's
+    modules, matplotlib and python-control included: seconds of CPU the fleet waited for."""
+    code = (
+        "import sys; from hil_service.cli import build_parser; "
+        "args = build_parser('fleet').parse_args(['fleet', '--json']); "
+        "print(args.verb, sorted(m for m in ('matplotlib', 'control', 'scipy', 'plant_emulator') "
+        "if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    ).stdout
+    assert out.split() == ["fleet", "[]"], out
