@@ -107,6 +107,14 @@ class Counts:
             with self.lock:
                 self.telemetry[parsed.system_id] += 1
 
+    def total(self) -> int:
+        with self.lock:
+            return sum(self.telemetry.values())
+
+    def seen(self) -> int:
+        with self.lock:
+            return len(self.telemetry)
+
     def on_health(self, sample: zenoh.Sample) -> None:
         arrived = time.perf_counter()
         parsed = keys.parse(str(sample.key_expr))
@@ -119,6 +127,16 @@ class Counts:
         if parsed is not None:
             with self.lock:
                 self.commands[parsed.system_id] += 1
+
+
+def wait_until(
+    condition: Callable[[], bool], process: subprocess.Popen[str], timeout: float
+) -> None:
+    """Poll ``condition`` until true, ``process`` ends or ``timeout`` s pass (then go on: what
+    follows measures what there is)."""
+    deadline = time.monotonic() + timeout
+    while not condition() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 def bursts(times: list[float], gap: float = 0.05) -> list[tuple[float, float]]:
@@ -232,13 +250,18 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             *[arg for port in udp for arg in ("--fleet-connect", f"udpout:127.0.0.1:{port}")],
         )  # fmt: skip
         processes.append(emulator)
+        # From the first telemetry on (the emulator's start-up, imports included, may take
+        # seconds on a loaded machine: a timer started at its launch once listed the fleet
+        # before any vehicle had appeared).
+        wait_until(lambda: counts.total() > 0, emulator, 180)
         started = time.monotonic()
         load_average = os.getloadavg()[0]
         ours = {"router": router_process, "service_1": services[0], "service_2": services[1]}
         cpu_before = {name: cpu_seconds(p.pid) for name, p in ours.items()}
         pressure_before = cpu_pressure_us()
-        # Mid-run, once every vehicle has had time to appear: what `fleet` lists.
-        time.sleep(max(0.0, seconds * 0.6))
+        # Mid-run, once every vehicle has appeared: what `fleet` lists.
+        wait_until(lambda: counts.seen() >= vehicles, emulator, seconds)
+        time.sleep(max(0.0, seconds * 0.6 - (time.monotonic() - started)))
         listing_started = time.perf_counter()
         fleet = subprocess.run(
             [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-connect", router,
@@ -284,6 +307,11 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             "vehicles_seen_by_subscriber": seen,
             "fleet_listed": len(listed),
             "fleet_coverage": round(len(listed) / vehicles, 3),
+            **(
+                {}
+                if fleet.returncode == 0
+                else {"fleet_failed": [fleet.returncode, fleet.stderr[-500:]]}
+            ),
             "commands_published": commands,
             "latency": emulated["latency"],
             "late_steps": emulated.get("late_steps"),
