@@ -121,6 +121,90 @@ def one_run(
     }
 
 
+def interleaved(
+    warm: list[bytes], datagrams: list[bytes], chunk: int, per_step: int, mavlink: bool = True
+) -> dict[str, Any]:
+    """The service's CPU per sample without the live view and with it (a viewer connected),
+    two services in this process fed the same datagrams in alternate chunks of ``chunk``
+    samples (which of the two goes first alternates too): the machine's load changes from
+    one moment to the next, and here it hits both alike. A chunk with the live view ends
+    when its thread has caught up, so that its work is counted in its own chunk. CPU time of
+    this process (every thread), not wall time."""
+    config = ServiceConfig()
+    stack = []
+    live = LiveView(LiveAddress("127.0.0.1", free_tcp_port())).start()
+    viewer = subprocess.Popen(
+        [shutil.which("node") or "node", str(CLIENT), live.url, "1000000000", "600",
+         "telemetry", "umodel", "command/ballast"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    log_dir = tempfile.TemporaryDirectory()
+    try:
+        services = []
+        for name, with_live in (("off", None), ("on", live)):
+            session = open_session(ZenohOptions())
+            recorder = open_recorder(
+                config, LogOptions(directory=f"{log_dir.name}/{name}"), {"bench": name}
+            )
+            wired = wire(config, session=session, recorder=recorder, live=with_live)
+            stack.append(wired)
+            if with_live is not None and not mavlink:
+                wired.service.live_mavlink = None
+            for data in warm:
+                wired.service.process_datagram(data)
+            services.append(wired.service)
+        deadline = time.monotonic() + 30
+        while not live.watched():
+            if time.monotonic() > deadline:
+                raise RuntimeError("the viewer did not subscribe within 30 s")
+            time.sleep(0.05)
+        tune_for_service()
+        size = chunk * per_step  # datagrams
+        cpu: dict[str, list[float]] = {"off": [], "on": []}
+        samples: dict[str, list[int]] = {"off": [], "on": []}
+        for index, start in enumerate(range(0, len(datagrams), size)):
+            part = datagrams[start : start + size]
+            order = (("off", 0), ("on", 1)) if index % 2 == 0 else (("on", 1), ("off", 0))
+            for name, which in order:
+                service = services[which]
+                before = service.assembler.counters.samples
+                cpu0 = time.process_time()
+                for data in part:
+                    service.process_datagram(data)
+                while which == 1 and live.status()["pending"]:
+                    time.sleep(0.001)
+                cpu[name].append(time.process_time() - cpu0)
+                samples[name].append(service.assembler.counters.samples - before)
+        ratios = [
+            (off / max(n_off, 1)) / (on / max(n_on, 1))
+            for off, on, n_off, n_on in zip(
+                cpu["off"], cpu["on"], samples["off"], samples["on"], strict=True
+            )
+            if on > 0 and n_on > 0
+        ]
+        return {
+            "chunks": len(ratios),
+            "chunk_samples": chunk,
+            "cpu_ms_per_sample_without": round(1000 * sum(cpu["off"]) / sum(samples["off"]), 4),
+            "cpu_ms_per_sample_with_viewer": round(1000 * sum(cpu["on"]) / sum(samples["on"]), 4),
+            "cpu_bound_ratio_with_to_without": round(
+                (sum(cpu["off"]) / sum(samples["off"])) / (sum(cpu["on"]) / sum(samples["on"])), 3
+            ),
+            "median_ratio_per_chunk_pair": round(statistics.median(ratios), 3),
+            "quartiles_ratio_per_chunk_pair": [
+                round(q, 3) for q in statistics.quantiles(ratios, n=4)
+            ],
+            "live_view": live.status(),
+        }
+    finally:
+        viewer.terminate()
+        viewer.communicate(timeout=10)
+        for wired in stack:
+            wired.close()
+        live.close()
+        log_dir.cleanup()
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a live process (all its threads), s."""
     with open(f"/proc/{pid}/stat") as f:
@@ -133,6 +217,14 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--without-mavlink", action="store_true", help="no MAVLink channels")
+    parser.add_argument(
+        "--interleaved",
+        type=int,
+        default=0,
+        metavar="CHUNK",
+        help="instead: CPU per sample without and with the live view, alternating every "
+        "CHUNK samples between two services in this process",
+    )
     args = parser.parse_args()
     if shutil.which("node") is None or not (CLIENT.parent / "node_modules").is_dir():
         print("needs node and `make foxglove-client`", file=sys.stderr)
@@ -140,6 +232,11 @@ def main() -> int:
     everything = telemetry_datagrams(WARM_UP + args.samples)
     split = len(everything) * WARM_UP // (WARM_UP + args.samples)
     warm, datagrams = everything[:split], everything[split:]
+    if args.interleaved:
+        per_step = len(everything) // (WARM_UP + args.samples)  # datagrams a sample
+        result = interleaved(warm, datagrams, args.interleaved, per_step, not args.without_mavlink)
+        print(json.dumps(result))
+        return 0
     off, on, stalled, live_status = [], [], [], []
     for _ in range(args.repeats):
         off.append(one_run(warm, datagrams, False))
