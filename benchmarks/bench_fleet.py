@@ -154,6 +154,13 @@ def within(t: float, windows: list[tuple[float, float]]) -> bool:
     return any(first <= t <= last for first, last in windows)
 
 
+def percentile_ms(values: list[float], q: float) -> float | None:
+    ordered = sorted(values)
+    if not ordered:
+        return None
+    return round(1000 * ordered[min(len(ordered) - 1, int(q * len(ordered)))], 2)
+
+
 def tail_attribution(
     trace: list[tuple[float, int, float]],
     holder: dict[int, int],
@@ -200,6 +207,10 @@ def tail_attribution(
         "all_in_other_health_burst": share(every, other),
         "slow_during_fleet_listing": share(slow, fleet),
         "all_during_fleet_listing": share(every, fleet),
+        # The same latencies without those whose telemetry was sent while `fleet` ran.
+        "p99_ms_outside_fleet_listing": percentile_ms(
+            [latency for t, _, latency in trace if not listing[0] <= t <= listing[1]], 0.99
+        ),
         "slots_100ms_holding_slow": len(slots),
         # A slot whose slow latencies are on vehicles of both services: a stall of the
         # emulator (or the whole machine), not of one service.
