@@ -172,7 +172,9 @@ def tail_attribution(
     publishing its vehicles' health (from 15 ms before the first health message reached the
     subscriber to the last), or while ``fleet --json`` ran; beside each, the share of all
     latencies in the same windows (what chance alone would give). Also how many distinct
-    100 ms slots hold them (few slots: stalls that hit many vehicles at once)."""
+    100 ms slots hold them (few slots: stalls that hit many vehicles at once). The health
+    windows tell something only of a service that publishes its fleet's health in a burst
+    (as before the round robin): spread over the second, they cover most of the run."""
     if not trace:
         return {}
     ordered = sorted(latency for _, _, latency in trace)
