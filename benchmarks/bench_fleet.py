@@ -31,11 +31,14 @@ import argparse
 import json
 import os
 import socket
+import statistics
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -96,12 +99,28 @@ class Counts:
         self.lock = threading.Lock()
         self.telemetry: Counter[int] = Counter()
         self.commands: Counter[int] = Counter()
+        self.health: list[tuple[float, int]] = []  # (perf_counter at arrival, system id)
 
     def on_telemetry(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse(str(sample.key_expr))
         if parsed is not None:
             with self.lock:
                 self.telemetry[parsed.system_id] += 1
+
+    def total(self) -> int:
+        with self.lock:
+            return sum(self.telemetry.values())
+
+    def seen(self) -> int:
+        with self.lock:
+            return len(self.telemetry)
+
+    def on_health(self, sample: zenoh.Sample) -> None:
+        arrived = time.perf_counter()
+        parsed = keys.parse(str(sample.key_expr))
+        if parsed is not None:
+            with self.lock:
+                self.health.append((arrived, parsed.system_id))
 
     def on_command(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse(str(sample.key_expr))
@@ -110,10 +129,103 @@ class Counts:
                 self.commands[parsed.system_id] += 1
 
 
+def wait_until(
+    condition: Callable[[], bool], process: subprocess.Popen[str], timeout: float
+) -> None:
+    """Poll ``condition`` until true, ``process`` ends or ``timeout`` s pass (then go on: what
+    follows measures what there is)."""
+    deadline = time.monotonic() + timeout
+    while not condition() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def bursts(times: list[float], gap: float = 0.05) -> list[tuple[float, float]]:
+    """(first, last) of each run of arrival times no more than ``gap`` s apart."""
+    out: list[tuple[float, float]] = []
+    for t in sorted(times):
+        if out and t - out[-1][1] <= gap:
+            out[-1] = (out[-1][0], t)
+        else:
+            out.append((t, t))
+    return out
+
+
+def within(t: float, windows: list[tuple[float, float]]) -> bool:
+    return any(first <= t <= last for first, last in windows)
+
+
+def percentile_ms(values: list[float], q: float) -> float | None:
+    ordered = sorted(values)
+    if not ordered:
+        return None
+    return round(1000 * ordered[min(len(ordered) - 1, int(q * len(ordered)))], 2)
+
+
+def tail_attribution(
+    trace: list[tuple[float, int, float]],
+    holder: dict[int, int],
+    health: list[tuple[float, int]],
+    listing: tuple[float, float],
+) -> dict[str, Any]:
+    """When the slowest 1 % of telemetry -> command latencies happened: the share of them
+    whose telemetry was sent while the service holding the vehicle (or the other one) was
+    publishing its vehicles' health (from 15 ms before the first health message reached the
+    subscriber to the last), or while ``fleet --json`` ran; beside each, the share of all
+    latencies in the same windows (what chance alone would give). Also how many distinct
+    100 ms slots hold them (few slots: stalls that hit many vehicles at once). The health
+    windows tell something only of a service that publishes its fleet's health in a burst
+    (as before the round robin): spread over the second, they cover most of the run."""
+    if not trace:
+        return {}
+    ordered = sorted(latency for _, _, latency in trace)
+    threshold = ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
+    services = sorted(set(holder.values()))
+    windows = {
+        s: [(a - 0.015, b) for a, b in bursts([t for t, i in health if holder.get(i) == s])]
+        for s in services
+    }
+    slow = [(t, i) for t, i, latency in trace if latency >= threshold]
+
+    def share(rows: list[tuple[float, int]], test: Callable[[float, int], bool]) -> float:
+        return round(sum(1 for t, i in rows if test(t, i)) / max(len(rows), 1), 3)
+
+    every = [(t, i) for t, i, _ in trace]
+    slots: dict[int, set[int]] = {}
+    for t, i in slow:
+        slots.setdefault(int(t / 0.1), set()).add(holder[i])
+    own = lambda t, i: within(t, windows[holder[i]])  # noqa: E731
+    other = lambda t, i: any(within(t, w) for s, w in windows.items() if s != holder[i])  # noqa: E731
+    fleet = lambda t, i: listing[0] <= t <= listing[1]  # noqa: E731
+    return {
+        "p99_threshold_ms": round(1000 * threshold, 2),
+        "slow": len(slow),
+        "health_bursts_per_service": [len(windows[s]) for s in services],
+        "health_burst_ms_median": round(
+            1000 * statistics.median(b - a - 0.015 for w in windows.values() for a, b in w), 2
+        ) if any(windows.values()) else None,
+        "slow_in_own_health_burst": share(slow, own),
+        "all_in_own_health_burst": share(every, own),
+        "slow_in_other_health_burst": share(slow, other),
+        "all_in_other_health_burst": share(every, other),
+        "slow_during_fleet_listing": share(slow, fleet),
+        "all_during_fleet_listing": share(every, fleet),
+        # The same latencies without those whose telemetry was sent while `fleet` ran.
+        "p99_ms_outside_fleet_listing": percentile_ms(
+            [latency for t, _, latency in trace if not listing[0] <= t <= listing[1]], 0.99
+        ),
+        "slots_100ms_holding_slow": len(slots),
+        # A slot whose slow latencies are on vehicles of both services: a stall of the
+        # emulator (or the whole machine), not of one service.
+        "slots_with_both_services": sum(1 for held in slots.values() if len(held) > 1),
+    }  # fmt: skip
+
+
 def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict[str, Any]:
     router = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     processes: list[subprocess.Popen[str]] = []
     session = None
+    scratch = tempfile.TemporaryDirectory()
+    trace_path = str(Path(scratch.name) / "latencies.jsonl")
     try:
         router_process = start_verb("router", "--listen", router)
         processes.append(router_process)
@@ -138,6 +250,7 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         subscribers = [
             session.declare_subscriber(f"{keys.ROOT}/*/{keys.TELEMETRY}", counts.on_telemetry),
             session.declare_subscriber(f"{keys.ROOT}/*/{keys.COMMAND_BALLAST}", counts.on_command),
+            session.declare_subscriber(f"{keys.ROOT}/*/{keys.HEALTH}", counts.on_health),
         ]
         time.sleep(1.0)  # the subscriptions reach the router and the services
         for system_id in range(1, vehicles + 1):
@@ -146,21 +259,29 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             "emulate", "--vehicles", str(vehicles), "--sysid", "1", "--speed", str(RATE),
             "--duration", str(seconds * RATE), "--scenario", "paper",
             *(["--phase-locked"] if phase_locked else []),
+            "--latency-trace", trace_path,
             *[arg for port in udp for arg in ("--fleet-connect", f"udpout:127.0.0.1:{port}")],
         )  # fmt: skip
         processes.append(emulator)
+        # From the first telemetry on (the emulator's start-up, imports included, may take
+        # seconds on a loaded machine: a timer started at its launch once listed the fleet
+        # before any vehicle had appeared).
+        wait_until(lambda: counts.total() > 0, emulator, 180)
         started = time.monotonic()
         load_average = os.getloadavg()[0]
         ours = {"router": router_process, "service_1": services[0], "service_2": services[1]}
         cpu_before = {name: cpu_seconds(p.pid) for name, p in ours.items()}
         pressure_before = cpu_pressure_us()
-        # Mid-run, once every vehicle has had time to appear: what `fleet` lists.
-        time.sleep(max(0.0, seconds * 0.6))
+        # Mid-run, once every vehicle has appeared: what `fleet` lists.
+        wait_until(lambda: counts.seen() >= vehicles, emulator, seconds)
+        time.sleep(max(0.0, seconds * 0.6 - (time.monotonic() - started)))
+        listing_started = time.perf_counter()
         fleet = subprocess.run(
             [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-connect", router,
              "--json", "--wait", "3"],
             capture_output=True, text=True, timeout=120,
         )  # fmt: skip
+        listing = (listing_started, time.perf_counter())
         listed = json.loads(fleet.stdout)["vehicles"] if fleet.returncode == 0 else []
         emulator_out, emulator_err = emulator.communicate(timeout=seconds * 4 + 120)
         wall = time.monotonic() - started
@@ -177,7 +298,11 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         if not emulated:
             raise RuntimeError(f"the emulator printed no summary:\n{emulator_err[-2000:]}")
         assembled = sum(s.get("counters", {}).get("samples", 0) for s in summaries)
+        with open(trace_path) as f:
+            trace = [tuple(json.loads(line)) for line in f]
+        holder = {i: connection_for(i - 1, vehicles, [0, 1]) for i in range(1, vehicles + 1)}
         with counts.lock:
+            tail = tail_attribution(trace, holder, list(counts.health), listing)  # type: ignore[arg-type]
             received = sum(counts.telemetry.values())
             seen = len(counts.telemetry)
             commands = sum(counts.commands.values())
@@ -195,9 +320,15 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             "vehicles_seen_by_subscriber": seen,
             "fleet_listed": len(listed),
             "fleet_coverage": round(len(listed) / vehicles, 3),
+            **(
+                {}
+                if fleet.returncode == 0
+                else {"fleet_failed": [fleet.returncode, fleet.stderr[-500:]]}
+            ),
             "commands_published": commands,
             "latency": emulated["latency"],
             "late_steps": emulated.get("late_steps"),
+            "tail": tail,
             "load_average_1min_at_start": round(load_average, 2),
             "cpu_pressure_some": None
             if pressure_before is None or pressure_after is None
@@ -220,6 +351,7 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             ),
         }
     finally:
+        scratch.cleanup()
         if session is not None:
             session.close()
         for process in reversed(processes):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import signal
 import socket
@@ -30,6 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -88,19 +90,126 @@ def one_run(
             if stalled and viewer is not None:
                 viewer.send_signal(signal.SIGSTOP)
         before = service.assembler.counters.samples
+        viewer_cpu = None if viewer is None else cpu_seconds(viewer.pid)
+        cpu0 = time.process_time()  # every thread of this process: ours, the SDK's, Zenoh's
         t0 = time.perf_counter()
         for data in datagrams:
             service.process_datagram(data)
+        pending_at_end = 0 if live is None else live.status()["pending"]
+        # The live view's thread works behind the path: the run ends when it has caught up.
+        while live is not None and live.status()["pending"]:
+            time.sleep(0.001)
         elapsed = time.perf_counter() - t0
+        cpu = time.process_time() - cpu0
+        if viewer is not None and viewer_cpu is not None:
+            viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
         samples = service.assembler.counters.samples - before
         status = live.status() if live is not None else None
+        if status is not None:
+            status["pending_when_the_path_ended"] = pending_at_end
         if viewer is not None:
             if stalled:
                 viewer.send_signal(signal.SIGCONT)
             viewer.terminate()
             viewer.communicate(timeout=10)
         wired.close()
-    return {"samples_per_s": samples / elapsed, "live": status}
+    return {
+        "samples_per_s": samples / elapsed,
+        "cpu_ms_per_sample": 1000 * cpu / samples,
+        "viewer_cpu_ms_per_sample": None if viewer_cpu is None else 1000 * viewer_cpu / samples,
+        "live": status,
+    }
+
+
+def interleaved(
+    warm: list[bytes], datagrams: list[bytes], chunk: int, per_step: int, mavlink: bool = True
+) -> dict[str, Any]:
+    """The service's CPU per sample without the live view and with it (a viewer connected),
+    two services in this process fed the same datagrams in alternate chunks of ``chunk``
+    samples (which of the two goes first alternates too): the machine's load changes from
+    one moment to the next, and here it hits both alike. A chunk with the live view ends
+    when its thread has caught up, so that its work is counted in its own chunk. CPU time of
+    this process (every thread), not wall time."""
+    config = ServiceConfig()
+    stack = []
+    live = LiveView(LiveAddress("127.0.0.1", free_tcp_port())).start()
+    viewer = subprocess.Popen(
+        [shutil.which("node") or "node", str(CLIENT), live.url, "1000000000", "600",
+         "telemetry", "umodel", "command/ballast"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    log_dir = tempfile.TemporaryDirectory()
+    try:
+        services = []
+        for name, with_live in (("off", None), ("on", live)):
+            session = open_session(ZenohOptions())
+            recorder = open_recorder(
+                config, LogOptions(directory=f"{log_dir.name}/{name}"), {"bench": name}
+            )
+            wired = wire(config, session=session, recorder=recorder, live=with_live)
+            stack.append(wired)
+            if with_live is not None and not mavlink:
+                wired.service.live_mavlink = None
+            for data in warm:
+                wired.service.process_datagram(data)
+            services.append(wired.service)
+        deadline = time.monotonic() + 30
+        while not live.watched():
+            if time.monotonic() > deadline:
+                raise RuntimeError("the viewer did not subscribe within 30 s")
+            time.sleep(0.05)
+        tune_for_service()
+        size = chunk * per_step  # datagrams
+        cpu: dict[str, list[float]] = {"off": [], "on": []}
+        samples: dict[str, list[int]] = {"off": [], "on": []}
+        for index, start in enumerate(range(0, len(datagrams), size)):
+            part = datagrams[start : start + size]
+            order = (("off", 0), ("on", 1)) if index % 2 == 0 else (("on", 1), ("off", 0))
+            for name, which in order:
+                service = services[which]
+                before = service.assembler.counters.samples
+                cpu0 = time.process_time()
+                for data in part:
+                    service.process_datagram(data)
+                while which == 1 and live.status()["pending"]:
+                    time.sleep(0.001)
+                cpu[name].append(time.process_time() - cpu0)
+                samples[name].append(service.assembler.counters.samples - before)
+        ratios = [
+            (off / max(n_off, 1)) / (on / max(n_on, 1))
+            for off, on, n_off, n_on in zip(
+                cpu["off"], cpu["on"], samples["off"], samples["on"], strict=True
+            )
+            if on > 0 and n_on > 0
+        ]
+        return {
+            "chunks": len(ratios),
+            "chunk_samples": chunk,
+            "cpu_ms_per_sample_without": round(1000 * sum(cpu["off"]) / sum(samples["off"]), 4),
+            "cpu_ms_per_sample_with_viewer": round(1000 * sum(cpu["on"]) / sum(samples["on"]), 4),
+            "cpu_bound_ratio_with_to_without": round(
+                (sum(cpu["off"]) / sum(samples["off"])) / (sum(cpu["on"]) / sum(samples["on"])), 3
+            ),
+            "median_ratio_per_chunk_pair": round(statistics.median(ratios), 3),
+            "quartiles_ratio_per_chunk_pair": [
+                round(q, 3) for q in statistics.quantiles(ratios, n=4)
+            ],
+            "live_view": live.status(),
+        }
+    finally:
+        viewer.terminate()
+        viewer.communicate(timeout=10)
+        for wired in stack:
+            wired.close()
+        live.close()
+        log_dir.cleanup()
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a live process (all its threads), s."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def main() -> int:
@@ -108,6 +217,14 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--without-mavlink", action="store_true", help="no MAVLink channels")
+    parser.add_argument(
+        "--interleaved",
+        type=int,
+        default=0,
+        metavar="CHUNK",
+        help="instead: CPU per sample without and with the live view, alternating every "
+        "CHUNK samples between two services in this process",
+    )
     args = parser.parse_args()
     if shutil.which("node") is None or not (CLIENT.parent / "node_modules").is_dir():
         print("needs node and `make foxglove-client`", file=sys.stderr)
@@ -115,28 +232,59 @@ def main() -> int:
     everything = telemetry_datagrams(WARM_UP + args.samples)
     split = len(everything) * WARM_UP // (WARM_UP + args.samples)
     warm, datagrams = everything[:split], everything[split:]
+    if args.interleaved:
+        per_step = len(everything) // (WARM_UP + args.samples)  # datagrams a sample
+        result = interleaved(warm, datagrams, args.interleaved, per_step, not args.without_mavlink)
+        print(json.dumps(result))
+        return 0
     off, on, stalled, live_status = [], [], [], []
     for _ in range(args.repeats):
-        off.append(one_run(warm, datagrams, False)["samples_per_s"])
+        off.append(one_run(warm, datagrams, False))
         mavlink = not args.without_mavlink
         result = one_run(warm, datagrams, True, mavlink=mavlink)
-        on.append(result["samples_per_s"])
+        on.append(result)
         live_status.append(result["live"])
         result = one_run(warm, datagrams, True, stalled=True, mavlink=mavlink)
-        stalled.append(result["samples_per_s"])
+        stalled.append(result)
         live_status.append(result["live"])
+
+    def rates(runs: list[dict[str, Any]]) -> list[float]:
+        return [run["samples_per_s"] for run in runs]
+
+    def cpu(runs: list[dict[str, Any]]) -> float:
+        return statistics.median(run["cpu_ms_per_sample"] for run in runs)
+
+    pairs = [b / a for a, b in zip(rates(off), rates(on), strict=True)]
     report = {
         "samples": args.samples,
         "repeats": args.repeats,
         "mavlink_channels": not args.without_mavlink,
-        "without_live_view_samples_per_s": [round(x) for x in off],
-        "with_viewer_samples_per_s": [round(x) for x in on],
-        "median_without": round(statistics.median(off)),
-        "median_with_viewer": round(statistics.median(on)),
-        "ratio_with_to_without": round(statistics.median(on) / statistics.median(off), 3),
-        "with_stalled_viewer_samples_per_s": [round(x) for x in stalled],
-        "median_with_stalled_viewer": round(statistics.median(stalled)),
-        "ratio_stalled_to_without": round(statistics.median(stalled) / statistics.median(off), 3),
+        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+        "without_live_view_samples_per_s": [round(x) for x in rates(off)],
+        "with_viewer_samples_per_s": [round(x) for x in rates(on)],
+        "median_without": round(statistics.median(rates(off))),
+        "median_with_viewer": round(statistics.median(rates(on))),
+        "ratio_with_to_without": round(
+            statistics.median(rates(on)) / statistics.median(rates(off)), 3
+        ),
+        # Each "with" against the "without" run just before it: load changes between pairs
+        # cancel out.
+        "ratio_per_pair": [round(x, 3) for x in pairs],
+        "median_ratio_per_pair": round(statistics.median(pairs), 3),
+        # The service's CPU per sample (all its threads, the live view's and the SDK's
+        # included): the throughput a core of its own gives, whatever the machine's load.
+        "cpu_ms_per_sample_without": round(cpu(off), 4),
+        "cpu_ms_per_sample_with_viewer": round(cpu(on), 4),
+        "cpu_bound_ratio_with_to_without": round(cpu(off) / cpu(on), 3),
+        "viewer_cpu_ms_per_sample": round(
+            statistics.median(run["viewer_cpu_ms_per_sample"] for run in on), 4
+        ),
+        "with_stalled_viewer_samples_per_s": [round(x) for x in rates(stalled)],
+        "median_with_stalled_viewer": round(statistics.median(rates(stalled))),
+        "ratio_stalled_to_without": round(
+            statistics.median(rates(stalled)) / statistics.median(rates(off)), 3
+        ),
+        "cpu_bound_ratio_stalled_to_without": round(cpu(off) / cpu(stalled), 3),
         "live_view": live_status,
     }
     print(json.dumps(report, indent=2))

@@ -8,8 +8,10 @@ process of ours competing for the cores): the per-stage budget behind
   (decode, assemble, identify, decide, command packed and sent on UDP, telemetry, estimates
   and command published on a Zenoh session) for a fleet of ``--vehicles`` served by one
   service, control on with a depth setpoint each, after the burn-in;
-* health: one ``tick()`` that publishes every vehicle's health at once (once a second) -
-  the samples that arrive meanwhile wait for it.
+* health: a ``tick()`` that publishes health (one vehicle's at a time, round robin, each
+  vehicle once a second; it used to be every vehicle's at once, which the samples arriving
+  meanwhile waited for). The service runs on the fleet's clock: a sample every
+  0.1 s / vehicles, ``tick()`` after every datagram as ``serve``'s loop calls it.
 
 Printed: p50 / p99 / max in ms per stage, and the CPU one service and the emulator need for
 ``--vehicles`` at ``--rate`` samples/s per vehicle.
@@ -104,17 +106,22 @@ def service_stages(frames: list[list[bytes]], vehicles: int, port: int) -> dict[
     tune_for_service()
     per_sample: list[float] = []
     health: list[float] = []
+    wall = [0.0]
+    service.clock = lambda: wall[0]  # the fleet's time: a sample every 0.1 s / vehicles
     for index, datagrams in enumerate(frames):
+        wall[0] = index * 0.1 / vehicles
         started = time.perf_counter()
         for datagram in datagrams:
             service.process_datagram(datagram)
+            service.tick()  # as serve's loop: after every datagram (health, companions)
         elapsed = time.perf_counter() - started
         if index >= BURN_IN * vehicles * 2:
             per_sample.append(elapsed)
-        if index % vehicles == vehicles - 1 and (index // vehicles) % 10 == 9:
-            service._next_health = 0.0  # as once a second at 10 samples/s
-            started = time.perf_counter()
-            service.tick()
+        published = service._health_turn
+        started = time.perf_counter()
+        wall[0] += 0.05 / vehicles  # between two vehicles' steps: health may be due
+        service.tick()
+        if service._health_turn != published:
             health.append(time.perf_counter() - started)
     commands = sum(v.commands_sent for v in service.vehicles.values())
     wired.close()

@@ -72,6 +72,11 @@ class ZenohBus:
             self.recorder.zenoh(key, json.loads(raw), "in")
 
     def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+        self.publish_encoded(key, payload_json.encode(payload), reliable)
+
+    def publish_encoded(self, key: str, data: bytes, reliable: bool = False) -> None:
+        """``publish`` of a payload already encoded (``payload_json.encode``): the live view's
+        bus encodes once for Zenoh, the log and the viewer."""
         publisher = self._publishers.get(key)
         if publisher is None:
             congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
@@ -79,7 +84,6 @@ class ZenohBus:
                 key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
             )
             self._publishers[key] = publisher
-        data = payload_json.encode(payload)
         publisher.put(data)
         if self.recorder is not None:
             self.recorder.zenoh_encoded(key, data, "out")

@@ -68,6 +68,12 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --vehicles: split the vehicles in contiguous blocks over these links "
         "(repeatable; default: all on --connect)",
     )
+    group.add_argument(
+        "--latency-trace",
+        metavar="FILE",
+        help="with --vehicles: write every telemetry -> command latency to FILE at the end, "
+        "one JSON line [sent (time.perf_counter s), system id, latency s] each (benchmarks)",
+    )
 
 
 class VehiclePort:
@@ -203,6 +209,8 @@ class FleetScheduler:
                 by_fd[fd].receive(clock)
         for link in self.links:  # what has arrived by the end, as Autopilot.run does
             link.receive(clock)
+
+
 def _merged(counts: list[dict[str, int]]) -> dict[str, int]:
     merged: dict[str, int] = {}
     for count in counts:
@@ -224,6 +232,7 @@ class TimedAutopilot(Autopilot):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.latencies: list[float] = []  # s
+        self.sent_times: list[float] = []  # perf_counter at each latency's telemetry
         self._sent_at: float | None = None
         self._arrived_at: float | None = None
 
@@ -250,6 +259,7 @@ class TimedAutopilot(Autopilot):
         if self.stats.commands_accepted > accepted and self._sent_at is not None:
             arrived = time.perf_counter() if self._arrived_at is None else self._arrived_at
             self.latencies.append(arrived - self._sent_at)
+            self.sent_times.append(self._sent_at)
             self._sent_at = None
 
 
@@ -354,5 +364,17 @@ def run_fleet(args: argparse.Namespace) -> int:
         "heartbeats": _merged([shared.heartbeats for shared in links.values()]),
         "per_vehicle": per_vehicle,
     }
+    if args.latency_trace:
+        write_latency_trace(args.latency_trace, autopilots)
     print(json.dumps({"emulator": summary}), flush=True)
     return 0
+
+
+def write_latency_trace(path: str, autopilots: list[TimedAutopilot]) -> None:
+    """Every latency with its telemetry's send time (CLOCK_MONOTONIC, comparable across the
+    processes of one machine) and vehicle, for a benchmark to find when the slow ones were."""
+    with open(path, "w") as f:
+        for autopilot in autopilots:
+            system_id = autopilot.config.system_id
+            for sent, latency in zip(autopilot.sent_times, autopilot.latencies, strict=True):
+                f.write(f"[{sent:.6f}, {system_id}, {latency:.6f}]\n")

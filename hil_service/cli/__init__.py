@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 from collections.abc import Sequence
 
 #: verb → (module with add_arguments/run, one-line help)
@@ -22,10 +23,15 @@ VERBS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """Every verb with its arguments; with ``only``, that verb's alone (the others listed
+    without theirs), so that one verb's run imports one verb's modules."""
     parser = argparse.ArgumentParser(prog="glider-hil", description=__doc__)
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
     for verb, (module_name, help_text) in VERBS.items():
+        if only is not None and verb != only:
+            verbs.add_parser(verb, help=help_text)
+            continue
         module = importlib.import_module(module_name)
         sub = verbs.add_parser(verb, help=help_text, description=module.__doc__)
         module.add_arguments(sub)
@@ -34,5 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    # Importing every verb's modules (matplotlib, python-control, scipy: 2 s of CPU) for each
+    # command cost a `fleet` or `router` started next to a running fleet that much CPU.
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    only = arguments[0] if arguments and arguments[0] in VERBS else None
+    args = build_parser(only).parse_args(arguments)
     return int(args.run(args) or 0)

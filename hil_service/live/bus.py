@@ -2,7 +2,9 @@
 
 It wraps the service's real bus (Zenoh, or nothing for replay without ``--publish``): the
 inner bus publishes as before, then the payload is handed to ``LiveView.offer`` (a deque
-append). Keys and payloads are the ones the MCAP log records on the same topics.
+append). Over Zenoh the payload is encoded once and the same bytes go to both (the live
+view's thread used to encode every watched payload a second time). Keys and payloads are
+the ones the MCAP log records on the same topics.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from hil_service.zenoh_bus import Bus
+from protocols import payload_json
 
 if TYPE_CHECKING:
     from hil_service.live.view import LiveView
@@ -21,10 +24,20 @@ class LiveBus:
     def __init__(self, inner: Bus, live: LiveView):
         self.inner = inner
         self.live = live
+        #: The inner bus's entry for a payload already encoded (ZenohBus), if it has one.
+        self._publish_encoded: Callable[[str, bytes, bool], None] | None = getattr(
+            inner, "publish_encoded", None
+        )
 
     def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        self.inner.publish(key, payload, reliable)
-        self.live.offer(key, payload, time.time_ns())
+        if self._publish_encoded is None:  # a bus that encodes nothing (replay, no --publish)
+            self.inner.publish(key, payload, reliable)
+            self.live.offer(key, payload, time.time_ns())
+            return
+        # Encoded once, for Zenoh (and the log) and the live view alike: the same bytes.
+        data = payload_json.encode(payload)
+        self._publish_encoded(key, data, reliable)
+        self.live.offer(key, data, time.time_ns())
 
     def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
         self.inner.declare_vehicle(system_id, state)

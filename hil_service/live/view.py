@@ -2,7 +2,10 @@
 
 The service's thread calls ``offer(topic, payload)`` and ``offer_mavlink(direction, message,
 frame)``: one bounded-deque append, or a counted drop when the deque is full; it never
-encodes, never touches a socket, never waits. One sender thread creates a Foxglove channel
+encodes, never touches a socket, never waits. While no client subscribes to a MAVLink
+channel, a MAVLink message of a type already advertised is not even queued (the sender
+thread says at each batch whether one does; a viewer that subscribes gets them from the
+next batch on). One sender thread creates a Foxglove channel
 per topic (same topic names, encodings and schemas as the MCAP log, docs/mcap.md), encodes
 the payload exactly as the bus publishes it (``payload_json.encode``), a MAVLink message as
 the recorder does (its frame on ``mavlink/raw/{direction}``, its JSON on
@@ -84,11 +87,17 @@ class LiveView:
         self.offered = 0
         self.dropped = 0  # offered while the pending deque was full
         self.sent = 0
+        self.unwatched = 0  # MAVLink messages not queued: no client watched a MAVLink channel
         self.encode_errors = 0  # MAVLink messages whose JSON could not be made (skipped)
         self._pending: deque[tuple[str, Any, int]] = deque()
         self._channels: dict[str, Any] = {}  # Channel, or BaseChannel for schemaless ones
         self._raw: dict[str, Any] = {}  # direction → its raw MAVLink channel
         self._decoded: dict[tuple[str, str], Any] = {}  # (direction, type) → JSON channel
+        #: (direction, type) of every MAVLink message whose channels exist (the sender's).
+        self._known: set[tuple[str, str]] = set()
+        #: Whether a client subscribes to a MAVLink channel (the sender's, at each batch);
+        #: while none does, the control path queues no MAVLink message it has seen before.
+        self._mavlink_watched = False
         self._context = foxglove.Context()
         self._server: Any = None
         self._inputs: list[Any] = []
@@ -142,6 +151,13 @@ class LiveView:
         refused (``rejected``, no message): streamed raw and, for a message, decoded. The
         frame defaults to the message's own bytes. Never blocks (as ``offer``)."""
         self.offered += 1  # as offer, inlined: this runs for every frame
+        if (
+            not self._mavlink_watched
+            and message is not None
+            and (direction, message.get_type()) in self._known
+        ):
+            self.unwatched += 1
+            return  # nobody watches a MAVLink channel, and this one is advertised already
         if len(self._pending) >= self.max_pending:
             self.dropped += 1
             return
@@ -170,6 +186,7 @@ class LiveView:
             "offered": self.offered,
             "sent": self.sent,
             "dropped": self.dropped,
+            "mavlink_unwatched": self.unwatched,
             "viewer_overflows": self._overflows.count,
             "pending": len(self._pending),
         }
@@ -235,6 +252,7 @@ class LiveView:
         if message is None:
             return
         decoded = self._json_channel(direction, message.get_type())
+        self._known.add((direction, message.get_type()))
         if decoded.has_sinks():
             try:
                 data = payload_json.encode(message_to_json(message))
@@ -262,6 +280,10 @@ class LiveView:
     def _drain(self) -> int:
         pending = self._pending
         count = 0
+        self._mavlink_watched = any(
+            channel.has_sinks() for channel in (*self._raw.values(), *self._decoded.values())
+        )
+        watched: dict[str, bool] = {}  # has_sinks per topic, once a batch
         while pending:
             topic, payload, t_ns = pending.popleft()
             count += 1
@@ -269,7 +291,10 @@ class LiveView:
                 self._log_mavlink(payload, t_ns or time.time_ns())
                 continue
             channel = self._channel(topic)  # created even unwatched: clients see it advertised
-            if not channel.has_sinks():
+            sinks = watched.get(topic)
+            if sinks is None:
+                sinks = watched[topic] = channel.has_sinks()
+            if not sinks:
                 continue
             data = payload if isinstance(payload, bytes) else payload_json.encode(payload)
             channel.log(data, log_time=t_ns or time.time_ns())
