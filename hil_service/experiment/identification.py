@@ -18,10 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.experiment.multistep import MultiStepScores, multistep_scores
+from hil_service.experiment.multistep import MultiStepScores, fit_percent, multistep_scores
 from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
 from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
 from hil_service.umodel.scoring import ErrorStats
+from plant_emulator.disturbances import NoDisturbance
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -218,3 +219,94 @@ def run_identification(settings: IdentificationSettings) -> IdentificationResult
             ),
         )
     return result
+
+
+@dataclass(frozen=True)
+class FitBound:
+    """The free-run fit no model driven by the input alone can beat in expectation.
+
+    On the validation segment [split, n): y = x(u) + d, x the emulator's own plant without
+    disturbance driven by the same commands, d the disturbance (independent of u). For any
+    time-invariant predictor f(u) of a stationary input independent of the clock,
+    E‖y − f(u)‖² ≥ ‖d − mean(d)‖² in expectation (docs/control.md, "The free-run fit's
+    ceiling"), so ``bound`` = fit of x(u) + mean(d) (E[d] estimated from the realisation) is
+    the ceiling; ``noise_free`` is the plant alone (mean(d) taken as 0). ``clock`` is the
+    fit of x(u) + E[d(t)], the disturbance's mean at each instant over ``clock_seeds``
+    disturbance seeds with the same input: the ceiling of a predictor that also knows the
+    time (the disturbance's deterministic current wave), which no U-model has.
+    """
+
+    scenario: str
+    channel: str
+    seed: int
+    split: int
+    noise_free: float | None
+    bound: float | None
+    clock: float | None
+    clock_seeds: int
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "scenario": self.scenario,
+            "channel": self.channel,
+            "seed": self.seed,
+            "fit_split": self.split,
+            "noise_free_fit": _round(self.noise_free),
+            "bound_fit": _round(self.bound),
+            "clock_fit": _round(self.clock),
+            "clock_seeds": self.clock_seeds,
+        }
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, 3)
+
+
+def plant_outputs(
+    settings: IdentificationSettings, seed: int | None = None, disturbed: bool = True
+) -> np.ndarray:
+    """The channel's output under the experiment's excitation (``settings.seed``), with the
+    disturbance of seed ``seed`` (default: the experiment's), or none."""
+    plant = GliderPlant(
+        PlantConfig(
+            scenario=settings.scenario,
+            seed=settings.seed if seed is None else seed,
+        )
+    )
+    if not disturbed:
+        plant.disturbances = {ch: NoDisturbance() for ch in CHANNELS}
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    ys = np.empty(settings.samples)
+    command = (0.0, 0.0)
+    for k in range(settings.samples):
+        ys[k] = plant.step(*command).output(settings.channel)
+        command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+    return ys
+
+
+def fit_bound(settings: IdentificationSettings, clock_seeds: int = 20) -> FitBound:
+    """The ceiling of the free-run fit on ``settings``' validation segment (``FitBound``).
+
+    The clock-aware mean averages ``clock_seeds`` disturbance seeds other than the
+    experiment's (seeds 10⁶ + i: independent of any experiment seed below 10⁶).
+    """
+    if clock_seeds < 1:
+        raise ValueError(f"clock_seeds must be at least 1, got {clock_seeds}")
+    split = settings.effective_fit_split
+    y = plant_outputs(settings)[split:]
+    x = plant_outputs(settings, disturbed=False)[split:]
+    d = y - x
+    d_clock = np.zeros_like(d)
+    for i in range(clock_seeds):
+        d_clock += plant_outputs(settings, seed=1_000_000 + i)[split:] - x
+    d_clock /= clock_seeds
+    return FitBound(
+        scenario=settings.scenario,
+        channel=settings.channel,
+        seed=settings.seed,
+        split=split,
+        noise_free=fit_percent(y, x),
+        bound=fit_percent(y, x + float(np.mean(d))),
+        clock=fit_percent(y, x + d_clock),
+        clock_seeds=clock_seeds,
+    )
