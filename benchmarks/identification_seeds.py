@@ -98,7 +98,10 @@ def summarise(rows: list[dict[str, Any]]) -> str:
         m = median(fits)
         target = FIT_TARGET[scenario]
         verdict = "met" if m is not None and m >= target else "MISSED"
-        line = f"{scenario:10s} {channel:7s} median fit {fmt(m, '.1f')} % >= {target:.0f} %: {verdict}"
+        line = (
+            f"{scenario:10s} {channel:7s} median fit {fmt(m, '.1f')} % >= {target:.0f} %: "
+            f"{verdict}"
+        )
         if scenario == "nonlinear":
             above = sum(
                 1
