@@ -73,7 +73,8 @@ def summarise(rows: list[dict[str, Any]]) -> str:
     first = rows[0]
     lines = [
         f"identification, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}), {first['samples']} "
-        f"samples, models frozen at {first['fit_split']}; medians over seeds",
+        f"samples, models frozen at {first['fit_split']}; medians over seeds (k: the "
+        "median horizon)",
         f"{'scenario':10s} {'channel':7s} {'model':12s} {'fit %':>7s} {'k':>4s} "
         f"{'k-step NMSE':>12s} {'skill':>7s} {'NMSE':>9s}",
     ]
@@ -86,7 +87,7 @@ def summarise(rows: list[dict[str, Any]]) -> str:
             lines.append(
                 f"{scenario:10s} {channel:7s} {name:12s} "
                 f"{fmt(median([s['fit'] for s in scores]), '.1f'):>7s} "
-                f"{group[0]['horizon']:>4d} "
+                f"{round(statistics.median(r['horizon'] for r in group)):>4d} "
                 f"{fmt(median([s['k_step_nmse'] for s in scores]), '.4g'):>12s} "
                 f"{fmt(median([s['skill'] for s in scores]), '.3f'):>7s} "
                 f"{fmt(median([s['nmse'] for s in scores]), '.5f'):>9s}"

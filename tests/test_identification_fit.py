@@ -11,10 +11,13 @@ import pytest
 
 from hil_service.experiment.identification import (
     IdentificationSettings,
+    derived_horizon,
     fit_bound,
     plant_outputs,
+    run_identification,
 )
 from hil_service.experiment.multistep import fit_percent, nmse
+from hil_service.umodel import build_model
 from hil_service.umodel.scoring import (
     MultiStepStats,
     fit_from_nmse,
@@ -93,3 +96,21 @@ def test_the_disturbance_is_additive_and_independent_of_the_input():
     # Same disturbance seed, another input: the same disturbance sequence.
     np.testing.assert_allclose(y - x, other_input - other_x, rtol=0, atol=1e-12)
     assert np.std(y - x) > 0.0
+
+
+def test_the_k_step_horizon_is_the_one_the_controller_derives():
+    settings = IdentificationSettings("paper", "pitch", samples=800, seed=0)
+    result = run_identification(settings)
+    assert result.horizon_source == "derived"
+    # The stabilised pitch loop settles in 5–15 samples; the cap here is (800 − 400) // 4.
+    assert 3 <= result.horizon <= 30
+    assert result.as_json()["horizon"] == result.horizon
+    assert all(t.multistep.horizon == result.horizon for t in result.models.values())
+    given = run_identification(IdentificationSettings("paper", "pitch", samples=800, horizon=7))
+    assert (given.horizon, given.horizon_source) == (7, "given")
+
+
+def test_a_model_without_an_input_map_has_no_derived_horizon():
+    assert derived_horizon(build_model("persistence")) == 0
+    assert derived_horizon(build_model("rls-arx")) == 0
+    assert derived_horizon(build_model("dynamic", seed=0)) == 0  # nothing identified yet
