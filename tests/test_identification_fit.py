@@ -16,7 +16,7 @@ from hil_service.experiment.identification import (
     plant_outputs,
     run_identification,
 )
-from hil_service.experiment.multistep import fit_percent, nmse
+from hil_service.experiment.multistep import MultiStepScores, fit_percent, nmse
 from hil_service.umodel import build_model
 from hil_service.umodel.scoring import (
     MultiStepStats,
@@ -114,3 +114,9 @@ def test_a_model_without_an_input_map_has_no_derived_horizon():
     assert derived_horizon(build_model("persistence")) == 0
     assert derived_horizon(build_model("rls-arx")) == 0
     assert derived_horizon(build_model("dynamic", seed=0)) == 0  # nothing identified yet
+
+
+def test_a_tiny_k_step_nmse_keeps_its_significant_digits():
+    scores = MultiStepScores(fit=99.9, k_step_nmse=3.21e-9, horizon=5, split=10, windows=4)
+    assert scores.as_json()["k_step_nmse"] == 3.21e-9
+    assert MultiStepScores(None, math.nan, 5, 10, 0).as_json()["k_step_nmse"] is None
