@@ -278,7 +278,8 @@ def test_identification_json_has_the_multistep_fields(capsys):
     args = ["experiment", "--channel", "pitch", "--samples", "600", "--json"]
     assert main(args) == 0
     data = json.loads(capsys.readouterr().out)
-    assert (data["fit_split"], data["horizon"]) == (300, 3)
+    assert data["fit_split"] == 300
+    assert data["horizon_source"] == "derived" and 1 <= data["horizon"] <= 75
     for name, scores in data["models"].items():
         assert {"nmse", "skill", "fit", "k_step_nmse", "horizon"} <= set(scores), name
         assert scores["fit"] is None or math.isfinite(scores["fit"])

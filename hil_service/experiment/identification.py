@@ -18,10 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.experiment.multistep import MultiStepScores, multistep_scores
+from hil_service.experiment.multistep import (
+    MultiStepScores,
+    fit_percent,
+    model_inputs,
+    multistep_scores,
+    train,
+)
 from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
 from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
+from hil_service.umodel.predictive import PredictiveInverse
 from hil_service.umodel.scoring import ErrorStats
+from plant_emulator.disturbances import NoDisturbance
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -62,18 +70,37 @@ class IdentificationSettings:
         return self.samples // 2 if self.fit_split is None else self.fit_split
 
     @property
+    def horizon_cap(self) -> int:
+        """The longest derived horizon: the validation segment holds several windows."""
+        return max(1, (self.samples - self.effective_fit_split) // 4)
+
+    @property
     def effective_horizon(self) -> int:
-        """The k-step horizon: given, or the controller's horizon on this channel (capped
-        so that the validation segment holds several windows)."""
+        """The k-step horizon before any model is identified: given, or the fallback of
+        ``control_horizon`` (capped). ``run_identification`` derives it from the
+        identified model instead when it is not given (``IdentificationResult.horizon``)."""
         if self.horizon is not None:
             return self.horizon
-        return max(
-            1, min(control_horizon(self.channel), (self.samples - self.effective_fit_split) // 4)
-        )
+        return max(1, min(control_horizon(self.channel), self.horizon_cap))
 
 
-#: Used when ``ControlSettings`` has no fixed horizon for a channel.
+#: Used when ``ControlSettings`` has no fixed horizon for a channel and no identified model
+#: gives one (the fixed horizons of the controller before the predictive inverse).
 FALLBACK_HORIZON = {"depth": 150, "pitch": 3}
+
+
+def derived_horizon(model: OneStepModel, control: ControlSettings | None = None) -> int:
+    """The prediction horizon the service's predictive inverse derives from ``model``'s
+    identified dynamics (the settling time of its step response); 0 when the model has
+    no usable input map."""
+    dynamics = getattr(model, "dynamics", None)
+    if dynamics is None:  # persistence, ARX: no U-model map for the controller to read
+        return 0
+    settings = control or ControlSettings()
+    inverse = PredictiveInverse(
+        -settings.u_limit, settings.u_limit, settings.rate_limit, settings.predictive()
+    )
+    return inverse.horizon_for(dynamics())
 
 
 def control_horizon(channel: str) -> int:
@@ -124,6 +151,10 @@ class IdentificationResult:
     y: np.ndarray
     u: np.ndarray  # the input applied at each sample (u(t)); models see u(t−1)
     models: dict[str, ModelTrace] = field(default_factory=dict)
+    #: k of the k-step NMSE: given, or the controller's horizon derived from the `dynamic`
+    #: model frozen at the split ("derived"), or the fallback when it gives none.
+    horizon: int = 0
+    horizon_source: str = "given"
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -133,7 +164,8 @@ class IdentificationResult:
             "seed": self.settings.seed,
             "burn_in": self.settings.effective_burn_in,
             "fit_split": self.settings.effective_fit_split,
-            "horizon": self.settings.effective_horizon,
+            "horizon": self.horizon,
+            "horizon_source": self.horizon_source,
             "models": {name: trace.scores() for name, trace in self.models.items()},
         }
 
@@ -193,7 +225,10 @@ def run_identification(settings: IdentificationSettings) -> IdentificationResult
         ys[k], us[k] = y, u_now
         u_prev = u_now
         command = (excitation["depth"].value(k), excitation["pitch"].value(k))
-    result = IdentificationResult(settings=settings, y=ys, u=us)
+    horizon, source = _horizon(settings, models["dynamic"].config(), us, ys)
+    result = IdentificationResult(
+        settings=settings, y=ys, u=us, horizon=horizon, horizon_source=source
+    )
     for name, model in models.items():
         width = max(len(a) for a in alphas[name])
         alpha = np.full((n, width), np.nan)
@@ -214,7 +249,112 @@ def run_identification(settings: IdentificationSettings) -> IdentificationResult
                 us,
                 ys,
                 settings.effective_fit_split,
-                settings.effective_horizon,
+                horizon,
             ),
         )
     return result
+
+
+def _horizon(
+    settings: IdentificationSettings, dynamic: dict[str, Any], u: np.ndarray, y: np.ndarray
+) -> tuple[int, str]:
+    """(k, how it was chosen): given; or derived, as the service's controller would, from
+    the `dynamic` model as the identifier had it at the split, capped; or the fallback."""
+    if settings.horizon is not None:
+        return settings.horizon, "given"
+    frozen = train(_factory(dynamic), model_inputs(u), y, settings.effective_fit_split)
+    derived = derived_horizon(frozen)
+    if derived < 1:
+        return settings.effective_horizon, "fallback"
+    return max(1, min(derived, settings.horizon_cap)), "derived"
+
+
+@dataclass(frozen=True)
+class FitBound:
+    """The free-run fit no model driven by the input alone can beat in expectation.
+
+    On the validation segment [split, n): y = x(u) + d, x the emulator's own plant without
+    disturbance driven by the same commands, d the disturbance (independent of u). For any
+    time-invariant predictor f(u) of a stationary input independent of the clock,
+    E‖y − f(u)‖² ≥ ‖d − mean(d)‖² in expectation (docs/control.md, "The free-run fit's
+    ceiling"), so ``bound`` = fit of x(u) + mean(d) (E[d] estimated from the realisation) is
+    the ceiling; ``noise_free`` is the plant alone (mean(d) taken as 0). ``clock`` is the
+    fit of x(u) + E[d(t)], the disturbance's mean at each instant over ``clock_seeds``
+    disturbance seeds with the same input: the ceiling of a predictor that also knows the
+    time (the disturbance's deterministic current wave), which no U-model has.
+    """
+
+    scenario: str
+    channel: str
+    seed: int
+    split: int
+    noise_free: float | None
+    bound: float | None
+    clock: float | None
+    clock_seeds: int
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "scenario": self.scenario,
+            "channel": self.channel,
+            "seed": self.seed,
+            "fit_split": self.split,
+            "noise_free_fit": _round(self.noise_free),
+            "bound_fit": _round(self.bound),
+            "clock_fit": _round(self.clock),
+            "clock_seeds": self.clock_seeds,
+        }
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, 3)
+
+
+def plant_outputs(
+    settings: IdentificationSettings, seed: int | None = None, disturbed: bool = True
+) -> np.ndarray:
+    """The channel's output under the experiment's excitation (``settings.seed``), with the
+    disturbance of seed ``seed`` (default: the experiment's), or none."""
+    plant = GliderPlant(
+        PlantConfig(
+            scenario=settings.scenario,
+            seed=settings.seed if seed is None else seed,
+        )
+    )
+    if not disturbed:
+        plant.disturbances = {ch: NoDisturbance() for ch in CHANNELS}
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    ys = np.empty(settings.samples)
+    command = (0.0, 0.0)
+    for k in range(settings.samples):
+        ys[k] = plant.step(*command).output(settings.channel)
+        command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+    return ys
+
+
+def fit_bound(settings: IdentificationSettings, clock_seeds: int = 20) -> FitBound:
+    """The ceiling of the free-run fit on ``settings``' validation segment (``FitBound``).
+
+    The clock-aware mean averages ``clock_seeds`` disturbance seeds other than the
+    experiment's (seeds 10⁶ + i: independent of any experiment seed below 10⁶).
+    """
+    if clock_seeds < 1:
+        raise ValueError(f"clock_seeds must be at least 1, got {clock_seeds}")
+    split = settings.effective_fit_split
+    y = plant_outputs(settings)[split:]
+    x = plant_outputs(settings, disturbed=False)[split:]
+    d = y - x
+    d_clock = np.zeros_like(d)
+    for i in range(clock_seeds):
+        d_clock += plant_outputs(settings, seed=1_000_000 + i)[split:] - x
+    d_clock /= clock_seeds
+    return FitBound(
+        scenario=settings.scenario,
+        channel=settings.channel,
+        seed=settings.seed,
+        split=split,
+        noise_free=fit_percent(y, x),
+        bound=fit_percent(y, x + float(np.mean(d))),
+        clock=fit_percent(y, x + d_clock),
+        clock_seeds=clock_seeds,
+    )

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from hil_service.umodel import OneStepModel
+from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
 
 ModelFactory = Callable[[], OneStepModel]
 
@@ -50,31 +51,21 @@ ModelFactory = Callable[[], OneStepModel]
 def fit_percent(
     y: Sequence[float] | np.ndarray, y_sim: Sequence[float] | np.ndarray
 ) -> float | None:
-    """100·(1 − ‖y − ŷ‖ / ‖y − mean(y)‖); None for a constant y, an empty or non-finite one."""
-    y_arr = np.asarray(y, dtype=float)
-    sim = np.asarray(y_sim, dtype=float)
-    if y_arr.shape != sim.shape:
-        raise ValueError(f"y and y_sim differ in shape: {y_arr.shape} and {sim.shape}")
-    if y_arr.size < 2 or not (np.all(np.isfinite(y_arr)) and np.all(np.isfinite(sim))):
-        return None
-    spread = float(np.linalg.norm(y_arr - np.mean(y_arr)))
-    if spread <= 0.0:
-        return None
-    return 100.0 * (1.0 - float(np.linalg.norm(y_arr - sim)) / spread)
+    """100·(1 − ‖y − ŷ‖ / ‖y − mean(y)‖); None for a constant y, an empty or non-finite one
+    (``scoring.normalised_square_error`` and ``fit_from_nmse``: the one definition)."""
+    return fit_from_nmse(nmse(y, y_sim))
 
 
 def nmse(y: Sequence[float] | np.ndarray, y_hat: Sequence[float] | np.ndarray) -> float | None:
-    """mean((y − ŷ)²) / var(y); None for fewer than two samples, a constant or non-finite y."""
+    """mean((y − ŷ)²) / var(y); None for fewer than two samples, a constant or non-finite y
+    (``scoring.normalised_square_error``)."""
     y_arr = np.asarray(y, dtype=float)
     hat = np.asarray(y_hat, dtype=float)
     if y_arr.shape != hat.shape:
         raise ValueError(f"y and y_hat differ in shape: {y_arr.shape} and {hat.shape}")
-    if y_arr.size < 2 or not (np.all(np.isfinite(y_arr)) and np.all(np.isfinite(hat))):
-        return None
-    variance = float(np.var(y_arr))
-    if variance <= 0.0:
-        return None
-    return float(np.mean((y_arr - hat) ** 2)) / variance
+    with np.errstate(invalid="ignore", over="ignore"):
+        error = y_arr - hat
+    return normalised_square_error(y_arr.ravel().tolist(), error.ravel().tolist())
 
 
 def model_inputs(u_applied: np.ndarray) -> np.ndarray:
@@ -162,11 +153,18 @@ class MultiStepScores:
     def as_json(self) -> dict[str, Any]:
         return {
             "fit": _round(self.fit, 3),
-            "k_step_nmse": _round(self.k_step_nmse, 6),
+            "k_step_nmse": _significant(self.k_step_nmse),
             "horizon": self.horizon,
             "fit_split": self.split,
             "k_step_windows": self.windows,
         }
+
+
+def _significant(value: float | None, digits: int = 6) -> float | None:
+    """``digits`` significant digits: an NMSE of 3e-8 must not print as 0."""
+    if value is None or not math.isfinite(value):
+        return None
+    return float(f"{value:.{digits}g}")
 
 
 def _round(value: float | None, digits: int) -> float | None:

@@ -140,7 +140,9 @@ def multistep_from_log(
     try:
         settings = PipelineSettings.from_json(stored)
         model_config = VehiclePipeline(settings).configs()[channel]
-        horizon = control_horizon(channel)  # the predictive inverse derives its own at run time
+        # The horizon the service's controller derived at run time (its last health), else
+        # the default of the experiment.
+        horizon = recorded_horizon(vehicle, channel) or control_horizon(channel)
     except (TypeError, ValueError, KeyError, AttributeError):
         return None
     outputs = dict(zip(vehicle.channels[channel].t, vehicle.channels[channel].y, strict=True))
@@ -157,6 +159,54 @@ def multistep_from_log(
     u = np.array([r[2] for r in rows[start:stop]])
     k = max(1, min(int(horizon), n // 8))
     return multistep_scores(lambda: from_config(model_config), u, y, n // 2, k)
+
+
+def _health_identifier(vehicle: VehicleSeries, channel: str) -> dict[str, Any]:
+    """The channel's ``identifier`` entry of the last recorded health, or {}."""
+    identifier = (vehicle.last_health or {}).get("identifier")
+    entry = identifier.get(channel) if isinstance(identifier, dict) else None
+    return entry if isinstance(entry, dict) else {}
+
+
+def recorded_horizon(vehicle: VehicleSeries, channel: str) -> int | None:
+    """The multi-step horizon the service last reported for ``channel`` (health's
+    ``multistep_horizon``), or None in a log without it."""
+    horizon = _health_identifier(vehicle, channel).get("multistep_horizon")
+    if isinstance(horizon, int) and not isinstance(horizon, bool) and horizon >= 1:
+        return horizon
+    return None
+
+
+def _multistep_health_lines(vehicle: VehicleSeries) -> list[str]:
+    """The service's own rolling multi-step accuracy (last health), per channel."""
+    lines = []
+    for channel in CHANNELS:
+        entry = _health_identifier(vehicle, channel)
+        if "multistep_fit" not in entry and "multistep_nmse" not in entry:
+            continue
+        fit, nmse = _number(entry.get("multistep_fit")), _number(entry.get("multistep_nmse"))
+        horizon = recorded_horizon(vehicle, channel)
+        lines.append(
+            f"- {channel}: free-run fit {_fmt(fit, '.1f')} %, NMSE {_fmt(nmse, '.4g')}, free runs "
+            f"restarted every {_fmt(horizon, 'd')} samples (one-step skill "
+            f"{_fmt(_number(entry.get('skill')), '.3f')})"
+        )
+    if not lines:
+        return []
+    return [
+        "",
+        "### Multi-step accuracy, as the service measured it",
+        "",
+        "Last health: a frozen copy of the model run free on the applied inputs, restarted "
+        "from the measured outputs every control horizon, over the last window "
+        "(`scoring.MultiStepStats`, the same formulas as the table's).",
+        "",
+        *lines,
+    ]
+
+
+def _number(value: Any) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
 def summarise(
@@ -331,7 +381,8 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
         "MSE(persistence); convergence = first sample after which the a-priori error stays "
         f"within {CONVERGENCE_BAND:.0%} of the output's range",
         "- fit = free-run (simulation) fit, 100·(1 − ‖y − ŷ_sim‖ / ‖y − mean y‖) %, and k-step "
-        "NMSE at the control horizon k: the model re-identified from the log on the first half "
+        "NMSE at the control horizon k (the service's last reported horizon, at most an "
+        "eighth of the stretch): the model re-identified from the log on the first half "
         "of its longest gap-free stretch, frozen, scored on the second half",
     ]
     if series.skipped:
@@ -354,6 +405,7 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
         )
     for system_id, vehicle in sorted(series.vehicles.items()):
         lines += ["", f"## Glider {system_id}", "", "### Link", "", *_link_lines(vehicle)]
+        lines += _multistep_health_lines(vehicle)
         lines += _segment_lines(vehicle)
         for channel in CHANNELS:
             own = [f for f in figures if f.name.startswith(f"glider{system_id}_{channel}_")]

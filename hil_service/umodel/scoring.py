@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 
@@ -85,11 +86,48 @@ def _round(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(f"{value:.6g}")
 
 
+def normalised_square_error(y: Sequence[float], error: Sequence[float]) -> float | None:
+    """Σe² / Σ(y − ȳ)²: the NMSE of a prediction whose error is ``error`` = y − ŷ.
+
+    The one definition of the multi-step figures: the k-step NMSE, and through
+    ``fit_from_nmse`` the free-run fit, in ``experiment``, ``report`` (through
+    ``hil_service.experiment.multistep``) and ``health`` (``MultiStepStats``). None for
+    fewer than two samples, a non-finite y or error, or a flat output (no scale to judge
+    the prediction by). Fixed-order sums: the same figures on every run.
+    """
+    n = len(y)
+    if len(error) != n:
+        raise ValueError(f"y and error differ in length: {n} and {len(error)}")
+    if n < 2:
+        return None
+    mean = 0.0
+    for value in y:
+        mean += value
+    mean /= n
+    spread = 0.0
+    squares = 0.0
+    for i in range(n):
+        deviation = y[i] - mean
+        e = error[i]
+        spread += deviation * deviation
+        squares += e * e
+    if not (math.isfinite(spread) and math.isfinite(squares)):
+        return None
+    if not spread > 1e-12 * n * (1.0 + mean * mean):
+        return None  # a flat output: no scale to judge the fit by
+    return squares / spread
+
+
+def fit_from_nmse(nmse: float | None) -> float | None:
+    """Free-run fit % = 100·(1 − ‖y − ŷ_sim‖ / ‖y − ȳ‖) = 100·(1 − √NMSE)."""
+    return None if nmse is None else 100.0 * (1.0 - math.sqrt(nmse))
+
+
 class MultiStepStats:
     """Rolling accuracy of the model's free run: the pipeline restarts a frozen copy of the
     model from the measured outputs every ``horizon`` samples and feeds it the applied
     inputs, so each ŷ_sim is a 1…horizon-step-ahead prediction. Over the last ``window``
-    samples: NMSE = Σ(y − ŷ_sim)² / Σ(y − ȳ)² and fit % = 100·(1 − √NMSE).
+    samples: NMSE and fit % of ``normalised_square_error`` and ``fit_from_nmse``.
 
     The sums are taken when asked (health is published at 1 Hz), not kept running: a
     free run that blew up must not leave its rounding in the figures after it has left
@@ -114,25 +152,12 @@ class MultiStepStats:
         self._recent.append((y, e))
 
     def nmse(self) -> float | None:
-        n = len(self._recent)
-        if n < 2:
-            return None
-        mean = 0.0
-        for y, _ in self._recent:
-            mean += y
-        mean /= n
-        spread = 0.0
-        squares = 0.0
-        for y, e in self._recent:
-            spread += (y - mean) * (y - mean)
-            squares += e * e
-        if not spread > 1e-12 * n * (1.0 + mean * mean):
-            return None  # a flat output: no scale to judge the fit by
-        return squares / spread
+        return normalised_square_error(
+            [pair[0] for pair in self._recent], [pair[1] for pair in self._recent]
+        )
 
     def fit(self) -> float | None:
-        nmse = self.nmse()
-        return None if nmse is None else 100.0 * (1.0 - math.sqrt(nmse))
+        return fit_from_nmse(self.nmse())
 
     def summary(self, horizon: int) -> dict[str, float | int | None]:
         return {
