@@ -36,8 +36,10 @@ from plant_emulator.random_plants import (
     CUBIC_RANGE,
     DC_GAIN_RANGE,
     DEAD_ZONE_RANGE,
+    INPUT_LIMIT,
     NMP_ZERO_RANGE,
     PERIODS,
+    PITCH_FULL_SCALE,
     POLE_RANGE,
     RandomVehicle,
     RandomVehicleConfig,
@@ -226,7 +228,7 @@ def test_random_families_are_seeded_and_within_the_stated_ranges():
         model = spec.channel_model("depth")
         assert model.spectral_radius() < 1.0
         assert model.dc_gain() == pytest.approx(spec.dc_gain, rel=1e-9)
-        assert DC_GAIN_RANGE[0] <= spec.dc_gain <= DC_GAIN_RANGE[1]
+        assert DC_GAIN_RANGE[0] <= spec.drawn_gain <= DC_GAIN_RANGE[1]
         assert spec.period in PERIODS
         if spec.zero is not None:
             assert NMP_ZERO_RANGE[0] <= spec.zero <= NMP_ZERO_RANGE[1]
@@ -241,6 +243,33 @@ def test_random_families_are_seeded_and_within_the_stated_ranges():
     assert len({s.period for s in specs}) > 1
     for depth, pitch in family:
         assert depth.period == pitch.period
+        assert depth.unit == 1.0 and depth.dc_gain == depth.drawn_gain  # m per unit input
+        assert pitch.unit < 0.1  # rad per unit of drawn gain: a scaled actuator
+
+
+def test_random_pitch_plants_pitch_as_a_vehicle_could():
+    """The strongest pitch plant holds PITCH_FULL_SCALE at full actuator, the others less, and
+    bang-bang inputs (rate-limited square waves, resonances included) stay far inside the
+    service's plausible ±π: the family's draws other than the pitch gain are unchanged."""
+    steady, peaks = [], []
+    for seed in range(40):
+        depth, pitch = draw_family(seed, 1)[0]
+        pump = pitch.pump()
+        full = pump(INPUT_LIMIT) if pump else INPUT_LIMIT
+        steady.append(pitch.dc_gain * full)
+        assert steady[-1] == pytest.approx(
+            PITCH_FULL_SCALE * pitch.drawn_gain / DC_GAIN_RANGE[1], rel=1e-12
+        )
+        for half in (5, 40, 300):
+            vehicle = RandomVehicle(RandomVehicleConfig(depth=depth, pitch=pitch))
+            outputs = [
+                vehicle.step(0.0, INPUT_LIMIT if (k // half) % 2 == 0 else -INPUT_LIMIT).pitch
+                for k in range(900)
+            ]
+            peaks.append(max(abs(y) for y in outputs))
+    assert max(steady) <= PITCH_FULL_SCALE
+    assert max(steady) / min(steady) > 10  # the family's gain spread is kept
+    assert max(peaks) < math.pi / 2, max(peaks)
 
 
 def test_a_random_vehicle_steps_like_the_glider_and_stays_bounded():
