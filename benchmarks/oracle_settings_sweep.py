@@ -53,7 +53,17 @@ def main() -> int:
     parser.add_argument("--scenarios", default="paper")
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--samples", type=int, default=20000)
+    parser.add_argument(
+        "--ipm",
+        action="store_true",
+        help="HiGHS's interior point without crossover: the centre of the optimal face, not a "
+        "vertex (slow; a solve that ends without an optimum is a failure, input held)",
+    )
     args = parser.parse_args()
+    if args.ipm:
+        from hil_service.experiment import oracle
+
+        oracle.LP_OPTIONS.update({"solver": "ipm", "run_crossover": "off"})
     for scenario in args.scenarios.split(","):
         for name in args.variants.split(","):
             settings = ClosedLoopSettings(scenario, samples=args.samples, seed=0, oracle=True)
