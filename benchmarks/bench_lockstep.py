@@ -13,6 +13,11 @@
 
        .venv/bin/python benchmarks/bench_lockstep.py --campaign 50 --jobs 2
 
+   With the oracle, as ``campaign`` runs by default (``--no-oracle``: without).
+
+3. ``--oracle-cpu N``: the known-model oracle's CPU s per mission alone, seeds 0..N-1 of the
+   scenarios (``oracle_trace``, as the campaign runs it).
+
 Prints one JSON object.
 """
 
@@ -32,7 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.campaign.hil_run import run_hil  # noqa: E402
-from hil_service.campaign.mission import Mission  # noqa: E402
+from hil_service.campaign.mission import Mission, oracle_trace  # noqa: E402
 from hil_service.experiment.closed_loop import inverse_run  # noqa: E402
 
 
@@ -71,19 +76,44 @@ def lockstep_rate(mission: Mission, log: bool) -> dict[str, object]:
     }
 
 
-def campaign_wall(seeds: int, scenarios: str, steps: int, jobs: int) -> dict[str, object]:
+def campaign_wall(
+    seeds: int, scenarios: str, steps: int, jobs: int, oracle: bool
+) -> dict[str, object]:
+    load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as directory:
         started = time.monotonic()
         done = subprocess.run(
             [sys.executable, "-m", "hil_service.cli", "campaign", "--scenarios", scenarios,
              "--seeds", f"0-{seeds - 1}", "--steps", str(steps), "--jobs", str(jobs),
-             "-o", str(Path(directory) / "c")],
+             "--oracle" if oracle else "--no-oracle", "-o", str(Path(directory) / "c")],
             capture_output=True, text=True, check=True,
         )  # fmt: skip
         wall = time.monotonic() - started
     result = json.loads(done.stdout.strip().splitlines()[-1])["campaign"]
+    # The 1-minute load average before and after (after: this run's own share included).
+    load = [round(load_before[0], 2), round(os.getloadavg()[0], 2)]
     return {"missions": result["runs"], "ok": result["ok"], "wall_s": round(wall, 1),
-            "jobs": jobs, "steps": steps, "scenarios": scenarios}  # fmt: skip
+            "jobs": jobs, "steps": steps, "scenarios": scenarios, "oracle": oracle,
+            "load_average_1min": load}  # fmt: skip
+
+
+def oracle_cpu(seeds: int, scenarios: str, steps: int) -> dict[str, object]:
+    """CPU s of the known-model oracle per mission (``oracle_trace``, as a campaign runs it)."""
+    per: dict[str, list[float]] = {}
+    for scenario in scenarios.split(","):
+        for seed in range(seeds):
+            mission = Mission(scenario, seed, steps)
+            started = time.process_time()
+            oracle_trace(mission)
+            per.setdefault(scenario, []).append(time.process_time() - started)
+    return {
+        scenario: {
+            "missions": len(values),
+            "mean_cpu_s": round(sum(values) / len(values), 3),
+            "max_cpu_s": round(max(values), 3),
+        }
+        for scenario, values in per.items()
+    }
 
 
 def main() -> int:
@@ -94,10 +124,17 @@ def main() -> int:
     parser.add_argument("--campaign", type=int, default=0, metavar="SEEDS")
     parser.add_argument("--scenarios", default="disturbed,nonlinear")
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--oracle", action=argparse.BooleanOptionalAction, default=True,
+                        help="--campaign: with the known-model oracle (default, as campaign)")
+    parser.add_argument("--oracle-cpu", type=int, default=0, metavar="SEEDS",
+                        help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1")  # fmt: skip
     args = parser.parse_args()
     if args.campaign:
         print(json.dumps({"campaign": campaign_wall(args.campaign, args.scenarios, args.steps,
-                                                    args.jobs)}))  # fmt: skip
+                                                    args.jobs, args.oracle)}))  # fmt: skip
+        return 0
+    if args.oracle_cpu:
+        print(json.dumps({"oracle_cpu": oracle_cpu(args.oracle_cpu, args.scenarios, args.steps)}))
         return 0
     mission = Mission(args.scenario, 0, args.steps, args.steps // 3, max(2, args.steps // 6))
     in_process = [in_process_rate(mission) for _ in range(args.repeats)]

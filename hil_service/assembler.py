@@ -95,6 +95,9 @@ class SampleAssembler:
         self.max_vehicles = max(max_vehicles, len(self.allowed or ()))
         #: Messages of a system not served (not allowed, or beyond ``max_vehicles``).
         self.unknown_system = 0
+        #: The timestamp of the last complete step refused as invalid, until taken
+        #: (``take_refused``; -1: none): a lockstep service has finished with it too.
+        self.refused_ms = -1
         self._vehicles: dict[int, _VehicleState] = {}
 
     @property
@@ -165,9 +168,17 @@ class SampleAssembler:
         sample = self._build(message.get_srcSystem(), stamp, pending)
         if sample is None:
             vehicle.counters.invalid += 1
+            self.refused_ms = stamp
             return None
         vehicle.counters.samples += 1
         return sample
+
+    def take_refused(self) -> int:
+        """The timestamp of the complete step last refused as invalid (-1: none since the
+        last call), once."""
+        refused = self.refused_ms
+        self.refused_ms = -1
+        return refused
 
     def _vehicle(self, system_id: int) -> _VehicleState | None:
         if self.allowed is not None and system_id not in self.allowed:

@@ -4,7 +4,9 @@ Active from the start with ``serve --lockstep`` (``ServiceConfig.lockstep``), or
 first vehicle heartbeat that announces lockstep (``MAV_MODE_FLAG_HIL_ENABLED``). Once active,
 every sample the service has finished with (identified, decided) is released: by its
 command, which the vehicle takes as the release, or, when the service sends none, by
-``SYSTEM_TIME`` carrying the sample's timestamp. Nothing else in
+``SYSTEM_TIME`` carrying the sample's timestamp. A complete step whose sample the service
+refuses (implausible or invalid telemetry, counted by the assembler) is finished with too,
+and released by ``SYSTEM_TIME`` (``released_refused``). Nothing else in
 the service changes: the identifier and the controller see the samples they always see.
 """
 
@@ -23,6 +25,8 @@ class LockstepResponder:
         self.announced = False  # a vehicle heartbeat announced lockstep
         self.releases = 0  # SYSTEM_TIME sent
         self.released_by_command = 0
+        #: Of ``releases``: steps whose sample the service refused (implausible, invalid).
+        self.released_refused = 0
 
     def observe(self, message: MavMessage) -> None:
         """Look for the announcement in a received message (cheap for every other one)."""
@@ -42,10 +46,21 @@ class LockstepResponder:
                 send(release(sample.time_boot_ms))
                 self.releases += 1
 
+    def after_refused(self, time_boot_ms: int, send: Callable[[MavMessage], None]) -> None:
+        """The service refused the step stamped ``time_boot_ms`` (a complete step whose
+        sample is implausible or invalid, counted by the assembler): refusing it is finishing
+        with it, so it is released (when active) with ``SYSTEM_TIME``, as a step the service
+        sends no command for. Without this the vehicle would wait for its timeout."""
+        if self.active:
+            send(release(time_boot_ms))
+            self.releases += 1
+            self.released_refused += 1
+
     def as_dict(self) -> dict[str, object]:
         return {
             "active": self.active,
             "announced": self.announced,
             "releases": self.releases,
             "released_by_command": self.released_by_command,
+            "released_refused": self.released_refused,
         }

@@ -159,6 +159,14 @@ class HilService:
         sample = self.assembler.add(message)
         if sample is not None:
             self.process_sample(sample)
+        elif self.assembler.refused_ms >= 0:
+            refused = self.assembler.take_refused()
+            if self.lockstep is not None and self.send_commands:
+                # Refusing a sample is finishing with it: release its step (docs/lockstep.md).
+                system_id = header.srcSystem
+                self.lockstep.after_refused(
+                    refused, lambda released: self._send(released, system_id)
+                )
         return sample
 
     def _process_periodic(self, message: MavMessage) -> list[TelemetrySample]:
@@ -349,6 +357,8 @@ class HilService:
             if vehicle.last_sample_wall is None
             else now - vehicle.last_sample_wall,
         }
+        if self.lockstep is not None and self.lockstep.active:
+            payload["lockstep"] = self.lockstep.as_dict()
         payload["signing"] = {
             **self.config.security.to_json(),
             "rejected": 0 if self.verifier is None else self.verifier.counters.rejected,

@@ -5,11 +5,20 @@ Each plant is a discrete transfer function of order 2 or 3, strictly proper:
     G(z) = g · N(z) / D(z),   D with poles of modulus 0.5–0.995 (real, or a complex pair),
     N = 1, or (z − z₀) with a non-minimum-phase zero z₀ ∈ [1.05, 3],
 
-scaled so that G(1), the DC gain, is in 0.2–5 (log-uniform), behind the same kind of
-ballast actuator as the glider's (amplitude and rate limits) with an optional pump map
+scaled so that G(1), the drawn DC gain, is in 0.2–5 (log-uniform), behind the same kind
+of ballast actuator as the glider's (amplitude and rate limits) with an optional pump map
 (a dead zone and/or a cubic term). Sample periods differ between vehicles. A vehicle
 carries two such plants, one on each telemetry channel, so the service's pipeline runs on
 them unchanged; depth is reported around a trim depth as on the glider.
+
+Units: on the depth channel the drawn gain is metres per unit of input, as the glider's.
+On the pitch channel it is per unit of a scaled actuator, so that the plant is one a
+vehicle could be: the strongest drawn gain (5) at the actuator's full effective output
+(the pump map at the input limit) holds the vehicle at ``PITCH_FULL_SCALE`` rad, a weaker
+one proportionally less. Taken in radians per unit of input, as the depth gain is, the
+family's pitch plants reached 18 rad, which no vehicle does and the service refuses as
+implausible (|pitch| ≤ π). The plant's true DC gain (``dc_gain``, output units per unit of
+effective input) is the drawn gain times ``unit``; ``drawn_gain`` gives the drawn one back.
 
 Everything is drawn from ``numpy.random.default_rng(seed)``: the same seed gives the same
 family, bit for bit.
@@ -36,6 +45,11 @@ PERIODS = (0.1, 0.2, 0.5, 1.0, 2.0)
 P_NMP, P_DEAD_ZONE, P_CUBIC, P_COMPLEX = 0.3, 0.3, 0.3, 0.4
 #: Largest pole angle of a complex pair (rad): a lightly oscillating, not a ringing, plant.
 MAX_POLE_ANGLE = 0.5
+#: The actuator's amplitude limit (model units), as the glider's ballast input.
+INPUT_LIMIT = 2.0
+#: The steady pitch (rad, about 46°) of the strongest drawn pitch plant at full actuator:
+#: within what a glider pitches (gliders fly at 15–45°), well inside the service's ±π.
+PITCH_FULL_SCALE = 0.8
 
 
 @dataclass(frozen=True)
@@ -46,10 +60,17 @@ class RandomPlantSpec:
     order: int
     poles: tuple[tuple[float, float], ...]
     zero: float | None  # non-minimum-phase zero, or None
-    dc_gain: float
+    dc_gain: float  # the plant's DC gain: output units (m, rad) per unit of effective input
     dead_zone: float
     cubic: float
     period: float
+    #: Output units per unit of drawn gain: 1 on depth, ``pitch_unit(...)`` on pitch.
+    unit: float = 1.0
+
+    @property
+    def drawn_gain(self) -> float:
+        """The gain as drawn from ``DC_GAIN_RANGE`` (per unit of the scaled actuator)."""
+        return self.dc_gain / self.unit
 
     def den(self) -> np.ndarray:
         roots: list[complex] = []
@@ -81,7 +102,8 @@ class RandomPlantSpec:
             f"{re:.3f}" if im == 0.0 else f"{math.hypot(re, im):.3f}∠±{math.atan2(im, re):.2f}"
             for re, im in self.poles
         )
-        parts = [f"order {self.order}", f"poles {poles}", f"DC {self.dc_gain:.2f}"]
+        dc = f"DC {self.dc_gain:.2f}" if self.unit == 1.0 else f"DC {self.dc_gain:.3f}"
+        parts = [f"order {self.order}", f"poles {poles}", dc]
         if self.zero is not None:
             parts.append(f"zero {self.zero:.2f}")
         if self.dead_zone:
@@ -98,6 +120,8 @@ class RandomPlantSpec:
             "poles": [list(p) for p in self.poles],
             "zero": self.zero,
             "dc_gain": self.dc_gain,
+            "drawn_gain": self.drawn_gain,
+            "unit": self.unit,
             "dead_zone": self.dead_zone,
             "cubic": self.cubic,
             "period": self.period,
@@ -138,14 +162,29 @@ def _draw_poles(rng: np.random.Generator, order: int) -> tuple[tuple[float, floa
     return tuple(poles)
 
 
-def draw_plant(rng: np.random.Generator, index: int, period: float) -> RandomPlantSpec:
+def pitch_unit(dead_zone: float, cubic: float, limit: float = INPUT_LIMIT) -> float:
+    """Radians per unit of drawn gain on the pitch channel: the strongest drawn gain at the
+    pump map's full output (its value at ``limit``) gives ``PITCH_FULL_SCALE``."""
+    pump = PumpNonlinearity(dead_zone=dead_zone, cubic=cubic)
+    full = pump(limit) if (dead_zone or cubic) else limit
+    return PITCH_FULL_SCALE / (DC_GAIN_RANGE[1] * full)
+
+
+def draw_plant(
+    rng: np.random.Generator, index: int, period: float, channel: str = "depth"
+) -> RandomPlantSpec:
+    """One plant of the family for ``channel`` (the draws do not depend on it: only the
+    pitch channel's unit does)."""
+    if channel not in CHANNELS:
+        raise ValueError(f"channel must be one of {CHANNELS}, got {channel!r}")
     order = int(rng.integers(2, 4))
     poles = _draw_poles(rng, order)
     zero = float(rng.uniform(*NMP_ZERO_RANGE)) if rng.random() < P_NMP else None
     dc = float(math.exp(rng.uniform(math.log(DC_GAIN_RANGE[0]), math.log(DC_GAIN_RANGE[1]))))
     dead_zone = float(rng.uniform(*DEAD_ZONE_RANGE)) if rng.random() < P_DEAD_ZONE else 0.0
     cubic = float(rng.uniform(*CUBIC_RANGE)) if rng.random() < P_CUBIC else 0.0
-    return RandomPlantSpec(index, order, poles, zero, dc, dead_zone, cubic, period)
+    unit = pitch_unit(dead_zone, cubic) if channel == "pitch" else 1.0
+    return RandomPlantSpec(index, order, poles, zero, dc * unit, dead_zone, cubic, period, unit)
 
 
 def draw_family(seed: int, plants: int = 20) -> list[tuple[RandomPlantSpec, RandomPlantSpec]]:
@@ -156,7 +195,8 @@ def draw_family(seed: int, plants: int = 20) -> list[tuple[RandomPlantSpec, Rand
     pairs = []
     for v in range((plants + 1) // 2):
         period = float(PERIODS[int(rng.integers(len(PERIODS)))])
-        pairs.append((draw_plant(rng, 2 * v, period), draw_plant(rng, 2 * v + 1, period)))
+        depth = draw_plant(rng, 2 * v, period, "depth")
+        pairs.append((depth, draw_plant(rng, 2 * v + 1, period, "pitch")))
     return pairs
 
 
@@ -165,7 +205,7 @@ class RandomVehicleConfig:
     depth: RandomPlantSpec
     pitch: RandomPlantSpec
     trim_depth: float = 15.0
-    input_limit: float = 2.0
+    input_limit: float = INPUT_LIMIT
     rate_limit: float = 0.5
 
     @property

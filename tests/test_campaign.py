@@ -159,9 +159,9 @@ def test_a_run_whose_output_runs_away_counts_as_diverged() -> None:
     assert divergence(mission, trace, schedule) == "depth not finite at step 400"
 
 
-def test_oracle_on_request(tmp_path: Path) -> None:
+def test_the_oracle_is_on_by_default_and_off_on_request(tmp_path: Path) -> None:
     out = tmp_path / "oracle"
-    done = campaign("--scenarios", "random", "--seeds", "0", *SHORT, "--oracle", "-o", str(out))
+    done = campaign("--scenarios", "random", "--seeds", "0", *SHORT, "-o", str(out))
     assert done.returncode == 0, done.stderr
     (row,) = rows(out)
     assert row["status"] == "ok"
@@ -169,3 +169,9 @@ def test_oracle_on_request(tmp_path: Path) -> None:
         ratio = float(row[f"{ch}_iae"]) / float(row[f"{ch}_iae_oracle"])
         assert float(row[f"{ch}_ratio_oracle"]) == pytest.approx(ratio, rel=1e-3)
     assert row["oracle_failures"] == "0"
+    off = tmp_path / "no-oracle"
+    done = campaign("--scenarios", "random", "--seeds", "0", *SHORT, "--no-oracle", "-o", str(off))
+    assert done.returncode == 0, done.stderr
+    (row_off,) = rows(off)
+    assert row_off["depth_iae_oracle"] == "" and row_off["oracle_failures"] == ""
+    assert row_off["depth_iae"] == row["depth_iae"]  # the HIL run itself is the same

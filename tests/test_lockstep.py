@@ -109,6 +109,7 @@ def test_emulate_lockstep_with_serve_announced_automatically(processes, tmp_path
     served = last_json(processes.stop(service)[0], "service")
     assert served["lockstep"] == {
         "active": True, "announced": True, "releases": 300, "released_by_command": 0,
+        "released_refused": 0,
     }  # fmt: skip
 
 
@@ -142,13 +143,63 @@ def test_the_service_side_releases_only_when_active_and_not_commanded() -> None:
     idle = LockstepResponder()
     idle.observe(TelemetryMapping().heartbeat(vehicle=True))  # no flag: stays off
     idle.after_sample(sample, False, sent.append)
+    idle.after_refused(5000, sent.append)
     assert not idle.active and sent == []
     idle.observe(lockstep_heartbeat())
     assert idle.active and idle.announced
+    idle.after_refused(5000, sent.append)  # active now: a refused step is released too
+    assert [released_time(m) for m in sent] == [5000]  # type: ignore[arg-type]
+    assert idle.as_dict()["released_refused"] == 1
+    sent.clear()
     forced = LockstepResponder(forced=True)  # serve --lockstep
     forced.after_sample(sample, True, sent.append)  # the command released it
     forced.after_sample(sample, False, sent.append)
     assert [released_time(m) for m in sent] == [5000]  # type: ignore[arg-type]
     assert forced.as_dict() == {
         "active": True, "announced": False, "releases": 1, "released_by_command": 1,
+        "released_refused": 0,
     }  # fmt: skip
+
+
+class _TumblingPlant(GliderPlant):
+    """A glider whose reported pitch is beyond ±π on some steps: implausible telemetry."""
+
+    def __init__(self, tumbling: frozenset[int]):
+        super().__init__(PlantConfig(scenario="paper"))
+        self.tumbling = tumbling
+
+    def step(self, u_depth: float, u_pitch: float) -> TelemetrySample:
+        k = self.k
+        sample = super().step(u_depth, u_pitch)
+        return sample._replace(pitch=4.0) if k in self.tumbling else sample
+
+
+def test_a_refused_sample_releases_its_step_and_lockstep_goes_on(processes) -> None:
+    udp, zport = free_udp_port(), free_tcp_port()
+    service = processes.start_service(
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
+        "--no-log", "--lockstep",
+    )  # fmt: skip
+    tumbling = frozenset(range(20, 60, 3))  # 14 implausible steps among 100
+    link = Link(f"udpout:127.0.0.1:{udp}", source_system=1, source_component=1)
+    autopilot = Autopilot(
+        _TumblingPlant(tumbling), link, build_channel_excitations("steps", 0),
+        AutopilotConfig(duration=100.0),
+    )  # fmt: skip
+    # 30 s: a loaded machine; a step the service did not release would wait all of it.
+    runner = LockstepRunner(autopilot, timeout=30.0)
+    try:
+        stats = runner.run()
+    finally:
+        link.close()
+    assert stats.steps == 100
+    assert runner.stats.as_dict() == {
+        "released": 100, "released_by_command": 0, "timeouts": 0, "stale_releases": 0,
+    }  # fmt: skip
+    served = last_json(processes.stop(service)[0], "service")
+    assert served["lockstep"] == {
+        "active": True, "announced": True, "releases": 100, "released_by_command": 0,
+        "released_refused": len(tumbling),
+    }  # fmt: skip
+    assert served["counters"]["invalid"] == len(tumbling)
+    assert served["counters"]["samples"] == 100 - len(tumbling)

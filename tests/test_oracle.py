@@ -36,8 +36,10 @@ from plant_emulator.random_plants import (
     CUBIC_RANGE,
     DC_GAIN_RANGE,
     DEAD_ZONE_RANGE,
+    INPUT_LIMIT,
     NMP_ZERO_RANGE,
     PERIODS,
+    PITCH_FULL_SCALE,
     POLE_RANGE,
     RandomVehicle,
     RandomVehicleConfig,
@@ -176,6 +178,72 @@ def test_oracle_inverts_the_pump_map():
     assert flat.invert_pump(0.0, 0.5) == pytest.approx(0.2, abs=1e-9)
 
 
+@pytest.mark.parametrize("scenario", ["disturbed", "nonlinear"])
+def test_the_warm_started_lp_finds_the_optimum_linprog_finds_from_scratch(scenario):
+    """Each sample's LP, solved on the persistent model from the last basis, has the optimal
+    cost that ``scipy.optimize.linprog`` (HiGHS from scratch) finds for the same LP."""
+    from scipy.optimize import linprog
+
+    settings = ClosedLoopSettings(scenario, samples=1300, identify=1000, step_every=150)
+    config = PlantConfig(scenario=scenario, seed=1)
+    plant = GliderPlant(config)
+    controller = OracleController(
+        known_plant(plant, "depth", config.trim_depth), GLIDER_ORACLE["depth"]
+    )
+    nb = controller._nb
+    solve = controller._lp.solve
+    checked = []
+
+    def checking(b_ub, col_index, lower, upper):
+        x = solve(b_ub, col_index, lower, upper)
+        cols = controller._cost.size
+        bounds = [(float(lo), float(hi)) for lo, hi in zip(lower, upper, strict=True)]
+        bounds += [(0.0, None)] * (cols - nb)
+        reference = linprog(
+            controller._cost, A_ub=controller._a_ub, b_ub=b_ub.copy(), bounds=bounds,
+            method="highs",
+            options={"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10},
+        )  # fmt: skip
+        assert reference.status == 0 and x is not None
+        assert float(controller._cost @ x) == pytest.approx(reference.fun, rel=1e-6, abs=1e-6)
+        assert np.all(controller._a_ub @ x <= b_ub + 1e-7)
+        checked.append(reference.fun)
+        return x
+
+    controller._lp.solve = checking  # type: ignore[method-assign]
+    schedule = setpoint_schedule(settings)
+    command = 0.0
+    for k in range(settings.samples):
+        sample = plant.step(command if k >= settings.identify else 0.0, 0.0)
+        controller.observe(sample.depth, sample.u_depth)
+        if k >= settings.identify:
+            command = controller.command(float(schedule["depth"][k]), sample.u_depth)
+    assert len(checked) > 100 and controller.failures == 0
+    assert max(checked) > 1.0  # setpoint steps: LPs with a real error to remove
+
+
+def test_a_reset_oracle_commands_as_a_fresh_one():
+    plant = KnownPlant(
+        a=np.array([[1.7, -0.72], [1.0, 0.0]]), b=np.array([1.0, 0.0]), c=np.array([0.0, 0.02])
+    )
+    settings = OracleSettings(horizon=60, blocks=(1, 1, 2, 4, 8))
+
+    def run(oracle):
+        x, u, commands = np.zeros(2), 0.0, []
+        for k in range(40):
+            y = float(plant.c @ x)
+            x = plant.a @ x + plant.b * u
+            oracle.observe(y, u)
+            u = oracle.command(1.0 if k < 20 else -0.5, u)
+            commands.append(u)
+        return commands
+
+    used = OracleController(plant, settings)
+    run(used)
+    used.reset()
+    assert run(used) == run(OracleController(plant, settings))
+
+
 def test_oracle_refuses_an_unstable_model():
     with pytest.raises(ValueError, match="stable"):
         KnownPlant(a=np.array([[1.01]]), b=np.array([1.0]), c=np.array([1.0]))
@@ -226,7 +294,7 @@ def test_random_families_are_seeded_and_within_the_stated_ranges():
         model = spec.channel_model("depth")
         assert model.spectral_radius() < 1.0
         assert model.dc_gain() == pytest.approx(spec.dc_gain, rel=1e-9)
-        assert DC_GAIN_RANGE[0] <= spec.dc_gain <= DC_GAIN_RANGE[1]
+        assert DC_GAIN_RANGE[0] <= spec.drawn_gain <= DC_GAIN_RANGE[1]
         assert spec.period in PERIODS
         if spec.zero is not None:
             assert NMP_ZERO_RANGE[0] <= spec.zero <= NMP_ZERO_RANGE[1]
@@ -241,6 +309,33 @@ def test_random_families_are_seeded_and_within_the_stated_ranges():
     assert len({s.period for s in specs}) > 1
     for depth, pitch in family:
         assert depth.period == pitch.period
+        assert depth.unit == 1.0 and depth.dc_gain == depth.drawn_gain  # m per unit input
+        assert pitch.unit < 0.1  # rad per unit of drawn gain: a scaled actuator
+
+
+def test_random_pitch_plants_pitch_as_a_vehicle_could():
+    """The strongest pitch plant holds PITCH_FULL_SCALE at full actuator, the others less, and
+    bang-bang inputs (rate-limited square waves, resonances included) stay far inside the
+    service's plausible ±π: the family's draws other than the pitch gain are unchanged."""
+    steady, peaks = [], []
+    for seed in range(40):
+        depth, pitch = draw_family(seed, 1)[0]
+        pump = pitch.pump()
+        full = pump(INPUT_LIMIT) if pump else INPUT_LIMIT
+        steady.append(pitch.dc_gain * full)
+        assert steady[-1] == pytest.approx(
+            PITCH_FULL_SCALE * pitch.drawn_gain / DC_GAIN_RANGE[1], rel=1e-12
+        )
+        for half in (5, 40, 300):
+            vehicle = RandomVehicle(RandomVehicleConfig(depth=depth, pitch=pitch))
+            outputs = [
+                vehicle.step(0.0, INPUT_LIMIT if (k // half) % 2 == 0 else -INPUT_LIMIT).pitch
+                for k in range(900)
+            ]
+            peaks.append(max(abs(y) for y in outputs))
+    assert max(steady) <= PITCH_FULL_SCALE
+    assert max(steady) / min(steady) > 10  # the family's gain spread is kept
+    assert max(peaks) < math.pi / 2, max(peaks)
 
 
 def test_a_random_vehicle_steps_like_the_glider_and_stays_bounded():

@@ -14,13 +14,20 @@ Each sample k (after the vehicle reported y(k) and the position u(k) applied dur
    y(k) − trim − ŷ_model(k) is low-passed with time constant ``disturbance_tau`` samples
    and held constant over the horizon. Slow on purpose: through a non-minimum-phase zero
    reacting fast to a disturbance costs more IAE than it saves.
-3. An LP (``scipy.optimize.linprog``, HiGHS) chooses the effective inputs v(k+1 …) under
+3. An LP (HiGHS, through ``highspy``) chooses the effective inputs v(k+1 …) under
    move blocking (``blocks``: the input is held over each block) to minimise the predicted
    Σ_j |ŷ(k+1+j) − r(k)| over the horizon, subject to the amplitude limit, the rate limit
    between blocks and the set of positions reachable from u(k) at each block's start.
 4. The first block's input, mapped back through the pump map, is the command.
 
 The setpoint is held at its current value over the horizon (no preview).
+
+The LP's matrix and costs never change from one sample to the next: only the right-hand
+sides (the predicted free response, the input now) and the block bounds do. So one HiGHS
+model is built per controller (``_LpModel``) and each sample updates those bounds and
+re-solves from the previous optimal basis (dual simplex warm start): the same LP that
+``scipy.optimize.linprog(method="highs")`` would solve from scratch, at a fraction of the
+cost, which was mostly per-call overhead (building and presolving the model every sample).
 """
 
 from __future__ import annotations
@@ -30,8 +37,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from highspy import _core as highs_core
 from numpy.typing import NDArray
-from scipy.optimize import linprog
 
 Array = NDArray[np.float64]
 
@@ -99,7 +106,66 @@ def _bisect(f: Callable[[float], float], v: float, lo: float, hi: float, strict:
 
 #: Tighter than HiGHS's default 1e-7: a settled loop's error is of the order of the
 #: tolerance, and over 20,000 samples that adds up on pitch (IAE ≈ 10).
-LP_OPTIONS = {"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
+LP_OPTIONS: dict[str, object] = {
+    "primal_feasibility_tolerance": 1e-10,
+    "dual_feasibility_tolerance": 1e-10,
+    "output_flag": False,  # a library: nothing on the console
+    "threads": 1,  # one LP per controller; campaigns run missions in parallel processes
+}
+INF = float(highs_core.kHighsInf)
+
+
+class _LpModel:
+    """min cᵀx s.t. A x ≤ b, lo ≤ x ≤ hi, with A and c fixed: one persistent HiGHS model
+    whose b and bounds change per solve, each solve warm-started from the last basis.
+
+    ``highspy._core._Highs`` is the solver class the public ``highspy.Highs`` wraps; the
+    wrapper adds a Python callback to every solve and prints a banner on stdout when the
+    first one is made, neither of which a controller that solves once per sample wants.
+    """
+
+    def __init__(self, cost: Array, a_ub: Array, lower: Array, upper: Array):
+        rows, cols = a_ub.shape
+        self.rows, self.cols = rows, cols
+        self.highs = highs_core._Highs()
+        for name, value in LP_OPTIONS.items():
+            self.highs.setOptionValue(name, value)
+        lp = highs_core.HighsLp()
+        lp.num_col_, lp.num_row_ = cols, rows
+        lp.col_cost_ = np.asarray(cost, dtype=np.float64)
+        lp.col_lower_ = np.asarray(lower, dtype=np.float64)
+        lp.col_upper_ = np.asarray(upper, dtype=np.float64)
+        lp.row_lower_ = np.full(rows, -INF)
+        lp.row_upper_ = np.zeros(rows)
+        matrix = np.asarray(a_ub, dtype=np.float64)
+        starts, indices, values = [0], [], []
+        for j in range(cols):
+            nonzero = np.flatnonzero(matrix[:, j])
+            indices.extend(int(i) for i in nonzero)
+            values.extend(float(v) for v in matrix[nonzero, j])
+            starts.append(len(indices))
+        lp.a_matrix_.format_ = highs_core.MatrixFormat.kColwise
+        lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = cols, rows
+        lp.a_matrix_.start_ = np.array(starts, dtype=np.int32)
+        lp.a_matrix_.index_ = np.array(indices, dtype=np.int32)
+        lp.a_matrix_.value_ = np.array(values, dtype=np.float64)
+        if self.highs.passModel(lp) != highs_core.HighsStatus.kOk:
+            raise ValueError("HiGHS refused the oracle's LP")
+        self._row_index = np.arange(rows, dtype=np.int32)
+        self._row_lower = np.full(rows, -INF)
+
+    def solve(self, b_ub: Array, col_index: Array, lower: Array, upper: Array) -> Array | None:
+        """The optimal x with A x ≤ ``b_ub`` and the bounds of columns ``col_index`` set
+        to [``lower``, ``upper``] (the other columns keep theirs); None when HiGHS finds no
+        optimum."""
+        highs = self.highs
+        highs.changeRowsBounds(self.rows, self._row_index, self._row_lower, b_ub)
+        highs.changeColsBounds(col_index.size, col_index, lower, upper)
+        if highs.run() != highs_core.HighsStatus.kOk:
+            return None
+        if highs.getModelStatus() != highs_core.HighsModelStatus.kOptimal:
+            return None
+        return np.asarray(highs.getSolution().col_value, dtype=np.float64)
 
 #: Mean predicted |y − r| (output units) below which holding the input counts as optimal.
 SETTLED_TOLERANCE = 1e-7
@@ -201,13 +267,26 @@ class OracleController:
         if s.terminal and abs(self._dc_gain) < 1e-12:
             raise ValueError("a terminal input needs a non-zero DC gain")
         self._cost = cost
+        self._block_index = np.arange(nb, dtype=np.int32)
+        self._lp = _LpModel(
+            cost,
+            self._a_ub,
+            np.concatenate((np.full(nb, -INF), np.zeros(nt + nm))),
+            np.full(nb + nt + nm, INF),
+        )
         # Steepest slope of the pump map, so that the rate limit holds in v as well.
         grid = np.linspace(-p.u_limit, p.u_limit, 401)
         values = np.array([p.pump(float(u)) for u in grid])
         self._slope = max(float(np.max(np.diff(values) / np.diff(grid))), 1e-9)
+        self._reach = p.rate_limit * (starts.astype(float) + 1.0)
+        # The right-hand side, refilled per solve; the rows that never change set once.
+        self._rate = p.rate_limit * self._slope
+        self._b_ub = np.zeros(self._a_ub.shape[0])
+        self._b_ub[2 * nt : 2 * nt + 2 * nb] = self._rate
         self.reset()
 
     def reset(self) -> None:
+        self._lp.highs.clearSolver()  # no warm start from before: a reset run is a fresh one
         self.state = np.zeros(self.plant.order)
         self.disturbance = 0.0
         self._seen = False
@@ -243,46 +322,37 @@ class OracleController:
             self.skipped += 1
             return u_applied
         # The positions reachable at each block's first sample, as bounds on v.
-        bounds: list[tuple[float | None, float | None]] = []
-        for j0 in self._starts:
-            reach = p.rate_limit * (j0 + 1)
-            lo = max(u_applied - reach, -p.u_limit)
-            hi = min(u_applied + reach, p.u_limit)
-            bounds.append((p.pump(lo), p.pump(hi)))
-        nm = nb if self._moves else 0
+        lower = np.maximum(u_applied - self._reach, -p.u_limit)
+        upper = np.minimum(u_applied + self._reach, p.u_limit)
+        if p.pump is not identity:
+            lower = np.array([p.pump(float(u)) for u in lower])
+            upper = np.array([p.pump(float(u)) for u in upper])
         if self.settings.terminal:
-            lo_last, hi_last = bounds[-1]
-            assert lo_last is not None and hi_last is not None
             v_ss = (setpoint - p.trim - self.disturbance) / self._dc_gain
-            v_ss = min(max(v_ss, lo_last), hi_last)
-            bounds[-1] = (v_ss, v_ss)
-        bounds += [(0.0, None)] * (nt + nm)
-        rate = p.rate_limit * self._slope
-        shift = np.zeros(nb)
-        shift[0] = v_now
-        parts = [gap, -gap, rate + shift, rate - shift]
+            v_ss = min(max(v_ss, float(lower[-1])), float(upper[-1]))
+            lower[-1] = upper[-1] = v_ss
+        # b of A x ≤ b: ±gap on the tracking rows, the rate limit (about v(k) for the first
+        # block) on the block differences, and with a move weight v(k) on its rows.
+        b_ub = self._b_ub
+        b_ub[:nt] = gap
+        b_ub[nt : 2 * nt] = -gap
+        b_ub[2 * nt] = self._rate + v_now
+        b_ub[2 * nt + nb] = self._rate - v_now
         if self._moves:
-            parts += [shift, -shift]
-        b_ub = np.concatenate(parts)
+            b_ub[2 * nt + 2 * nb] = v_now
+            b_ub[2 * nt + 3 * nb] = -v_now
         self.solves += 1
-        result = linprog(
-            self._cost,
-            A_ub=self._a_ub,
-            b_ub=b_ub,
-            bounds=bounds,
-            method="highs",
-            options=LP_OPTIONS,
-        )
-        if result.status != 0 or result.x is None:
+        x = self._lp.solve(b_ub, self._block_index, lower, upper)
+        if x is None:
             self.failures += 1
             v_next = v_now
         else:
-            v_next = float(result.x[0])
+            v_next = float(x[0])
             if nb > 1 and p.pump is not identity:
                 # On a flat stretch of the pump map (a dead zone) every position of it gives
                 # v_next: take the one furthest along the plan's way, so that a plan that
                 # crosses the dead zone does not wait at its edge.
-                ahead = float(result.x[nb - 1]) - v_next
+                ahead = float(x[nb - 1]) - v_next
                 if ahead != 0.0:
                     return p.invert_pump(v_next, u_applied + math.copysign(p.rate_limit, ahead))
         return p.invert_pump(v_next, u_applied)

@@ -1,0 +1,89 @@
+"""The glider oracle's depth IAE under other settings (issue 18: can a fair, better known-model
+controller bring paper depth to issue 15's 12,829?). Printed, not a test.
+
+    .venv/bin/python benchmarks/oracle_settings_sweep.py --scenarios paper --variants main,h1000
+
+Each variant is ``GLIDER_ORACLE["depth"]`` with one change; pitch keeps its settings. Runs
+``oracle_run`` as ``experiment --closed-loop --samples 20000 --seed 0`` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from hil_service.experiment.closed_loop import (
+    GLIDER_ORACLE,
+    ClosedLoopSettings,
+    oracle_run,
+    score,
+    setpoint_schedule,
+)
+from hil_service.experiment.oracle import OracleSettings
+from plant_emulator.plant import GliderPlant, PlantConfig
+
+BASE = GLIDER_ORACLE["depth"]
+TAIL = (8, 8, 16, 16, 32, 64, 128)
+VARIANTS: dict[str, OracleSettings] = {
+    "main": BASE,
+    "stride1": replace(BASE, cost_stride=1),
+    "stride2": replace(BASE, cost_stride=2),
+    "h800": replace(BASE, horizon=800, blocks=(*BASE.blocks, 128)),
+    "h1000": replace(BASE, horizon=1000, blocks=(*BASE.blocks, 128, 256)),
+    "blocks1": replace(BASE, blocks=(1,) * 8 + (4,) * 4 + TAIL),
+    "blocks2": replace(BASE, blocks=(2,) * 12 + (4,) * 4 + TAIL),
+    "blocks3": replace(BASE, blocks=(3,) * 8 + (6, 6, 12, 12, 24, 48, 96, 192)),
+    "blocks4x10": replace(BASE, blocks=(4,) * 10 + TAIL),
+    "blocks5": replace(BASE, blocks=(5,) * 6 + (10, 10, 20, 20, 40, 80, 160)),
+    "blocks6": replace(BASE, blocks=(6,) * 6 + (12, 12, 24, 24, 48, 96, 192)),
+    "first8": replace(BASE, blocks=(8, *BASE.blocks[2:])),
+    "move1e-3": replace(BASE, move_weight=1e-3),
+    "no_terminal": replace(BASE, terminal=False),
+    "discount1.0005": replace(BASE, discount=1.0005),
+}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--scenarios", default="paper")
+    parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--samples", type=int, default=20000)
+    parser.add_argument(
+        "--ipm",
+        action="store_true",
+        help="HiGHS's interior point without crossover: the centre of the optimal face, not a "
+        "vertex (slow; a solve that ends without an optimum is a failure, input held)",
+    )
+    args = parser.parse_args()
+    if args.ipm:
+        from hil_service.experiment import oracle
+
+        oracle.LP_OPTIONS.update({"solver": "ipm", "run_crossover": "off"})
+    for scenario in args.scenarios.split(","):
+        for name in args.variants.split(","):
+            settings = ClosedLoopSettings(scenario, samples=args.samples, seed=0, oracle=True)
+            config = PlantConfig(scenario=scenario, seed=0)
+            started = time.process_time()
+            run, failures = oracle_run(
+                settings,
+                GliderPlant(config),
+                setpoint_schedule(settings),
+                {"depth": VARIANTS[name], "pitch": GLIDER_ORACLE["pitch"]},
+                {"depth": config.trim_depth, "pitch": 0.0},
+            )
+            score(run, settings, config.period)
+            print(
+                f"{scenario:9} {name:15} depth IAE {run.metrics['depth'].iae:10.2f}  "
+                f"LP failures {failures}  CPU {time.process_time() - started:.1f} s",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
