@@ -363,8 +363,8 @@ class PredictiveInverse:
         "_free_step",
         "_hessian",
         "_horizon",
-        "_lead",
         "_onset",
+        "_plan_model",
         "_plan_state",
         "_points",
         "_range",
@@ -401,12 +401,12 @@ class PredictiveInverse:
         self._free_ar: list[float] = []
         self._free_step: list[float] = []
         self._free_impulse: list[list[float]] = []
-        self._lead = 1
         self._rho = 0.0
         self._shape: StaticMap | None = None  # the input map N the plan was derived with
         self._range = (self.u_min, self.u_max)  # where N rises (see ``monotone_range``)
         self._starts: list[int] = []  # first sample of each input block
         self._plan_state: list[int] | None = None  # the last plan's active bounds
+        self._plan_model: ModelDynamics | None = None  # the model of the last derivation
         self._sim: list[float] | None = None  # internal model's outputs y_m(k), y_m(k−1), …
 
     @property
@@ -459,14 +459,27 @@ class PredictiveInverse:
         if stale and dyn.is_finite():
             factors = factorise(dyn, self.u_min, self.u_max)
             if factors is not None:
-                self._derive(dyn.ar, factors[0])
+                self._derive(dyn, factors[0])
                 self._shape = factors[1]
                 self._range = monotone_range(factors[1], self.u_min, self.u_max)
         return self._horizon
 
-    def _derive(self, ar: list[float], gains: list[float]) -> None:
+    def _derive(self, dyn: ModelDynamics, gains: list[float]) -> None:
         """Horizon, blocks, cost points, their columns and the Hessian, from the
-        identified linear part: they change as slowly as the model does."""
+        identified linear part: they change as slowly as the model does. The model's
+        coefficients are kept (``_plan_model``): until the next derivation the free
+        response is this model's, so that the whole prediction is one model's."""
+        ar = dyn.ar
+        self._plan_model = ModelDynamics(
+            list(ar),
+            dyn.bias,
+            [list(poly) for poly in dyn.lag_polys],
+            dyn.poly_scale,
+            [],
+            [],
+            dyn.rbf,
+            dyn.rbf_weights,
+        )
         s = self.settings
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
@@ -506,27 +519,9 @@ class PredictiveInverse:
             if b + 1 < nblocks:
                 hessian[b][b + 1] -= rho
                 hessian[b + 1][b] -= rho
-        self._lead = max(len(ar), len(gains) - 1, 1)
-        self._horizon = n
-        self._points = points
-        self._free_basis(ar)
-        self._columns = columns
-        self._onset = onset
-        self._hessian = hessian
-        self._rho = rho
-        self._starts = starts
-        self._age = 0
-
-    def _free_basis(self, ar: list[float]) -> None:
-        """S_A(j) and h_A(j − l) at the cost points for this AR part (the impulse response of
-        1/A(q) and its running sum): derived for the *current* model's AR part every sample
-        the free response is needed. The free response must be one model's: the current
-        input forcing run through an older 1/A(q) predicts a steady state that drifts as
-        the identifier trades bias, input polynomial and AR coefficients in closed loop
-        (measured: a saw tooth of period ``refresh``, 3.8x the oracle on a dead-zone plant)."""
-        n = self._horizon
+        # 1/A(q): impulse response h_A and its running sum S_A, for the free response.
         na = len(ar)
-        lead = self._lead
+        lead = max(na, len(gains) - 1, 1)
         impulse: list[float] = []
         for m in range(n):
             acc = 1.0 if m == 0 else 0.0
@@ -537,12 +532,19 @@ class PredictiveInverse:
         running = [0.0]
         for m in range(n):
             running.append(running[-1] + impulse[m])
-        points = self._points
         self._free_ar = list(ar)
         self._free_step = [running[j] for j in points]
         self._free_impulse = [
             [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
         ]
+        self._horizon = n
+        self._points = points
+        self._columns = columns
+        self._onset = onset
+        self._hessian = hessian
+        self._rho = rho
+        self._starts = starts
+        self._age = 0
 
     def _free_response(self, dyn: ModelDynamics, u_now: float, outputs: list[float]) -> list[float]:
         """ŷ(k+j) at the cost points j with the input held at ``u_now``, from ``outputs``
@@ -592,7 +594,7 @@ class PredictiveInverse:
             factors = factorise(dyn, lo_u, hi_u)
             if factors is None:
                 return u0, "hold", False
-            self._derive(dyn.ar, factors[0])
+            self._derive(dyn, factors[0])
             shape = self._shape = factors[1]
             self._range = monotone_range(shape, lo_u, hi_u)
         # Plan only where the identified map rises: a polynomial fitted on the inputs seen
@@ -603,11 +605,19 @@ class PredictiveInverse:
         sim = self._sim
         if sim is None or len(sim) != len(dyn.ar):
             sim = list(dyn.outputs[: len(dyn.ar)])
-        # The internal model's free response (the current model's: see ``_free_basis``)
-        # plus the output disturbance estimate.
-        if dyn.ar != self._free_ar:
-            self._free_basis(dyn.ar)
-        free = self._free_response(dyn, u0, sim)
+        # The free response plus the output disturbance estimate. The free response is the
+        # model of the last derivation's (its coefficients, today's input history, from the
+        # internal model's outputs), as the block columns are: the current model's input
+        # forcing run through the AR part of an older one predicts a steady state that
+        # drifts as the identifier trades bias, input polynomial and AR coefficients in
+        # closed loop (measured: a saw tooth of period ``refresh``, 3.8x the oracle's IAE
+        # on a random plant with a dead zone; docs/control.md).
+        plan_model = self._plan_model
+        if plan_model is None:
+            return u0, "hold", False
+        plan_model.inputs = dyn.inputs
+        plan_model.outputs = dyn.outputs
+        free = self._free_response(plan_model, u0, sim)
         disturbance = self._disturbance
         w0 = shape.value(u0)
         nblocks = len(self._hessian)
