@@ -33,7 +33,7 @@ from hil_service.experiment.random_loop import (
 )
 from hil_service.pipeline import PipelineSettings
 from hil_service.umodel.dynamics import ModelDynamics
-from hil_service.umodel.predictive import PredictiveInverse
+from hil_service.umodel.predictive import PredictiveInverse, step_response, wrong_way
 from plant_emulator.models import CHANNELS
 from plant_emulator.random_plants import RandomPlantSpec, RandomVehicle, RandomVehicleConfig
 
@@ -144,3 +144,25 @@ def test_the_free_response_is_the_model_the_plan_was_derived_from():
     assert all(math.isfinite(c) for c in commands)
     fresh = PredictiveInverse(-2.0, 2.0, 0.5)
     assert abs(fresh.decide(moved, 0.5, 0.8)[0] - commands[0]) > 0.01
+
+
+def test_wrong_way_tells_an_undershooting_step_response_from_a_monotone_one():
+    monotone = step_response([1.5, -0.56], [0.03, 0.03], 200)  # poles 0.8, 0.7
+    nmp = step_response([1.5, -0.56], [-0.3, 0.36], 200)  # a zero at 1.2: starts the wrong way
+    assert min(nmp) < -0.05 * nmp[-1] and nmp[-1] > 0
+    assert not wrong_way(monotone, 0.05)
+    assert wrong_way(nmp, 0.05)
+    assert wrong_way([], 0.05) and wrong_way([0.0, float("nan")], 0.05)
+
+
+def test_the_disturbance_estimate_is_faster_where_the_plant_moves_the_right_way():
+    """The same output step seen by two controllers whose identified step responses differ
+    only in a wrong-way start: the estimate moves more per sample on the monotone one."""
+    estimates = []
+    for gains in ([0.03, 0.03], [-0.3, 0.36]):
+        dyn = ModelDynamics([1.5, -0.56], 0.0, [[g] for g in gains], 1.0, [0.0, 0.0], [0.0, 0.0])
+        controller = PredictiveInverse(-2.0, 2.0, 0.5)
+        controller.track(dyn, 0.0)  # starts the internal model
+        controller.track(dyn, 1.0)  # one unit of output the model does not explain
+        estimates.append(controller.disturbance)
+    assert estimates[0] > 2.0 * estimates[1] > 0.0
