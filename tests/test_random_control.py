@@ -93,11 +93,12 @@ def test_the_inverse_is_near_the_oracle_and_beats_the_reference_alone(runs, chan
     ref = reference.metrics[channel].iae
     orc = oracle.metrics[channel].iae
     # Measured on these two steps (IAE, output units·s): dead-zone plant (depth) inverse
-    # 1.889, oracle 1.779, reference 2.816; NMP plant (pitch) inverse 15.11, oracle 13.62,
-    # reference 17.87. Before the plan was one model's: depth inverse 3.043
-    # (1.71x the oracle, above the reference alone), pitch 15.68; the input over the last
-    # half of the first step moved 0.70 in total (now 0.023). The target is 2x;
-    # 1.4x here keeps a margin over the measured 1.06 and 1.11 and fails the old plan.
+    # 1.830, oracle 1.779, reference 2.816; NMP plant (pitch) inverse 14.54, oracle 13.62,
+    # reference 17.87 (1.03x and 1.07x; 1.06x and 1.11x with the slow disturbance estimate
+    # everywhere). Before the plan was one model's: depth inverse 3.043 (1.71x the oracle,
+    # above the reference alone), pitch 15.68; the input over the last half of the first
+    # step moved 0.70 in total (now 0.023). The target is 2x; 1.4x here keeps a
+    # margin over the measured ratios and fails the old plan.
     assert orc < ref
     assert inv < 1.4 * orc, (inv, orc)
     assert inv < ref, (inv, ref)
