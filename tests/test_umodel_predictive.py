@@ -160,7 +160,7 @@ def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int
     dyn = ModelDynamics(ar, 0.7, polys, 0.5, rng.normal(size=na).tolist(),
                         rng.uniform(-2, 2, nb).tolist())  # fmt: skip
     controller = PredictiveInverse(-2.0, 2.0, 0.5)
-    controller._derive(ar, [1.0] * nb)
+    controller._derive(dyn, [1.0] * nb)
     sim = rng.normal(size=na).tolist()
     fast = controller._free_response(dyn, 0.4, sim)
     slow = dyn.simulate_held(0.4, controller.horizon, 0.0, sim)
