@@ -212,8 +212,7 @@ class ChannelPipeline:
         return estimate
 
     def _observe(
-        self, t: float, y: float, u_now: float, follows_previous: bool = True,
-        sampled: bool = False,
+        self, t: float, y: float, u_now: float, follows_previous: bool, sampled: bool
     ) -> dict[str, Any] | None:
         """Learn from one sample; None when the sample only refills the history.
 
@@ -324,7 +323,7 @@ class ChannelPipeline:
             )
         return ""
 
-    def solve(self, setpoint: float, y: float, u_applied: float) -> tuple[float, str, bool]:
+    def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
         """One predictive-inverse step: (command, path, saturated); path is the inverse
         step's ("newton", "fallback") or "hold" when no plan could be made."""
         if not self.active:
@@ -404,7 +403,7 @@ class VehiclePipeline:
                 pipeline.deactivate()
                 paths.append("-")
                 continue
-            u, path, sat = pipeline.solve(active[ch], sample.output(ch), sample.input(ch))
+            u, path, sat = pipeline.solve(active[ch], sample.input(ch))
             values[ch] = u
             paths.append(path)
             saturated = saturated or sat
