@@ -385,7 +385,6 @@ class VehiclePipeline:
     ) -> Decision:
         """The command for this sample, or why there is none."""
         active = {ch: v for ch, v in setpoints.items() if v is not None and math.isfinite(v)}
-        reason = ""
         if not enabled:
             reason = "control disabled"
         elif not active:
