@@ -50,6 +50,7 @@ MUTATE_DIR := build/mutate
 MUTANTS ?= \
 	'hil_service.pipeline.xǁChannelPipelineǁblocked_reason__mutmut_*' \
 	'hil_service.pipeline.xǁChannelPipelineǁobserve__mutmut_*' \
+	'hil_service.pipeline.xǁChannelPipelineǁ_observe__mutmut_*' \
 	'hil_service.pipeline.xǁVehiclePipelineǁdecide__mutmut_*' \
 	'hil_service.inputs.xǁSetpointLimitsǁviolation__mutmut_*' \
 	'hil_service.inputs.xǁInboxǁ*__mutmut_*' \

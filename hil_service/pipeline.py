@@ -215,8 +215,7 @@ class ChannelPipeline:
         return estimate
 
     def _observe(
-        self, t: float, y: float, u_now: float, follows_previous: bool = True,
-        sampled: bool = False,
+        self, t: float, y: float, u_now: float, follows_previous: bool, sampled: bool
     ) -> dict[str, Any] | None:
         """Learn from one sample; None when the sample only refills the history.
 
@@ -327,7 +326,7 @@ class ChannelPipeline:
             )
         return ""
 
-    def solve(self, setpoint: float, y: float, u_applied: float) -> tuple[float, str, bool]:
+    def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
         """One predictive-inverse step: (command, path, saturated); path is the inverse
         step's ("newton", "fallback") or "hold" when no plan could be made."""
         if not self.active:
@@ -389,7 +388,6 @@ class VehiclePipeline:
     ) -> Decision:
         """The command for this sample, or why there is none."""
         active = {ch: v for ch, v in setpoints.items() if v is not None and math.isfinite(v)}
-        reason = ""
         if not enabled:
             reason = "control disabled"
         elif not active:
@@ -407,7 +405,7 @@ class VehiclePipeline:
                 pipeline.deactivate()
                 paths.append("-")
                 continue
-            u, path, sat = pipeline.solve(active[ch], sample.output(ch), sample.input(ch))
+            u, path, sat = pipeline.solve(active[ch], sample.input(ch))
             values[ch] = u
             paths.append(path)
             saturated = saturated or sat

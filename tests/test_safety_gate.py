@@ -633,3 +633,42 @@ def test_disabled_and_no_setpoint_are_named_and_send_nothing_in_process():
     for setpoints, enabled, reason in cases:
         decision = pipeline.decide(last, setpoints, enabled)
         assert (decision.command, decision.payload, decision.reason) == (None, None, reason)
+
+
+def test_a_rejected_reading_right_after_a_gap_leaves_control_on_the_relearnt_history():
+    """After a gap the multi-step map kept for control held pre-gap histories and is
+    dropped; if the first sample learnt from after the refill is one the identifier
+    rejects (an output beyond its limit), control goes on from the model's current map."""
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    depth = pipeline.channels["depth"]
+    samples = [sample for sample, _ in plant_samples(BLOCKED + 35 + HISTORY + 1)]
+    lost = range(BLOCKED + 30, BLOCKED + 35)
+    kept = [s for k, s in enumerate(samples) if k not in lost]
+    for sample in kept[:-1]:
+        pipeline.observe(sample)
+    assert depth.converged and depth.resync == 0
+    wild = kept[-1]._replace(depth=1e12)
+    assert pipeline.observe(wild)["depth"]["status"] == "rejected"
+    decision = pipeline.decide(wild, {"depth": 16.0, "pitch": None}, True)
+    assert decision.reason == "" and decision.command is not None
+    assert math.isfinite(decision.command.u_depth)
+
+
+def test_each_divergence_is_counted():
+    """Health's ``divergences`` counts every divergence, not only whether there was one:
+    two bursts of wild readings, far apart, are two divergences."""
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    first, second = range(BLOCKED + 20, BLOCKED + 30), range(BLOCKED + 80, BLOCKED + 90)
+    counts = []
+    for k, (sample, _) in enumerate(plant_samples(BLOCKED + 100, trim_depth=0.5)):
+        if k in first or k in second:
+            start = first.start if k in first else second.start
+            sample = sample._replace(depth=10_000.0 if (k - start) % 2 == 0 else 0.0)
+        pipeline.observe(sample)
+        counts.append(pipeline.identifier_health()["depth"]["divergences"])
+    assert counts[first.start] == 0 and counts[second.start - 1] == 1
+    assert counts[-1] == 2

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import random
 
-from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.pipeline import ChannelPipeline, PipelineSettings, VehiclePipeline
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.plant import GliderPlant, PlantConfig
 
@@ -92,3 +92,71 @@ def test_a_repeat_undoes_the_update_learnt_from_the_early_reading() -> None:
         assert "depth" not in pipeline.observe(sample, sampled=True)  # refills, no training
     assert depth.skipped == skipped + depth.model.history_length
     assert "depth" in pipeline.observe(samples[152 + depth.model.history_length], sampled=True)
+
+
+def _prbs_samples(n: int, seed: int = 3) -> list:
+    plant = GliderPlant(PlantConfig(period=PERIOD, seed=seed))
+    excitation = build_channel_excitations("prbs", seed)
+    return [
+        plant.step(excitation["depth"].value(k), excitation["pitch"].value(k)) for k in range(n)
+    ]
+
+
+def test_repeats_and_reused_inputs_are_counted_exactly_and_each_refills_the_history() -> None:
+    """Two repeated outputs and two reused input readings after the first lags are filled,
+    one reused reading while they are: each one outside the start refills the history
+    (no estimate for ``history_length`` samples), each is counted once, and the samples
+    learnt from carry their own time."""
+    samples = _prbs_samples(120)
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=50))
+    depth = pipeline.channels["depth"]
+    history = depth.model.history_length
+    repeated = {40, 70}  # the output of the sample before, served again
+    reused = {2, 55, 90}  # 2: still filling the lags after the first sample
+    published = []
+    for k, sample in enumerate(samples):
+        if k in repeated:
+            sample = sample._replace(depth=samples[k - 1].depth, pitch=samples[k - 1].pitch)
+        estimates = pipeline.observe(sample, inputs_reused=k in reused, sampled=True)
+        if "depth" in estimates:
+            assert estimates["depth"]["t"] == sample.t
+            published.append(k)
+    assert (depth.repeats, depth.input_reuses) == (2, 2)
+    # A repeat is not learnt from and refills after it; a reused input is learnt from (its
+    # output is fresh) and the samples after it refill.
+    quiet = set(range(history))
+    quiet |= {k + i for k in repeated for i in range(history + 1)}
+    quiet |= {k + i for k in reused - {2} for i in range(1, history + 1)}
+    assert published == [k for k in range(120) if k not in quiet]
+    assert depth.skipped == history * 5
+
+
+def test_a_repeat_while_the_history_refills_undoes_nothing() -> None:
+    """The update undone by a repeat is the one learnt from the sample just before; after a
+    sample that only refilled the history there is none, and an older update stays."""
+    samples = _prbs_samples(80)
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=50))
+    depth = pipeline.channels["depth"]
+    for k, sample in enumerate(samples[:60]):
+        pipeline.observe(sample, inputs_reused=k == 59, sampled=True)  # 59 is learnt from
+    assert depth.refill == depth.model.history_length
+    pipeline.observe(samples[60], sampled=True)  # refills
+    learnt = depth.model.snapshot()["theta"]
+    again = samples[61]._replace(depth=samples[60].depth)
+    assert "depth" not in pipeline.observe(again, sampled=True)
+    assert depth.repeats == 1
+    assert depth.model.snapshot()["theta"] == learnt
+
+
+def test_a_lockstep_source_learns_from_every_repeated_output() -> None:
+    """Outside an asynchronous sampler (the default, as the lockstep assembler and the
+    experiments call it) an output equal to the one before is real: it is learnt from."""
+    pipeline = ChannelPipeline("depth", PipelineSettings(burn_in=50), 0)
+    y = u = 0.0
+    learnt = 0
+    for k in range(60):
+        u = 0.5 if k < 20 else 0.0
+        y = 0.5 * y + 0.2 * u if k < 30 else 1.0  # held exactly from k = 30
+        learnt += pipeline.observe(float(k), y, u) is not None
+    assert pipeline.repeats == 0
+    assert learnt == 60 - pipeline.model.history_length

@@ -92,7 +92,7 @@ def measure(
         setpoint = levels[(k // 200) % len(levels)]
         t0 = time.perf_counter()
         pipeline.observe(float(k), y, u_now)
-        u, path, _ = pipeline.solve(setpoint, y, u_now)
+        u, path, _ = pipeline.solve(setpoint, u_now)
         timed += time.perf_counter() - t0
         fallbacks += path == "fallback"
     return SpeedFigure(
