@@ -52,8 +52,6 @@ class ControlSettings:
     max_blocks: int = 8  # input blocks over the horizon (geometrically spaced)
     move_weight: float = 0.03  # input-move penalty, relative to the output cost's scale
     disturbance_share: float = 0.5  # disturbance estimate's time constant / horizon
-    # ... where the identified step response has no wrong-way part (faster: see predictive)
-    minimum_phase_share: float = 0.1
     refresh: int = 50  # samples between two horizon derivations
     cost_points: int = 120  # points of the horizon in the cost (evenly spaced)
 
@@ -68,7 +66,6 @@ class ControlSettings:
             max_blocks=self.max_blocks,
             move_weight=self.move_weight,
             disturbance_share=self.disturbance_share,
-            minimum_phase_share=self.minimum_phase_share,
             refresh=self.refresh,
             cost_points=self.cost_points,
         )

@@ -36,13 +36,7 @@ import math
 from .dynamics import ModelDynamics, StaticMap
 from .inverse import solve_inverse
 
-__all__ = [
-    "PredictiveInverse",
-    "PredictiveSettings",
-    "settling_horizon",
-    "step_response",
-    "wrong_way",
-]
+__all__ = ["PredictiveInverse", "PredictiveSettings", "settling_horizon", "step_response"]
 
 #: Power-iteration sweeps of the rank-one factorisation (a 3×3 symmetric matrix).
 _POWER_SWEEPS = 30
@@ -58,7 +52,6 @@ class PredictiveSettings:
         "max_blocks",
         "max_horizon",
         "min_horizon",
-        "minimum_phase_share",
         "move_weight",
         "refresh",
     )
@@ -73,7 +66,6 @@ class PredictiveSettings:
         disturbance_share: float = 0.5,
         refresh: int = 50,
         cost_points: int = 120,
-        minimum_phase_share: float = 0.1,
     ) -> None:
         if not 2 <= min_horizon <= max_horizon:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
@@ -85,8 +77,6 @@ class PredictiveSettings:
             raise ValueError("move_weight must be finite and >= 0")
         if not (math.isfinite(disturbance_share) and disturbance_share > 0.0):
             raise ValueError("disturbance_share must be finite and > 0")
-        if not (math.isfinite(minimum_phase_share) and minimum_phase_share > 0.0):
-            raise ValueError("minimum_phase_share must be finite and > 0")
         if refresh < 1:
             raise ValueError("refresh must be >= 1")
         if cost_points < 1:
@@ -97,9 +87,6 @@ class PredictiveSettings:
         self.max_blocks = int(max_blocks)
         self.move_weight = float(move_weight)
         self.disturbance_share = float(disturbance_share)
-        #: The same share where the identified step response has no wrong-way part: there
-        #: a fast correction costs no wrong-way excursion (see ``wrong_way``).
-        self.minimum_phase_share = float(minimum_phase_share)
         self.refresh = int(refresh)
         #: At most this many points of the horizon enter the cost (evenly spaced, the last
         #: one always).
@@ -143,22 +130,6 @@ def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
                 acc += ar[i] * out[j - 1 - i]
         out.append(acc)
     return out
-
-
-def wrong_way(response: list[float], band: float) -> bool:
-    """Whether a step response first moves against its final value by more than ``band``
-    of it (a non-minimum-phase plant's undershoot); True when it has no usable final value,
-    so that the slow disturbance estimate is the default."""
-    if not response:
-        return True
-    final = response[-1]
-    if not (math.isfinite(final) and final != 0.0):
-        return True
-    worst = 0.0
-    for x in response:
-        if x * final < worst:
-            worst = x * final
-    return -worst > band * final * final
 
 
 def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
@@ -401,7 +372,6 @@ class PredictiveInverse:
         "_shape",
         "_sim",
         "_starts",
-        "_wrong_way",
         "rate",
         "settings",
         "u_max",
@@ -437,9 +407,6 @@ class PredictiveInverse:
         self._starts: list[int] = []  # first sample of each input block
         self._plan_state: list[int] | None = None  # the last plan's active bounds
         self._plan_model: ModelDynamics | None = None  # the model of the last derivation
-        # Whether the identified step response moves the wrong way first (``wrong_way``):
-        # the disturbance estimate's pace. Until derived: yes (the slow estimate).
-        self._wrong_way = True
         self._sim: list[float] | None = None  # internal model's outputs y_m(k), y_m(k−1), …
 
     @property
@@ -481,14 +448,7 @@ class PredictiveInverse:
             sim.insert(0, y_m)
         self._age += 1
         horizon = self.horizon_for(dyn)
-        # Slow where the identified plant answers with a wrong-way excursion (correcting
-        # fast through it costs more than it saves), faster where it does not: a dead zone
-        # or other static mismatch leaves a steady error at each new level that only this
-        # estimate removes (measured on the random plants, docs/control.md).
-        share = self.settings.disturbance_share
-        if not self._wrong_way:
-            share = self.settings.minimum_phase_share
-        alpha = 1.0 / (1.0 + share * horizon)
+        alpha = 1.0 / (1.0 + self.settings.disturbance_share * horizon)
         self._disturbance += alpha * (y - y_m - self._disturbance)
 
     def horizon_for(self, dyn: ModelDynamics) -> int:
@@ -523,7 +483,6 @@ class PredictiveInverse:
         s = self.settings
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
-        self._wrong_way = wrong_way(response, s.band)
         starts = block_starts(n, s.max_blocks)
         nblocks = len(starts)
         stride = max(1, -(-n // s.cost_points))
