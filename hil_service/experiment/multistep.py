@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from hil_service.umodel import OneStepModel
-from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
+from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error, significant
 
 ModelFactory = Callable[[], OneStepModel]
 
@@ -153,18 +153,11 @@ class MultiStepScores:
     def as_json(self) -> dict[str, Any]:
         return {
             "fit": _round(self.fit, 3),
-            "k_step_nmse": _significant(self.k_step_nmse),
+            "k_step_nmse": significant(self.k_step_nmse),
             "horizon": self.horizon,
             "fit_split": self.split,
             "k_step_windows": self.windows,
         }
-
-
-def _significant(value: float | None, digits: int = 6) -> float | None:
-    """``digits`` significant digits: an NMSE of 3e-8 must not print as 0."""
-    if value is None or not math.isfinite(value):
-        return None
-    return float(f"{value:.{digits}g}")
 
 
 def _round(value: float | None, digits: int) -> float | None:

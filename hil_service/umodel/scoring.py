@@ -75,14 +75,16 @@ class ErrorStats:
     def summary(self) -> dict[str, float | int | None]:
         return {
             "samples": self.count,
-            "nmse": _round(self.nmse()),
-            "persistence_nmse": _round(self.persistence_nmse()),
-            "skill": _round(self.skill()),
-            "recent_skill": _round(self.recent_skill()),
+            "nmse": significant(self.nmse()),
+            "persistence_nmse": significant(self.persistence_nmse()),
+            "skill": significant(self.skill()),
+            "recent_skill": significant(self.recent_skill()),
         }
 
 
-def _round(value: float | None) -> float | None:
+def significant(value: float | None) -> float | None:
+    """Six significant digits for a report (an NMSE of 3e-8 must not print as 0); None for
+    a missing or non-finite value."""
     return None if value is None or not math.isfinite(value) else float(f"{value:.6g}")
 
 
@@ -162,6 +164,6 @@ class MultiStepStats:
     def summary(self, horizon: int) -> dict[str, float | int | None]:
         return {
             "multistep_horizon": horizon,
-            "multistep_nmse": _round(self.nmse()),
-            "multistep_fit": _round(self.fit()),
+            "multistep_nmse": significant(self.nmse()),
+            "multistep_fit": significant(self.fit()),
         }
