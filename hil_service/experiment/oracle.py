@@ -196,6 +196,9 @@ class OracleSettings:
     # Time constant (samples) of the low-passed slope of d̂ that extrapolates the disturbance
     # over the horizon (0: d̂ held constant).
     disturbance_trend: float = 0.0
+    # The error is costed on every sample before this one, on every cost_stride-th after it
+    # (0: the stride from the start).
+    stride_from: int = 0
 
     def __post_init__(self) -> None:
         if self.horizon < 2:
@@ -208,6 +211,8 @@ class OracleSettings:
             raise ValueError("disturbance_tau must be ≥ 0 (0: no filtering)")
         if self.cost_stride < 1:
             raise ValueError("cost_stride must be ≥ 1")
+        if self.stride_from < 0:
+            raise ValueError("stride_from must be ≥ 0")
         if not self.disturbance_trend >= 0:
             raise ValueError("disturbance_trend must be ≥ 0 (0: no trend)")
 
@@ -246,7 +251,12 @@ class OracleController:
                 upper = step[j - j0]
                 lower = step[j - j1] if j >= j1 else 0.0
                 forced[j, b] = upper - lower
-        cost_rows = np.arange(1, horizon, s.cost_stride)  # y(k+1) is already decided
+        # y(k+1) is already decided. Every sample up to ``stride_from``, then every
+        # ``cost_stride``-th one, each weighted by the samples it stands for.
+        dense = np.arange(1, min(max(s.stride_from, 1), horizon))
+        sparse = np.arange(dense[-1] + 1 if dense.size else 1, horizon, s.cost_stride)
+        cost_rows = np.concatenate((dense, sparse))
+        spans = np.concatenate((np.ones(dense.size), np.full(sparse.size, s.cost_stride)))
         self._free = free[cost_rows]
         self._ahead = cost_rows + 1.0  # samples from k to each costed output
         self._forced = forced[cost_rows]
@@ -257,7 +267,7 @@ class OracleController:
         # move slacks m (nb) with m_b ≥ |V_b − V_{b−1}|.
         self._moves = s.move_weight > 0
         nm = nb if self._moves else 0
-        weights = float(s.cost_stride) * np.power(s.discount, cost_rows.astype(float))
+        weights = spans * np.power(s.discount, cost_rows.astype(float))
         cost = np.concatenate((np.zeros(nb), weights, np.full(nm, s.move_weight)))
         eye_t = np.eye(nt)
         diff = np.eye(nb) - np.eye(nb, k=-1)  # V_b − V_{b−1}; row 0 is V_0 (− v(k) in b_ub)
