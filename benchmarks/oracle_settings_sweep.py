@@ -1,7 +1,7 @@
-"""The glider oracle's depth IAE under other settings (issue 18: can a fair, better known-model
-controller bring paper depth to issue 15's 12,829?). Printed, not a test.
+"""The glider oracle's depth IAE under other settings (issues 15 and 18: can a fair, better
+known-model controller bring paper depth to issue 15's 12,829?). Printed, not a test.
 
-    .venv/bin/python benchmarks/oracle_settings_sweep.py --scenarios paper --variants main,h1000
+    .venv/bin/python benchmarks/oracle_settings_sweep.py --scenarios paper --variants main,previous
 
 Each variant is ``GLIDER_ORACLE["depth"]`` with one change; pitch keeps its settings. Runs
 ``oracle_run`` as ``experiment --closed-loop --samples 20000 --seed 0`` does.
@@ -28,23 +28,33 @@ from hil_service.experiment.oracle import OracleSettings
 from plant_emulator.plant import GliderPlant, PlantConfig
 
 BASE = GLIDER_ORACLE["depth"]
-TAIL = (8, 8, 16, 16, 32, 64, 128)
+#: Before issue 15's oracle row was brought to the full-resolution optimum (blocks of 4
+#: samples, the error costed every 4th sample): 12,835.28 on paper.
+PREVIOUS = replace(
+    BASE,
+    horizon=600,
+    blocks=(4, 4, 4, 4, 4, 4, 8, 8, 16, 16, 32, 64, 128),
+    cost_stride=4,
+    stride_from=0,
+)
 VARIANTS: dict[str, OracleSettings] = {
     "main": BASE,
-    "stride1": replace(BASE, cost_stride=1),
-    "stride2": replace(BASE, cost_stride=2),
-    "h800": replace(BASE, horizon=800, blocks=(*BASE.blocks, 128)),
-    "h1000": replace(BASE, horizon=1000, blocks=(*BASE.blocks, 128, 256)),
-    "blocks1": replace(BASE, blocks=(1,) * 8 + (4,) * 4 + TAIL),
-    "blocks2": replace(BASE, blocks=(2,) * 12 + (4,) * 4 + TAIL),
-    "blocks3": replace(BASE, blocks=(3,) * 8 + (6, 6, 12, 12, 24, 48, 96, 192)),
-    "blocks4x10": replace(BASE, blocks=(4,) * 10 + TAIL),
-    "blocks5": replace(BASE, blocks=(5,) * 6 + (10, 10, 20, 20, 40, 80, 160)),
-    "blocks6": replace(BASE, blocks=(6,) * 6 + (12, 12, 24, 24, 48, 96, 192)),
-    "first8": replace(BASE, blocks=(8, *BASE.blocks[2:])),
-    "move1e-3": replace(BASE, move_weight=1e-3),
+    "previous": PREVIOUS,
+    # The reference: a free input on every one of the first 200 samples, costed on every one.
+    "full1000": replace(
+        BASE, horizon=1000, blocks=(1,) * 200 + (800,), cost_stride=1, stride_from=0
+    ),
+    "stride1": replace(BASE, cost_stride=1, stride_from=0),
+    # The stride over the single-sample moves too: the plan wiggles between costed samples.
+    "stride4_everywhere": replace(BASE, stride_from=0),
+    "stride2_everywhere": replace(BASE, cost_stride=2, stride_from=0),
+    "first2": replace(BASE, blocks=(2,) * 8 + (4,) * 8 + (8,) * 8 + (16,) * 4 + (32,) * 4),
+    "first1x4": replace(
+        BASE, blocks=(1,) * 4 + (2,) * 4 + (4,) * 4 + (8,) * 4 + (16,) * 4 + (32,) * 4 + (64,) * 2
+    ),
+    "h600": replace(BASE, horizon=600),
     "no_terminal": replace(BASE, terminal=False),
-    "discount1.0005": replace(BASE, discount=1.0005),
+    "move1e-3": replace(BASE, move_weight=1e-3),
 }
 
 

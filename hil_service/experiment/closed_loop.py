@@ -28,18 +28,25 @@ from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.samples import TelemetrySample
 
 #: The oracle's settings on the emulator's channels, tuned on seed 0 (``docs/control.md``):
-#: depth looks 600 samples ahead (its non-minimum-phase zero at z = 1.0045 has a time scale
-#: of ~220 samples) with blocks of 4 samples at first (finer ones measured worse), and
-#: estimates the disturbance slowly; pitch is fast and needs no blocking.
+#: depth looks 400 samples ahead (its non-minimum-phase zero at z = 1.0045 has a time scale
+#: of ~220 samples) with single-sample moves at first, growing to 32, and the error costed
+#: on every sample over the short moves (a stride longer than the shortest block lets the
+#: plan wiggle between the costed samples), every 4th beyond; on paper each step then
+#: realises the full-resolution LP optimum (no better causal plan exists without preview).
+#: It estimates the disturbance slowly. Pitch is fast and needs no blocking; its disturbance
+#: is extrapolated along its low-passed slope.
 GLIDER_ORACLE: dict[str, OracleSettings] = {
     "depth": OracleSettings(
-        horizon=600,
-        blocks=(4, 4, 4, 4, 4, 4, 8, 8, 16, 16, 32, 64, 128),
+        horizon=400,
+        blocks=(1,) * 8 + (2,) * 8 + (4,) * 8 + (8,) * 8 + (16,) * 4 + (32,) * 4,
         disturbance_tau=5000.0,
         cost_stride=4,
+        stride_from=60,  # every sample while the moves are finer than 8 samples
         terminal=True,
     ),
-    "pitch": OracleSettings(horizon=30, blocks=(1,) * 14 + (16,), disturbance_tau=1.0),
+    "pitch": OracleSettings(
+        horizon=30, blocks=(1,) * 14 + (16,), disturbance_tau=1.0, disturbance_trend=30.0
+    ),
 }
 
 #: Setpoint sequences cycled through, one step every ``step_every`` samples. Depth in
