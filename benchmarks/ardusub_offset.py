@@ -103,7 +103,7 @@ def run(
                 decision.command.u_depth, decision.command.u_pitch
             )  # fmt: skip
             if trace and (k - identify) % 10 == 0:
-                sim = depth.controller._sim  # noqa: SLF001 (a diagnosis tool)
+                sim = depth.controller._sim
                 rows.append(
                     {
                         "n": k - identify,
@@ -145,7 +145,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trace", type=int, help="print this seed's trace")
     parser.add_argument("--scenario", default="paper")
     parser.add_argument(
-        "--set", action="append", default=[], metavar="NAME=VALUE",
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
         help="a ControlSettings field (e.g. cost_points=1000)",
     )
     args = parser.parse_args(argv)
@@ -165,7 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     halves = []
     for seed in args.seeds:
         result = run(
-            seed, args.jitter, control=args.control, scenario=args.scenario,
+            seed,
+            args.jitter,
+            control=args.control,
+            scenario=args.scenario,
             control_settings=control_settings,
         )
         halves.append(result["second_half_m"])
