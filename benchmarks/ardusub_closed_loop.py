@@ -4,7 +4,8 @@ in this process, what `serve --profile ardusub --sample-period S` will do (compa
 manners, periodic sampling, the identification/control pipeline, DO_SET_SERVO commands).
 
 Run: .venv/bin/python benchmarks/ardusub_closed_loop.py [--speed 5] [--identify 60]
-     [--control 60] [--period 0.1]
+     [--control 60] [--period 0.1] [--seed 0]
+(benchmarks/ardusub_offset.py steps the same loop in process, seed after seed.)
 Prints JSON: samples formed per expected, identifier skill per channel at the end of
 identification, and the mean |y − setpoint| over the second half of each setpoint step.
 """
@@ -64,6 +65,7 @@ def main() -> None:
     parser.add_argument("--control", type=float, default=60.0, help="simulated s per step")
     parser.add_argument("--scenario", default="paper")
     parser.add_argument("--model", default="dynamic")
+    parser.add_argument("--seed", type=int, default=0, help="the emulator's (prbs, plant)")
     args = parser.parse_args()
     profile = load_profile("ardusub")
     # Half the identification phase: a reading the sampler served twice refills the history
@@ -85,6 +87,8 @@ def main() -> None:
         str(args.period),
         "--scenario",
         args.scenario,
+        "--seed",
+        str(args.seed),
         "--uptime",
         f"{US32_SPAN - args.identify:.3f}",
         "--excitation",
@@ -114,6 +118,7 @@ def main() -> None:
     expected = round((samples[-1].t - samples[0].t) / args.period) + 1
     usec = client.servo_usec
     report = {
+        "seed": args.seed,
         "speed": args.speed,
         "sample_period": args.period,
         "samples": len(samples),

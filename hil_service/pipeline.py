@@ -53,7 +53,7 @@ class ControlSettings:
     move_weight: float = 0.03  # input-move penalty, relative to the output cost's scale
     disturbance_share: float = 0.5  # disturbance estimate's time constant / horizon
     refresh: int = 50  # samples between two horizon derivations
-    cost_points: int = 120  # points of the horizon in the cost (evenly spaced)
+    cost_points: int = 120  # strided points of the horizon in the cost (see cost_points)
 
     def __post_init__(self) -> None:
         self.predictive()  # validates the constants
