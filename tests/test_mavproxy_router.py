@@ -180,8 +180,10 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
     # Both steps tracked, across the wrap and MAVProxy's lowerings (each costs a second of
     # samples and a refill of the identifier's lags). The depth step starts where the PRBS
     # left the vehicle (11.5-19.2 m in the runs below), often still moving, so the second
-    # half can hold the end of an overshoot. Measured with the predictive inverse, load 8:
-    # depth 0.003-0.178 m in 7 runs (wrap at control sample 621-712), pitch below 1e-5 rad.
+    # half can hold the end of an overshoot. Before the plan's cost saw every move
+    # (docs/control.md, "Blocks the cost does not see") depth stalled 0.4-1.2 m short for
+    # ~550 samples in 3 of 17 runs (CI failed on one, 0.68 m); after, load 2-6: depth
+    # 0.002-0.074 m in 8 runs, pitch below 1e-5 rad.
     assert depth_error < DEPTH_BAND and pitch_error < PITCH_BAND
     # Commands as DO_SET_SERVO through the router, from the companion's identity.
     assert vehicle["commands_accepted"] >= 0.9 * served["vehicles"]["1"]["commands_sent"] > 0
