@@ -1,19 +1,19 @@
 """The live view's own process: the Foxglove WebSocket server (``foxglove-sdk``) and all the
 work of feeding it, outside the service's process.
 
-``LiveView`` (view.py) starts it as ``python -m hil_service.live.server --fd N …`` with one
-end of a Unix ``SOCK_SEQPACKET`` socket pair. Over it the service's process sends batches
-(one pickled list per message, see ``wire.py``) of entries it has already encoded, and this
-process answers with its status (one JSON object per message: first ``{"port": N}`` once the
-server listens, or ``{"error": TEXT}``; then its counters whenever they change). Here, on its
-own interpreter and GIL and at a lower scheduling priority (``NICE``), one loop creates a
-Foxglove channel per topic (same topic names, encodings and schemas as the MCAP log,
-docs/mcap.md), decodes MAVLink frames as the recorder does (the frame on
-``mavlink/raw/{direction}``, its JSON on ``mavlink/json/{direction}/{TYPE}``) and hands each
-message of a channel a client subscribes to to the SDK, whose server keeps a bounded backlog
-per client (``BACKLOG`` messages, oldest dropped): a slow or vanished viewer costs the
-service nothing. The process ends when the service's end of the socket closes (``close()``,
-or the service's process ended).
+``LiveView`` (view.py) starts it as ``python -m hil_service.live --fd N …`` (``__main__.py``,
+which lowers its priority first) with one end of a Unix ``SOCK_SEQPACKET`` socket pair. Over
+it the service's process sends batches (one pickled list per message, see ``wire.py``) of
+entries it has already encoded, and this process answers with its status (one JSON object
+per message: first ``{"port": N}`` once the server listens, or ``{"error": TEXT}``; then its
+counters whenever they change). Here, on its own interpreter and GIL and at a lower
+scheduling priority, one loop creates a Foxglove channel per topic (same topic names,
+encodings and schemas as the MCAP log, docs/mcap.md), decodes MAVLink frames as the recorder
+does (the frame on ``mavlink/raw/{direction}``, its JSON on
+``mavlink/json/{direction}/{TYPE}``) and hands each message of a channel a client subscribes
+to to the SDK, whose server keeps a bounded backlog per client (``BACKLOG`` messages, oldest
+dropped): a slow or vanished viewer costs the service nothing. The process ends when the
+service's end of the socket closes (``close()``, or the service's process ended).
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ import argparse
 import contextlib
 import json
 import logging
-import os
 import pickle
 import select
 import signal
@@ -53,10 +52,6 @@ SDK_OVERFLOW_LOGGER = "foxglove.websocket.connected_client.send_lossy"
 BACKLOG = 1024
 #: The longest between two looks at the channels' subscribers while no batch arrives, s.
 STATUS_PERIOD = 0.02
-#: Added to this process's nice value: when the machine's cores are all busy, the service's
-#: path runs before the live view (which then falls behind, and past the hand-off's bound
-#: drops, counted), never the other way round.
-NICE = 5
 
 
 def channel_schema(topic: str) -> Schema | None:
@@ -285,7 +280,6 @@ def main(argv: list[str] | None = None) -> int:
     # The service's process stops this one (it closes its end of the socket); a Ctrl-C for
     # the whole process group must not end it first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.nice(NICE)
     sock = socket.socket(fileno=args.fd)
     try:
         server = LiveServer(args.host, args.port, args.name)

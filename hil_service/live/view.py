@@ -3,17 +3,20 @@ owns the Foxglove WebSocket server (server.py), off the control path and off its
 
 The service's thread calls ``offer(topic, payload)`` and ``offer_mavlink(direction, message,
 frame)``: one bounded-deque append, or a counted drop when the deque is full; it never
-encodes, never touches a socket, never waits. While no client subscribes to a MAVLink
-channel, a MAVLink message of a type already handed over is not even queued (the live
-view's process says whether one does; a viewer that subscribes gets them from the next
-batch on). A small thread here, every ``FLUSH_PERIOD``, takes what the deque holds and sends
-it to the live view's process as pickled batches (wire.py): one non-blocking socket send per
-batch, a few per period, a few tens of microseconds under the GIL. All the rest (channels,
-JSON of MAVLink messages, the SDK's calls, its server's threads) runs in that process, on
-its own interpreter and at a lower priority, so that it competes with the service's thread
+encodes, never waits. While no client subscribes to a MAVLink channel, a MAVLink message of
+a type already handed over is not even queued (the live view's process says whether one
+does; a viewer that subscribes gets them from the next batch on). Every ``FLUSH_PERIOD`` at
+most, the offer that finds the period over sends what the deque holds to the live view's
+process as pickled batches (wire.py): a non-blocking socket send per batch, about a
+microsecond an entry, on the service's own thread. So no other thread of this process takes
+the GIL from it for the live view (a thread that did, 50 times a second, made the service's
+thread wait for it and then for a core); a helper thread only looks every ``IDLE_CHECK`` for
+entries left when offers stop, and for the live view's status. All the rest (channels, JSON
+of MAVLink messages, the SDK's calls, its server's threads) runs in that process, on its
+own interpreter and at a lower priority, so that it competes with the service's thread
 neither for the GIL nor, when the cores are busy, for a core. When that process falls
-behind, batches wait here, within the same bound as the deque, and past it are dropped and
-counted (``live_dropped``).
+behind, batches wait here, within the same bound as the deque, and past it new entries are
+dropped and counted (``live_dropped``).
 """
 
 from __future__ import annotations
@@ -37,9 +40,11 @@ from protocols.mavlink_io import MavMessage
 #: Entries held between the service and the live view's process (here, unsent); past that
 #: they are dropped.
 MAX_PENDING = 10_000
-#: Between two sends of the deque's entries, s (the view's latency, and this process's
-#: GIL taken that often).
+#: Between two sends of the deque's entries by the offering thread, s.
 FLUSH_PERIOD = 0.02
+#: Between two looks of the helper thread (entries left queued once offers stopped; the
+#: live view's status while nothing is offered), s: the view's latency when idle.
+IDLE_CHECK = 0.05
 #: Entries in one batch message at most (also split when its pickle exceeds MAX_MESSAGE).
 MAX_BATCH = 256
 #: How long the live view's process may take to start its server (a loaded machine), s.
@@ -82,10 +87,11 @@ class LiveView:
         self._process: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._inputs: list[Any] = []
+        #: Held by whichever thread sends (an offering one, the helper, ``sync``, ``close``);
+        #: an offer that finds it taken leaves its entry for that one, never waits.
+        self._sending = threading.Lock()
+        self._flush_due = 0  # time.time_ns() from which an offer sends the queue
         self._stop = threading.Event()
-        self._wake = threading.Event()
-        self._syncing = False
-        self._cycles = 0  # the sender thread's, each ended
         self._thread = threading.Thread(target=self._run, name="foxglove-live", daemon=True)
 
     def start(self) -> LiveView:
@@ -97,7 +103,7 @@ class LiveView:
         try:
             self._process = subprocess.Popen(
                 [
-                    sys.executable, "-m", "hil_service.live.server",
+                    sys.executable, "-m", "hil_service.live",
                     "--fd", str(theirs.fileno()), "--host", self.address.host,
                     "--port", str(self.address.port), "--name", self.name,
                 ],
@@ -145,7 +151,11 @@ class LiveView:
         if len(self._pending) + self._backlog >= self.max_pending:
             self.dropped += 1
             return
-        self._pending.append((topic, payload, t_ns or time.time_ns()))
+        if not t_ns:
+            t_ns = time.time_ns()
+        self._pending.append((topic, payload, t_ns))
+        if t_ns >= self._flush_due:
+            self._send_queued(False)
 
     def offer_mavlink(
         self, direction: str, message: MavMessage | None, frame: bytes | None, t_ns: int
@@ -171,6 +181,8 @@ class LiveView:
         # the object, so that its JSON is the log's (fields before packing).
         sent = message if direction == "out" else None
         self._pending.append((MAVLINK, (direction, kind, frame, sent), t_ns))
+        if t_ns >= self._flush_due:
+            self._send_queued(False)
 
     def watched(self) -> bool:
         """Whether a client subscribes to at least one channel (as last reported)."""
@@ -214,19 +226,11 @@ class LiveView:
         """Send what is queued now and wait until the live view's process has taken it all
         (a benchmark's end of run); False if it has not within ``timeout``."""
         deadline = time.monotonic() + timeout
-        # The sender thread's cycle under way may hold entries it took (counted nowhere
-        # while in its hands): only after a whole cycle begun from here is ``pending`` exact.
-        after = self._cycles + 2
-        self._syncing = True
-        self._wake.set()
-        try:
-            while self._cycles < after or self.pending() > 0:
-                if time.monotonic() > deadline or not self._thread.is_alive():
-                    return False
-                time.sleep(0.0005)
-            return True
-        finally:
-            self._syncing = False
+        while self._send_queued(True) > 0:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.0005)
+        return True
 
     def watch_inputs(self, session: Any) -> None:
         """Also stream the inputs the service receives (setpoints, control), as the log
@@ -239,21 +243,28 @@ class LiveView:
             session.declare_subscriber(key_expr, on_input) for key_expr in keys.INPUT_SUBSCRIPTIONS
         ]
 
-    # ---- sender thread --------------------------------------------------------------------
+    # ---- sending --------------------------------------------------------------------------
+    def _send_queued(self, wait: bool) -> int:
+        """Send what is queued and read the live view's status; then the entries pending
+        (offered, not yet taken there), or -1 when another thread was sending and
+        ``wait`` is False (an offer: that thread sends its entry)."""
+        if not self._sending.acquire(wait):
+            return -1
+        try:
+            self._flush_due = time.time_ns() + int(FLUSH_PERIOD * 1e9)
+            if self._sock is not None:
+                self._flush()
+                self._read_status()
+            # Exact here: no entry is in a sender's hands while this lock is held.
+            return self.pending()
+        finally:
+            self._sending.release()
+
     def _run(self) -> None:
-        # A batch every FLUSH_PERIOD: a busy loop here would take the GIL from the control
-        # path each time it lets go (while ``sync`` waits, a short period).
-        while not self._stop.is_set():
-            self._wake.wait(0.0005 if self._syncing else FLUSH_PERIOD)
-            self._wake.clear()
-            self._flush()
-            self._read_status()
-            self._cycles += 1
-        deadline = time.monotonic() + STOP_TIMEOUT
-        self._flush()
-        while self._unsent and time.monotonic() < deadline:  # let it take what waits
-            time.sleep(0.005)
-            self._flush()
+        # Only a look, while the service's thread sends: each takes the GIL for an instant.
+        while not self._stop.wait(IDLE_CHECK):
+            if time.time_ns() >= self._flush_due:  # nobody sent lately
+                self._send_queued(False)
 
     def _flush(self) -> None:
         while self._unsent:  # what the live view's process could not take before, first
@@ -340,10 +351,15 @@ class LiveView:
             subscriber.undeclare()
         self._inputs = []
         self._stop.set()
-        self._wake.set()
         if self._thread.is_alive():
             self._thread.join(STOP_TIMEOUT)
-        sock, self._sock = self._sock, None
+        deadline = time.monotonic() + STOP_TIMEOUT
+        self._send_queued(True)
+        while self._unsent and time.monotonic() < deadline:  # let it take what waits
+            time.sleep(0.005)
+            self._send_queued(True)
+        with self._sending:
+            sock, self._sock = self._sock, None
         if sock is not None:
             with contextlib.suppress(OSError):
                 sock.shutdown(socket.SHUT_WR)  # the live view's process sees the end
