@@ -96,6 +96,7 @@ def one_run(
         viewer_cpu = None if viewer is None else cpu_seconds(viewer.pid)
         # Every thread of this process (ours, Zenoh's) and of the live view's (the SDK's).
         cpu0 = time.process_time() + live_cpu_seconds(live)
+        thread0 = time.thread_time()  # the service's thread alone (this one)
         t0 = time.perf_counter()
         for data in datagrams:
             service.process_datagram(data)
@@ -104,6 +105,7 @@ def one_run(
         if live is not None and not live.sync():
             raise RuntimeError("the live view did not catch up within 60 s")
         elapsed = time.perf_counter() - t0
+        thread_cpu = time.thread_time() - thread0
         cpu = time.process_time() + live_cpu_seconds(live) - cpu0
         if viewer is not None and viewer_cpu is not None:
             viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
@@ -120,6 +122,7 @@ def one_run(
     return {
         "samples_per_s": samples / elapsed,
         "cpu_ms_per_sample": 1000 * cpu / samples,
+        "thread_cpu_ms_per_sample": 1000 * thread_cpu / samples,
         "viewer_cpu_ms_per_sample": None if viewer_cpu is None else 1000 * viewer_cpu / samples,
         "live": status,
     }
@@ -266,6 +269,9 @@ def main() -> int:
     def cpu(runs: list[dict[str, Any]]) -> float:
         return statistics.median(run["cpu_ms_per_sample"] for run in runs)
 
+    def thread_cpu(runs: list[dict[str, Any]]) -> float:
+        return statistics.median(run["thread_cpu_ms_per_sample"] for run in runs)
+
     pairs = [b / a for a, b in zip(rates(off), rates(on), strict=True)]
     report = {
         "samples": args.samples,
@@ -288,6 +294,12 @@ def main() -> int:
         "cpu_ms_per_sample_without": round(cpu(off), 4),
         "cpu_ms_per_sample_with_viewer": round(cpu(on), 4),
         "cpu_bound_ratio_with_to_without": round(cpu(off) / cpu(on), 3),
+        # The service's thread alone: the throughput it has on a core of its own while
+        # everything else (the live view's process, the viewer, Zenoh, the log) has the
+        # other; on two otherwise idle cores, the bound of the whole-run ratio.
+        "thread_cpu_ms_per_sample_without": round(thread_cpu(off), 4),
+        "thread_cpu_ms_per_sample_with_viewer": round(thread_cpu(on), 4),
+        "thread_bound_ratio_with_to_without": round(thread_cpu(off) / thread_cpu(on), 3),
         "viewer_cpu_ms_per_sample": round(
             statistics.median(run["viewer_cpu_ms_per_sample"] for run in on), 4
         ),
