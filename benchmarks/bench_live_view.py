@@ -32,6 +32,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -97,6 +98,7 @@ def one_run(
         # Every thread of this process (ours, Zenoh's) and of the live view's (the SDK's).
         cpu0 = time.process_time() + live_cpu_seconds(live)
         thread0 = time.thread_time()  # the service's thread alone (this one)
+        sched0 = thread_sched()
         t0 = time.perf_counter()
         for data in datagrams:
             service.process_datagram(data)
@@ -106,6 +108,7 @@ def one_run(
             raise RuntimeError("the live view did not catch up within 60 s")
         elapsed = time.perf_counter() - t0
         thread_cpu = time.thread_time() - thread0
+        sched = [after - before for after, before in zip(thread_sched(), sched0, strict=True)]
         cpu = time.process_time() + live_cpu_seconds(live) - cpu0
         if viewer is not None and viewer_cpu is not None:
             viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
@@ -123,6 +126,10 @@ def one_run(
         "samples_per_s": samples / elapsed,
         "cpu_ms_per_sample": 1000 * cpu / samples,
         "thread_cpu_ms_per_sample": 1000 * thread_cpu / samples,
+        # Time the service's thread was ready to run but waited for a core, and how often it
+        # gave its core up itself (to wait for the GIL, mostly).
+        "thread_runqueue_wait_ms_per_sample": sched[0] / 1e6 / samples,
+        "thread_voluntary_switches": sched[1],
         "viewer_cpu_ms_per_sample": None if viewer_cpu is None else 1000 * viewer_cpu / samples,
         "live": status,
     }
@@ -220,6 +227,22 @@ def live_cpu_seconds(live: LiveView | None) -> float:
     return 0.0 if live is None or live.pid is None else cpu_seconds(live.pid)
 
 
+def thread_sched() -> tuple[int, int]:
+    """(ns waited on a run queue, voluntary context switches) of the calling thread (Linux
+    /proc; zeros elsewhere)."""
+    task = f"/proc/self/task/{threading.get_native_id()}"
+    try:
+        with open(f"{task}/schedstat") as f:
+            waited = int(f.read().split()[1])
+        with open(f"{task}/status") as f:
+            switches = next(
+                int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches")
+            )
+    except (OSError, StopIteration, IndexError, ValueError):
+        return 0, 0
+    return waited, switches
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a live process (all its threads), s."""
     with open(f"/proc/{pid}/stat") as f:
@@ -272,6 +295,13 @@ def main() -> int:
     def thread_cpu(runs: list[dict[str, Any]]) -> float:
         return statistics.median(run["thread_cpu_ms_per_sample"] for run in runs)
 
+    def median(runs: list[dict[str, Any]], what: str) -> float:
+        field = {
+            "wait": "thread_runqueue_wait_ms_per_sample",
+            "switches": "thread_voluntary_switches",
+        }
+        return statistics.median(run[field[what]] for run in runs)
+
     pairs = [b / a for a, b in zip(rates(off), rates(on), strict=True)]
     report = {
         "samples": args.samples,
@@ -300,6 +330,10 @@ def main() -> int:
         "thread_cpu_ms_per_sample_without": round(thread_cpu(off), 4),
         "thread_cpu_ms_per_sample_with_viewer": round(thread_cpu(on), 4),
         "thread_bound_ratio_with_to_without": round(thread_cpu(off) / thread_cpu(on), 3),
+        "thread_runqueue_wait_ms_per_sample_without": round(median(off, "wait"), 4),
+        "thread_runqueue_wait_ms_per_sample_with_viewer": round(median(on, "wait"), 4),
+        "thread_voluntary_switches_without": round(median(off, "switches")),
+        "thread_voluntary_switches_with_viewer": round(median(on, "switches")),
         "viewer_cpu_ms_per_sample": round(
             statistics.median(run["viewer_cpu_ms_per_sample"] for run in on), 4
         ),
