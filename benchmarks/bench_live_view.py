@@ -102,13 +102,14 @@ def one_run(
         t0 = time.perf_counter()
         for data in datagrams:
             service.process_datagram(data)
+        # The service's thread on the path alone (not its wait for the live view below).
+        thread_cpu = time.thread_time() - thread0
+        sched = [after - before for after, before in zip(thread_sched(), sched0, strict=True)]
         pending_at_end = 0 if live is None else live.status()["pending"]
         # The live view works behind the path: the run ends when its process has taken all.
         if live is not None and not live.sync():
             raise RuntimeError("the live view did not catch up within 60 s")
         elapsed = time.perf_counter() - t0
-        thread_cpu = time.thread_time() - thread0
-        sched = [after - before for after, before in zip(thread_sched(), sched0, strict=True)]
         cpu = time.process_time() + live_cpu_seconds(live) - cpu0
         if viewer is not None and viewer_cpu is not None:
             viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
