@@ -111,3 +111,23 @@ def test_a_port_in_use_is_a_clear_error() -> None:
         port = taken.getsockname()[1]
         with pytest.raises(RuntimeError, match="did not start"):
             LiveView(LiveAddress("127.0.0.1", port)).start()
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="Linux scheduling policies")
+def test_the_live_view_process_yields_to_the_service() -> None:
+    """Every thread of the live view's process (the SDK's server threads too) runs under
+    SCHED_BATCH, five nice levels below the service: woken, it never preempts the service's
+    thread, and on busy cores the service's path runs first."""
+    live = LiveView(LiveAddress("127.0.0.1", 0)).start()
+    try:
+        assert live.pid is not None
+        tasks = os.listdir(f"/proc/{live.pid}/task")
+        assert len(tasks) > 1  # the SDK's threads are there
+        for task in tasks:
+            with open(f"/proc/{live.pid}/task/{task}/stat") as f:
+                fields = f.read().rpartition(")")[2].split()
+            # Fields after the command: nice is the 19th of stat, policy the 41st.
+            assert int(fields[16]) == min(os.getpriority(os.PRIO_PROCESS, 0) + 5, 19), task
+            assert int(fields[38]) == os.SCHED_BATCH, task
+    finally:
+        live.close()
