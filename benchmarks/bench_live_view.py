@@ -8,7 +8,10 @@ estimates and commands and validating every message, a real WebSocket on loopbac
 alternate (off, on, stalled, off, on, stalled, …; stalled: the viewer is stopped with
 SIGSTOP once subscribed, a viewer that holds its connection and never reads again) so that
 machine load hits all alike; medians and the ratios of medians are printed, with the live
-view's own counters (offered, sent, dropped).
+view's own counters (offered, sent, dropped). A run with the live view ends when the live
+view's process has taken everything offered (``LiveView.sync``). CPU per sample counts
+every thread of this process and of the live view's (the SDK's server runs there), not the
+viewer's (printed apart).
 
 ``--without-mavlink`` leaves the MAVLink channels out of the live view (the service's
 ``live_mavlink`` hook unset), to see what streaming them costs.
@@ -29,6 +32,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -91,16 +95,22 @@ def one_run(
                 viewer.send_signal(signal.SIGSTOP)
         before = service.assembler.counters.samples
         viewer_cpu = None if viewer is None else cpu_seconds(viewer.pid)
-        cpu0 = time.process_time()  # every thread of this process: ours, the SDK's, Zenoh's
+        # Every thread of this process (ours, Zenoh's) and of the live view's (the SDK's).
+        cpu0 = time.process_time() + live_cpu_seconds(live)
+        thread0 = time.thread_time()  # the service's thread alone (this one)
+        sched0 = thread_sched()
         t0 = time.perf_counter()
         for data in datagrams:
             service.process_datagram(data)
+        # The service's thread on the path alone (not its wait for the live view below).
+        thread_cpu = time.thread_time() - thread0
+        sched = [after - before for after, before in zip(thread_sched(), sched0, strict=True)]
         pending_at_end = 0 if live is None else live.status()["pending"]
-        # The live view's thread works behind the path: the run ends when it has caught up.
-        while live is not None and live.status()["pending"]:
-            time.sleep(0.001)
+        # The live view works behind the path: the run ends when its process has taken all.
+        if live is not None and not live.sync():
+            raise RuntimeError("the live view did not catch up within 60 s")
         elapsed = time.perf_counter() - t0
-        cpu = time.process_time() - cpu0
+        cpu = time.process_time() + live_cpu_seconds(live) - cpu0
         if viewer is not None and viewer_cpu is not None:
             viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
         samples = service.assembler.counters.samples - before
@@ -116,6 +126,11 @@ def one_run(
     return {
         "samples_per_s": samples / elapsed,
         "cpu_ms_per_sample": 1000 * cpu / samples,
+        "thread_cpu_ms_per_sample": 1000 * thread_cpu / samples,
+        # Time the service's thread was ready to run but waited for a core, and how often it
+        # gave its core up itself (to wait for the GIL, mostly).
+        "thread_runqueue_wait_ms_per_sample": sched[0] / 1e6 / samples,
+        "thread_voluntary_switches": sched[1],
         "viewer_cpu_ms_per_sample": None if viewer_cpu is None else 1000 * viewer_cpu / samples,
         "live": status,
     }
@@ -128,8 +143,9 @@ def interleaved(
     two services in this process fed the same datagrams in alternate chunks of ``chunk``
     samples (which of the two goes first alternates too): the machine's load changes from
     one moment to the next, and here it hits both alike. A chunk with the live view ends
-    when its thread has caught up, so that its work is counted in its own chunk. CPU time of
-    this process (every thread), not wall time."""
+    when its process has taken everything, so that its work is counted in its own chunk.
+    CPU time of this process (every thread) and, for the chunks with it, of the live view's
+    process; not wall time."""
     config = ServiceConfig()
     stack = []
     live = LiveView(LiveAddress("127.0.0.1", free_tcp_port())).start()
@@ -168,12 +184,14 @@ def interleaved(
             for name, which in order:
                 service = services[which]
                 before = service.assembler.counters.samples
-                cpu0 = time.process_time()
+                cpu0 = time.process_time() + live_cpu_seconds(live if which == 1 else None)
                 for data in part:
                     service.process_datagram(data)
-                while which == 1 and live.status()["pending"]:
-                    time.sleep(0.001)
-                cpu[name].append(time.process_time() - cpu0)
+                if which == 1 and not live.sync():
+                    raise RuntimeError("the live view did not catch up within 60 s")
+                cpu[name].append(
+                    time.process_time() + live_cpu_seconds(live if which == 1 else None) - cpu0
+                )
                 samples[name].append(service.assembler.counters.samples - before)
         ratios = [
             (off / max(n_off, 1)) / (on / max(n_on, 1))
@@ -203,6 +221,27 @@ def interleaved(
             wired.close()
         live.close()
         log_dir.cleanup()
+
+
+def live_cpu_seconds(live: LiveView | None) -> float:
+    """CPU time of the live view's process (its server, the SDK's threads), s; 0 without."""
+    return 0.0 if live is None or live.pid is None else cpu_seconds(live.pid)
+
+
+def thread_sched() -> tuple[int, int]:
+    """(ns waited on a run queue, voluntary context switches) of the calling thread (Linux
+    /proc; zeros elsewhere)."""
+    task = f"/proc/self/task/{threading.get_native_id()}"
+    try:
+        with open(f"{task}/schedstat") as f:
+            waited = int(f.read().split()[1])
+        with open(f"{task}/status") as f:
+            switches = next(
+                int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches")
+            )
+    except (OSError, StopIteration, IndexError, ValueError):
+        return 0, 0
+    return waited, switches
 
 
 def cpu_seconds(pid: int) -> float:
@@ -254,6 +293,16 @@ def main() -> int:
     def cpu(runs: list[dict[str, Any]]) -> float:
         return statistics.median(run["cpu_ms_per_sample"] for run in runs)
 
+    def thread_cpu(runs: list[dict[str, Any]]) -> float:
+        return statistics.median(run["thread_cpu_ms_per_sample"] for run in runs)
+
+    def median(runs: list[dict[str, Any]], what: str) -> float:
+        field = {
+            "wait": "thread_runqueue_wait_ms_per_sample",
+            "switches": "thread_voluntary_switches",
+        }
+        return statistics.median(run[field[what]] for run in runs)
+
     pairs = [b / a for a, b in zip(rates(off), rates(on), strict=True)]
     report = {
         "samples": args.samples,
@@ -271,11 +320,21 @@ def main() -> int:
         # cancel out.
         "ratio_per_pair": [round(x, 3) for x in pairs],
         "median_ratio_per_pair": round(statistics.median(pairs), 3),
-        # The service's CPU per sample (all its threads, the live view's and the SDK's
-        # included): the throughput a core of its own gives, whatever the machine's load.
+        # CPU per sample of the service (every thread) and of the live view's process (the
+        # SDK's): the throughput a core of its own gives, whatever the machine's load.
         "cpu_ms_per_sample_without": round(cpu(off), 4),
         "cpu_ms_per_sample_with_viewer": round(cpu(on), 4),
         "cpu_bound_ratio_with_to_without": round(cpu(off) / cpu(on), 3),
+        # The service's thread alone: the throughput it has on a core of its own while
+        # everything else (the live view's process, the viewer, Zenoh, the log) has the
+        # other; on two otherwise idle cores, the bound of the whole-run ratio.
+        "thread_cpu_ms_per_sample_without": round(thread_cpu(off), 4),
+        "thread_cpu_ms_per_sample_with_viewer": round(thread_cpu(on), 4),
+        "thread_bound_ratio_with_to_without": round(thread_cpu(off) / thread_cpu(on), 3),
+        "thread_runqueue_wait_ms_per_sample_without": round(median(off, "wait"), 4),
+        "thread_runqueue_wait_ms_per_sample_with_viewer": round(median(on, "wait"), 4),
+        "thread_voluntary_switches_without": round(median(off, "switches")),
+        "thread_voluntary_switches_with_viewer": round(median(on, "switches")),
         "viewer_cpu_ms_per_sample": round(
             statistics.median(run["viewer_cpu_ms_per_sample"] for run in on), 4
         ),

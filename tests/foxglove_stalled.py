@@ -39,6 +39,7 @@ class StalledViewer:
         if b" 101 " not in head.split(b"\r\n", 1)[0]:
             raise ConnectionError(head.decode(errors="replace"))
         self.subscribed: dict[int, str] = {}
+        self.advertised: dict[str, dict[str, object]] = {}  # topic → channel (wait_advertised)
 
     def _read_exact(self, n: int) -> bytes:
         while len(self._buffer) < n:
@@ -91,6 +92,22 @@ class StalledViewer:
                     next_id += 1
             if subscriptions:
                 self._send_text(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+
+    def wait_advertised(self, topic: str, timeout: float = 30.0) -> dict[str, object]:
+        """Read advertisements, subscribing to nothing, until ``topic``'s arrives; its
+        channel description."""
+        deadline = time.monotonic() + timeout
+        while topic not in self.advertised and time.monotonic() < deadline:
+            opcode, payload = self._frame()
+            if opcode != 1:
+                continue
+            message = json.loads(payload)
+            if message.get("op") == "advertise":
+                for channel in message["channels"]:
+                    self.advertised[channel["topic"]] = channel
+        if topic in self.advertised:
+            return self.advertised[topic]
+        raise TimeoutError(f"{topic} was not advertised within {timeout:.0f} s")
 
     def close(self) -> None:
         self.sock.close()

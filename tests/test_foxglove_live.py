@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from hil_service.cli.processes import wait_for_line
-from hil_service.live.view import LiveAddress, channel_schema
+from hil_service.live.address import LiveAddress
+from hil_service.live.server import channel_schema
 from protocols.schemas import load_schema
 from tests.conftest import free_tcp_port, free_udp_port
 from tests.zenoh_peer import ZenohProbe

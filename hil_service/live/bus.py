@@ -3,7 +3,7 @@
 It wraps the service's real bus (Zenoh, or nothing for replay without ``--publish``): the
 inner bus publishes as before, then the payload is handed to ``LiveView.offer`` (a deque
 append). Over Zenoh the payload is encoded once and the same bytes go to both (the live
-view's thread used to encode every watched payload a second time). Keys and payloads are
+view's process gets them as they are). Keys and payloads are
 the ones the MCAP log records on the same topics.
 """
 
