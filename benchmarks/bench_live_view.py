@@ -57,6 +57,16 @@ def free_tcp_port() -> int:
         return sock.getsockname()[1]
 
 
+def start_viewer(url: str) -> subprocess.Popen[str]:
+    """The reference client, subscribed to telemetry, estimates and commands, validating
+    every message (for up to 10⁹ messages or 600 s)."""
+    return subprocess.Popen(
+        [shutil.which("node") or "node", str(CLIENT), url, "1000000000", "600",
+         "telemetry", "umodel", "command/ballast"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
 def one_run(
     warm: list[bytes],
     datagrams: list[bytes],
@@ -73,11 +83,7 @@ def one_run(
         live = viewer = None
         if live_on:
             live = LiveView(LiveAddress("127.0.0.1", free_tcp_port())).start()
-            viewer = subprocess.Popen(
-                [shutil.which("node") or "node", str(CLIENT), live.url, "1000000000", "600",
-                 "telemetry", "umodel", "command/ballast"],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            )  # fmt: skip
+            viewer = start_viewer(live.url)
         wired = wire(config, session=session, recorder=recorder, live=live)
         tune_for_service()
         service = wired.service
@@ -149,11 +155,7 @@ def interleaved(
     config = ServiceConfig()
     stack = []
     live = LiveView(LiveAddress("127.0.0.1", free_tcp_port())).start()
-    viewer = subprocess.Popen(
-        [shutil.which("node") or "node", str(CLIENT), live.url, "1000000000", "600",
-         "telemetry", "umodel", "command/ballast"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    viewer = start_viewer(live.url)
     log_dir = tempfile.TemporaryDirectory()
     try:
         services = []

@@ -68,10 +68,11 @@ class LiveView:
         self.offered = 0
         self.dropped = 0  # offered while the deque (with what waits unsent) was full
         self.unwatched = 0  # MAVLink messages not queued: no client watched a MAVLink channel
-        self._send_dropped = 0  # entries the sender thread dropped (its own counter)
+        self._send_dropped = 0  # entries dropped when sending (refused by pickle, too big, or
+        # the live view's process gone)
         self._pending: deque[tuple[str, Any, int]] = deque()
-        #: Batches (entries, pickle) the live view's process could not take yet (the sender
-        #: thread's), and how many entries they hold (read by ``offer`` for the bound).
+        #: Batches (entries, pickle) the live view's process could not take yet, and how many
+        #: entries they hold (read by ``offer`` for the bound).
         self._unsent: deque[tuple[list[Any], bytes]] = deque()
         self._backlog = 0
         self._handed = 0  # entries the live view's process was sent
@@ -338,10 +339,14 @@ class LiveView:
                 break
             latest = data
         if latest is not None:
-            with contextlib.suppress(ValueError):
-                status = json.loads(latest)
-                self._status = status
-                self._mavlink_watched = bool(status.get("mavlink_watched", False))
+            self._take_status(latest)
+
+    def _take_status(self, data: bytes) -> None:
+        """Keep one status message of the live view's process (a malformed one is ignored)."""
+        with contextlib.suppress(ValueError):
+            status = json.loads(data)
+            self._status = status
+            self._mavlink_watched = bool(status.get("mavlink_watched", False))
 
     # ---- stopping -------------------------------------------------------------------------
     def close(self) -> None:
@@ -366,8 +371,7 @@ class LiveView:
             sock.settimeout(STOP_TIMEOUT)
             with contextlib.suppress(OSError):
                 while data := sock.recv(MAX_STATUS):  # its statuses, to the last
-                    with contextlib.suppress(ValueError):
-                        self._status = json.loads(data)
+                    self._take_status(data)
             sock.close()
         self._end_process()
 
