@@ -8,6 +8,7 @@ with each restart marked, so a log without a restart is drawn on its own clock u
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from hil_service.experiment.identification import (
     converged_at,
 )
 from hil_service.experiment.multistep import MultiStepScores, longest_contiguous, multistep_scores
+from hil_service.offline.field.report import field_section
 from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
 from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
@@ -61,6 +63,8 @@ class Report:
     #: True when the log held no estimates (an imported tlog) and its telemetry was run
     #: through the identifier here (``hil_service.offline.identify``).
     offline: bool = False
+    #: A field import's dive-by-dive identification (``hil_service.offline.field.report``).
+    field: list[Any] = dataclasses.field(default_factory=list)
 
 
 OFFLINE_NOTE = (
@@ -387,6 +391,12 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
     ]
     if series.skipped:
         lines.append(f"- {series.skipped} publications could not be read and were skipped")
+    if not (series.config.get("service") or {}).get("pipeline"):
+        lines.append(
+            "- fit % and k-step NMSE `–`: the log stores no service configuration to rebuild "
+            "the model from (an imported log); a field import's are in its field "
+            "identification section"
+        )
     lines += [
         "",
         "| glider | channel | model | samples | NMSE | skill | fit % | k | k-step NMSE "
@@ -440,5 +450,9 @@ def write_report(log: str | Path, out: str | Path) -> Report:
         lines = text.split("\n")
         at = next((i for i, line in enumerate(lines) if line.startswith("- log:")), 1)
         text = "\n".join([*lines[: at + 1], OFFLINE_NOTE, *lines[at + 1 :]])
+    lines, field_figures, field_results = field_section(log, series.config, directory)
+    if lines:
+        text += "\n".join(lines) + "\n"
+        figures += field_figures
     path.write_text(text, encoding="utf-8")
-    return Report(path, figures, summaries, offline)
+    return Report(path, figures, summaries, offline, field_results)
