@@ -224,3 +224,42 @@ def test_slocum_missing_cache_names_the_file_it_needs(tmp_path: Path) -> None:
         read_field([sbd], cache_dir=tmp_path)
     with pytest.raises(FieldError, match="need --cache-dir"):
         read_field([sbd])
+
+
+def test_docs_list_every_field_key_an_import_stores(tmp_path: Path) -> None:
+    import re
+
+    data = read_field([SEA])
+    out = tmp_path / "sea.mcap"
+    write_field_log(data, resample(data), out)
+    reader = LogReader(out)
+    for _ in reader.messages():
+        pass
+    stored = reader.config()
+    text = (Path(__file__).parent.parent / "docs" / "mcap.md").read_text()
+    rows = {
+        line.split("|")[1].strip().strip("`"): line
+        for line in text.splitlines()
+        if line.startswith("| `") and "imported" not in line
+    }
+    assert {"source", "profile", "field"} <= set(rows) and set(stored) == {
+        "source",
+        "profile",
+        "field",
+    }
+    documented = set(re.findall(r"`([a-z_0-9]+)`", rows["field"]))
+    nested = {"issues", "lost", "scaling", "clipped", "inputs"}
+
+    def keys(value: object) -> set[str]:
+        found: set[str] = set()
+        if isinstance(value, dict):
+            for k, v in value.items():
+                found.add(k)
+                if k not in nested:
+                    found |= keys(v)
+        elif isinstance(value, list):
+            for item in value:
+                found |= keys(item)
+        return found
+
+    assert keys(stored["field"]) <= documented

@@ -86,12 +86,15 @@ class GridResult:
 
 
 def default_period(data: FieldData) -> float:
-    """The median step between in-dive samples of a dive (s), at least 0.1 s."""
+    """The median step between in-dive samples of a dive (s) to two significant digits
+    (a clock's jitter does not set the grid), at least 0.1 s."""
     mask = data.in_dive
     steps = np.diff(data.t)
     same = (data.dive[1:] == data.dive[:-1]) & mask[1:] & mask[:-1]
     good = steps[same & (steps > 0)]
-    return max(0.1, float(np.median(good))) if good.size else 10.0
+    if not good.size:
+        return 10.0
+    return max(0.1, float(f"{float(np.median(good)):.2g}"))  # 10.002 s → 10 s
 
 
 def resample(data: FieldData, period: float | None = None, gap: float | None = None) -> GridResult:

@@ -17,18 +17,20 @@ DIVES = ("p5420304.nc", "p5420305.nc", "p5420306.nc")
 
 def main(source: Path, target: Path) -> None:
     for name in DIVES:
-        with netcdf_file(source / name, "r", mmap=False) as src:
-            with netcdf_file(target / name, "w") as dst:
-                for key in ATTRIBUTES:
-                    if key in src._attributes:
-                        setattr(dst, key, src._attributes[key])
-                dst.createDimension("sg_data_point", src.dimensions["sg_data_point"])
-                for key in VARIABLES:
-                    var = src.variables[key]
-                    out = dst.createVariable(key, "f8", ("sg_data_point",))
-                    out[:] = var.data
-                    if hasattr(var, "units"):
-                        out.units = var.units
+        with (
+            netcdf_file(source / name, "r", mmap=False) as src,
+            netcdf_file(target / name, "w") as dst,
+        ):
+            for key in ATTRIBUTES:
+                if key in src._attributes:
+                    setattr(dst, key, src._attributes[key])
+            dst.createDimension("sg_data_point", src.dimensions["sg_data_point"])
+            for key in VARIABLES:
+                var = src.variables[key]
+                out = dst.createVariable(key, "f8", ("sg_data_point",))
+                out[:] = var.data
+                if hasattr(var, "units"):
+                    out.units = var.units
 
 
 if __name__ == "__main__":
