@@ -263,3 +263,21 @@ def test_docs_list_every_field_key_an_import_stores(tmp_path: Path) -> None:
         return found
 
     assert keys(stored["field"]) <= documented
+
+
+def test_an_imported_tlog_report_gives_the_fit_it_replayed_with(tmp_path: Path, capsys) -> None:
+    from hil_service.cli import main
+    from tests.test_tlog_import import ardusub_dive_tlog
+
+    tlog, log, out = tmp_path / "dive.tlog", tmp_path / "dive.mcap", tmp_path / "report"
+    ardusub_dive_tlog(tlog, 1500)
+    assert main(["import", str(tlog), "-o", str(log), "--profile", "ardusub"]) == 0
+    assert main(["report", str(log), "-o", str(out)]) == 0
+    text = (out / "report.md").read_text()
+    assert "ran with the default pipeline settings" in text
+    rows = [
+        [c.strip() for c in line.strip("|").split("|")]
+        for line in text.splitlines()
+        if line.startswith("| 1 |")
+    ]
+    assert rows and all(float(cells[6]) == float(cells[6]) for cells in rows), text  # fit %
