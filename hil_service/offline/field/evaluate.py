@@ -22,7 +22,7 @@ history of the models, sync every model and are not scored):
 
 **Excitation** of a channel's input over the training part (docs/field-data.md): the input
 is *excited enough* when (1) its standard deviation is at least 2 % of full scale, (2) it
-starts a move (|Δu| > 0.5 % of full scale after a sample without one) at least twice per
+starts a move (|Δu| > 0.5 % of full scale after a sample without one) at least once per
 training dive on average (a glider's buoyancy engine moves a few times a dive, in large
 steps: each step excites), and (3) the regressor
 [y(t−1), u(t−1), 1] is not degenerate: its reciprocal condition number (after scaling each
@@ -46,7 +46,7 @@ from hil_service.umodel.steady_glide import fit_static_pitch, fit_steady_glide
 
 CHANNEL_INPUT = {"depth": "u_depth", "pitch": "u_pitch"}
 EXCITATION_STD = 0.02
-EXCITATION_MOVES = 2.0  # move onsets per training dive
+EXCITATION_MOVES = 1.0  # move onsets per training dive
 EXCITATION_RCOND = 1e-3
 PHYSICAL = {"depth": "steady-glide", "pitch": "static-balance"}
 
@@ -149,9 +149,7 @@ def excitation(arrays: Arrays, channel: str, train: list[Segment]) -> Excitation
     if std < EXCITATION_STD:
         reasons.append(f"input std {100 * std:.2f} % of full scale < {100 * EXCITATION_STD:g} %")
     if moves < EXCITATION_MOVES:
-        reasons.append(
-            f"input moves on {100 * moves:.1f} % of samples < {100 * EXCITATION_MOVES:g} %"
-        )
+        reasons.append(f"{moves:.1f} input moves per dive < {EXCITATION_MOVES:g}")
     if rcond < EXCITATION_RCOND:
         reasons.append(f"regressor rcond {rcond:.1e} < {EXCITATION_RCOND:g}")
     return Excitation(std, moves, rcond, not reasons, "; ".join(reasons) or "excited")
@@ -338,6 +336,9 @@ def identify_dives(
 ) -> list[ChannelResult]:
     """Per channel: every model trained on the first dives and scored on the others."""
     segments = [s for s in arrays.segments if s.stop - s.start >= 2]
+    if len({s.dive for s in segments}) < 2:
+        # One file holding several yos (a Slocum segment file): its segments are the dives.
+        segments = [Segment(i, s.start, s.stop) for i, s in enumerate(segments)]
     dives = sorted({s.dive for s in segments})
     if len(dives) < 2:
         raise ValueError(f"at least two dives are needed to hold one out, got {len(dives)}")
