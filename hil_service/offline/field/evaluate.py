@@ -11,12 +11,13 @@ Models per channel (depth: buoyancy input; pitch: pitch input):
   flight model for depth (from buoyancy, the measured pitch and depth), the static moment
   balance for pitch, least squares on the same training samples.
 
-Scores per held-out dive (each its own segment; the first ``L`` samples, L the longest
+Scores per held-out dive (each its own segment; the first ``L`` samples, L = 1 + the longest
 history of the models, sync every model and are not scored):
 
 * one-step skill = 1 − MSE(model) / MSE(persistence) of ŷ(t | measured y up to t−1);
-* free-run fit = 100·(1 − ‖y − ŷ_sim‖/‖y − ȳ‖) % (``experiment.multistep.fit_percent``), the
-  model simulated on the recorded inputs from its own outputs over the whole dive;
+* free-run fit = 100·(1 − ‖y − ŷ_sim‖/‖y − ȳ‖) % (``umodel.scoring.fit_from_nmse``, as
+  ``experiment`` and ``health`` compute it), the model simulated on the recorded inputs
+  from its own outputs over the whole dive;
 * k-step NMSE = mean((y(t+k) − ŷ(t+k|t))²)/var(y) over windows that start every L + k
   samples, each re-synchronised on the L measured samples before it.
 
@@ -40,8 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.experiment.multistep import fit_percent, nmse
 from hil_service.umodel import OneStepModel, PersistenceModel, build_model
+from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
 from hil_service.umodel.steady_glide import fit_static_pitch, fit_steady_glide
 
 CHANNEL_INPUT = {"depth": "u_depth", "pitch": "u_pitch"}
@@ -119,6 +120,17 @@ class ChannelResult:
     excitation: Excitation
     models: list[ModelResult]
     figure_dive: int | None
+
+
+def nmse(y: np.ndarray, y_hat: np.ndarray) -> float | None:
+    """Σ(y − ŷ)² / Σ(y − ȳ)² (``umodel.scoring``: None for a flat or non-finite y or ŷ)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        error = np.asarray(y, dtype=float) - np.asarray(y_hat, dtype=float)
+    return normalised_square_error(np.asarray(y, dtype=float).tolist(), error.tolist())
+
+
+def fit_percent(y: np.ndarray, y_sim: np.ndarray) -> float | None:
+    return fit_from_nmse(nmse(y, y_sim))
 
 
 def excitation(arrays: Arrays, channel: str, train: list[Segment]) -> Excitation:
