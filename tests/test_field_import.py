@@ -281,3 +281,17 @@ def test_an_imported_tlog_report_gives_the_fit_it_replayed_with(tmp_path: Path, 
         if line.startswith("| 1 |")
     ]
     assert rows and all(float(cells[6]) == float(cells[6]) for cells in rows), text  # fit %
+
+
+def test_samples_as_recorded_lose_period_changes_the_grid_keeps_them(tmp_path: Path) -> None:
+    """The choice docs/field-data.md makes, measured: the service's step continuity takes a
+    Seaglider's change of sample period for a lost sample; on the grid only each dive's
+    history refill is skipped."""
+    learnt = {}
+    for name, extra in (("raw", ["--as-recorded"]), ("grid", ["--period", "10"])):
+        out = tmp_path / f"{name}.mcap"
+        assert _cli("import", str(SG), "-o", str(out), *extra).returncode == 0
+        replay = _cli("replay", "--fast", "--json", str(out))
+        identifier = json.loads(replay.stdout)["identifier"]["1"]["depth"]
+        learnt[name] = identifier["samples"] / (identifier["samples"] + identifier["skipped"])
+    assert learnt["raw"] < 0.5 < 0.95 < learnt["grid"]

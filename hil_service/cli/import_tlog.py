@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from hil_service.offline.field import FORMATS, FieldError, read_field
-from hil_service.offline.field.grid import resample
+from hil_service.offline.field.grid import as_recorded, resample
 from hil_service.offline.field.write import write_field_log
 from hil_service.offline.tlog_import import import_tlog
 from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
@@ -49,6 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         help="field data: a longer step starts a new segment, s (default max(60, 6 periods))",
+    )
+    parser.add_argument(
+        "--as-recorded",
+        action="store_true",
+        help="field data: the samples at their own times, no grid (docs/field-data.md)",
     )
     parser.add_argument(
         "--system-id", type=int, default=1, help="field data: the vehicle's system id (default 1)"
@@ -106,7 +111,10 @@ def _run_field(args: argparse.Namespace, output: Path) -> int:
         data = read_field(args.inputs, args.format, args.mapping, args.cache_dir)
         if data.size == 0:
             raise FieldError(f"{', '.join(args.inputs)}: no sample with a time, depth and pitch")
-        grid = resample(data, args.period, args.gap)
+        if args.as_recorded:
+            grid = as_recorded(data, args.gap)
+        else:
+            grid = resample(data, args.period, args.gap)
         if grid.size == 0:
             raise FieldError(f"{', '.join(args.inputs)}: no in-dive segment to put on a grid")
         written = write_field_log(data, grid, output, args.system_id)
@@ -134,8 +142,9 @@ def _run_field(args: argparse.Namespace, output: Path) -> int:
     print(f"{data.format} {data.vehicle or ''}: {len(data.files)} file(s)".replace("  ", " "))
     for line in data.issues.describe():
         print(f"  {line}")
+    spacing = f"grid {grid.period:g} s" if grid.period > 0 else "as recorded"
     print(
-        f"  grid {grid.period:g} s (segments split at gaps > {grid.gap:g} s): {grid.size} samples "
+        f"  {spacing} (segments split at gaps > {grid.gap:g} s): {grid.size} samples "
         f"in {len(grid.segments)} segments; {grid.raw_used} of {grid.raw_in_dive} in-dive "
         f"samples used ({100 * grid.used_fraction:.1f} %); {grid.interpolated} grid samples "
         f"interpolated (linear, at most {grid.max_distance:.1f} s from a raw sample)"

@@ -70,7 +70,11 @@ class GridResult:
         return {
             "period_s": self.period,
             "gap_s": self.gap,
-            "interpolation": "linear between the raw samples around each grid time",
+            "interpolation": (
+                "linear between the raw samples around each grid time"
+                if self.period > 0
+                else "none: the samples as recorded (period 0)"
+            ),
             "grid_samples": self.size,
             "segments": [
                 {"dive": s.dive, "start": s.start, "stop": s.stop, "t0": s.t0, "raw": s.raw}
@@ -156,6 +160,51 @@ def resample(data: FieldData, period: float | None = None, gap: float | None = N
         used,
         interpolated,
         max_distance,
+        {k: v for k, v in lost.items() if v},
+    )
+
+
+def as_recorded(data: FieldData, gap: float | None = None) -> GridResult:
+    """The in-dive samples at their own times, segmented as ``resample`` does, nothing
+    interpolated: what the identifier sees of samples taken as they come. Its step
+    continuity takes a step longer than 1.5 of its shortest for a lost sample, so a vehicle
+    that changes its sample period loses samples to resynchronisation there (measured in
+    docs/field-data.md); ``period`` is the median step."""
+    period = default_period(data)
+    gap = max(60.0, 6.0 * period) if gap is None else float(gap)
+    usable = data.in_dive & np.isfinite(data.buoyancy) & np.isfinite(data.pitch_input)
+    index = np.flatnonzero(usable)
+    lost = {"no input value yet": int(np.count_nonzero(data.in_dive & ~usable))}
+    runs: list[np.ndarray] = []
+    if index.size:
+        t = data.t[index]
+        dive = data.dive[index]
+        split = (np.diff(t) > gap) | (dive[1:] != dive[:-1]) | (np.diff(index) > 1)
+        runs = np.split(index, np.flatnonzero(split) + 1)
+    kept = [run for run in runs if run.size >= MIN_SEGMENT]
+    lost["in segments too short"] = sum(int(r.size) for r in runs if r.size < MIN_SEGMENT)
+    segments, size = [], 0
+    for run in kept:
+        segments.append(
+            GridSegment(
+                int(data.dive[run[0]]), size, size + run.size, float(data.t[run[0]]), run.size
+            )
+        )
+        size += run.size
+    chosen = np.concatenate(kept) if kept else np.zeros(0, dtype=int)
+    return GridResult(
+        0.0,
+        gap,
+        data.t[chosen],
+        data.depth[chosen],
+        data.pitch[chosen],
+        data.buoyancy[chosen],
+        data.pitch_input[chosen],
+        segments,
+        int(np.count_nonzero(data.in_dive)),
+        size,
+        0,
+        0.0,
         {k: v for k, v in lost.items() if v},
     )
 

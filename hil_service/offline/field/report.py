@@ -119,6 +119,8 @@ def field_section(
         return [], [], []
     grid = field.get("grid") or {}
     issues = field.get("issues") or {}
+    period = float(grid.get("period_s") or 0)
+    spacing = f"grid {period:g} s" if period > 0 else "as recorded (no grid)"
     lines = [
         "",
         f"## Field identification ({field.get('format')} {field.get('vehicle', '')})",
@@ -129,13 +131,25 @@ def field_section(
         f"{issues.get('unparsable_rows', 0)} unparsable, {issues.get('filled_inputs', 0)} "
         f"inputs held, {issues.get('surface_rows', 0)} at the surface; missing columns: "
         f"{issues.get('missing_columns') or 'none'}",
-        f"- grid {grid.get('period_s')} s, segments split at gaps > {grid.get('gap_s')} s: "
+        f"- {spacing}, segments split at gaps > {grid.get('gap_s')} s: "
         f"{grid.get('grid_samples')} samples in {len(grid.get('segments', []))} segments; "
         f"{grid.get('raw_used')} of {grid.get('raw_in_dive')} in-dive samples used "
         f"({100 * float(grid.get('used_fraction', 0)):.1f} %); {grid.get('interpolated')} grid "
         f"samples interpolated (linear, at most {grid.get('max_distance_s')} s from a raw "
         f"sample); not used: {grid.get('lost') or 'none'}",
     ]
+    if not period > 0:
+        return (
+            [
+                *lines,
+                "",
+                "Identification per dive not computed: the log holds the samples as recorded "
+                "(`--as-recorded`), at varying steps; the models need a uniform grid (import "
+                "without `--as-recorded`).",
+            ],
+            [],
+            [],
+        )
     try:
         arrays = field_arrays(log, field, system_id)
         stored = (config.get("service") or {}).get("pipeline")
