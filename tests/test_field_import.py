@@ -295,3 +295,31 @@ def test_samples_as_recorded_lose_period_changes_the_grid_keeps_them(tmp_path: P
         identifier = json.loads(replay.stdout)["identifier"]["1"]["depth"]
         learnt[name] = identifier["samples"] / (identifier["samples"] + identifier["skipped"])
     assert learnt["raw"] < 0.5 < 0.95 < learnt["grid"]
+
+
+def test_csv_errors_name_the_file_s_own_line_past_comments(tmp_path: Path) -> None:
+    mapping = tmp_path / "map.toml"
+    mapping.write_text(MAPPING)
+    header = "time_s,p_dbar,pitch_deg,vbd,mass,dive"
+    path = tmp_path / "c.csv"
+    path.write_text(f"# logged by a shore station\n\n{header}\n1,2,3,4,5,1\n2,x,3,4,5,1\n")
+    data = read_field([path], "csv", mapping)
+    assert data.issues.unparsable_rows == 1
+    assert f"{path}:5: unparsable row dropped" in data.issues.notes
+
+
+def test_seaexplorer_file_missing_an_input_column_is_counted(tmp_path: Path) -> None:
+    lines = (SEA / "sea035.12.gli.sub.37").read_text().splitlines()
+    header = lines[0].split(";")
+    drop = [header.index("BallastPos"), header.index("BallastCmd")]
+    cut = [";".join(c for i, c in enumerate(line.split(";")) if i not in drop) for line in lines]
+    (tmp_path / "sea035.12.gli.sub.37").write_text("\n".join(cut) + "\n")
+    shutil.copy(SEA / "sea035.12.gli.sub.38", tmp_path)
+    data = read_field([tmp_path])
+    assert data.issues.missing_columns == {str(tmp_path / "sea035.12.gli.sub.37"): ["BallastPos"]}
+    assert np.isnan(data.buoyancy[data.dive == 37]).all()
+    grid = resample(data)
+    assert grid.lost["no input value yet"] == int(
+        np.count_nonzero(data.in_dive & (data.dive == 37))
+    )
+    assert {s.dive for s in grid.segments} == {38}

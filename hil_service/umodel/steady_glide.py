@@ -159,6 +159,5 @@ def fit_static_pitch(
     x = np.column_stack([np.ones(y.size), m, v])
     theta, *_ = np.linalg.lstsq(x, y, rcond=None)
     residual = y - x @ theta
-    return StaticPitch(
-        *(float(c) for c in theta), float(np.sqrt(np.mean(residual**2))), int(y.size)
-    )
+    a, b, c = (float(value) for value in theta)
+    return StaticPitch(a, b, c, float(np.sqrt(np.mean(residual**2))), int(y.size))

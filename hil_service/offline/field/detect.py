@@ -55,8 +55,10 @@ def read_field(
             unknown = next(p for p in files if guess(p) is None)
             raise FieldError(f"{unknown}: not a known field format (give --format)")
         if len(kinds) != 1:
-            raise FieldError(f"files of several formats given: {', '.join(sorted(kinds))}")
-        (fmt,) = kinds
+            raise FieldError(
+                f"files of several formats given: {', '.join(sorted(map(str, kinds)))}"
+            )
+        fmt = str(next(iter(kinds)))
     if fmt == "seaglider":
         return read_seaglider(files)
     if fmt == "seaexplorer":

@@ -238,8 +238,10 @@ def _glide_runner(
     dt = arrays.period
     z, b, th = arrays.depth, arrays.u_depth, arrays.pitch
     rate = np.concatenate([np.diff(z[s.start : s.stop]) / dt for s in train])
-    cols = [np.concatenate([a[s.start : s.stop - 1] for s in train]) for a in (b, th, z)]
-    model = fit_steady_glide(rate, *cols, v0_range=(-arrays.full_scale, arrays.full_scale))
+    b_in, th_in, z_in = (
+        np.concatenate([a[s.start : s.stop - 1] for s in train]) for a in (b, th, z)
+    )
+    model = fit_steady_glide(rate, b_in, th_in, z_in, (-arrays.full_scale, arrays.full_scale))
 
     def run(s: Segment) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         zz, bb, tt = z[s.start : s.stop], b[s.start : s.stop], th[s.start : s.stop]

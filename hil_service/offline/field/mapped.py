@@ -9,7 +9,6 @@ listed, or a column the file lacks is an error naming the file and the line.
 from __future__ import annotations
 
 import csv
-import io
 import math
 import sys
 from dataclasses import dataclass
@@ -135,7 +134,8 @@ def load_mapping(path: str | Path) -> Mapping:
     return mapping
 
 
-def _rows(path: Path, mapping: Mapping) -> tuple[list[str], list[list[str]]]:
+def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+    """(the header's line, the header, (line, row) of every later line) of a file."""
     kind = mapping.get("file", "kind", "parquet" if path.suffix == ".parquet" else "csv")
     if kind == "parquet":
         try:
@@ -147,21 +147,27 @@ def _rows(path: Path, mapping: Mapping) -> tuple[list[str], list[list[str]]]:
         table = pq.read_table(path)
         header = list(table.column_names)
         columns = [table.column(n).to_pylist() for n in header]
-        rows = zip(*columns, strict=True)
-        return header, [["" if v is None else str(v) for v in row] for row in rows]
+        records = zip(*columns, strict=True)
+        body = [(k + 2, ["" if v is None else str(v) for v in r]) for k, r in enumerate(records)]
+        return 1, header, body
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as error:
         raise FieldError(f"{path}: cannot be read ({error})") from error
     comment = mapping.get("file", "comment", "#")
-    lines = [line for line in text.splitlines() if not (comment and line.startswith(comment))]
-    reader = csv.reader(
-        io.StringIO("\n".join(lines)), delimiter=mapping.get("file", "delimiter", ",")
-    )
-    rows = list(reader)
-    if not rows:
+    delimiter = mapping.get("file", "delimiter", ",")
+    numbered = [
+        (number, line)
+        for number, line in enumerate(text.splitlines(), start=1)
+        if line.strip() and not (comment and line.startswith(comment))
+    ]
+    if not numbered:
         raise FieldError(f"{path}:1: empty file (no header)")
-    return [h.strip() for h in rows[0]], rows[1:]
+    # One line, one row (a quoted field spanning lines is not supported): line numbers stay
+    # the file's own, for the errors.
+    parsed = [(n, next(csv.reader([line], delimiter=delimiter))) for n, line in numbered]
+    (header_line, header), body = parsed[0], parsed[1:]
+    return header_line, [h.strip() for h in header], body
 
 
 def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
@@ -212,7 +218,7 @@ def _depth_factor(mapping: Mapping) -> float:
 
 
 def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issues: Issues) -> None:
-    header, rows = _rows(path, mapping)
+    header_line, header, rows = _rows(path, mapping)
     index = {name: i for i, name in enumerate(header)}
     data = mapping.data
     depth_table = "depth" if "depth" in data else "pressure"
@@ -221,7 +227,7 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
     for table, column in needed.items():
         if column not in index:
             raise FieldError(
-                f"{path}:1: no column {column!r} (the mapping's [{table}] column, "
+                f"{path}:{header_line}: no column {column!r} (the mapping's [{table}] column, "
                 f"{mapping.where(table, 'column')}); the header has {', '.join(header)}"
             )
     optional = {q: data[q]["column"] for q in ("buoyancy", "pitch_input")}
@@ -238,7 +244,7 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
     time_format = data["time"].get("format")
     depth_factor = _depth_factor(mapping)
     surface_offset = float(mapping.get("pressure", "surface", 0.0))
-    for line_no, row in enumerate(rows, start=2):
+    for line_no, row in rows:
         if not any(cell.strip() for cell in row):
             continue
         try:
