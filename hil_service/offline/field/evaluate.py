@@ -9,7 +9,10 @@ Models per channel (depth: buoyancy input; pitch: pitch input):
   ``step``; after training they never learn again;
 * the first-principles baseline (``hil_service.umodel.steady_glide``): the steady-glide
   flight model for depth (from buoyancy, the measured pitch and depth), the static moment
-  balance for pitch, least squares on the same training samples.
+  balance for pitch, least squares on the same training samples; for depth also
+  ``steady-glide-buoyancy-only``, the same model given only what the U-model is given (the
+  buoyancy input; |pitch| held at its training mean), which says how much of the physical
+  model's lead is the measured pitch.
 
 Scores per held-out dive (each its own segment; the first ``L`` samples, L = 1 + the longest
 history of the models, sync every model and are not scored):
@@ -36,7 +39,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -266,6 +269,32 @@ def _glide_runner(
     return run, model.as_dict()
 
 
+BUOYANCY_ONLY = "steady-glide-buoyancy-only"
+
+
+def _buoyancy_only(
+    arrays: Arrays,
+    train: list[Segment],
+    held: list[Segment],
+    horizon: int,
+    sync: int,
+    figure: Segment | None,
+) -> ModelResult:
+    """The steady-glide model given what the depth channel's U-model and RLS-ARX are given,
+    the buoyancy input alone: |pitch| held at its mean over the training dives."""
+    pitch = np.concatenate([arrays.pitch[s.start : s.stop] for s in train])
+    level = float(np.mean(np.abs(pitch)))
+    blind = replace(arrays, pitch=np.full_like(arrays.pitch, level))
+    result = ModelResult(BUOYANCY_ONLY)
+    try:
+        run, result.parameters = _glide_runner(blind, train, horizon, sync)
+        result.parameters["mean_abs_pitch"] = level
+        _score(result, run, arrays.depth, held, sync, figure, horizon)
+    except ValueError as error:
+        result.why = str(error)
+    return result
+
+
 def _static_runner(
     arrays: Arrays, train: list[Segment], horizon: int, sync: int
 ) -> tuple[Runner, dict]:
@@ -389,6 +418,8 @@ def identify_dives(
         except ValueError as error:
             result.why = str(error)
         models.append(result)
+        if channel == "depth":
+            models.append(_buoyancy_only(arrays, train, held, horizon, sync, figure))
         results.append(
             ChannelResult(
                 channel,

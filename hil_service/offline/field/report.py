@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.field.evaluate import (
+    PHYSICAL,
     Arrays,
     ChannelResult,
     ModelResult,
@@ -201,8 +202,8 @@ def _channel_lines(result: ChannelResult, period: float) -> list[str]:
             + " | ".join(cells)
             + " |"
         )
-    physical = result.models[-1]
-    if physical.parameters:
+    physical = next((m for m in result.models if m.model == PHYSICAL[result.channel]), None)
+    if physical is not None and physical.parameters:
         text = ", ".join(f"{k} {v:.4g}" for k, v in physical.parameters.items())
         lines += ["", f"{physical.model} parameters (least squares on the training dives): {text}"]
     return lines
