@@ -1,7 +1,8 @@
 """Field data end to end: `glider-hil import` of a data set, then `glider-hil report`, timed.
 
 Run: .venv/bin/python benchmarks/bench_field.py [DIR ...] [--period S] [--out DIR]
-(default: ../shared/data/field/seaglider-sg542 and seaexplorer-sea035 beside the checkout)
+(default: seaglider-sg542 and seaexplorer-sea035 of the nearest shared/data/field above the
+checkout)
 
 Prints JSON per data set: the import's and the report's wall time (the two commands as a
 user runs them, each in its own process), the share of in-dive samples that reached the
@@ -25,7 +26,15 @@ sys.path.insert(0, str(ROOT))
 from hil_service.mcap.reader import LogReader  # noqa: E402
 from hil_service.offline.field.report import field_section  # noqa: E402
 
-SHARED = ROOT.parent.parent / "shared" / "data" / "field"
+#: The shared data sets: the nearest ``shared/data/field`` above the checkout.
+SHARED = next(
+    (
+        p / "shared" / "data" / "field"
+        for p in ROOT.parents
+        if (p / "shared" / "data" / "field").is_dir()
+    ),
+    ROOT.parent / "shared" / "data" / "field",
+)
 DEFAULT = [SHARED / "seaglider-sg542", SHARED / "seaexplorer-sea035"]
 
 
