@@ -37,5 +37,13 @@ def run(args: argparse.Namespace) -> int:
     for s in report.summaries:
         skill = "-" if s.skill is None else f"{s.skill:.3f}"
         print(f"glider {s.system_id} {s.channel}: {s.samples} samples, skill {skill}")
+    for result in report.field:
+        for model in result.models:
+            fit = "-" if model.fit is None else f"{model.fit:.1f} %"
+            skill = "-" if model.skill is None else f"{model.skill:.4f}"
+            print(
+                f"field {result.channel} {model.model}: held-out dives {result.held_out[0]}-"
+                f"{result.held_out[-1]} free-run fit {fit}, one-step skill {skill}"
+            )
     print(f"wrote {report.markdown} and {len(report.figures)} figures")
     return 0

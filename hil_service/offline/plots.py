@@ -30,9 +30,13 @@ def prediction_figure(
     alpha: np.ndarray | None,
     time_unit: str = "s",
     restarts: Sequence[float] = (),
+    baseline: np.ndarray | None = None,
+    note: str = "",
 ) -> Path:
     """Actual vs predicted output, the a-priori error, and the U-model coefficients;
-    ``restarts``: times at which the vehicle's clock restarted (drawn as dotted lines)."""
+    ``restarts``: times at which the vehicle's clock restarted (drawn as dotted lines);
+    ``baseline``: the persistence prediction, whose error is drawn beside the model's;
+    ``note``: a line under the title (the multi-step fit, the skill)."""
     unit = UNITS.get(channel, "")
     has_alpha = alpha is not None and alpha.size > 0
     rows = 2 + (2 if has_alpha and alpha.shape[1] > 1 else 1 if has_alpha else 0)
@@ -44,6 +48,10 @@ def prediction_figure(
     if channel == "depth":
         axes[0].invert_yaxis()  # deeper is down, as on a depth chart
     axes[0].legend(loc="upper right")
+    if baseline is not None and baseline.size == y.size:
+        axes[1].plot(
+            t, y - baseline, color="grey", linewidth=0.8, linestyle="--", label="persistence error"
+        )
     axes[1].plot(t, y - y_hat, color="tab:blue", linewidth=0.8, label="y − ŷ (a priori)")
     axes[1].axhline(0.0, color="grey", linewidth=0.5)
     axes[1].set_ylabel(f"error [{unit}]")
@@ -63,7 +71,7 @@ def prediction_figure(
     for ax in axes:
         ax.grid(True, alpha=0.3)
         _mark_restarts(ax, restarts)
-    fig.suptitle(title)
+    fig.suptitle(title if not note else f"{title}\n{note}")
     fig.savefig(path)
     return path
 

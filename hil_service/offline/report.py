@@ -8,6 +8,7 @@ with each restart marked, so a log without a restart is drawn on its own clock u
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from hil_service.experiment.identification import (
     converged_at,
 )
 from hil_service.experiment.multistep import MultiStepScores, longest_contiguous, multistep_scores
+from hil_service.offline.field.report import field_section
 from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
 from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
@@ -61,6 +63,8 @@ class Report:
     #: True when the log held no estimates (an imported tlog) and its telemetry was run
     #: through the identifier here (``hil_service.offline.identify``).
     offline: bool = False
+    #: A field import's dive-by-dive identification (``hil_service.offline.field.report``).
+    field: list[Any] = dataclasses.field(default_factory=list)
 
 
 OFFLINE_NOTE = (
@@ -257,7 +261,24 @@ def _multistep_fields(
     return {"fit": scores.fit, "k_step_nmse": scores.k_step_nmse, "horizon": scores.horizon}
 
 
-def _figures(vehicle: VehicleSeries, channel: str, out: Path) -> list[Path]:
+def _figure_note(summary: ChannelSummary | None) -> str:
+    """The persistence baseline and the multi-step fit, for the identification figure."""
+    if summary is None:
+        return ""
+    fit = (
+        f"free-run fit {summary.fit:.1f} %, k-step NMSE {_fmt(summary.k_step_nmse, '.3g')} "
+        f"(k = {summary.horizon})"
+        if summary.fit is not None
+        else f"free-run fit – (fewer than {MIN_FIT_SAMPLES} gap-free samples, no "
+        "configuration to rebuild the model from, or a field import: per held-out dive in "
+        "report.md)"
+    )
+    return f"one-step skill vs persistence {_fmt(summary.skill, '.3f')}; {fit}"
+
+
+def _figures(
+    vehicle: VehicleSeries, channel: str, out: Path, summary: ChannelSummary | None = None
+) -> list[Path]:
     series = vehicle.channels[channel]
     if not series.t:
         return []
@@ -282,6 +303,8 @@ def _figures(vehicle: VehicleSeries, channel: str, out: Path) -> list[Path]:
             data["y_hat"][placed],
             alpha,
             restarts=restarts,
+            baseline=data["baseline_y_hat"][placed],
+            note=_figure_note(summary),
         )
     ]
     if any(math.isfinite(u) for u in vehicle.commands.u[channel]):
@@ -387,6 +410,11 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
     ]
     if series.skipped:
         lines.append(f"- {series.skipped} publications could not be read and were skipped")
+    if not (series.config.get("service") or {}).get("pipeline") and not has_estimates(series):
+        lines.append(
+            "- fit % and k-step NMSE `–`: the log stores no service configuration to rebuild "
+            "the model from"
+        )
     lines += [
         "",
         "| glider | channel | model | samples | NMSE | skill | fit % | k | k-step NMSE "
@@ -426,19 +454,40 @@ def write_report(log: str | Path, out: str | Path) -> Report:
     directory = Path(out)
     directory.mkdir(parents=True, exist_ok=True)
     burn_in = _burn_in(series.config)
+    fit_config = series.config
+    defaults = offline and not (series.config.get("service") or {}).get("pipeline")
+    field_import = isinstance(series.config.get("field"), dict)
+    if defaults and not field_import:  # the default settings the offline replay ran with
+        fit_config = {**series.config, "service": ServiceConfig().stored()["service"]}
     summaries: list[ChannelSummary] = []
     figures: list[Path] = []
     for _, vehicle in sorted(series.vehicles.items()):
         for channel in CHANNELS:
             if not vehicle.channels[channel].t:
                 continue
-            summaries.append(summarise(vehicle, channel, burn_in, series.config))
-            figures += _figures(vehicle, channel, directory)
+            summaries.append(summarise(vehicle, channel, burn_in, fit_config))
+            figures += _figures(vehicle, channel, directory, summaries[-1])
     path = directory / "report.md"
     text = markdown(series, summaries, figures)
     if offline:
         lines = text.split("\n")
         at = next((i for i, line in enumerate(lines) if line.startswith("- log:")), 1)
-        text = "\n".join([*lines[: at + 1], OFFLINE_NOTE, *lines[at + 1 :]])
+        notes = [OFFLINE_NOTE]
+        if field_import:
+            notes.append(
+                "- fit % and k-step NMSE `–` in this table: a field import's longest gap-free "
+                "stretch is one dive, whose halves are its descent and its climb; they are "
+                "given per held-out dive in the field identification below"
+            )
+        elif defaults:
+            notes.append(
+                "- the log stores no service configuration: the offline identification and "
+                "the fit % / k-step NMSE columns ran with the default pipeline settings"
+            )
+        text = "\n".join([*lines[: at + 1], *notes, *lines[at + 1 :]])
+    lines, field_figures, field_results = field_section(log, series.config, directory)
+    if lines:
+        text += "\n".join(lines) + "\n"
+        figures += field_figures
     path.write_text(text, encoding="utf-8")
-    return Report(path, figures, summaries, offline)
+    return Report(path, figures, summaries, offline, field_results)

@@ -1,0 +1,293 @@
+"""Any CSV (or Parquet, with ``pyarrow`` installed) with a TOML mapping file.
+
+The mapping says which column is the time, the depth (or the pressure), the pitch, the
+buoyancy input and the pitch input, their units and the inputs' full scale; its format and
+an example are in docs/field-data.md. A mapping with an unknown table or key, a unit not
+listed, or a column the file lacks is an error naming the file and the line.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from hil_service.offline.field.table import (
+    Columns,
+    Conversion,
+    FieldData,
+    FieldError,
+    InputScaling,
+    Issues,
+)
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+STANDARD_GRAVITY = 9.80665
+#: unit → (factor to SI, offset): time to s, depth to m, pitch to rad, pressure to Pa.
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0, "h": 3600.0, "days": 86400.0}
+DEPTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+PRESSURE_UNITS = {"dbar": 1e4, "bar": 1e5, "kPa": 1e3, "hPa": 1e2, "Pa": 1.0, "mbar": 1e2}
+PITCH_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+TABLES: dict[str, set[str]] = {
+    "file": {"kind", "delimiter", "comment"},
+    "time": {"column", "unit", "format"},
+    "depth": {"column", "unit"},
+    "pressure": {"column", "unit", "water_density", "surface"},
+    "pitch": {"column", "unit"},
+    "buoyancy": {"column", "unit", "centre", "full_scale"},
+    "pitch_input": {"column", "unit", "centre", "full_scale"},
+    "dive": {"column"},
+    "surface": {"column", "values"},
+}
+REQUIRED_TABLES = ("time", "pitch", "buoyancy", "pitch_input")
+
+
+@dataclass(frozen=True)
+class Mapping:
+    origin: str
+    data: dict[str, Any]
+    lines: dict[str, int]  # "table" or "table.key" → line in the mapping file
+
+    def where(self, table: str, key: str | None = None) -> str:
+        line = self.lines.get(f"{table}.{key}") or self.lines.get(table)
+        return f"{self.origin}:{line}" if line else self.origin
+
+    def get(self, table: str, key: str, default: Any = None) -> Any:
+        return self.data.get(table, {}).get(key, default)
+
+
+def _lines(text: str) -> dict[str, int]:
+    lines: dict[str, int] = {}
+    table = ""
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if line.startswith("[") and line.endswith("]"):
+            table = line.strip("[]").strip()
+            lines.setdefault(table, number)
+        elif "=" in line and table:
+            lines.setdefault(f"{table}.{line.split('=', 1)[0].strip()}", number)
+    return lines
+
+
+def load_mapping(path: str | Path) -> Mapping:
+    origin = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as error:
+        raise FieldError(f"{origin}: cannot be read ({error})") from error
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise FieldError(f"{origin}: not TOML: {error}") from error
+    mapping = Mapping(origin, data, _lines(text))
+    for table, value in data.items():
+        if table not in TABLES:
+            raise FieldError(
+                f"{mapping.where(table)}: unknown table [{table}] (known: "
+                f"{', '.join(sorted(TABLES))})"
+            )
+        if not isinstance(value, dict):
+            raise FieldError(f"{mapping.where(table)}: {table} must be a table")
+        for key in value:
+            if key not in TABLES[table]:
+                raise FieldError(
+                    f"{mapping.where(table, key)}: unknown key {key!r} in [{table}] (known: "
+                    f"{', '.join(sorted(TABLES[table]))})"
+                )
+    for table in REQUIRED_TABLES:
+        if table not in data:
+            raise FieldError(f"{origin}: the mapping needs a [{table}] table")
+    if ("depth" in data) == ("pressure" in data):
+        raise FieldError(f"{origin}: give exactly one of [depth] or [pressure]")
+    for table, units in (
+        ("time", TIME_UNITS),
+        ("depth", DEPTH_UNITS),
+        ("pressure", PRESSURE_UNITS),
+        ("pitch", PITCH_UNITS),
+    ):
+        if table not in data:
+            continue
+        if "column" not in data[table]:
+            raise FieldError(f"{mapping.where(table)}: [{table}] needs a column")
+        unit = data[table].get("unit")
+        if table == "time" and (unit is None or "format" in data[table]):
+            continue  # a datetime text column (ISO 8601, or the strptime format given)
+        if unit not in units:
+            raise FieldError(
+                f"{mapping.where(table, 'unit')}: unit {unit!r} of [{table}] is not one of "
+                f"{', '.join(units)}"
+            )
+    for table in ("buoyancy", "pitch_input"):
+        if "column" not in data[table] or "full_scale" not in data[table]:
+            raise FieldError(f"{mapping.where(table)}: [{table}] needs column and full_scale")
+        scale = data[table]["full_scale"]
+        if not isinstance(scale, (int, float)) or not scale > 0:
+            raise FieldError(f"{mapping.where(table, 'full_scale')}: full_scale must be > 0")
+    return mapping
+
+
+def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+    """(the header's line, the header, (line, row) of every later line) of a file."""
+    kind = mapping.get("file", "kind", "parquet" if path.suffix == ".parquet" else "csv")
+    if kind == "parquet":
+        try:
+            import pyarrow.parquet as pq  # optional: not a dependency of the project
+        except ImportError as error:
+            raise FieldError(
+                f"{path}: reading Parquet needs pyarrow (pip install pyarrow)"
+            ) from error
+        table = pq.read_table(path)
+        header = list(table.column_names)
+        columns = [table.column(n).to_pylist() for n in header]
+        records = zip(*columns, strict=True)
+        body = [(k + 2, ["" if v is None else str(v) for v in r]) for k, r in enumerate(records)]
+        return 1, header, body
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as error:
+        raise FieldError(f"{path}: cannot be read ({error})") from error
+    comment = mapping.get("file", "comment", "#")
+    delimiter = mapping.get("file", "delimiter", ",")
+    numbered = [
+        (number, line)
+        for number, line in enumerate(text.splitlines(), start=1)
+        if line.strip() and not (comment and line.startswith(comment))
+    ]
+    if not numbered:
+        raise FieldError(f"{path}:1: empty file (no header)")
+    # One line, one row (a quoted field spanning lines is not supported): line numbers stay
+    # the file's own, for the errors.
+    parsed = [(n, next(csv.reader([line], delimiter=delimiter))) for n, line in numbered]
+    (header_line, header), body = parsed[0], parsed[1:]
+    return header_line, [h.strip() for h in header], body
+
+
+def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
+    mapping = load_mapping(mapping_path)
+    issues = Issues()
+    columns = Columns()
+    for number, path in enumerate(paths):
+        _read_file(path, number, mapping, columns, issues)
+    data = mapping.data
+    depth_table = "depth" if "depth" in data else "pressure"
+    conversions = [
+        Conversion("t", data["time"]["column"], str(data["time"].get("unit", "datetime")), "s"),
+        Conversion(
+            "depth",
+            data[depth_table]["column"],
+            str(data[depth_table]["unit"]),
+            "m",
+            _depth_factor(mapping),
+        ),
+        Conversion(
+            "pitch",
+            data["pitch"]["column"],
+            data["pitch"]["unit"],
+            "rad",
+            PITCH_UNITS[data["pitch"]["unit"]],
+        ),
+        *(
+            Conversion(
+                q, data[q]["column"], str(data[q].get("unit", "")), str(data[q].get("unit", ""))
+            )
+            for q in ("buoyancy", "pitch_input")
+        ),
+    ]
+    scaling = {
+        q: InputScaling(float(data[q].get("centre", 0.0)), float(data[q]["full_scale"]))
+        for q in ("buoyancy", "pitch_input")
+    }
+    return FieldData.from_columns(
+        "csv", [str(p) for p in paths], columns, conversions, scaling, issues, vehicle=""
+    )
+
+
+def _depth_factor(mapping: Mapping) -> float:
+    if "depth" in mapping.data:
+        return DEPTH_UNITS[mapping.data["depth"]["unit"]]
+    density = float(mapping.get("pressure", "water_density", 1025.0))
+    return PRESSURE_UNITS[mapping.data["pressure"]["unit"]] / (density * STANDARD_GRAVITY)
+
+
+def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issues: Issues) -> None:
+    header_line, header, rows = _rows(path, mapping)
+    index = {name: i for i, name in enumerate(header)}
+    data = mapping.data
+    depth_table = "depth" if "depth" in data else "pressure"
+    needed = {"time": data["time"]["column"], depth_table: data[depth_table]["column"]}
+    needed["pitch"] = data["pitch"]["column"]
+    for table, column in needed.items():
+        if column not in index:
+            raise FieldError(
+                f"{path}:{header_line}: no column {column!r} (the mapping's [{table}] column, "
+                f"{mapping.where(table, 'column')}); the header has {', '.join(header)}"
+            )
+    optional = {q: data[q]["column"] for q in ("buoyancy", "pitch_input")}
+    absent = [c for c in optional.values() if c not in index]
+    dive_column = mapping.get("dive", "column")
+    surface_column = mapping.get("surface", "column")
+    surface_values = {str(v) for v in mapping.get("surface", "values", [])}
+    for column in (dive_column, surface_column):
+        if column is not None and column not in index:
+            absent.append(column)
+    if absent:
+        issues.missing_columns[str(path)] = absent
+    time_unit = data["time"].get("unit")
+    time_format = data["time"].get("format")
+    depth_factor = _depth_factor(mapping)
+    surface_offset = float(mapping.get("pressure", "surface", 0.0))
+    for line_no, row in rows:
+        if not any(cell.strip() for cell in row):
+            continue
+        try:
+            t = _time(row[index[needed["time"]]], time_unit, time_format)
+            depth = (_float(row[index[needed[depth_table]]]) - surface_offset) * depth_factor
+            pitch = _float(row[index[needed["pitch"]]]) * PITCH_UNITS[data["pitch"]["unit"]]
+            inputs = {
+                q: _float(row[index[c]]) if c in index and index[c] < len(row) else math.nan
+                for q, c in optional.items()
+            }
+            dive = int(_float(row[index[dive_column]])) if dive_column in index else number
+        except (ValueError, IndexError):
+            issues.unparsable_rows += 1
+            if issues.unparsable_rows <= 5:
+                issues.notes.append(f"{path}:{line_no}: unparsable row dropped")
+            continue
+        surface = surface_column in index and row[index[surface_column]].strip() in surface_values
+        columns.t.append(t)
+        columns.depth.append(depth)
+        columns.pitch.append(pitch)
+        columns.buoyancy.append(inputs["buoyancy"])
+        columns.pitch_input.append(inputs["pitch_input"])
+        columns.dive.append(dive)
+        columns.in_dive.append(not surface)
+
+
+def _float(text: str) -> float:
+    text = text.strip()
+    return math.nan if text.lower() in ("", "nan", "na", "null") else float(text)
+
+
+def _time(text: str, unit: str | None, fmt: str | None) -> float:
+    if fmt is not None:
+        return datetime.strptime(text.strip(), fmt).replace(tzinfo=_utc()).timestamp()
+    if unit is None:
+        value = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=_utc())
+        return value.timestamp()
+    return _float(text) * TIME_UNITS[unit]
+
+
+def _utc():
+    from datetime import timezone
+
+    return timezone.utc

@@ -1,0 +1,208 @@
+"""The common form of every field format: samples in SI units, each counted irregularity.
+
+Readers fill ``Columns`` (raw time-ordered rows as the files hold them, already in SI units),
+``FieldData.from_columns`` cleans them: rows are put in time order (out-of-order counted),
+repeated timestamps keep their last row (counted), rows whose time, depth or pitch is not a
+number are dropped (counted), and an input column missing in a file is carried from the
+previous value within the same dive or left NaN (counted per file). Nothing is dropped
+without a count in ``Issues``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+class FieldError(ValueError):
+    """A file that cannot be read: the message names the file (and the line when known)."""
+
+
+@dataclass
+class Issues:
+    """Counts of what the import found and did about it; ``notes``: one line each."""
+
+    rows: int = 0
+    out_of_order: int = 0
+    repeated_time: int = 0
+    nan_rows: int = 0  # rows without a finite time, depth or pitch: dropped
+    unparsable_rows: int = 0  # text rows with a field that is no number: dropped
+    missing_columns: dict[str, list[str]] = field(default_factory=dict)  # file → columns
+    filled_inputs: int = 0  # input values held from the previous sample (missing/NaN)
+    surface_rows: int = 0  # samples the vehicle marked at the surface: not identified
+    notes: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "rows": self.rows,
+            "out_of_order": self.out_of_order,
+            "repeated_time": self.repeated_time,
+            "nan_rows": self.nan_rows,
+            "unparsable_rows": self.unparsable_rows,
+            "missing_columns": {k: list(v) for k, v in self.missing_columns.items()},
+            "filled_inputs": self.filled_inputs,
+            "surface_rows": self.surface_rows,
+            "notes": list(self.notes),
+        }
+
+    def describe(self) -> list[str]:
+        lines = [
+            f"{self.rows} rows read; {self.out_of_order} out of time order (sorted), "
+            f"{self.repeated_time} repeated timestamps (last kept), {self.nan_rows} without "
+            f"time/depth/pitch and {self.unparsable_rows} unparsable (dropped), "
+            f"{self.filled_inputs} input values held from the previous sample, "
+            f"{self.surface_rows} at the surface (not identified)"
+        ]
+        for path, columns in self.missing_columns.items():
+            lines.append(f"{path}: missing column(s) {', '.join(columns)}")
+        return lines + list(self.notes)
+
+
+@dataclass
+class Columns:
+    """Rows as read, one list per quantity (SI units: s since the epoch, m, rad; inputs in
+    their native units), ``dive``: the dive (or file) each row belongs to, ``in_dive``:
+    False for a row the vehicle marked at the surface."""
+
+    t: list[float] = field(default_factory=list)
+    depth: list[float] = field(default_factory=list)
+    pitch: list[float] = field(default_factory=list)
+    buoyancy: list[float] = field(default_factory=list)
+    pitch_input: list[float] = field(default_factory=list)
+    dive: list[int] = field(default_factory=list)
+    in_dive: list[bool] = field(default_factory=list)
+
+    def extend(self, **values: Any) -> None:
+        for name, column in values.items():
+            getattr(self, name).extend(column)
+
+
+@dataclass(frozen=True)
+class Conversion:
+    """How one quantity was read: the source variable, its unit, and the factor applied."""
+
+    quantity: str
+    variable: str
+    unit: str
+    to: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "quantity": self.quantity,
+            "variable": self.variable,
+            "unit": self.unit,
+            "to": self.to,
+            "scale": self.scale,
+            "offset": self.offset,
+        }
+
+
+@dataclass(frozen=True)
+class InputScaling:
+    """An input's native range onto model units: u = full_scale·(x − centre)/half_range."""
+
+    centre: float
+    half_range: float
+
+    def to_model(self, x: np.ndarray, full_scale: float) -> np.ndarray:
+        return full_scale * (np.asarray(x, dtype=float) - self.centre) / self.half_range
+
+    def as_dict(self) -> dict[str, float]:
+        return {"centre": self.centre, "half_range": self.half_range}
+
+
+@dataclass
+class FieldData:
+    """Clean, time-ordered samples of one vehicle (every row finite in t, depth, pitch)."""
+
+    format: str
+    files: list[str]
+    t: np.ndarray
+    depth: np.ndarray
+    pitch: np.ndarray
+    buoyancy: np.ndarray
+    pitch_input: np.ndarray
+    dive: np.ndarray
+    in_dive: np.ndarray
+    conversions: list[Conversion]
+    scaling: dict[str, InputScaling]
+    issues: Issues
+    vehicle: str = ""
+
+    @property
+    def size(self) -> int:
+        return int(self.t.size)
+
+    @classmethod
+    def from_columns(
+        cls,
+        fmt: str,
+        files: list[str],
+        columns: Columns,
+        conversions: list[Conversion],
+        scaling: dict[str, InputScaling],
+        issues: Issues,
+        vehicle: str = "",
+    ) -> FieldData:
+        t = np.asarray(columns.t, dtype=float)
+        data = {
+            "depth": np.asarray(columns.depth, dtype=float),
+            "pitch": np.asarray(columns.pitch, dtype=float),
+            "buoyancy": np.asarray(columns.buoyancy, dtype=float),
+            "pitch_input": np.asarray(columns.pitch_input, dtype=float),
+            "dive": np.asarray(columns.dive, dtype=int),
+            "in_dive": np.asarray(columns.in_dive, dtype=bool),
+        }
+        sizes = {t.size, *(a.size for a in data.values())}
+        if len(sizes) != 1:
+            raise FieldError(f"{fmt}: columns of unequal length {sorted(sizes)} (a reader bug)")
+        issues.rows += int(t.size)
+        finite = np.isfinite(t) & np.isfinite(data["depth"]) & np.isfinite(data["pitch"])
+        issues.nan_rows += int(np.count_nonzero(~finite))
+        t = t[finite]
+        data = {k: v[finite] for k, v in data.items()}
+        if t.size > 1:
+            issues.out_of_order += int(np.count_nonzero(np.diff(t) < 0))
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        data = {k: v[order] for k, v in data.items()}
+        if t.size > 1:
+            # A repeated timestamp keeps its last row (the later record of the same time).
+            last = np.ones(t.size, dtype=bool)
+            last[:-1] = np.diff(t) > 0
+            issues.repeated_time += int(np.count_nonzero(~last))
+            t = t[last]
+            data = {k: v[last] for k, v in data.items()}
+        issues.surface_rows += int(np.count_nonzero(~data["in_dive"]))
+        for name in ("buoyancy", "pitch_input"):
+            issues.filled_inputs += _hold_inputs(data[name], data["dive"])
+        return cls(
+            fmt,
+            files,
+            t,
+            data["depth"],
+            data["pitch"],
+            data["buoyancy"],
+            data["pitch_input"],
+            data["dive"],
+            data["in_dive"],
+            conversions,
+            scaling,
+            issues,
+            vehicle,
+        )
+
+
+def _hold_inputs(values: np.ndarray, dive: np.ndarray) -> int:
+    """Fill NaN inputs in place with the previous value of the same dive; the count filled
+    (a NaN before any value of its dive stays NaN and its sample is not identified)."""
+    filled = 0
+    for k in range(1, values.size):
+        if not np.isfinite(values[k]) and dive[k] == dive[k - 1] and np.isfinite(values[k - 1]):
+            values[k] = values[k - 1]
+            filled += 1
+    return filled
