@@ -59,6 +59,7 @@ GCS_RATES_HZ = {
     "GLOBAL_POSITION_INT": 1.0,
     "SCALED_PRESSURE": 1.0,
     "MISSION_CURRENT": 1.0,
+    "HOME_POSITION": 0.2,
 }
 #: The glider's messages of every plant step (their interval is the plant period).
 STEP_MESSAGES = ("ATTITUDE", "SCALED_PRESSURE2", "VFR_HUD", "ACTUATOR_OUTPUT_STATUS")
@@ -195,7 +196,6 @@ class Autopilot:
         handlers[dialect.MAV_CMD_GET_MESSAGE_INTERVAL] = self._get_interval
         on_demand = self.manners.on_demand
         on_demand[dialect.MAVLINK_MSG_ID_HEARTBEAT] = self.send_heartbeat
-        on_demand[dialect.MAVLINK_MSG_ID_HOME_POSITION] = self._send_home
         on_demand[dialect.MAVLINK_MSG_ID_FLIGHT_INFORMATION] = self._send_flight_information
         for name in GCS_RATES_HZ:
             msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
@@ -380,6 +380,8 @@ class Autopilot:
             return navigation.global_position(ms)
         if name == "SCALED_PRESSURE":
             return navigation.hull_pressure(ms, self.mapping.pressure.surface_hpa)
+        if name == "HOME_POSITION":
+            return navigation.home_position()
         return self.mission.current_message()
 
     def _send_gcs_stream(self, name: str) -> None:
