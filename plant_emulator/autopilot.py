@@ -515,7 +515,9 @@ class Autopilot:
         goes with each step); the next due time."""
         return math.inf
 
-    def _streams_due(self, sim: float) -> float:
+    def send_streams_due(self, sim: float) -> float:
+        """Send every stream (the profile's and the ground station's) due at simulated time
+        ``sim``; the next due time."""
         return min(self._profile_streams_due(sim), self.send_gcs_streams(sim))
 
     def run(self, stop: threading.Event | None = None) -> AutopilotStats:
@@ -539,10 +541,10 @@ class Autopilot:
             if now >= deadline:
                 # What fell due before this step reports the state before it: a message is
                 # never stamped earlier than the reading it carries.
-                self._streams_due(self.sim_time(now))
+                self.send_streams_due(self.sim_time(now))
                 self.step()
                 continue
-            next_due = self._streams_due(self.sim_time(now))
+            next_due = self.send_streams_due(self.sim_time(now))
             due_wall = start + (next_due - self._uptime) / speed
             assert self._next_heartbeat is not None
             self._receive_until(min(deadline, self._next_heartbeat, due_wall), stop)
