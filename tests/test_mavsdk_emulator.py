@@ -301,3 +301,88 @@ def test_pymavlink_reads_integers_with_the_advertised_encoding(processes, profil
         assert last_json(out, "emulator")["gcs"]["param_sets"] == 1
     finally:
         peer.close()
+
+
+def _command(peer: UdpPeer, command: int, *params: float):
+    values = [*params, *([0.0] * (7 - len(params)))]
+    peer.send(dialect.MAVLink_command_long_message(1, 1, command, 0, *values))
+    got = peer.receive_until(
+        lambda r: any(
+            m.message.get_type() == "COMMAND_ACK" and m.message.command == command for m in r
+        ),
+        20,
+    )
+    ack = [m.message for m in got if m.message.get_type() == "COMMAND_ACK"][-1]
+    return ack.result, [m.message for m in got]
+
+
+REQUESTABLE = (
+    "HEARTBEAT", "SYS_STATUS", "BATTERY_STATUS", "GLOBAL_POSITION_INT", "SCALED_PRESSURE",
+    "HOME_POSITION", "MISSION_CURRENT", "FLIGHT_INFORMATION", "AUTOPILOT_VERSION",
+    "ATTITUDE", "SCALED_PRESSURE2", "VFR_HUD",
+)  # fmt: skip
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("profile", ["glider", "ardusub"])
+def test_every_message_is_requestable_and_its_rate_changes(processes, profile):
+    peer = UdpPeer()
+    try:
+        emulator = processes.start(
+            "emulate", "--profile", profile, "--connect", f"udpout:127.0.0.1:{peer.port}",
+            "--speed", str(SPEED),
+        )  # fmt: skip
+        peer.receive_until(lambda r: any(m.message.get_type() == "ATTITUDE" for m in r), 20)
+        readback = "ACTUATOR_OUTPUT_STATUS" if profile == "glider" else "SERVO_OUTPUT_RAW"
+        for name in (*REQUESTABLE, readback):
+            msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
+            result, got = _command(peer, dialect.MAV_CMD_REQUEST_MESSAGE, msg_id)
+            assert result == dialect.MAV_RESULT_ACCEPTED, name
+            assert name in {m.get_type() for m in got}, name
+        # PROTOCOL_VERSION (id 300) is acknowledged and sent; pymavlink's common cannot
+        # decode it, so the peer's codec counts it as an unknown frame.
+        unknown = peer.codec.counters.unknown_frames
+        result, _ = _command(peer, dialect.MAV_CMD_REQUEST_PROTOCOL_VERSION)
+        assert result == dialect.MAV_RESULT_ACCEPTED
+        peer.receive_for(0.3)
+        assert peer.codec.counters.unknown_frames > unknown
+        # A ground station changes a stream's rate and reads it back.
+        position = dialect.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+        result, _ = _command(peer, dialect.MAV_CMD_SET_MESSAGE_INTERVAL, position, 200_000)
+        assert result == dialect.MAV_RESULT_ACCEPTED
+        result, got = _command(peer, dialect.MAV_CMD_GET_MESSAGE_INTERVAL, position)
+        intervals = [m for m in got if m.get_type() == "MESSAGE_INTERVAL"]
+        assert result == dialect.MAV_RESULT_ACCEPTED and intervals[-1].interval_us == 200_000
+        got = peer.receive_for(2.0)  # 2 wall s at 5x: 10 simulated s, 50 at 5 Hz
+        count = sum(m.message.get_type() == "GLOBAL_POSITION_INT" for m in got)
+        assert count >= 25, count
+        # Arming is refused, with the reason, while a mission upload is in progress.
+        peer.send(dialect.MAVLink_mission_count_message(1, 1, 2, 0))
+        peer.receive_until(
+            lambda r: any(m.message.get_type() == "MISSION_REQUEST_INT" for m in r), 20
+        )
+        result, got = _command(peer, dialect.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        assert result == dialect.MAV_RESULT_FAILED
+        assert "PreArm: mission upload in progress" in [
+            m.text for m in got if m.get_type() == "STATUSTEXT"
+        ]
+        result, got = _command(peer, dialect.MAV_CMD_COMPONENT_ARM_DISARM, 0)
+        assert result == dialect.MAV_RESULT_ACCEPTED
+        beats = peer.receive_until(
+            lambda r: any(
+                m.message.get_type() == "HEARTBEAT"
+                and not m.message.base_mode & dialect.MAV_MODE_FLAG_SAFETY_ARMED
+                for m in r
+            ),
+            5,
+        )
+        assert any(
+            m.message.get_type() == "HEARTBEAT"
+            and not m.message.base_mode & dialect.MAV_MODE_FLAG_SAFETY_ARMED
+            for m in beats
+        )
+        out, _ = processes.stop(emulator)
+        summary = last_json(out, "emulator")
+        assert summary["arms_refused"] == 1 and summary["disarms"] == 1
+    finally:
+        peer.close()
