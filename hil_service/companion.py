@@ -18,6 +18,12 @@ left alone (a vehicle without that sensor: the profile's fallback serves); one t
 slow after being asked again is watched over windows twice as long each time (up to 32),
 so a vehicle that cannot go faster is not asked every second.
 
+The companion reads only what is addressed to it: a ``COMMAND_ACK`` counts (and settles a
+request) only when its ``target_system``/``target_component`` are the companion's (the
+vehicle's system id, component 191) and its ``command`` the one in flight; every other
+targeted message (the vehicle's acknowledgements and mission or parameter answers to a
+ground station) is counted as ``not_ours`` and left alone (``addressed_to_companion``).
+
 Every profile gets the heartbeat; a lockstep one (``glider``: the vehicle streams as it is,
 ``profile=None`` here) no stream requests.
 
@@ -44,6 +50,8 @@ DATA_STREAM_GROUP = {
     "SERVO_OUTPUT_RAW": dialect.MAV_DATA_STREAM_RC_CHANNELS,
     "ACTUATOR_OUTPUT_STATUS": dialect.MAV_DATA_STREAM_EXTRA3,
 }
+#: The commands the service sends a vehicle whose COMMAND_ACK it counts (the ballast).
+BALLAST_COMMANDS = frozenset({dialect.MAV_CMD_DO_SET_ACTUATOR, dialect.MAV_CMD_DO_SET_SERVO})
 REFUSALS = frozenset(
     {
         dialect.MAV_RESULT_DENIED,
@@ -51,6 +59,25 @@ REFUSALS = frozenset(
         dialect.MAV_RESULT_FAILED,
     }
 )
+
+
+def addressed_to_companion(message: MavMessage) -> bool:
+    """Whether a targeted message is for its sender's companion: target system = the
+    sender's (a companion speaks from its vehicle's id), target component 191."""
+    return (
+        getattr(message, "target_system", None) == message.get_srcSystem()
+        and getattr(message, "target_component", None) == COMPANION_COMPONENT
+    )
+
+
+def is_targeted(message: MavMessage) -> bool:
+    """A message with a (non-broadcast) target system."""
+    return bool(getattr(message, "target_system", 0))
+
+
+def ack_is_ours(message: MavMessage, commands: frozenset[int] = BALLAST_COMMANDS) -> bool:
+    """A COMMAND_ACK for the companion, of one of ``commands``."""
+    return addressed_to_companion(message) and message.command in commands
 
 
 @dataclass(frozen=True)
@@ -71,6 +98,7 @@ class CompanionCounters:
     interval_requests: int = 0
     data_stream_requests: int = 0
     unanswered: int = 0  # SET_MESSAGE_INTERVAL requests that timed out
+    not_ours: int = 0  # targeted messages seen for someone else (a ground station)
     acks: dict[str, int] = field(default_factory=dict)  # result name → count
     rerequests: dict[str, int] = field(default_factory=dict)  # reboot/outage/rate → count
     slow_streams: dict[str, int] = field(default_factory=dict)  # message → times found slow
@@ -81,6 +109,7 @@ class CompanionCounters:
             "interval_requests": self.interval_requests,
             "data_stream_requests": self.data_stream_requests,
             "unanswered": self.unanswered,
+            "not_ours": self.not_ours,
             "acks": dict(self.acks),
             "rerequests": dict(self.rerequests),
             "slow_streams": dict(self.slow_streams),
@@ -233,6 +262,9 @@ class Companion:
                 self._ask_again("reboot")
             self._last_boot_s = boot_s
             self._watch_rates(boot_s)
+        if is_targeted(message) and not addressed_to_companion(message):
+            self.counters.not_ours += 1
+            return
         if kind == "COMMAND_ACK":
             self._ack(message)
 

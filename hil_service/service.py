@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil_service.assembler import SampleAssembler
-from hil_service.companion import Companion
+from hil_service.companion import Companion, ack_is_ours
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
@@ -49,7 +49,9 @@ class VehicleRuntime:
     last_command: dict[str, Any] | None = None
     control_reason: str = "no sample yet"
     commands_sent: int = 0
-    acks: dict[str, int] = field(default_factory=lambda: {"accepted": 0, "refused": 0})
+    acks: dict[str, int] = field(
+        default_factory=lambda: {"accepted": 0, "refused": 0, "not_ours": 0}
+    )
     last_applied: dict[str, Any] | None = None
     reset_pending: bool = False
 
@@ -262,6 +264,9 @@ class HilService:
     def _on_ack(self, message: MavMessage) -> None:
         vehicle = self.vehicles.get(message.get_srcSystem())
         if vehicle is None:
+            return
+        if not ack_is_ours(message):  # the vehicle's answer to a ground station
+            vehicle.acks["not_ours"] += 1
             return
         vehicle.acks["accepted" if ack_accepted(message) else "refused"] += 1
 

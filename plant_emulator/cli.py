@@ -198,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
         link.close()
     summary = stats.as_dict(autopilot.codec)
     summary["gcs"] = autopilot.manners.counters.as_dict()
+    summary["mission"] = autopilot.mission.counters.as_dict()
     if isinstance(autopilot, ArduSubAutopilot):
         summary["streams_sent"] = dict(autopilot.sent)
     if lockstep is not None:

@@ -1,23 +1,31 @@
 """An autopilot's manners towards a ground station: what it answers, and how.
 
-A ground station (MAVProxy, QGroundControl) asks for parameters, the mission, the home
-position, the autopilot's version, message rates and files, and repeats a request that gets
-no answer (MAVProxy: every 2 s, forever). This module answers each of them as ArduPilot
-does, for an emulator whose real settings are its parameters:
+A ground station (MAVProxy, QGroundControl, a MAVSDK script) asks for parameters, the mission,
+the home position, the autopilot's version, message rates and files, and repeats a request
+that gets no answer (MAVProxy: every 2 s, forever; MAVSDK: until it times out). This module
+answers each of them, for an emulator whose real settings are its parameters
+(docs/mavlink.md, "What a ground station gets", lists every request and its answer):
 
-* every ``COMMAND_LONG`` gets a ``COMMAND_ACK``: ``UNSUPPORTED`` unless a handler takes it;
-  ``COMMAND_INT`` too;
+* every ``COMMAND_LONG``/``COMMAND_INT`` addressed to the autopilot gets a ``COMMAND_ACK``,
+  ``UNSUPPORTED`` unless a handler takes it;
 * ``PARAM_REQUEST_LIST``/``PARAM_REQUEST_READ``/``PARAM_SET`` over ``Parameter`` objects
-  whose setter changes the emulator (a change takes effect; a read-only or refused value is
-  answered with the value kept);
-* ``MISSION_REQUEST_LIST`` → ``MISSION_COUNT`` 0 (an empty mission);
-* ``REQUEST_MESSAGE``/``REQUEST_AUTOPILOT_CAPABILITIES`` → ``AUTOPILOT_VERSION``;
-* ``GET_HOME_POSITION`` → ``COMMAND_ACK`` ``FAILED`` (no home: there is no GPS under water);
+  whose setter changes the emulator (a change takes effect for the run and is announced with
+  ``PARAM_VALUE``; a read-only or refused value is answered with the value kept). Integers
+  ride in the float field with the ``Identity``'s one encoding, advertised in
+  ``AUTOPILOT_VERSION.capabilities``: C-cast as ArduPilot (``MAV_AUTOPILOT_ARDUPILOTMEGA``),
+  byte-wise for the generic autopilot (MAVSDK decodes byte-wise unless the HEARTBEAT says
+  ArduPilot, so the two must agree);
+* the mission protocol is ``plant_emulator.mission``'s;
+* ``REQUEST_MESSAGE`` for every message the vehicle sends on its own (``on_demand``),
+  ``REQUEST_AUTOPILOT_CAPABILITIES`` → ``AUTOPILOT_VERSION``, ``REQUEST_PROTOCOL_VERSION`` →
+  ``PROTOCOL_VERSION``, ``GET_HOME_POSITION`` → ``HOME_POSITION``;
 * MAVLink FTP → a NAK (no file system), so a GCS falls back to ``PARAM_REQUEST_LIST``;
 * ``TIMESYNC`` requests are answered.
 
-Heartbeats seen are counted by MAV_TYPE (the service's own, as an onboard controller) and by
-sender (``"SYSID/COMPID"``: a companion speaks from its vehicle's system id, component 191).
+A message whose ``target_system``/``target_component`` names someone else (a command to the
+companion, component 191) is not answered. Heartbeats seen are counted by MAV_TYPE (the
+service's own, as an onboard controller) and by sender (``"SYSID/COMPID"``: a companion
+speaks from its vehicle's system id, component 191).
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from protocols.mavlink_io import MavMessage, dialect
+from protocols.protocol_version import MSG_ID_PROTOCOL_VERSION, ProtocolVersionMessage
 
 FTP_OPCODE_NAK = 129
 FTP_ERROR_FAIL = 1
@@ -36,8 +45,70 @@ FTP_ERROR_FILE_NOT_FOUND = 10
 FTP_OPEN_OPCODES = frozenset({3, 4, 6, 11, 13})  # list dir, open RO, create, open WO, rename
 FTP_HEADER = struct.Struct("<HBBBBBBI")
 FIRMWARE_VERSION = (0 << 24) | (1 << 16) | (0 << 8) | 255  # 0.1.0 official
-CAPABILITIES = (
-    dialect.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | dialect.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+#: What both profiles support: MAVLink 2, the mission protocol with MISSION_ITEM_INT, and
+#: COMMAND_INT for the commands a handler takes.
+BASE_CAPABILITIES = (
+    dialect.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | dialect.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | dialect.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+)
+PARAM_ENCODINGS = {
+    "bytewise": dialect.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE,
+    "c_cast": dialect.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST,
+}
+AUTOPILOT_COMPONENT = dialect.MAV_COMP_ID_AUTOPILOT1
+PROTOCOL_VERSION = 200  # MAVLink 2.0
+_INT32 = struct.Struct("<i")
+_FLOAT = struct.Struct("<f")
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who the vehicle says it is: HEARTBEAT's autopilot and how its integers are encoded.
+
+    The two go together: MAVSDK picks C-cast only for ArduPilot, and MAVProxy and QGC read
+    ArduPilot's parameters as C-cast; the encoding is also advertised in
+    ``AUTOPILOT_VERSION.capabilities`` for clients that read it.
+    """
+
+    autopilot: int = dialect.MAV_AUTOPILOT_GENERIC
+    param_encoding: str = "bytewise"
+    #: HEARTBEAT base_mode bits always set (ArduPilot: MAV_MODE_FLAG_CUSTOM_MODE_ENABLED).
+    base_mode: int = 0
+
+    def __post_init__(self) -> None:
+        if self.param_encoding not in PARAM_ENCODINGS:
+            raise ValueError(f"param encoding is one of {', '.join(PARAM_ENCODINGS)}")
+
+    @property
+    def capabilities(self) -> int:
+        return BASE_CAPABILITIES | PARAM_ENCODINGS[self.param_encoding]
+
+    def encode(self, value: float, integer: bool) -> float:
+        """A parameter's value as it rides in ``param_value``."""
+        if not integer:
+            return float(value)
+        if self.param_encoding == "c_cast":
+            return float(int(value))
+        return float(_FLOAT.unpack(_INT32.pack(int(value)))[0])
+
+    def decode(self, wire: float, integer: bool) -> float:
+        """The value a ``PARAM_SET`` carries (NaN when it does not decode)."""
+        if not integer:
+            return float(wire)
+        if self.param_encoding == "c_cast":
+            return float(round(wire)) if math.isfinite(wire) else math.nan
+        try:
+            return float(_INT32.unpack(_FLOAT.pack(wire))[0])
+        except (OverflowError, struct.error):
+            return math.nan
+
+
+GENERIC = Identity()
+ARDUPILOT = Identity(
+    dialect.MAV_AUTOPILOT_ARDUPILOTMEGA,
+    "c_cast",
+    int(dialect.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
 )
 
 
@@ -65,8 +136,8 @@ class GcsCounters:
     param_reads: int = 0
     param_sets: int = 0
     param_sets_refused: int = 0
-    mission_lists: int = 0
     commands_unsupported: int = 0
+    not_addressed_to_us: int = 0
     ftp_naks: int = 0
     timesyncs: int = 0
     heartbeats: dict[str, int] = field(default_factory=dict)  # by MAV_TYPE
@@ -85,19 +156,24 @@ class GroundStationManners:
         send: Callable[[MavMessage], None],
         parameters: list[Parameter] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        identity: Identity = GENERIC,
     ):
         self.system_id = system_id
         self.send = send
+        self.identity = identity
+        #: Other handlers of a ground station's messages (the mission): type → handler.
+        self.message_handlers: dict[str, Callable[[MavMessage], None]] = {}
         self.parameters: list[Parameter] = []
         self._by_name: dict[str, int] = {}
         self.handlers: dict[int, CommandHandler] = {
             dialect.MAV_CMD_REQUEST_MESSAGE: self._request_message,
             dialect.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._capabilities,
-            dialect.MAV_CMD_GET_HOME_POSITION: lambda m: dialect.MAV_RESULT_FAILED,
+            dialect.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._protocol_version,
         }
         #: message id → a function sending one of it now (REQUEST_MESSAGE)
         self.on_demand: dict[int, Callable[[], None]] = {
             dialect.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.send_version,
+            MSG_ID_PROTOCOL_VERSION: self.send_protocol_version,
         }
         self.counters = GcsCounters()
         self.clock = clock
@@ -120,16 +196,15 @@ class GroundStationManners:
             self.counters.heartbeats[label] = self.counters.heartbeats.get(label, 0) + 1
             count_heartbeat(self.counters.heartbeat_sources, message)
             return True
-        target = getattr(message, "target_system", None)
-        if target is not None and target not in (0, self.system_id):
-            return False
-        handler = {
+        if not self.addressed_to_us(message):
+            self.counters.not_addressed_to_us += 1
+            return True
+        handler = self.message_handlers.get(kind) or {
             "COMMAND_LONG": self._command,
             "COMMAND_INT": self._command,
             "PARAM_REQUEST_LIST": self._param_list,
             "PARAM_REQUEST_READ": self._param_read,
             "PARAM_SET": self._param_set,
-            "MISSION_REQUEST_LIST": self._mission_list,
             "FILE_TRANSFER_PROTOCOL": self._ftp,
             "TIMESYNC": self._timesync,
         }.get(kind)
@@ -137,6 +212,14 @@ class GroundStationManners:
             return False
         handler(message)
         return True
+
+    def addressed_to_us(self, message: MavMessage) -> bool:
+        """Whether a message is for this autopilot (or every system / component)."""
+        target = getattr(message, "target_system", None)
+        if target is not None and target not in (0, self.system_id):
+            return False
+        component = getattr(message, "target_component", None)
+        return component is None or component in (0, AUTOPILOT_COMPONENT)
 
     def ack(self, message: MavMessage, result: int) -> None:
         self.send(
@@ -147,7 +230,7 @@ class GroundStationManners:
 
     def _command(self, message: MavMessage) -> None:
         handler = self.handlers.get(message.command)
-        if handler is None or message.get_type() == "COMMAND_INT":
+        if handler is None:
             self.counters.commands_unsupported += 1
             self.ack(message, dialect.MAV_RESULT_UNSUPPORTED)
             return
@@ -166,10 +249,17 @@ class GroundStationManners:
         self.send_version()
         return dialect.MAV_RESULT_ACCEPTED
 
+    def _protocol_version(self, message: MavMessage) -> int:
+        self.send_protocol_version()
+        return dialect.MAV_RESULT_ACCEPTED
+
+    def send_protocol_version(self) -> None:
+        self.send(ProtocolVersionMessage(PROTOCOL_VERSION, 100, PROTOCOL_VERSION))
+
     def send_version(self) -> None:
         self.send(
             dialect.MAVLink_autopilot_version_message(
-                CAPABILITIES,
+                self.identity.capabilities,
                 FIRMWARE_VERSION,
                 0,
                 0,
@@ -188,7 +278,7 @@ class GroundStationManners:
         parameter = self.parameters[index]
         return dialect.MAVLink_param_value_message(
             parameter.name.encode(),
-            float(parameter.get()),
+            self.identity.encode(parameter.get(), parameter.integer),
             parameter.param_type,
             len(self.parameters),
             index,
@@ -212,7 +302,7 @@ class GroundStationManners:
             self.counters.param_sets_refused += 1
             return  # as ArduPilot: an unknown name gets no PARAM_VALUE
         parameter = self.parameters[index]
-        value = float(message.param_value)
+        value = self.identity.decode(float(message.param_value), parameter.integer)
         try:
             if parameter.set is None or not math.isfinite(value):
                 raise ValueError("read-only or not finite")
@@ -220,17 +310,9 @@ class GroundStationManners:
             self.counters.param_sets += 1
         except ValueError:
             self.counters.param_sets_refused += 1
-        self.send(self._param_value(index))  # the value now in force
+        self.send(self._param_value(index))  # the value now in force, to every listener
 
-    # ---- mission, files, time ---------------------------------------------------------
-    def _mission_list(self, message: MavMessage) -> None:
-        self.counters.mission_lists += 1
-        self.send(
-            dialect.MAVLink_mission_count_message(
-                message.get_srcSystem(), message.get_srcComponent(), 0, message.mission_type
-            )
-        )
-
+    # ---- files, time ---------------------------------------------------------------
     def _ftp(self, message: MavMessage) -> None:
         payload = bytes(message.payload)
         if len(payload) < FTP_HEADER.size:

@@ -18,8 +18,8 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, AutopilotStats
-from protocols.lockstep import BatchedLink, lockstep_heartbeat, released_time, step_time
+from plant_emulator.autopilot import Autopilot, AutopilotStats
+from protocols.lockstep import LOCKSTEP_FLAG, BatchedLink, released_time, step_time
 from protocols.mapping import command_target_system, is_ballast_command
 from protocols.mavlink_io import MavMessage
 
@@ -60,6 +60,7 @@ class LockstepRunner:
         self.link = BatchedLink(autopilot.link)  # type: ignore[arg-type]
         autopilot.link = self.link  # type: ignore[assignment]
         autopilot.lockstep = self
+        autopilot.heartbeat_flags |= LOCKSTEP_FLAG
 
     def offer(self, message: MavMessage) -> bool:
         """Take ``message`` if it is a ``SYSTEM_TIME`` release (True); a ballast command for
@@ -93,15 +94,12 @@ class LockstepRunner:
             if duration is None
             else math.floor(duration / autopilot.plant.config.period + 1e-9)
         )
-        next_heartbeat = self.clock()
         while not stop.is_set():
             if total_steps is not None and autopilot.stats.steps >= total_steps:
                 break
-            now = self.clock()
-            if now >= next_heartbeat:  # 1 Hz wall clock, as always; it carries the flag
-                autopilot._send(lockstep_heartbeat())
-                autopilot.stats.heartbeats += 1
-                next_heartbeat = now + HEARTBEAT_PERIOD
+            # The heartbeat (1 Hz wall clock, as always; it carries the flag), and with it
+            # the ground-station streams.
+            autopilot.send_periodic(self.clock())
             sample = autopilot.step()
             link.flush()
             self._waiting = step_time(sample.time_boot_ms)

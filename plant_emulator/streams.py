@@ -10,22 +10,29 @@ Rates: each stream's interval, changed by ``MAV_CMD_SET_MESSAGE_INTERVAL`` (per 
 ``REQUEST_DATA_STREAM`` (per ArduPilot stream group) or the ``SR0_*`` parameters (Hz), as
 on ArduPilot; every send is jittered by up to ``jitter`` of its interval. Ballast commands
 are ``MAV_CMD_DO_SET_SERVO`` (param1 servo, param2 PWM µs) on the profile's servos.
+
+It says it is ArduPilot (``MAV_AUTOPILOT_ARDUPILOTMEGA``, C-cast parameters) and follows
+ArduPilot's rule for DO_SET_SERVO (``AP_ServoRelayEvents::do_set_servo``): a servo whose
+``SERVOn_FUNCTION`` is not 0 (disabled), 1 (RCPassThru) or 51..66 (RCIN1..16) has another
+use, and the command is refused (``MAV_RESULT_FAILED``) with ArduPilot's STATUSTEXT
+"ServoRelayEvent: Channel N is already in use". Thrusters 1..8 are motors (33..40), the
+ballast servos 0; every ``SERVOn_FUNCTION`` is a parameter a ground station may change.
 """
 
 from __future__ import annotations
 
 import math
 import random
-import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from plant_emulator.autopilot import Autopilot, AutopilotConfig
 from plant_emulator.excitation import Excitation
-from plant_emulator.gcs import Parameter
+from plant_emulator.gcs import ARDUPILOT, Parameter
+from plant_emulator.mission import Item, ItemRefused
 from plant_emulator.plant import GliderPlant
 from protocols.mapping import WATER_TEMPERATURE_CDEG, TelemetryMapping
-from protocols.mavlink_io import Link, MavMessage, dialect, message_name
+from protocols.mavlink_io import Link, MavMessage, dialect
 from protocols.profiles import Profile
 from protocols.samples import TelemetrySample
 from protocols.units import InputScale
@@ -44,7 +51,11 @@ DEFAULT_RATES_HZ = {
     "SERVO_OUTPUT_RAW": 4.0,
 }
 THRUSTER_SERVOS = range(1, 9)  # ArduSub's thrusters: neutral PWM
+SERVOS = range(1, 17)
 PWM_LIMITS = (500, 2500)  # µs a DO_SET_SERVO may ask for at all
+MOTOR1_FUNCTION = 33  # SRV_Channel::k_motor1; thruster n is motor n
+#: SERVOn_FUNCTION values ArduPilot lets DO_SET_SERVO drive: disabled, RCPassThru, RCIN1..16.
+FREE_FUNCTIONS = frozenset({0, 1, *range(51, 67)})
 
 
 @dataclass(frozen=True)
@@ -90,12 +101,20 @@ class ArduSubAutopilot(Autopilot):
         # The vehicle's loop runs at multiples of its period since boot (as an autopilot's
         # scheduler does): the plant steps there, whatever ``uptime`` the clock starts at.
         period = plant.config.period
-        self._uptime = math.ceil(self.streams.uptime / period - 1e-9) * period
-        super().__init__(plant, link, excitations, config, mapping, on_step=on_step, **kwargs)
+        uptime = math.ceil(self.streams.uptime / period - 1e-9) * period
+        #: SERVOn_FUNCTION of each servo (parameters): thrusters are motors, the rest free.
+        self.functions = {
+            n: (MOTOR1_FUNCTION + n - 1 if n in THRUSTER_SERVOS else 0) for n in SERVOS
+        }
+        #: PWM a DO_SET_SERVO set on a servo that is not ballast (shown in SERVO_OUTPUT_RAW).
+        self._servo_pwm: dict[int, int] = {}
+        super().__init__(
+            plant, link, excitations, config, mapping, on_step=on_step, identity=ARDUPILOT,
+            **kwargs,
+        )
+        self._uptime = uptime
         handlers = self.manners.handlers
         handlers[dialect.MAV_CMD_DO_SET_SERVO] = self._set_servo
-        handlers[dialect.MAV_CMD_SET_MESSAGE_INTERVAL] = self._set_interval
-        handlers[dialect.MAV_CMD_GET_MESSAGE_INTERVAL] = self._get_interval
         for name in self.intervals:
             msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
             self.manners.on_demand[msg_id] = lambda name=name: self._send_stream(name)
@@ -119,7 +138,21 @@ class ArduSubAutopilot(Autopilot):
                 Parameter(f"SERVO{n}_MAX", lambda: pwm.maximum, None, integer=True),
                 Parameter(f"SERVO{n}_TRIM", lambda: pwm.neutral, None, integer=True),
             ]
+        for n in SERVOS:
+            params.append(
+                Parameter(
+                    f"SERVO{n}_FUNCTION",
+                    lambda n=n: self.functions[n],
+                    lambda value, n=n: self._set_function(n, value),
+                    integer=True,
+                )
+            )
         return params
+
+    def _set_function(self, servo: int, value: float) -> None:
+        if not (0 <= value <= 255):
+            raise ValueError("SERVOn_FUNCTION is 0..255")
+        self.functions[servo] = int(value)
 
     def _group_hz(self, names: tuple[str, ...]) -> float:
         interval = self.intervals.get(names[0])
@@ -161,13 +194,23 @@ class ArduSubAutopilot(Autopilot):
     def _set_servo(self, message: MavMessage) -> int:
         servo, pwm = message.param1, message.param2
         ballast = self.profile.ballast
-        if not (math.isfinite(servo) and math.isfinite(pwm)):
+        if not math.isfinite(servo) or int(servo) not in SERVOS:
+            self.stats.commands_rejected += 1
+            return dialect.MAV_RESULT_FAILED  # no such channel: ArduPilot's do_set_servo fails
+        n = int(servo)
+        if self.functions[n] not in FREE_FUNCTIONS:
+            self.stats.commands_rejected += 1
+            self._status(
+                f"ServoRelayEvent: Channel {n} is already in use", dialect.MAV_SEVERITY_INFO
+            )
+            return dialect.MAV_RESULT_FAILED
+        if not (math.isfinite(pwm) and PWM_LIMITS[0] <= pwm <= PWM_LIMITS[1]):
             self.stats.commands_rejected += 1
             return dialect.MAV_RESULT_DENIED
-        channel = {ballast.depth_output: "depth", ballast.pitch_output: "pitch"}.get(int(servo))
-        if channel is None or not PWM_LIMITS[0] <= pwm <= PWM_LIMITS[1]:
-            self.stats.commands_rejected += 1
-            return dialect.MAV_RESULT_DENIED
+        channel = {ballast.depth_output: "depth", ballast.pitch_output: "pitch"}.get(n)
+        if channel is None:
+            self._servo_pwm[n] = round(pwm)
+            return dialect.MAV_RESULT_ACCEPTED
         self._external[channel] = ballast.pwm.to_wire(pwm) * ballast.full_scale
         self._last_command_t = self.plant.t
         self.stats.commands_accepted += 1
@@ -176,10 +219,35 @@ class ArduSubAutopilot(Autopilot):
             self._status("ballast: external control")
         return dialect.MAV_RESULT_ACCEPTED
 
+    # ---- the mission's setpoints --------------------------------------------------------
+    setpoint_command = dialect.MAV_CMD_DO_SET_SERVO
+
+    def read_setpoint(self, item: Item) -> tuple[float, float]:
+        """A DO_SET_SERVO item on a ballast servo: its channel's wire value (−1..1)."""
+        ballast = self.profile.ballast
+        servo, pwm = item.params[0], item.params[1]
+        outputs = {ballast.depth_output: 0, ballast.pitch_output: 1}
+        if not math.isfinite(servo) or int(servo) != servo or int(servo) not in outputs:
+            raise ItemRefused(dialect.MAV_MISSION_INVALID_PARAM1, f"servo {servo!r} is no ballast")
+        if not (math.isfinite(pwm) and PWM_LIMITS[0] <= pwm <= PWM_LIMITS[1]):
+            raise ItemRefused(dialect.MAV_MISSION_INVALID_PARAM2, f"PWM {pwm!r}")
+        wires = [math.nan, math.nan]
+        wires[outputs[int(servo)]] = ballast.pwm.to_wire(pwm)
+        return wires[0], wires[1]
+
+    # ---- message rates ------------------------------------------------------------------
+    def step_message_names(self) -> tuple[str, ...]:
+        return ()
+
+    def interval_of(self, name: str) -> float | bool | None:
+        if name in self.intervals:
+            return self.intervals[name]
+        return super().interval_of(name)
+
     def _set_interval(self, message: MavMessage) -> int:
-        name = message_name(int(message.param1)) if math.isfinite(message.param1) else None
+        name = self._requested_stream(message)
         if name not in self.intervals or not math.isfinite(message.param2):
-            return dialect.MAV_RESULT_DENIED
+            return super()._set_interval(message)
         us = message.param2
         if us < 0:
             self._set_stream(name, None)
@@ -189,33 +257,9 @@ class ArduSubAutopilot(Autopilot):
             self._set_stream(name, max(us / 1e6, 0.02))
         return dialect.MAV_RESULT_ACCEPTED
 
-    def _get_interval(self, message: MavMessage) -> int:
-        name = message_name(int(message.param1)) if math.isfinite(message.param1) else None
-        if name not in self.intervals:
-            return dialect.MAV_RESULT_DENIED
-        interval = self.intervals[name]
-        us = -1 if interval is None else round(interval * 1e6)
-        self._send(dialect.MAVLink_message_interval_message(int(message.param1), us))
-        return dialect.MAV_RESULT_ACCEPTED
-
     # ---- streaming -----------------------------------------------------------------------
-    def sim_time(self, now: float | None = None) -> float:
-        """Simulated seconds since the vehicle booted."""
-        if not self._start:
-            return self._uptime + self.plant.t
-        now = self.clock() if now is None else now
-        wall = self._uptime + (now - self._start) * self.config.speed
-        # Never ahead of the plant's next step: an emulator running behind its speed (a
-        # loaded machine) stamps what it sends with the plant's time, not the wall's.
-        return min(wall, self._uptime + self.plant.t)
-
-    def step(self) -> TelemetrySample:
-        sample = self.plant.step(*self._inputs_for_step())
-        self.stats.steps += 1
-        self.stats.last_sample = sample
-        if self.on_step is not None:
-            self.on_step(sample)
-        return sample
+    def step_messages(self, sample: TelemetrySample) -> list[MavMessage]:
+        return []  # every message goes on its own stream
 
     def _message(self, name: str, sim: float) -> MavMessage:
         sample = self.stats.last_sample
@@ -231,7 +275,9 @@ class ArduSubAutopilot(Autopilot):
         if name == "VFR_HUD":
             return dialect.MAVLink_vfr_hud_message(0.0, 0.0, 0, 0, -sample.depth, sample.climb)
         ballast = self.profile.ballast
-        servos = [1500 if n in THRUSTER_SERVOS else 0 for n in range(1, 17)]
+        servos = [
+            1500 if n in THRUSTER_SERVOS else self._servo_pwm.get(n, 0) for n in SERVOS
+        ]
         for channel, u in (("depth", sample.u_depth), ("pitch", sample.u_pitch)):
             servos[ballast.output(channel) - 1] = ballast.pwm.from_wire(u / ballast.full_scale)
         return dialect.MAVLink_servo_output_raw_message(int(sim * 1e6) & 0xFFFFFFFF, 0, *servos)
@@ -242,7 +288,7 @@ class ArduSubAutopilot(Autopilot):
         self._send(self._message(name, self.sim_time() if sim is None else sim))
         self.sent[name] += 1
 
-    def _send_due(self, sim: float) -> float:
+    def _profile_streams_due(self, sim: float) -> float:
         """Send every stream that is due at simulated time ``sim``; the next due time."""
         next_due = math.inf
         for name, interval in self.intervals.items():
@@ -257,36 +303,3 @@ class ArduSubAutopilot(Autopilot):
                 self._due[name] = due if due > sim else sim + interval
             next_due = min(next_due, self._due[name])
         return next_due
-
-    def run(self, stop: threading.Event | None = None):
-        """Step the plant and send each stream when due until ``duration`` or ``stop``."""
-        stop = stop or threading.Event()
-        speed = self.config.speed
-        wall_period = self.plant.config.period / speed
-        start = self._start = self.clock()
-        next_heartbeat = start
-        total_steps = (
-            None
-            if self.config.duration is None
-            else math.floor(self.config.duration / self.plant.config.period + 1e-9)
-        )
-        while not stop.is_set():
-            if total_steps is not None and self.stats.steps >= total_steps:
-                break
-            now = self.clock()
-            if now >= next_heartbeat:
-                self._send(self.mapping.heartbeat(vehicle=True))
-                self.stats.heartbeats += 1
-                next_heartbeat += max(1, math.ceil(now - next_heartbeat))
-            deadline = start + self.stats.steps * wall_period
-            if now >= deadline:
-                # What fell due before this step reports the state before it: a message is
-                # never stamped earlier than the reading it carries.
-                self._send_due(self.sim_time(now))
-                self.step()
-                continue
-            next_due = self._send_due(self.sim_time(now))
-            due_wall = start + (next_due - self._uptime) / speed
-            self._receive_until(min(deadline, next_heartbeat, due_wall), stop)
-        self._receive_until(self.clock(), stop)
-        return self.stats

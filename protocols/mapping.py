@@ -48,10 +48,20 @@ class TelemetryMapping:
     inputs: InputScale = field(default_factory=InputScale)
 
     # ---- vehicle side -------------------------------------------------------------
-    def heartbeat(self, vehicle: bool = True) -> MavMessage:
+    def heartbeat(
+        self,
+        vehicle: bool = True,
+        autopilot: int = dialect.MAV_AUTOPILOT_GENERIC,
+        base_mode: int = 0,
+    ) -> MavMessage:
+        """A vehicle's HEARTBEAT (``autopilot``, ``base_mode`` as given), or with
+        ``vehicle=False`` an onboard controller's."""
         kind = dialect.MAV_TYPE_SUBMARINE if vehicle else dialect.MAV_TYPE_ONBOARD_CONTROLLER
-        autopilot = dialect.MAV_AUTOPILOT_GENERIC if vehicle else dialect.MAV_AUTOPILOT_INVALID
-        return dialect.MAVLink_heartbeat_message(kind, autopilot, 0, 0, dialect.MAV_STATE_ACTIVE, 3)
+        if not vehicle:
+            autopilot, base_mode = dialect.MAV_AUTOPILOT_INVALID, 0
+        return dialect.MAVLink_heartbeat_message(
+            kind, autopilot, base_mode, 0, dialect.MAV_STATE_ACTIVE, 3
+        )
 
     def encode_telemetry(self, sample: TelemetrySample) -> list[MavMessage]:
         """The four messages of one plant step, all stamped with the step's time."""

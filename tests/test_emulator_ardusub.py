@@ -153,7 +153,13 @@ def test_do_set_servo_moves_the_ballast(processes, peer):
         ),
     )
     assert received
-    for servo, pwm in ((3, 1500), (9, math.nan), (9, 3000)):  # a thruster, NaN, out of range
+    # A thruster (SERVO3_FUNCTION 35, a motor) fails as on ArduPilot, with its message.
+    peer.send(command_long(dialect.MAV_CMD_DO_SET_SERVO, 3, 1500))
+    got = wait_for(peer, ack_for(dialect.MAV_CMD_DO_SET_SERVO))
+    assert of(got, "COMMAND_ACK")[-1].result == dialect.MAV_RESULT_FAILED
+    texts = [m.text for m in of(got, "STATUSTEXT")]  # sent before the ack
+    assert "ServoRelayEvent: Channel 3 is already in use" in texts
+    for servo, pwm in ((9, math.nan), (9, 3000)):  # NaN, out of range
         peer.send(command_long(dialect.MAV_CMD_DO_SET_SERVO, servo, pwm))
         ack = of(wait_for(peer, ack_for(dialect.MAV_CMD_DO_SET_SERVO)), "COMMAND_ACK")
         assert ack[-1].result == dialect.MAV_RESULT_DENIED
@@ -208,7 +214,7 @@ def test_answers_a_ground_station(processes, peer):
     )
     assert of(got, "AUTOPILOT_VERSION")[-1].capabilities & dialect.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     expected = {
-        dialect.MAV_CMD_GET_HOME_POSITION: dialect.MAV_RESULT_FAILED,
+        dialect.MAV_CMD_GET_HOME_POSITION: dialect.MAV_RESULT_ACCEPTED,  # the surfacing point
         dialect.MAV_CMD_NAV_TAKEOFF: dialect.MAV_RESULT_UNSUPPORTED,
     }
     for command, result in expected.items():
@@ -243,6 +249,8 @@ def test_answers_a_ground_station(processes, peer):
     )
     peer.receive_for(0.3)
     out, _ = processes.stop(emulator)
-    gcs = last_json(out, "emulator")["gcs"]
+    summary = last_json(out, "emulator")
+    gcs = summary["gcs"]
     assert gcs["heartbeats"] == {"MAV_TYPE_ONBOARD_CONTROLLER": 1}
-    assert gcs["ftp_naks"] == 1 and gcs["mission_lists"] == 1 and gcs["param_lists"] == 1
+    assert gcs["ftp_naks"] == 1 and summary["mission"]["downloads"] == 1
+    assert gcs["param_lists"] == 1

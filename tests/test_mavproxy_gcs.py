@@ -65,7 +65,8 @@ def everything_seen(messages: list[tuple[float, object]]) -> bool:
         and len({p.param_index for p in params}) >= params[0].param_count
         and kinds["MISSION_COUNT"] > 0
         and kinds["AUTOPILOT_VERSION"] > 0
-        and dialect.MAV_CMD_GET_HOME_POSITION in acks
+        # Home: streamed by the vehicle, or answered when MAVProxy asks before it came.
+        and (kinds["HOME_POSITION"] > 0 or dialect.MAV_CMD_GET_HOME_POSITION in acks)
         and changed
         and kinds["REQUEST_DATA_STREAM"] > 0
     )

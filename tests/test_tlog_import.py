@@ -137,9 +137,9 @@ def ardusub_dive_tlog(path, steps: int) -> int:
     data = b""
     for k in range(steps):
         if k % 10 == 0:
-            vehicle._send(vehicle.mapping.heartbeat(vehicle=True))
+            vehicle.send_heartbeat()
         vehicle.step()
-        vehicle._send_due(vehicle.sim_time())
+        vehicle.send_streams_due(vehicle.sim_time())
         for frame in link.frames:
             data += struct.pack(">Q", T0 + k * 100_000) + frame
         link.frames.clear()
