@@ -238,3 +238,5 @@ def test_a_scheduler_that_is_not_there_is_a_clear_error(tmp_path: Path) -> None:
     )  # fmt: skip
     assert done.returncode == 2
     assert f"cannot use the scheduler {address}" in done.stderr
+    alone = campaign("--seeds", "0", "-o", str(tmp_path / "y"), "--logs", "shared", timeout=60)
+    assert alone.returncode == 2 and "--logs needs --scheduler" in alone.stderr

@@ -116,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"unexpected arguments {args.dirs}")
         if args.out is None:
             raise ValueError("-o DIR is required")
+        if args.scheduler is None and args.logs != "auto":
+            raise ValueError("--logs needs --scheduler")
         scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
         unknown = [s for s in scenarios if s not in SCENARIOS]
         if unknown:
