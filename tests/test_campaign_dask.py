@@ -17,11 +17,10 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import distributed
 import pytest
 
 from hil_service.cli.processes import free_port, last_json
-
-distributed = pytest.importorskip("distributed")
 
 pytestmark = pytest.mark.wire
 
