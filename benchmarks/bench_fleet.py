@@ -22,7 +22,13 @@ The emulated vehicles step spread evenly over the 100 ms period, as independent 
 clocks are; ``--phase-locked`` makes them all step at once (each service then receives its
 whole fleet's telemetry in one burst, and the last vehicle of the burst waits for the others).
 
+``--services 1`` puts the whole fleet on one service (``--sysid 1-N``), ``--rate`` sets the
+samples/s of each vehicle (default 10): ``--services 1 --sizes 250 --rate 4`` is the sample
+rate of 1,000 gliders at 1 Hz on one service process (a MAVLink link tells 255 system ids
+apart, docs/cluster.md), ``--sizes 250 --rate 1`` the largest fleet one link can carry.
+
 Run: .venv/bin/python benchmarks/bench_fleet.py [--sizes 100,150,200] [--seconds 40]
+         [--rate 10] [--services 2] [--target-ms 20]
 """
 
 from __future__ import annotations
@@ -220,7 +226,13 @@ def tail_attribution(
     }  # fmt: skip
 
 
-def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict[str, Any]:
+def run_fleet(
+    vehicles: int,
+    seconds: float,
+    phase_locked: bool = False,
+    rate: float = RATE,
+    service_count: int = 2,
+) -> dict[str, Any]:
     router = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     processes: list[subprocess.Popen[str]] = []
     session = None
@@ -231,10 +243,11 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         processes.append(router_process)
         wait_for_line(router_process, ROUTER_READY, 60)
         # The services' --sysid ranges are the emulator's blocks (connection_for).
-        udp = [free_port(socket.SOCK_DGRAM) for _ in range(2)]
-        block = [connection_for(i, vehicles, [0, 1]) for i in range(vehicles)]
+        links = list(range(service_count))
+        udp = [free_port(socket.SOCK_DGRAM) for _ in links]
+        block = [connection_for(i, vehicles, links) for i in range(vehicles)]
         ranges = [
-            f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in (0, 1)
+            f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in links
         ]
         services = []
         for sysids, port in zip(ranges, udp, strict=True):
@@ -256,8 +269,8 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         for system_id in range(1, vehicles + 1):
             session.put(keys.setpoint(system_id, "depth"), json.dumps({"value": 16.0}))
         emulator = start_verb(
-            "emulate", "--vehicles", str(vehicles), "--sysid", "1", "--speed", str(RATE),
-            "--duration", str(seconds * RATE), "--scenario", "paper",
+            "emulate", "--vehicles", str(vehicles), "--sysid", "1", "--speed", str(rate),
+            "--duration", str(seconds * rate), "--scenario", "paper",
             *(["--phase-locked"] if phase_locked else []),
             "--latency-trace", trace_path,
             *[arg for port in udp for arg in ("--fleet-connect", f"udpout:127.0.0.1:{port}")],
@@ -269,7 +282,8 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         wait_until(lambda: counts.total() > 0, emulator, 180)
         started = time.monotonic()
         load_average = os.getloadavg()[0]
-        ours = {"router": router_process, "service_1": services[0], "service_2": services[1]}
+        ours = {"router": router_process}
+        ours.update({f"service_{n + 1}": p for n, p in enumerate(services)})
         cpu_before = {name: cpu_seconds(p.pid) for name, p in ours.items()}
         pressure_before = cpu_pressure_us()
         # Mid-run, once every vehicle has appeared: what `fleet` lists.
@@ -300,7 +314,7 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
         assembled = sum(s.get("counters", {}).get("samples", 0) for s in summaries)
         with open(trace_path) as f:
             trace = [tuple(json.loads(line)) for line in f]
-        holder = {i: connection_for(i - 1, vehicles, [0, 1]) for i in range(1, vehicles + 1)}
+        holder = {i: connection_for(i - 1, vehicles, links) for i in range(1, vehicles + 1)}
         with counts.lock:
             tail = tail_attribution(trace, holder, list(counts.health), listing)  # type: ignore[arg-type]
             received = sum(counts.telemetry.values())
@@ -308,6 +322,9 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
             commands = sum(counts.commands.values())
         return {
             "vehicles": vehicles,
+            "services": service_count,
+            "rate_per_vehicle": rate,
+            "samples_per_s_per_service": round(vehicles * rate / service_count, 1),
             "phase_locked": phase_locked,
             "wall_s": round(wall, 1),
             "steps_sent": emulated["steps"],
@@ -337,9 +354,12 @@ def run_fleet(vehicles: int, seconds: float, phase_locked: bool = False) -> dict
                 **{name: round(value, 2) for name, value in cpu.items()},
                 "emulator": emulated.get("cpu_s"),
             },
+            "cores_per_service": [
+                round(cpu[f"service_{n + 1}"] / wall, 3) for n in range(service_count)
+            ],
             "cpu_ms_per_sample": {
                 "each_service": round(
-                    1000 * (cpu["service_1"] + cpu["service_2"]) / max(assembled, 1), 3
+                    1000 * sum(cpu[f"service_{n + 1}"] for n in links) / max(assembled, 1), 3
                 ),
                 "router": round(1000 * cpu["router"] / max(assembled, 1), 3),
                 "emulator_per_step": round(
@@ -368,21 +388,34 @@ def main() -> int:
         action="store_true",
         help="all vehicles step at the same instant (default: spread over the period)",
     )
+    parser.add_argument(
+        "--rate", type=float, default=RATE, help="samples/s per vehicle (default %(default)s)"
+    )
+    parser.add_argument(
+        "--services",
+        type=int,
+        choices=(1, 2),
+        default=2,
+        help="service processes sharing the fleet in --sysid ranges (default 2)",
+    )
+    parser.add_argument(
+        "--target-ms", type=float, default=TARGET_MS, help="p99 target (default %(default)s)"
+    )
     args = parser.parse_args()
     results = []
     for size in (int(s) for s in args.sizes.split(",")):
-        result = run_fleet(size, args.seconds, args.phase_locked)
+        result = run_fleet(size, args.seconds, args.phase_locked, args.rate, args.services)
         print(json.dumps(result), flush=True)
         results.append(result)
     meeting = [
         r["vehicles"]
         for r in results
-        if r["latency"].get("count") and r["latency"]["p99_ms"] < TARGET_MS
+        if r["latency"].get("count") and r["latency"]["p99_ms"] < args.target_ms
     ]
     print(
         json.dumps(
             {
-                "target_p99_ms": TARGET_MS,
+                "target_p99_ms": args.target_ms,
                 "largest_fleet_meeting_target": max(meeting) if meeting else None,
                 "sizes_tried": [r["vehicles"] for r in results],
             }

@@ -14,6 +14,8 @@
        .venv/bin/python benchmarks/bench_lockstep.py --campaign 50 --jobs 2
 
    With the oracle, as ``campaign`` runs by default (``--no-oracle``: without).
+   ``--scheduler tcp://HOST:PORT``: the same campaign on a Dask cluster (docs/cluster.md);
+   the median CPU s per mission (``cpu_s`` of runs.csv: worker, service, scoring) either way.
 
 3. ``--oracle-cpu N``: the known-model oracle's CPU s per mission alone, seeds 0..N-1 of the
    scenarios (``oracle_trace``, as the campaign runs it).
@@ -27,6 +29,7 @@ import argparse
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -77,23 +80,35 @@ def lockstep_rate(mission: Mission, log: bool) -> dict[str, object]:
 
 
 def campaign_wall(
-    seeds: int, scenarios: str, steps: int, jobs: int, oracle: bool
+    seeds: int, scenarios: str, steps: int, jobs: int, oracle: bool, scheduler: str | None = None
 ) -> dict[str, object]:
     load_before = os.getloadavg()
+    cluster = [] if scheduler is None else ["--scheduler", scheduler]
     with tempfile.TemporaryDirectory() as directory:
         started = time.monotonic()
         done = subprocess.run(
             [sys.executable, "-m", "hil_service.cli", "campaign", "--scenarios", scenarios,
              "--seeds", f"0-{seeds - 1}", "--steps", str(steps), "--jobs", str(jobs),
-             "--oracle" if oracle else "--no-oracle", "-o", str(Path(directory) / "c")],
+             "--oracle" if oracle else "--no-oracle", "--no-figures",
+             "-o", str(Path(directory) / "c"), *cluster],
             capture_output=True, text=True, check=True,
         )  # fmt: skip
         wall = time.monotonic() - started
+        rows = json.loads((Path(directory) / "c" / "runs.json").read_text())
+    cpu = sorted(r["cpu_s"] for r in rows if isinstance(r.get("cpu_s"), (int, float)))
+    per_scenario = {
+        s: round(statistics.median(r["cpu_s"] for r in rows if r["scenario"] == s), 3)
+        for s in scenarios.split(",")
+        if any(r["scenario"] == s and isinstance(r.get("cpu_s"), (int, float)) for r in rows)
+    }
     result = json.loads(done.stdout.strip().splitlines()[-1])["campaign"]
     # The 1-minute load average before and after (after: this run's own share included).
     load = [round(load_before[0], 2), round(os.getloadavg()[0], 2)]
     return {"missions": result["runs"], "ok": result["ok"], "wall_s": round(wall, 1),
             "jobs": jobs, "steps": steps, "scenarios": scenarios, "oracle": oracle,
+            "scheduler": scheduler,
+            "median_cpu_s_per_mission": round(statistics.median(cpu), 3) if cpu else None,
+            "median_cpu_s_by_scenario": per_scenario,
             "load_average_1min": load}  # fmt: skip
 
 
@@ -126,12 +141,14 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--oracle", action=argparse.BooleanOptionalAction, default=True,
                         help="--campaign: with the known-model oracle (default, as campaign)")
+    parser.add_argument("--scheduler", default=None, help="--campaign: on this Dask scheduler")
     parser.add_argument("--oracle-cpu", type=int, default=0, metavar="SEEDS",
                         help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1")  # fmt: skip
     args = parser.parse_args()
     if args.campaign:
         print(json.dumps({"campaign": campaign_wall(args.campaign, args.scenarios, args.steps,
-                                                    args.jobs, args.oracle)}))  # fmt: skip
+                                                    args.jobs, args.oracle,
+                                                    args.scheduler)}))  # fmt: skip
         return 0
     if args.oracle_cpu:
         print(json.dumps({"oracle_cpu": oracle_cpu(args.oracle_cpu, args.scenarios, args.steps)}))

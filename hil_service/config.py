@@ -30,6 +30,9 @@ from protocols.units import InputScale, PressureDepth
 SERVICE_KEY = "service"
 MAPPING_KEY = "mapping"
 PROFILE_KEY = "profile"  # a periodic vehicle profile: {"name", "text"} (docs/profiles.md)
+#: Vehicles a service takes on a link without ``--sysid`` unless ``--max-vehicles`` says.
+DEFAULT_MAX_VEHICLES = 32
+MAX_SYSTEM_IDS = 255  # a MAVLink system id is one byte (0 is the broadcast id)
 
 
 @dataclass(frozen=True)
@@ -106,6 +109,16 @@ class ServiceConfig:
     #: Release every step from the start (docs/lockstep.md); without it, lockstep starts
     #: when a vehicle announces it. Live only: not stored (replay sends nothing).
     lockstep: bool = False
+    #: Vehicles served on a link without a ``system_ids`` list (``serve --max-vehicles``):
+    #: the first this many system ids heard; a listed set is always served whole.
+    max_vehicles: int = DEFAULT_MAX_VEHICLES
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.max_vehicles <= MAX_SYSTEM_IDS:
+            raise ValueError(
+                f"--max-vehicles must be 1..{MAX_SYSTEM_IDS} (MAVLink system ids), "
+                f"got {self.max_vehicles}"
+            )
 
     def mapping(self) -> TelemetryMapping:
         return self.units.mapping()
@@ -119,6 +132,7 @@ class ServiceConfig:
             "pipeline": self.pipeline.to_json(),
             "signing": self.security.to_json(),
             "limits": _limits_json(self.limits),
+            "max_vehicles": self.max_vehicles,
             **(
                 {}
                 if self.profile is None
@@ -153,6 +167,7 @@ class ServiceConfig:
             system_ids=tuple(service.get("system_ids", ())),
             control_default=service.get("control_default", False),
             stale_timeout=service.get("stale_timeout", 3.0),
+            max_vehicles=service.get("max_vehicles", DEFAULT_MAX_VEHICLES),
             pipeline=PipelineSettings.from_json(service["pipeline"]),
             units=Units.from_json(stored.get(MAPPING_KEY)),
             limits=SetpointLimits(

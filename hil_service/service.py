@@ -85,7 +85,10 @@ class HilService:
         self._routes: dict[int, Address] = {}
         if config.profile is not None:
             self.periodic = ProfileAssembler(
-                config.profile, config.sample_period, config.system_ids or None
+                config.profile,
+                config.sample_period,
+                config.system_ids or None,
+                max_vehicles=config.max_vehicles,
             )
         # Decoding (and checking signatures) only: nothing is sent under this identity.
         self.codec = MavlinkCodec.for_link(
@@ -95,7 +98,9 @@ class HilService:
             accept_unsigned=config.security.accept_unsigned,
         )
         self.verifier = self.codec.verifier
-        self.assembler = SampleAssembler(self.mapping, config.system_ids or None)
+        self.assembler = SampleAssembler(
+            self.mapping, config.system_ids or None, config.max_vehicles
+        )
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}
         self._next_health = 0.0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import select
+import socket
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,6 +34,11 @@ MavMessage = Any  # pymavlink generates one class per message; they share MAVLin
 #: Where a datagram came from (a UDP socket address), or None on a stream or an unknown peer.
 Address = tuple[Any, ...] | None
 UDP_MAX_DATAGRAM = 65535
+#: SO_RCVBUF asked for on a UDP link. The kernel's default (net.core.rmem_default, often
+#: 208 KiB) holds about 270 small datagrams, a quarter of a second of a 1,000-samples/s
+#: fleet's telemetry: a reader that stalls longer loses datagrams. The kernel caps the
+#: request at net.core.rmem_max.
+UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
 
 
 @dataclass
@@ -262,6 +268,11 @@ class Link:
             )
         #: UDP delivers whole frames per datagram; streams may split them anywhere.
         self.datagram = isinstance(self._file, mavutil.mavudp)
+        if self.datagram:
+            with contextlib.suppress(OSError):
+                self._file.port.setsockopt(
+                    socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER
+                )
 
     def fileno(self) -> int:
         return self._file.fd if self._file.fd is not None else self._file.port.fileno()

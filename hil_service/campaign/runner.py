@@ -123,7 +123,7 @@ def execute(spec: CampaignSpec, mission: Mission) -> dict[str, Any]:
     return row
 
 
-def _write_row(directory: Path, row: dict[str, Any]) -> None:
+def write_row(directory: Path, row: dict[str, Any]) -> None:
     directory.mkdir(parents=True, exist_ok=True)
     partial = directory / (RUN_FILE + ".partial")
     partial.write_text(json.dumps(row))
@@ -139,20 +139,20 @@ def _cpu_seconds() -> float:
     return total
 
 
-def _worker(spec: CampaignSpec, mission: Mission) -> None:
+def mission_worker(spec: CampaignSpec, mission: Mission) -> None:
     """The forked worker's body; it leaves with os._exit, never returning to the caller."""
     code = 1
     try:
         cpu = _cpu_seconds()
         row = execute(spec, mission)
         row["cpu_s"] = round(_cpu_seconds() - cpu, 3)  # the worker's and its service's
-        _write_row(run_dir(spec, mission), row)
+        write_row(run_dir(spec, mission), row)
         code = 0
     finally:
         os._exit(code)
 
 
-def _describe(status: int) -> str:
+def describe_exit(status: int) -> str:
     if os.WIFSIGNALED(status):
         return f"worker killed by signal {os.WTERMSIG(status)}"
     return f"worker exited with {os.WEXITSTATUS(status)} without a result"
@@ -199,6 +199,41 @@ class Progress:
         self.stream.flush()
 
 
+def failed_row(mission: Mission, reason: str) -> dict[str, Any]:
+    """The row of a mission that left no result of its own (its worker died, say)."""
+    row: dict[str, Any] = dict.fromkeys(columns())
+    row.update(
+        scenario=mission.scenario,
+        seed=mission.seed,
+        steps=mission.steps,
+        status="failed",
+        reason=reason,
+    )
+    return row
+
+
+def prepare(spec: CampaignSpec) -> tuple[dict[str, dict[str, Any]], list[Mission]]:
+    """Write campaign.json; the rows already recorded (when resuming) and what is left."""
+    spec.out.mkdir(parents=True, exist_ok=True)
+    (spec.out / "campaign.json").write_text(json.dumps(spec.to_json(), indent=1))
+    rows: dict[str, dict[str, Any]] = {}
+    pending: list[Mission] = []
+    for mission in spec.missions():
+        row = load_row(run_dir(spec, mission)) if spec.resume else None
+        if row is not None:
+            rows[mission.run_id] = row
+        else:
+            pending.append(mission)
+    return rows, pending
+
+
+def clear_result(spec: CampaignSpec, mission: Mission) -> None:
+    """Remove a mission's stale ``run.json`` (an earlier, unfinished campaign's) before it runs."""
+    stale = run_dir(spec, mission) / RUN_FILE
+    if stale.exists():
+        stale.unlink()
+
+
 def run_campaign(
     spec: CampaignSpec, on_row: Callable[[dict[str, Any]], None] | None = None
 ) -> list[dict[str, Any]]:
@@ -207,17 +242,8 @@ def run_campaign(
     Waits for any child (``os.waitpid(-1)``): call it from a process whose only children
     are its workers (the ``campaign`` verb's), not from one that runs other subprocesses.
     """
-    spec.out.mkdir(parents=True, exist_ok=True)
-    (spec.out / "campaign.json").write_text(json.dumps(spec.to_json(), indent=1))
     missions = spec.missions()
-    rows: dict[str, dict[str, Any]] = {}
-    pending: list[Mission] = []
-    for mission in missions:
-        row = load_row(run_dir(spec, mission)) if spec.resume else None
-        if row is not None:
-            rows[mission.run_id] = row
-        else:
-            pending.append(mission)
+    rows, pending = prepare(spec)
     progress = Progress(len(pending))
     running: dict[int, Mission] = {}
     sys.stdout.flush()
@@ -225,12 +251,10 @@ def run_campaign(
     while pending or running:
         while pending and len(running) < spec.jobs:
             mission = pending.pop(0)
-            stale = run_dir(spec, mission) / RUN_FILE
-            if stale.exists():
-                stale.unlink()
+            clear_result(spec, mission)
             pid = os.fork()
             if pid == 0:
-                _worker(spec, mission)
+                mission_worker(spec, mission)
             running[pid] = mission
         pid, status = os.waitpid(-1, 0)
         mission = running.pop(pid, None)
@@ -238,15 +262,8 @@ def run_campaign(
             continue
         row = load_row(run_dir(spec, mission))
         if row is None:
-            row = dict.fromkeys(columns())
-            row.update(
-                scenario=mission.scenario,
-                seed=mission.seed,
-                steps=mission.steps,
-                status="failed",
-                reason=_describe(status),
-            )
-            _write_row(run_dir(spec, mission), row)
+            row = failed_row(mission, describe_exit(status))
+            write_row(run_dir(spec, mission), row)
         rows[mission.run_id] = row
         progress.update(row)
         if on_row is not None:

@@ -3,10 +3,12 @@ and (``--oracle``) the known-model oracle; ``campaign compare DIR_A DIR_B`` pair
 
     glider-hil campaign --scenarios disturbed,nonlinear,random --seeds 0-49 --steps 3600 \\
         --jobs 2 -o DIR [--resume] [--no-oracle]
+    glider-hil campaign ... --scheduler tcp://HOST:PORT [--logs auto|shared|return]
     glider-hil campaign compare DIR_A DIR_B [--json]
 
 Writes DIR/runs.csv, DIR/runs.json, DIR/summary.md, DIR/iae_ratios.png and one MCAP log per
-run under DIR/runs/SCENARIO-sSEED/.
+run under DIR/runs/SCENARIO-sSEED/. With ``--scheduler`` each mission is a task on a Dask
+cluster's workers (``hil_service/campaign/dask_engine.py``, docs/cluster.md).
 """
 
 from __future__ import annotations
@@ -48,7 +50,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="steps between setpoint steps (default steps/6)",
     )
-    parser.add_argument("--jobs", type=int, default=2, help="missions at a time (default 2)")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=2,
+        help="missions at a time (default 2; with --scheduler the cluster's worker threads decide)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="a Dask scheduler (tcp://HOST:PORT): run each mission as a task on its workers "
+        "(docs/cluster.md)",
+    )
+    parser.add_argument(
+        "--scheduler-timeout",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="wall s to reach the scheduler and for it to have a worker (default %(default)s)",
+    )
+    parser.add_argument(
+        "--logs",
+        choices=("auto", "shared", "return"),
+        default="auto",
+        help="with --scheduler: where a mission's log goes. shared: the workers write into "
+        "-o DIR (shared storage); return: it comes back with the result; auto (default): "
+        "shared where a worker sees this -o DIR, else return",
+    )
     parser.add_argument("-o", "--out", default=None, help="campaign directory")
     parser.add_argument("--resume", action="store_true", help="skip missions already recorded")
     parser.add_argument(
@@ -87,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"unexpected arguments {args.dirs}")
         if args.out is None:
             raise ValueError("-o DIR is required")
+        if args.scheduler is None and args.logs != "auto":
+            raise ValueError("--logs needs --scheduler")
         scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
         unknown = [s for s in scenarios if s not in SCENARIOS]
         if unknown:
@@ -114,7 +145,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"glider-hil campaign: {error}", file=sys.stderr)
         return 2
     started = time.monotonic()
-    rows = run_campaign(spec)
+    if args.scheduler is None:
+        rows = run_campaign(spec)
+    else:
+        from hil_service.campaign.dask_engine import run_campaign_dask
+
+        try:
+            rows = run_campaign_dask(spec, args.scheduler, args.logs, args.scheduler_timeout)
+        except (OSError, TimeoutError) as error:
+            print(
+                f"glider-hil campaign: cannot use the scheduler {args.scheduler}: {error}",
+                file=sys.stderr,
+            )
+            return 2
     wall = time.monotonic() - started
     write_outputs(spec.out, rows, spec.to_json(), figures=not args.no_figures, wall_s=wall)
     counts = {k: sum(r.get("status") == k for r in rows) for k in ("ok", "diverged", "failed")}

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
 from hil_service.config import (
+    DEFAULT_MAX_VEHICLES,
     LinkSecurity,
     LogOptions,
     ServeConfig,
@@ -50,6 +51,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="IDS",
         help="vehicle system ids to serve: N, N-M or a comma list (repeatable; default: every "
         "vehicle on the link)",
+    )
+    parser.add_argument(
+        "--max-vehicles",
+        type=int,
+        default=DEFAULT_MAX_VEHICLES,
+        metavar="N",
+        help="without --sysid: serve the first N system ids heard on the link, 1..255 "
+        "(default %(default)s; stored in the log's configuration; a --sysid list is served whole)",
     )
     parser.add_argument(
         "--profile",
@@ -181,6 +190,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         profile=profile if periodic else None,
         sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
         lockstep=args.lockstep,
+        max_vehicles=args.max_vehicles,
     )
     log = LogOptions(
         directory=None if args.no_log else args.log_dir,
