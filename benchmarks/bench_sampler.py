@@ -84,7 +84,7 @@ def ardusub_messages(samples: list, seed: int = 0) -> list:
 
 
 def time_lockstep(messages: list) -> tuple[int, float]:
-    assembler = SampleAssembler(TelemetryMapping())
+    assembler = SampleAssembler()
     start = time.perf_counter()
     formed = sum(assembler.add(m) is not None for m in messages)
     return formed, time.perf_counter() - start

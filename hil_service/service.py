@@ -70,7 +70,7 @@ class HilService:
         self.inbox = inbox
         self.link = link
         self.recorder = recorder
-        self.mapping = config.mapping()
+        self.profile = config.vehicle_profile()
         self.clock = clock
         self.send_commands = send_commands and link is not None
         self.periodic: ProfileAssembler | None = None
@@ -81,9 +81,9 @@ class HilService:
         self._senders: dict[int, MavlinkCodec] = {}
         #: Where each vehicle's frames last came from (udpin): its replies go there.
         self._routes: dict[int, Address] = {}
-        if config.profile is not None:
+        if config.periodic:
             self.periodic = ProfileAssembler(
-                config.profile, config.sample_period, config.system_ids or None
+                self.profile, config.sample_period, config.system_ids or None
             )
         # Decoding (and checking signatures) only: nothing is sent under this identity.
         self.codec = MavlinkCodec.for_link(
@@ -93,7 +93,7 @@ class HilService:
             accept_unsigned=config.security.accept_unsigned,
         )
         self.verifier = self.codec.verifier
-        self.assembler = SampleAssembler(self.mapping, config.system_ids or None)
+        self.assembler = SampleAssembler(self.profile, config.system_ids or None)
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}
         self._next_health = 0.0
@@ -225,14 +225,12 @@ class HilService:
         if decision.command is not None and decision.payload is not None:
             # The vehicle first: the Zenoh publish blocks (congestion control BLOCK) while a
             # slow subscriber catches up, and must not hold the command back.
-            if self.send_commands and self.config.profile is not None:
+            if self.send_commands:
                 command = decision.command
-                for message in self.config.profile.command_messages(
+                for message in self.profile.command_messages(
                     command.u_depth, command.u_pitch, system_id
                 ):
                     self._send(message, system_id)
-            elif self.send_commands:
-                self._send(self.mapping.ballast_command(decision.command, system_id), system_id)
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
         if self.lockstep is not None and self.send_commands:
@@ -272,7 +270,8 @@ class HilService:
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle
             period = None if self.periodic is None else self.periodic.config.period
-            self.companions[system_id] = Companion(self.config.profile, period, system_id)
+            streams = None if self.periodic is None else self.profile  # lockstep: as they are
+            self.companions[system_id] = Companion(streams, period, system_id)
             self.bus.declare_vehicle(system_id, lambda: self.state(system_id))
         return vehicle
 

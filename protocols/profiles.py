@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -169,6 +169,37 @@ class Profile:
         limits["u_pitch"] = ballast
         return limits
 
+    def step_messages(self) -> tuple[str, ...]:
+        """The messages a lockstep step needs, all stamped with the step's time: the
+        preferred source of every signal that is not optional, and the ballast readback."""
+        names = [
+            sources[0].message
+            for sources in self.signals.values()
+            if not all(s.optional for s in sources)
+        ]
+        names.append(self.ballast.readback)
+        return tuple(dict.fromkeys(names))
+
+    def with_units(
+        self,
+        full_scale: float | None = None,
+        water_density: float | None = None,
+        surface_hpa: float | None = None,
+    ) -> Profile:
+        """This profile with other units (None: keep the profile's); the text is kept."""
+        pressure = replace(
+            self.pressure,
+            water_density=self.pressure.water_density if water_density is None else water_density,
+            surface_hpa=self.pressure.surface_hpa if surface_hpa is None else surface_hpa,
+        )
+        ballast = replace(
+            self.ballast,
+            full_scale=self.ballast.full_scale if full_scale is None else full_scale,
+        )
+        if pressure == self.pressure and ballast == self.ballast:
+            return self
+        return replace(self, pressure=pressure, ballast=ballast)
+
     def optional_signals(self) -> frozenset[str]:
         return frozenset(
             name for name, sources in self.signals.items() if all(s.optional for s in sources)
@@ -201,6 +232,8 @@ class Profile:
     def _convert(self, source: Source, raw: float) -> float:
         if source.convert == "pressure_to_depth":
             return self.pressure.depth_m(raw)
+        if source.scale == 1.0 and source.offset == 0.0:
+            return raw  # the field as it is (a -0.0 stays -0.0)
         return raw * source.scale + source.offset
 
     # ---- commanding ------------------------------------------------------------------
@@ -248,6 +281,12 @@ def _clock_field(cls: Any) -> tuple[str, str] | None:
         ftype = cls.fieldtypes[names.index("time_usec")]
         return ("us64" if ftype == "uint64_t" else "us32"), "time_usec"
     return None
+
+
+def clock_of(message_name: str) -> tuple[str, str] | None:
+    """The clock a message type carries: (``ms32``/``us32``/``us64``, field name), or None."""
+    cls = getattr(dialect, f"MAVLink_{message_name.lower()}_message", None)
+    return None if cls is None else _clock_field(cls)
 
 
 def message_clock(message: MavMessage) -> tuple[str, int] | None:
@@ -411,7 +450,17 @@ class _Parser:
             self.fail(str(error), "units")
         signals = self._signals(data.get("signals", {}))
         ballast = self._ballast(data.get("ballast", {}))
-        return Profile(name, description, sampling, pressure, signals, ballast, self.text)
+        profile = Profile(name, description, sampling, pressure, signals, ballast, self.text)
+        if sampling.mode == "lockstep":
+            for message in profile.step_messages():
+                if clock_of(message) is None:
+                    self.fail(
+                        f"lockstep groups a step's messages by their timestamp, and {message} "
+                        "carries none: make its signal optional or sample periodically",
+                        "sampling",
+                        "mode",
+                    )
+        return profile
 
     def _sampling(self, table: dict) -> Sampling:
         mode = self._string(table, "sampling", "mode", "lockstep", MODES)

@@ -288,7 +288,9 @@ def test_logs_written_before_the_config_module_still_read(name, capsys):
     assert main(["info", "--json", str(DATA / f"{name}.mcap")]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["config"] == config.stored()
-    assert info["config_defaults"] == ["service.limits"]
+    # The log predates the stored profile too: it reads as the built-in glider profile.
+    assert info["config_defaults"] == ["service.limits", "service.profile", "profile"]
+    assert config.profile.name == "glider"
 
 
 def test_serve_flags_reach_replay_through_the_stored_configuration():

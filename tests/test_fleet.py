@@ -125,8 +125,8 @@ def test_an_explicit_sysid_list_is_served_whole() -> None:
     from protocols.mavlink_io import MavlinkCodec
 
     mapping = TelemetryMapping()
-    listed = SampleAssembler(mapping, parse_system_ids("1-50"))
-    open_link = SampleAssembler(mapping)
+    listed = SampleAssembler(None, parse_system_ids("1-50"))
+    open_link = SampleAssembler()
     reader = MavlinkCodec(255, 0)
     for system_id in range(1, 51):
         sample = GliderPlant(PlantConfig(), system_id=system_id).step(0.0, 0.0)

@@ -77,7 +77,7 @@ def test_identifier_skips_after_a_missing_step_instead_of_misaligning():
 
 
 def test_assembler_follows_a_vehicle_reboot_but_not_a_single_late_step():
-    codec, assembler = MavlinkCodec(1, 1), SampleAssembler(MAPPING)
+    codec, assembler = MavlinkCodec(1, 1), SampleAssembler()
     plant = GliderPlant(PlantConfig(seed=0))
 
     def feed(stamps):

@@ -216,14 +216,15 @@ class _Replay:
         if self.options.model is not None:
             config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
         profile = self._profile(stored)
-        if profile is not None and profile.sampling.mode == "periodic":
+        if profile is not None:
             recorded = (stored.get("service") or {}).get("profile") or {}
             period = (
                 self.options.sample_period
                 or recorded.get("sample_period")
                 or profile.sampling.period
             )
-            config = replace(config, profile=profile, sample_period=period)
+            periodic = profile.sampling.mode == "periodic"
+            config = replace(config, profile=profile, sample_period=period if periodic else None)
         wired = wire(config, inbox=self.inbox, bus=self.recording, send_commands=False)
         self.service = wired.service
         return self.service
