@@ -21,8 +21,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hil_service.assembler import SampleAssembler  # noqa: E402
-from hil_service.profile_assembler import ProfileAssembler  # noqa: E402
+from hil_service.sources.lockstep_assembler import SampleAssembler  # noqa: E402
+from hil_service.sources.periodic_assembler import ProfileAssembler  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
 from protocols.compiled import summary  # noqa: E402

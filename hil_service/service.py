@@ -14,15 +14,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from hil_service.assembler import SampleAssembler
-from hil_service.companion import Companion
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
-from hil_service.lockstep import LockstepResponder
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
-from hil_service.profile_assembler import ProfileAssembler
+from hil_service.sources.companion import Companion
+from hil_service.sources.lockstep_assembler import SampleAssembler
+from hil_service.sources.lockstep_responder import LockstepResponder
+from hil_service.sources.periodic_assembler import ProfileAssembler
 from hil_service.zenoh_bus import Bus
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted

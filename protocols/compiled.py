@@ -38,7 +38,7 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.rbf",
     "hil_service.umodel.reproducible",
     "hil_service.umodel.rls",
-    "hil_service.assembler",
+    "hil_service.sources.lockstep_assembler",
     "hil_service.link_stats",
     "hil_service.mcap.writer",
     "hil_service.mcap.recorder",

@@ -7,7 +7,7 @@ streams, SERVO_OUTPUT_RAW PWM, DO_SET_SERVO). ``load_profile`` takes a built-in 
 file path; a bad file raises ``ProfileError`` naming the file and the line.
 
 A profile turns a received message into *readings* (signal, source rank, value) and a clock
-reading (which clock, raw value), which ``hil_service.sampler`` turns into samples; and it
+reading (which clock, raw value), which ``hil_service.sources.sampler`` turns into samples; and it
 turns a ballast command into the messages that carry it.
 """
 
@@ -38,7 +38,7 @@ CONVERSIONS = ("linear", "pressure_to_depth")
 MODES = ("lockstep", "periodic")
 READBACKS = {"SERVO_OUTPUT_RAW": ("pwm", 16), "ACTUATOR_OUTPUT_STATUS": ("normalised", 32)}
 COMMANDS = {"DO_SET_SERVO": ("pwm", 16), "DO_SET_ACTUATOR": ("normalised", 6)}
-#: Clock kinds of ``hil_service.sampler``: name → (seconds per tick, wrap modulus or 0).
+#: Clock kinds of ``hil_service.sources.sampler``: name → (seconds per tick, wrap modulus or 0).
 CLOCKS = {"ms32": (1e-3, 1 << 32), "us32": (1e-6, 1 << 32), "us64": (1e-6, 0)}
 AUTOPILOT_COMPONENT = 1
 

@@ -13,10 +13,10 @@ import time
 
 import pytest
 
-from hil_service.assembler import SampleAssembler
 from hil_service.link_stats import SequenceTracker
 from hil_service.mcap.reader import LogReader
 from hil_service.pipeline import PipelineSettings, StepContinuity, VehiclePipeline
+from hil_service.sources.lockstep_assembler import SampleAssembler
 from hil_service.umodel import build_model
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping

@@ -1,0 +1,1 @@
+"""Where samples come from: one ``SampleSource`` per profile mode (lockstep, periodic)."""
