@@ -99,7 +99,7 @@ def one_run(
                 time.sleep(0.05)
             if stalled and viewer is not None:
                 viewer.send_signal(signal.SIGSTOP)
-        before = service.assembler.counters.samples
+        before = service.source.assembler.counters.samples
         viewer_cpu = None if viewer is None else cpu_seconds(viewer.pid)
         # Every thread of this process (ours, Zenoh's) and of the live view's (the SDK's).
         cpu0 = time.process_time() + live_cpu_seconds(live)
@@ -119,7 +119,7 @@ def one_run(
         cpu = time.process_time() + live_cpu_seconds(live) - cpu0
         if viewer is not None and viewer_cpu is not None:
             viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu
-        samples = service.assembler.counters.samples - before
+        samples = service.source.assembler.counters.samples - before
         status = live.status() if live is not None else None
         if status is not None:
             status["pending_when_the_path_ended"] = pending_at_end
@@ -185,7 +185,7 @@ def interleaved(
             order = (("off", 0), ("on", 1)) if index % 2 == 0 else (("on", 1), ("off", 0))
             for name, which in order:
                 service = services[which]
-                before = service.assembler.counters.samples
+                before = service.source.assembler.counters.samples
                 cpu0 = time.process_time() + live_cpu_seconds(live if which == 1 else None)
                 for data in part:
                     service.process_datagram(data)
@@ -194,7 +194,7 @@ def interleaved(
                 cpu[name].append(
                     time.process_time() + live_cpu_seconds(live if which == 1 else None) - cpu0
                 )
-                samples[name].append(service.assembler.counters.samples - before)
+                samples[name].append(service.source.assembler.counters.samples - before)
         ratios = [
             (off / max(n_off, 1)) / (on / max(n_on, 1))
             for off, on, n_off, n_on in zip(

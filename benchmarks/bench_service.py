@@ -96,7 +96,7 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
             path_s.append(time.perf_counter() - t0)
             recorder.close(timeout=600)
             total_s.append(time.perf_counter() - t0)
-            samples = service.assembler.counters.samples
+            samples = service.source.assembler.counters.samples
             service.bus.close()
             session.close()
     return {

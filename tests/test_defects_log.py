@@ -94,12 +94,13 @@ def rebooted_log(tmp_path_factory) -> Path:
     try:
         _send_inputs(endpoint, inbox)
         for run in (FIRST_RUN, SECOND_RUN):
-            before = service.assembler.counters.samples + service.assembler.counters.out_of_order
+            counted = service.source.assembler.counters
+            before = counted.samples + counted.out_of_order
             for frame in frames:
                 service.process_datagram(frame)
                 wall[0] += 0.05
                 service.tick()
-                counted = service.assembler.counters
+                counted = service.source.assembler.counters
                 if counted.samples + counted.out_of_order - before >= run:
                     break
     finally:
@@ -108,7 +109,7 @@ def rebooted_log(tmp_path_factory) -> Path:
         recorder.close()
         link.close()
         vehicle.close()
-    assert service.assembler.counters.restarts == 1
+    assert service.source.assembler.counters.restarts == 1
     [log] = directory.glob("*.mcap")
     return log
 

@@ -198,7 +198,7 @@ def test_service_requires_signed_telemetry_counts_refusals_and_logs_them(tmp_pat
     forged = _telemetry_frames(MavlinkCodec(1, 1, signing_key=OTHER_KEY), 5)
     for datagram in signed[:10] + unsigned + forged + signed[10:]:
         service.process_datagram(datagram)
-    assert service.assembler.counters.samples == 20
+    assert service.source.assembler.counters.samples == 20
     health = service.health(1)
     counters = health["link_wide"]  # the verifier sees frames, not vehicles
     assert counters["signing_signed_accepted"] == 80
@@ -226,7 +226,7 @@ def test_service_may_accept_unsigned_telemetry_when_configured():
     service = HilService(config, NullBus(), Inbox())
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 5):
         service.process_datagram(datagram)
-    assert service.assembler.counters.samples == 5
+    assert service.source.assembler.counters.samples == 5
     assert service.health(1)["link_wide"]["signing_unsigned_accepted"] == 20
 
 

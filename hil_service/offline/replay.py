@@ -238,11 +238,7 @@ class _Replay:
     def _finish(self) -> ReplayResult:
         result, report, service = self.result, self.reader.report, self.service
         assert service is not None
-        result.samples = (
-            service.assembler.counters.samples
-            if service.periodic is None
-            else service.periodic.counters.samples
-        )
+        result.samples = service.source.samples
         result.complete = report.complete
         if report.ended and not report.complete:
             # Only a read that reached the end can tell a damaged file (--check stops early).
