@@ -43,9 +43,9 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.bench_service import telemetry_datagrams  # noqa: E402
 from hil_service.builder import open_recorder, wire  # noqa: E402
 from hil_service.config import LogOptions, ServiceConfig  # noqa: E402
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from hil_service.live.view import LiveAddress, LiveView  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
-from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 
 CLIENT = ROOT / "tests" / "foxglove_client" / "client.js"
 WARM_UP = 200  # samples fed before timing: the viewer subscribes to the channels they create

@@ -13,9 +13,9 @@ from typing import TYPE_CHECKING, Any
 
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners.zenoh import Bus, NullBus, ZenohBus
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.service import HilService
-from hil_service.zenoh_bus import Bus, NullBus, ZenohBus
 from protocols.mavlink_io import Link
 
 if TYPE_CHECKING:  # the Foxglove SDK is imported only by a run with a live view

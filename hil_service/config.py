@@ -21,9 +21,9 @@ from functools import cache
 from typing import Any
 
 from hil_service.inputs import SetpointLimits
+from hil_service.listeners.zenoh_config import ZenohOptions
 from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
-from hil_service.zenoh_config import ZenohOptions
 from protocols.mapping import TelemetryMapping
 from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile, parse_profile
 from protocols.units import InputScale, PressureDepth

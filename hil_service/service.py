@@ -17,10 +17,10 @@ from typing import Any
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
+from hil_service.listeners.zenoh import Bus
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
 from hil_service.sources import SampleSource, source_for
-from hil_service.zenoh_bus import Bus
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
 from protocols.mavlink_io import Address, Link, MavlinkCodec, MavMessage

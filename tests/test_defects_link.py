@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 
 from hil_service.config import ServiceConfig
+from hil_service.listeners.zenoh import NullBus
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.replay import ReplayInbox
 from hil_service.service import HilService
-from hil_service.zenoh_bus import NullBus
 from protocols import keys
 from protocols.mavlink_io import Link, MavlinkCodec
 from tests.conftest import DATA, free_udp_port

@@ -15,12 +15,12 @@ from mcap.reader import make_reader
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners.zenoh import ZenohBus
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.report import write_report
 from hil_service.service import HilService
-from hil_service.zenoh_bus import ZenohBus
-from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols.mavlink_io import Link
 from tests.conftest import DATA, free_tcp_port
 

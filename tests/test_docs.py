@@ -12,9 +12,9 @@ import pytest
 
 from hil_service.builder import open_recorder, wire
 from hil_service.config import LinkSecurity, LogOptions, ServiceConfig
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.mcap.reader import LogReader
 from hil_service.pipeline import PipelineSettings
-from hil_service.zenoh_config import ZenohOptions, open_session
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols import keys

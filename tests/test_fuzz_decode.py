@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners.zenoh import NullBus
 from hil_service.service import HilService
-from hil_service.zenoh_bus import NullBus
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.samples import TelemetrySample

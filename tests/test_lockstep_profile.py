@@ -15,8 +15,8 @@ from hil_service.cli import build_parser
 from hil_service.cli.serve import config_from_args
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners.zenoh import NullBus
 from hil_service.service import HilService
-from hil_service.zenoh_bus import NullBus
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.profiles import load_profile
 

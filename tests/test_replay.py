@@ -262,11 +262,11 @@ def test_non_default_units_replay_with_the_units_of_the_log(tmp_path):
     actuator full scale) replays bit for bit only with the units stored in it."""
     from hil_service.config import ServiceConfig, Units
     from hil_service.inputs import Inbox
+    from hil_service.listeners.zenoh import NullBus
     from hil_service.mcap.recorder import McapRecorder
     from hil_service.offline.replay import ReplayOptions, replay
     from hil_service.pipeline import PipelineSettings
     from hil_service.service import HilService
-    from hil_service.zenoh_bus import NullBus
     from plant_emulator.excitation import RandomSteps
     from plant_emulator.plant import GliderPlant, PlantConfig
     from protocols.mavlink_io import MavlinkCodec

@@ -11,12 +11,12 @@ import pytest
 
 from hil_service.config import LinkSecurity, ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners.zenoh import NullBus
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.replay import ReplayOptions, replay
 from hil_service.service import HilService
 from hil_service.umodel import build_model
-from hil_service.zenoh_bus import NullBus
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect

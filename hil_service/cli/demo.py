@@ -27,8 +27,8 @@ from hil_service.cli.processes import (
     start_verb,
     stop_process,
 )
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.live.address import LiveAddress
-from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 
 SYSTEM_ID = 1

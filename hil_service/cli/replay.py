@@ -8,12 +8,12 @@ import sys
 
 from hil_service.builder import publishing_bus
 from hil_service.cli.serve import add_foxglove_argument, foxglove_from_args, start_live
+from hil_service.listeners.zenoh import NullBus
+from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from hil_service.live.bus import LiveBus
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
-from hil_service.zenoh_bus import NullBus
-from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.profiles import ProfileError
 
 

@@ -25,10 +25,10 @@ from hil_service.config import (
     parse_system_ids,
 )
 from hil_service.inputs import SetpointLimits
+from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from hil_service.live.address import LiveAddress
 from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
 from hil_service.process_tuning import tune_for_service
-from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile
 from protocols.signing import load_key

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from hil_service.zenoh_bus import Bus
+from hil_service.listeners.zenoh import Bus
 from protocols import payload_json
 
 if TYPE_CHECKING:

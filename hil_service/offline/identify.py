@@ -16,10 +16,10 @@ from typing import Any
 
 import orjson
 
+from hil_service.listeners.zenoh import NullBus
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.offline.series import _SERIES_KINDS, CHANNELS, LogSeries, VehicleSeries, _add
-from hil_service.zenoh_bus import NullBus
 from protocols import keys, payload_json
 
 

@@ -24,10 +24,10 @@ from typing import Any
 from hil_service.builder import wire
 from hil_service.config import ServiceConfig, stored_profile
 from hil_service.inputs import ControlInputs, Inbox
+from hil_service.listeners.zenoh import Bus, NullBus
 from hil_service.mcap.reader import LogMessage, LogReader
 from hil_service.mcap.recorder import RAW_TOPIC
 from hil_service.service import HilService
-from hil_service.zenoh_bus import Bus, NullBus
 from protocols import keys, payload_json
 from protocols.profiles import Profile, load_profile
 from protocols.samples import TelemetrySample

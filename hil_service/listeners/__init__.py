@@ -1,0 +1,1 @@
+"""Everything that consumes the service's stream, behind one fan-out."""
