@@ -13,8 +13,8 @@ view's process has taken everything offered (``LiveView.sync``). CPU per sample 
 every thread of this process and of the live view's (the SDK's server runs there), not the
 viewer's (printed apart).
 
-``--without-mavlink`` leaves the MAVLink channels out of the live view (the service's
-``live_mavlink`` hook unset), to see what streaming them costs.
+``--without-mavlink`` leaves the MAVLink channels out of the live view (it listens to the
+publications only, ``without_mavlink``), to see what streaming them costs.
 
 Run: .venv/bin/python benchmarks/bench_live_view.py [--samples N] [--repeats R]
      [--without-mavlink]
@@ -43,12 +43,27 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.bench_service import telemetry_datagrams  # noqa: E402
 from hil_service.builder import open_recorder, wire  # noqa: E402
 from hil_service.config import LogOptions, ServiceConfig  # noqa: E402
+from hil_service.listeners import Listener, Notifier  # noqa: E402
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from hil_service.live.view import LiveAddress, LiveView  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
 
 CLIENT = ROOT / "tests" / "foxglove_client" / "client.js"
 WARM_UP = 200  # samples fed before timing: the viewer subscribes to the channels they create
+
+
+class _PublicationsOnly(Listener):
+    def __init__(self, live: LiveView) -> None:
+        self.live = live
+
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
+        self.live.on_publish(key, payload, data, reliable)
+
+
+def without_mavlink(notifier: Notifier, live: LiveView) -> None:
+    """The live view as a listener of the publications only (no MAVLink channels)."""
+    notifier.remove_listener(live)
+    notifier.add_listener(_PublicationsOnly(live))
 
 
 def free_tcp_port() -> int:
@@ -87,8 +102,8 @@ def one_run(
         wired = wire(config, session=session, recorder=recorder, live=live)
         tune_for_service()
         service = wired.service
-        if not mavlink:
-            service.live_mavlink = None
+        if not mavlink and live is not None:
+            without_mavlink(wired.notifier, live)
         for data in warm:
             service.process_datagram(data)
         if live is not None:
@@ -167,7 +182,7 @@ def interleaved(
             wired = wire(config, session=session, recorder=recorder, live=with_live)
             stack.append(wired)
             if with_live is not None and not mavlink:
-                wired.service.live_mavlink = None
+                without_mavlink(wired.notifier, with_live)
             for data in warm:
                 wired.service.process_datagram(data)
             services.append(wired.service)

@@ -97,7 +97,7 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
             recorder.close(timeout=600)
             total_s.append(time.perf_counter() - t0)
             samples = service.source.assembler.counters.samples
-            service.bus.close()
+            service.notifier.stop()
             session.close()
     return {
         "modules": compiled.summary(),
@@ -133,7 +133,7 @@ def bench_memory(n: int) -> dict[str, float]:
             if k + 1 in (50_000, n):
                 marks[k + 1] = rss_mib()
         recorder.close(timeout=600)
-        service.bus.close()
+        service.notifier.stop()
         session.close()
     first, last = marks[min(marks)], marks[max(marks)]
     return {

@@ -1,9 +1,12 @@
 """The HIL service runtime: MAVLink in, identification and control, Zenoh out, MCAP always.
 
 One thread owns the MAVLink link and everything on the per-sample path (decode, assemble,
-identify, decide, publish, send); Zenoh callbacks only fill the ``Inbox``; the recorder
-writes on its own thread. ``process_datagram`` is the same entry point for live traffic,
-replay and benchmarks.
+identify, decide, publish, send). Samples come from the profile's ``SampleSource``
+(``hil_service.sources``: lockstep or periodic); everything that consumes the stream (the
+log, Zenoh, the live view, replay's collector) is a listener of one ``Notifier``
+(``hil_service.listeners``). Zenoh callbacks only fill the ``Inbox``; the recorder writes on
+its own thread. ``process_datagram`` is the same entry point for live traffic, replay and
+benchmarks.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from typing import Any
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
-from hil_service.listeners.zenoh import Bus
+from hil_service.listeners import Listener, Notifier
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
 from hil_service.sources import SampleSource, source_for
@@ -28,10 +31,6 @@ from protocols.samples import TelemetrySample
 
 #: The longest a companion's due message (heartbeat, stream request) waits for a tick, s.
 COMPANION_POLL = 0.01
-
-#: Who also sees each MAVLink frame: (direction, message or None, frame or None, time ns).
-MavlinkTap = Callable[[str, MavMessage | None, bytes | None, int], None]
-
 
 @dataclass
 class VehicleRuntime:
@@ -55,7 +54,7 @@ class HilService:
     def __init__(
         self,
         config: ServiceConfig,
-        bus: Bus,
+        notifier: Notifier | Listener,
         inbox: Inbox,
         link: Link | None = None,
         recorder: McapRecorder | None = None,
@@ -63,7 +62,11 @@ class HilService:
         send_commands: bool = True,
     ):
         self.config = config
-        self.bus = bus
+        #: Every consumer of the stream. A single listener is given a notifier of its own;
+        #: ``recorder``, when given, is one of the listeners (and reports in health).
+        self.notifier = notifier if isinstance(notifier, Notifier) else Notifier([notifier])
+        if recorder is not None and recorder not in self.notifier.listeners:
+            self.notifier.add_listener(recorder)
         self.inbox = inbox
         self.link = link
         self.recorder = recorder
@@ -99,9 +102,6 @@ class HilService:
         #: The live view's counters (``LiveView.counters``) when one runs: health's
         #: ``service_wide`` carries them (builder.wire sets it).
         self.live_counters: Callable[[], dict[str, int]] | None = None
-        #: The live view's MAVLink feed (``LiveView.offer_mavlink``): direction, message,
-        #: frame, time; every frame received, refused and sent, as the log records them.
-        self.live_mavlink: MavlinkTap | None = None
 
     # ---- the per-datagram path --------------------------------------------------------
     def process_datagram(
@@ -112,23 +112,15 @@ class HilService:
         now_ns = time.time_ns()
         samples = []
         messages = self.codec.parse(data, datagram=datagram)
-        live = self.live_mavlink
-        if self.recorder is not None:
-            # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
-            for frame in self.codec.last_rejected:
-                self.recorder.raw("rejected", frame, now_ns)
-        if live is not None:
-            for frame in self.codec.last_rejected:
-                live("rejected", None, frame, now_ns)
+        notifier = self.notifier
+        # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
+        for frame in self.codec.last_rejected:
+            notifier.mavlink("rejected", None, frame, now_ns)
         if source is not None:
             for message in messages:
                 self._routes[message.get_srcSystem()] = source
         for message in messages:
-            if self.recorder is not None:
-                self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
-                self.recorder.mavlink("in", message, now_ns)
-            if live is not None:
-                live("in", message, None, now_ns)
+            notifier.mavlink("in", message, None, now_ns)
             samples.extend(self.process_message(message))
         return samples
 
@@ -155,10 +147,10 @@ class HilService:
         vehicle.last_sample_wall = now
         system_id = sample.system_id
         topics = vehicle.keys
-        self.bus.publish(topics.telemetry, sample.to_payload())
+        self.notifier.publish(topics.telemetry, sample.to_payload())
         estimates = vehicle.pipeline.observe(sample, inputs_reused, self.source.periodic)
         for channel, payload in estimates.items():
-            self.bus.publish(topics.umodel[channel], payload)
+            self.notifier.publish(topics.umodel[channel], payload)
         inputs = self.inbox.inputs_for(sample)
         enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
         reset = vehicle.reset_pending or inputs.reset
@@ -170,12 +162,11 @@ class HilService:
             # What the decision below used, stamped with the sample: replay applies exactly
             # this at exactly this sample, so recomputed commands match bit for bit.
             vehicle.last_applied = applied
-            if self.recorder is not None:
-                self.recorder.zenoh(
-                    topics.decision_inputs,
-                    {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
-                    "internal",
-                )
+            self.notifier.record(
+                topics.decision_inputs,
+                {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
+                "internal",
+            )
         decision = vehicle.pipeline.decide(sample, inputs.setpoints, enabled)
         with self._lock:
             vehicle.last_sample = sample
@@ -194,7 +185,7 @@ class HilService:
                     command.u_depth, command.u_pitch, system_id
                 ):
                     self._send(message, system_id)
-            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
+            self.notifier.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
         self.source.after_sample(sample, commanded)  # after the command
 
@@ -209,12 +200,7 @@ class HilService:
             self._senders[system_id] = codec
         frame = codec.pack(message)
         self.link.send_to(frame, self._routes.get(system_id))
-        if self.recorder is not None:
-            now_ns = time.time_ns()
-            self.recorder.raw("out", frame, now_ns)
-            self.recorder.mavlink("out", message, now_ns)
-        if self.live_mavlink is not None:
-            self.live_mavlink("out", message, frame, time.time_ns())
+        self.notifier.mavlink("out", message, frame, time.time_ns())
 
     def _on_ack(self, message: MavMessage) -> None:
         vehicle = self.vehicles.get(message.get_srcSystem())
@@ -229,7 +215,7 @@ class HilService:
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle
             self.source.vehicle_seen(system_id)
-            self.bus.declare_vehicle(system_id, lambda: self.state(system_id))
+            self.notifier.declare_vehicle(system_id, lambda: self.state(system_id))
         return vehicle
 
     # ---- periodic work ------------------------------------------------------------------
@@ -260,7 +246,7 @@ class HilService:
             system_id = order[self._health_turn % len(order)]
             self._health_turn += 1
             published += 1
-            self.bus.publish(self.vehicles[system_id].keys.health, self.health(system_id, now))
+            self.notifier.publish(self.vehicles[system_id].keys.health, self.health(system_id, now))
             self._next_health += pace
         if now >= self._next_health:  # far behind (or the first time): no catching-up burst
             self._next_health = now + pace

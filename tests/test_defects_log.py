@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
-from hil_service.listeners.zenoh import ZenohBus
+from hil_service.listeners.zenoh import ZenohPublisher
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
@@ -85,7 +85,7 @@ def rebooted_log(tmp_path_factory) -> Path:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     session = open_session(ZenohOptions(listen=(endpoint,)))
     inbox = Inbox()
-    bus = ZenohBus(session, inbox, recorder)
+    bus = ZenohPublisher(session, inbox, recorder.on_record)
     vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # where commands go
     vehicle.bind(("127.0.0.1", 0))
     link = Link(f"udpout:127.0.0.1:{vehicle.getsockname()[1]}")
@@ -104,7 +104,7 @@ def rebooted_log(tmp_path_factory) -> Path:
                 if counted.samples + counted.out_of_order - before >= run:
                     break
     finally:
-        bus.close()
+        bus.stop()
         session.close()
         recorder.close()
         link.close()

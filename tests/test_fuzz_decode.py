@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
-from hil_service.listeners.zenoh import NullBus
+from hil_service.listeners import Listener
 from hil_service.service import HilService
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
@@ -32,11 +32,13 @@ MAPPING = TelemetryMapping()
 MAX_FRAME = 280  # MAVLink 2: 10 header + 255 payload + 2 CRC + 13 signature
 
 
-class CapturingBus(NullBus):
+class CapturingBus(Listener):
     def __init__(self) -> None:
         self.published: list[tuple[str, dict[str, Any]]] = []
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+    def on_publish(
+        self, key: str, payload: dict[str, Any], data: bytes, reliable: bool
+    ) -> None:
         self.published.append((key, payload))
 
 

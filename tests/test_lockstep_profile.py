@@ -15,7 +15,7 @@ from hil_service.cli import build_parser
 from hil_service.cli.serve import config_from_args
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
-from hil_service.listeners.zenoh import NullBus
+from hil_service.listeners import Listener
 from hil_service.service import HilService
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.profiles import load_profile
@@ -84,7 +84,7 @@ def test_serve_keeps_a_lockstep_profile_file(profile_file):
 def test_a_lockstep_profile_file_decides_how_samples_are_assembled(profile_file):
     args = build_parser().parse_args(["serve", "--profile", str(profile_file), "--no-log"])
     config = config_from_args(args).service
-    service = HilService(config, NullBus(), Inbox())
+    service = HilService(config, Listener(), Inbox())
     profile = load_profile(profile_file)
     codec = MavlinkCodec(1, 1)
     samples = []

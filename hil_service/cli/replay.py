@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
-from hil_service.builder import publishing_bus
+from hil_service.builder import publisher
 from hil_service.cli.serve import add_foxglove_argument, foxglove_from_args, start_live
-from hil_service.listeners.zenoh import NullBus
 from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
-from hil_service.live.bus import LiveBus
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
@@ -61,17 +60,19 @@ def run(args: argparse.Namespace) -> int:
         sample_period=args.sample_period,
         progress=_progress if args.fast and sys.stderr.isatty() else None,
     )
-    session = bus = live = None
+    session = zenoh = live = None
+    listeners: list[Any] = []
     try:
         live = start_live(foxglove_from_args(args), "replay")
         if args.publish:
             session = open_session(options_from_args(args))
-            bus = publishing_bus(session)
+            zenoh = publisher(session)
+            listeners.append(zenoh)
         if live is not None:
-            bus = LiveBus(NullBus() if bus is None else bus, live)
+            listeners.append(live)
         tune_for_service()
         while True:
-            result = replay(args.log, options, bus)
+            result = replay(args.log, options, listeners)
             if options.progress is not None:
                 print(file=sys.stderr)
             if result.recovered:
@@ -84,8 +85,8 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     finally:
-        if bus is not None:
-            bus.close()
+        if zenoh is not None:
+            zenoh.stop()
         if live is not None:
             live.close()
         if session is not None:
