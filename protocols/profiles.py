@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
 
 from protocols.mavlink_io import MavMessage, dialect
-from protocols.units import PressureDepth
+from protocols.units import InputScale, PressureDepth
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -93,7 +93,7 @@ class PwmRange:
 class Ballast:
     readback: str = "ACTUATOR_OUTPUT_STATUS"
     command: str = "DO_SET_ACTUATOR"
-    full_scale: float = 2.0  # model units at wire 1.0 (the paper's ±2)
+    full_scale: float = InputScale.full_scale  # model units at wire 1.0 (the paper's ±2)
     pwm: PwmRange = field(default_factory=PwmRange)
     depth_output: int = 1  # servo number (PWM) or actuator number (normalised), 1-based
     pitch_output: int = 2
@@ -332,6 +332,10 @@ def parse_profile(text: str, origin: str = "<profile>") -> Profile:
     return _Parser(text, origin).profile(data)
 
 
+#: The parser's defaults are the dataclasses' own (the units': ``protocols.units``).
+_PRESSURE = PressureDepth()
+_INPUTS = InputScale()
+
 _HEADER = re.compile(r"^\s*\[\[?\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_\-\"']+)\s*=")
 
@@ -443,8 +447,12 @@ class _Parser:
         units = self._table(data, "units", {"water_density", "surface_pressure_hpa"})
         try:
             pressure = PressureDepth(
-                self._number(units, "units", "water_density", 1025.0, positive=True),
-                self._number(units, "units", "surface_pressure_hpa", 1013.25, positive=True),
+                self._number(
+                    units, "units", "water_density", _PRESSURE.water_density, positive=True
+                ),
+                self._number(
+                    units, "units", "surface_pressure_hpa", _PRESSURE.surface_hpa, positive=True
+                ),
             )
         except ValueError as error:
             self.fail(str(error), "units")
@@ -463,7 +471,7 @@ class _Parser:
         return profile
 
     def _sampling(self, table: dict) -> Sampling:
-        mode = self._string(table, "sampling", "mode", "lockstep", MODES)
+        mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)
         period = self._number(table, "sampling", "period", None, positive=True)
         delay = self._number(table, "sampling", "delay", None)
         if delay is not None and delay < 0:
@@ -551,9 +559,9 @@ class _Parser:
             message=message,
             field=field_name,
             index=index,
-            convert=self._string(entry, name, "convert", "linear", CONVERSIONS, occurrence),
-            scale=self._number(entry, name, "scale", 1.0, occurrence),
-            offset=self._number(entry, name, "offset", 0.0, occurrence),
+            convert=self._string(entry, name, "convert", Source.convert, CONVERSIONS, occurrence),
+            scale=self._number(entry, name, "scale", Source.scale, occurrence),
+            offset=self._number(entry, name, "offset", Source.offset, occurrence),
             interval=self._number(entry, name, "interval", None, occurrence, positive=True),
             stale_after=self._number(entry, name, "stale_after", None, occurrence, positive=True),
             optional=optional,
@@ -573,12 +581,12 @@ class _Parser:
             "pitch",
         }
         table = self._table({"ballast": table}, "ballast", allowed)
-        readback = self._string(table, "ballast", "readback", "ACTUATOR_OUTPUT_STATUS", READBACKS)
-        command = self._string(table, "ballast", "command", "DO_SET_ACTUATOR", COMMANDS)
+        readback = self._string(table, "ballast", "readback", Ballast.readback, READBACKS)
+        command = self._string(table, "ballast", "command", Ballast.command, COMMANDS)
         pwm = PwmRange(
-            self._integer(table, "ballast", "pwm_min", 1100, 500, 2500),
-            self._integer(table, "ballast", "pwm_max", 1900, 500, 2500),
-            self._integer(table, "ballast", "pwm_neutral", 1500, 500, 2500),
+            self._integer(table, "ballast", "pwm_min", PwmRange.minimum, 500, 2500),
+            self._integer(table, "ballast", "pwm_max", PwmRange.maximum, 500, 2500),
+            self._integer(table, "ballast", "pwm_neutral", PwmRange.neutral, 500, 2500),
         )
         if not pwm.minimum < pwm.neutral < pwm.maximum:
             self.fail(
@@ -591,17 +599,16 @@ class _Parser:
         for channel in ("depth", "pitch"):
             sub = self._table(table, f"ballast.{channel}", {"output"})
             high = min(READBACKS[readback][1], COMMANDS[command][1])
-            outputs.append(
-                self._integer(
-                    sub, f"ballast.{channel}", "output", 1 if channel == "depth" else 2, 1, high
-                )
-            )
+            default = Ballast.depth_output if channel == "depth" else Ballast.pitch_output
+            outputs.append(self._integer(sub, f"ballast.{channel}", "output", default, 1, high))
         if outputs[0] == outputs[1]:
             self.fail("depth and pitch need different outputs", "ballast.pitch", "output")
         return Ballast(
             readback=readback,
             command=command,
-            full_scale=self._number(table, "ballast", "full_scale", 2.0, positive=True),
+            full_scale=self._number(
+                table, "ballast", "full_scale", _INPUTS.full_scale, positive=True
+            ),
             pwm=pwm,
             depth_output=outputs[0],
             pitch_output=outputs[1],
