@@ -13,6 +13,7 @@ from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
+from hil_service.umodel import U_MODELS
 from protocols.profiles import ProfileError
 
 
@@ -26,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--check", action="store_true", help="recomputed estimates and commands must match"
     )
-    parser.add_argument("--model", choices=("paper", "dynamic"), default=None)
+    parser.add_argument("--model", choices=U_MODELS, default=None)
     parser.add_argument(
         "--profile",
         default=None,

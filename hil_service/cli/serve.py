@@ -27,8 +27,9 @@ from hil_service.config import (
 from hil_service.inputs import SetpointLimits
 from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from hil_service.live.address import LiveAddress
-from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
+from hil_service.pipeline import PipelineSettings
 from hil_service.process_tuning import tune_for_service
+from hil_service.umodel import U_MODELS
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile
 from protocols.signing import load_key
@@ -64,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="periodic profiles: s between samples on the vehicle's clock (default: the "
         "profile's)",
     )
-    parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
+    parser.add_argument("--model", choices=U_MODELS, default="dynamic")
     parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
     control = parser.add_mutually_exclusive_group()
     control.add_argument(

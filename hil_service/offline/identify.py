@@ -18,8 +18,9 @@ import orjson
 from hil_service.listeners import Listener
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
-from hil_service.offline.series import _SERIES_KINDS, CHANNELS, LogSeries, VehicleSeries, _add
+from hil_service.offline.series import _SERIES_KINDS, LogSeries, VehicleSeries, _add
 from protocols import keys
+from protocols.keys import CHANNELS
 
 
 class _Gathering(Listener):

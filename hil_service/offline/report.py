@@ -25,10 +25,11 @@ from hil_service.experiment.identification import (
 from hil_service.experiment.multistep import MultiStepScores, longest_contiguous, multistep_scores
 from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
-from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
+from hil_service.offline.series import LogSeries, VehicleSeries, load_series
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from hil_service.umodel import from_config
 from hil_service.umodel.scoring import ErrorStats
+from protocols.keys import CHANNELS
 
 DEFAULT_BURN_IN = 300
 

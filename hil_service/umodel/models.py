@@ -44,6 +44,7 @@ from .rls import RLS, ListRLS
 __all__ = [
     "MODEL_NAMES",
     "STATUSES",
+    "U_MODELS",
     "DynamicUModel",
     "Estimate",
     "OneStepModel",
@@ -56,7 +57,10 @@ __all__ = [
     "paper_preset",
 ]
 
-MODEL_NAMES: tuple[str, ...] = ("paper", "dynamic", "rls-arx", "persistence")
+#: The U-models: what the service identifies and inverts (``PipelineSettings.model``).
+U_MODELS: tuple[str, ...] = ("paper", "dynamic")
+#: Every model, the U-models and the baselines the experiments score them against.
+MODEL_NAMES: tuple[str, ...] = (*U_MODELS, "rls-arx", "persistence")
 Status = Literal["ok", "rejected", "diverged", "frozen"]
 STATUSES: tuple[str, ...] = ("ok", "rejected", "diverged", "frozen")
 
