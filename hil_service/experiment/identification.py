@@ -18,15 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.experiment.multistep import (
+from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
+from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
+from hil_service.umodel.multistep import (
     MultiStepScores,
     fit_percent,
     model_inputs,
     multistep_scores,
     train,
 )
-from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
-from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
 from hil_service.umodel.predictive import PredictiveInverse
 from hil_service.umodel.scoring import ErrorStats
 from plant_emulator.disturbances import NoDisturbance
