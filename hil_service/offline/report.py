@@ -17,17 +17,19 @@ from typing import Any
 import numpy as np
 
 from hil_service.config import ServiceConfig
-from hil_service.experiment.identification import (
-    CONVERGENCE_BAND,
-    control_horizon,
-    converged_at,
-)
 from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
 from hil_service.offline.series import LogSeries, VehicleSeries, load_series
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from hil_service.umodel import from_config
-from hil_service.umodel.multistep import MultiStepScores, longest_contiguous, multistep_scores
+from hil_service.umodel.multistep import (
+    CONVERGENCE_BAND,
+    MultiStepScores,
+    control_horizon,
+    converged_at,
+    longest_contiguous,
+    multistep_scores,
+)
 from hil_service.umodel.scoring import ErrorStats
 from protocols.keys import CHANNELS
 
