@@ -314,3 +314,11 @@ def test_serve_flags_reach_replay_through_the_stored_configuration():
     )
     assert again.mapping().inputs.full_scale == 1.5
     assert again.pipeline.model == "paper" and again.pipeline.burn_in == 77
+
+
+def test_the_docs_index_lists_every_document():
+    index = (DOCS / "README.md").read_text()
+    for path in sorted(DOCS.rglob("*")):
+        if path.is_file() and path.name != "README.md":
+            name = path.relative_to(DOCS).as_posix()
+            assert name in index, f"docs/README.md does not list {name}"
