@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.umodel import OneStepModel
-from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error, significant
+from .interface import OneStepModel
+from .scoring import fit_from_nmse, normalised_square_error, significant
 
 ModelFactory = Callable[[], OneStepModel]
 
