@@ -1,5 +1,5 @@
 """End-to-end throughput with the Foxglove live view on and a viewer connected, against the
-same path without the live view, in the same run (issue 17's target: at least 80 %).
+same path without the live view, in the same run (the target: at least 80 %).
 
 The path is ``serve``'s (``hil_service.builder.wire``: MAVLink datagrams → sample → both
 identifiers → Zenoh publish → MCAP write); the viewer is the reference client

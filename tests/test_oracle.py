@@ -1,4 +1,4 @@
-"""The yardsticks of issue 15: the free-run fit and k-step NMSE, the known-model oracle, and
+"""The yardsticks of the controller: the free-run fit and k-step NMSE, the known-model oracle, and
 the random plant families. Short runs on fixed seeds."""
 
 from __future__ import annotations
