@@ -21,8 +21,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hil_service.assembler import SampleAssembler  # noqa: E402
-from hil_service.profile_assembler import ProfileAssembler  # noqa: E402
+from hil_service.sources.lockstep_assembler import SampleAssembler  # noqa: E402
+from hil_service.sources.periodic_assembler import ProfileAssembler  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
 from protocols.compiled import summary  # noqa: E402
@@ -84,7 +84,7 @@ def ardusub_messages(samples: list, seed: int = 0) -> list:
 
 
 def time_lockstep(messages: list) -> tuple[int, float]:
-    assembler = SampleAssembler(TelemetryMapping())
+    assembler = SampleAssembler()
     start = time.perf_counter()
     formed = sum(assembler.add(m) is not None for m in messages)
     return formed, time.perf_counter() - start

@@ -37,10 +37,10 @@ sys.path.insert(0, str(ROOT))
 from hil_service.builder import open_recorder, wire  # noqa: E402
 from hil_service.config import LogOptions, ServiceConfig  # noqa: E402
 from hil_service.experiment.speed import rates  # noqa: E402
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from hil_service.mcap.recorder import McapRecorder  # noqa: E402
 from hil_service.process_tuning import one_cpu_child, tune_for_service  # noqa: E402
 from hil_service.service import HilService  # noqa: E402
-from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
 from protocols import compiled, keys  # noqa: E402
@@ -96,8 +96,8 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
             path_s.append(time.perf_counter() - t0)
             recorder.close(timeout=600)
             total_s.append(time.perf_counter() - t0)
-            samples = service.assembler.counters.samples
-            service.bus.close()
+            samples = service.source.assembler.counters.samples
+            service.notifier.stop()
             session.close()
     return {
         "modules": compiled.summary(),
@@ -133,7 +133,7 @@ def bench_memory(n: int) -> dict[str, float]:
             if k + 1 in (50_000, n):
                 marks[k + 1] = rss_mib()
         recorder.close(timeout=600)
-        service.bus.close()
+        service.notifier.stop()
         session.close()
     first, last = marks[min(marks)], marks[max(marks)]
     return {

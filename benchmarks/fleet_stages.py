@@ -33,9 +33,9 @@ sys.path.insert(0, str(ROOT))
 
 from hil_service.builder import wire  # noqa: E402
 from hil_service.config import ServiceConfig  # noqa: E402
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from hil_service.pipeline import PipelineSettings  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
-from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from plant_emulator.autopilot import AutopilotConfig  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.fleet import SharedLink, TimedAutopilot  # noqa: E402

@@ -41,20 +41,22 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ),
     (
         "assemble a sample",
-        ("hil_service/assembler", "protocols/mapping", "protocols/samples", "protocols/units",
+        ("hil_service/sources/lockstep_assembler", "hil_service/sources/periodic_assembler",
+         "hil_service/sources/sampler", "hil_service/sources/lockstep.py", "protocols/mapping",
+         "protocols/samples", "protocols/units",
          "hil_service/link_stats"),
     ),
     ("identify + control (the method)", ("hil_service/umodel", "hil_service/pipeline")),
     (
         "publish (JSON, Zenoh)",
-        ("protocols/payload_json", "protocols/mavlink_json", "zenoh", "hil_service/zenoh_bus",
+        ("protocols/payload_json", "protocols/mavlink_json", "zenoh", "hil_service/listeners",
          "orjson", "protocols/keys"),
     ),
     ("log (MCAP)", ("hil_service/mcap",)),
     (
         "service loop and bookkeeping",
-        ("hil_service/service", "hil_service/inputs", "hil_service/lockstep",
-         "hil_service/companion"),
+        ("hil_service/service", "hil_service/inputs", "hil_service/sources/lockstep_responder",
+         "hil_service/sources/companion"),
     ),
     ("numpy", ("numpy",)),
 )

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.cli.processes import free_port, last_json, start_verb, stop_process  # noqa: E402
-from hil_service.zenoh_config import ZenohOptions, open_session  # noqa: E402
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from protocols import keys  # noqa: E402
 from tests.udp_relay import FaultyRelay  # noqa: E402
 

@@ -8,14 +8,16 @@ replay and the benchmarks run is what ``serve`` runs. Each caller opens the part
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners import Notifier
+from hil_service.listeners.zenoh import ZenohPublisher
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.service import HilService
-from hil_service.zenoh_bus import Bus, NullBus, ZenohBus
 from protocols.mavlink_io import Link
 
 if TYPE_CHECKING:  # the Foxglove SDK is imported only by a run with a live view
@@ -40,16 +42,17 @@ class Wired:
 
     service: HilService
     inbox: Inbox
-    bus: Bus
+    notifier: Notifier
     recorder: McapRecorder | None = None
     link: Link | None = None
     session: Any = None  # zenoh.Session
     live: LiveView | None = None
 
     def close(self) -> dict[str, Any] | None:
-        """Close the bus, the live view, the Zenoh session, the link and the recorder (that
-        order: the recorder logs until the end); return the recorder's final report, if any."""
-        self.bus.close()
+        """Stop the listeners, close the live view, the Zenoh session, the link and the
+        recorder (that order: the recorder logs until the end); return the recorder's final
+        report, if any."""
+        self.notifier.stop()
         if self.live is not None:
             self.live.close()
         if self.session is not None:
@@ -69,34 +72,36 @@ def wire(
     link: Link | None = None,
     recorder: McapRecorder | None = None,
     inbox: Inbox | None = None,
-    bus: Bus | None = None,
+    listeners: Sequence[Any] = (),
     send_commands: bool = True,
     live: LiveView | None = None,
 ) -> Wired:
-    """The service for ``config``. Without ``bus``: a ``ZenohBus`` on ``session`` (recording
-    to ``recorder``), or a ``NullBus`` without a session. Without ``inbox``: one that refuses
-    setpoints outside ``config.limits``. With ``live`` (a started ``LiveView``), every
-    publication is also offered to it (``LiveBus``), and so is every input received on
-    ``session``."""
+    """The service for ``config`` and its listeners, in this order: a ``ZenohPublisher`` on
+    ``session`` (its received inputs recorded), ``recorder``, ``listeners``, and ``live`` (a
+    started ``LiveView``, which also streams the inputs received on ``session``). Without
+    ``inbox``: one that refuses setpoints outside ``config.limits``."""
     inbox = Inbox(config.limits) if inbox is None else inbox
-    if bus is None:
-        bus = NullBus() if session is None else ZenohBus(session, inbox, recorder)
+    notifier = Notifier()
+    if session is not None:
+        notifier.add_listener(ZenohPublisher(session, inbox, notifier.record))
+    if recorder is not None:
+        notifier.add_listener(recorder)
+    for listener in listeners:
+        notifier.add_listener(listener)
     if live is not None:
-        from hil_service.live.bus import LiveBus
-
-        bus = LiveBus(bus, live)
+        notifier.add_listener(live)
         if session is not None:
             live.watch_inputs(session)
     service = HilService(
-        config, bus, inbox, link=link, recorder=recorder, send_commands=send_commands
+        config, notifier, inbox, link=link, recorder=recorder, send_commands=send_commands
     )
     if live is not None:
         service.live_counters = live.counters
-        service.live_mavlink = live.offer_mavlink
-    return Wired(service, inbox, bus, recorder, link, session, live)
+    return Wired(service, inbox, notifier, recorder, link, session, live)
 
 
-def publishing_bus(session: Any) -> Bus:
-    """The bus of ``replay --publish``: the replayed service's output on Zenoh under the same
-    keys. Inputs it receives go to an inbox nobody reads (replay applies the recorded ones)."""
-    return ZenohBus(session, Inbox())
+def publisher(session: Any) -> ZenohPublisher:
+    """The listener of ``replay --publish``: the replayed service's output on Zenoh under the
+    same keys. Inputs it receives go to an inbox nobody reads (replay applies the recorded
+    ones)."""
+    return ZenohPublisher(session, Inbox())

@@ -3,10 +3,11 @@
 ``ServiceConfig`` is what ``serve`` builds from its flags, what ``HilService`` runs with, what
 the recorder stores as the MCAP metadata record ``glider-hil.config`` (``to_metadata``), and
 what ``replay``, ``info`` and ``report`` read back (``ServiceConfig.from_stored``). The
-record holds two JSON strings, ``service`` (identification, control, vehicles, limits,
-whether the link is signed; never the key) and ``mapping`` (the unit conversions of the
-MAVLink mapping). Logs written before a field existed read with that field's default; a
-log without ``mapping`` was written with the default units.
+record holds three JSON strings, ``service`` (identification, control, vehicles, limits,
+whether the link is signed; never the key), ``mapping`` (the units the service ran with)
+and ``profile`` (the vehicle profile's name and TOML text). Logs written before a field
+existed read with that field's default; a log without ``mapping`` was written with the
+default units, one without ``profile`` with the built-in ``glider`` profile.
 
 ``ServeConfig`` adds what only a live run needs (the link, Zenoh, the log files); it is not
 stored.
@@ -16,20 +17,21 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cache
 from typing import Any
 
 from hil_service.inputs import SetpointLimits
+from hil_service.listeners.zenoh_config import ZenohOptions
 from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
-from hil_service.zenoh_config import ZenohOptions
 from protocols.mapping import TelemetryMapping
-from protocols.profiles import Profile, parse_profile
+from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile, parse_profile
 from protocols.units import InputScale, PressureDepth
 
 #: Keys of the metadata record (``hil_service.mcap.recorder.CONFIG_METADATA``).
 SERVICE_KEY = "service"
 MAPPING_KEY = "mapping"
-PROFILE_KEY = "profile"  # a periodic vehicle profile: {"name", "text"} (docs/profiles.md)
+PROFILE_KEY = "profile"  # the vehicle profile: {"name", "text"} (docs/profiles.md)
 #: Vehicles a service takes on a link without ``--sysid`` unless ``--max-vehicles`` says.
 DEFAULT_MAX_VEHICLES = 32
 MAX_SYSTEM_IDS = 255  # a MAVLink system id is one byte (0 is the broadcast id)
@@ -49,11 +51,12 @@ class LinkSecurity:
 
 @dataclass(frozen=True)
 class Units:
-    """The unit conversions of the MAVLink mapping (docs/mavlink.md)."""
+    """The unit conversions of the MAVLink link (docs/mavlink.md); the defaults are
+    ``protocols.units``'."""
 
-    full_scale: float = 2.0  # model units at wire 1.0
-    water_density: float = 1025.0  # kg/m³
-    surface_pressure: float = 1013.25  # hPa
+    full_scale: float = InputScale.full_scale  # model units at wire 1.0
+    water_density: float = PressureDepth.water_density  # kg/m³
+    surface_pressure: float = PressureDepth.surface_hpa  # hPa
 
     def __post_init__(self) -> None:
         self.mapping()  # a bad value is refused here, with the unit's own message
@@ -62,6 +65,15 @@ class Units:
         return TelemetryMapping(
             pressure=PressureDepth(self.water_density, self.surface_pressure),
             inputs=InputScale(self.full_scale),
+        )
+
+    @classmethod
+    def of(cls, profile: Profile) -> Units:
+        """The units a vehicle profile states."""
+        return cls(
+            profile.ballast.full_scale,
+            profile.pressure.water_density,
+            profile.pressure.surface_hpa,
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -82,6 +94,12 @@ class Units:
         )
 
 
+@cache
+def default_profile() -> Profile:
+    """The built-in ``glider`` profile (parsed once; a profile is immutable)."""
+    return load_profile(DEFAULT_PROFILE)
+
+
 def _limits_json(limits: SetpointLimits) -> dict[str, float | None]:
     return {
         "min_depth": limits.min_depth,
@@ -99,12 +117,15 @@ class ServiceConfig:
     health_period: float = 1.0  # wall s
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
     security: LinkSecurity = field(default_factory=LinkSecurity)
-    units: Units = field(default_factory=Units)
+    #: Units that override the profile's (``serve --full-scale`` and the like); None: the
+    #: profile's own.
+    units: Units | None = None
     limits: SetpointLimits = field(default_factory=SetpointLimits)
-    #: A periodic vehicle profile (docs/profiles.md): sample the vehicle's streams every
-    #: ``sample_period`` s, command it as the profile says, and behave as its companion
-    #: computer (heartbeat, stream requests). None: the lockstep ``glider`` contract.
-    profile: Profile | None = None
+    #: The vehicle profile (docs/profiles.md): where each signal is read, how the ballast is
+    #: commanded, and how samples are formed: ``lockstep`` (one timestamp per plant step,
+    #: ``glider``) or ``periodic`` (every ``sample_period`` s of the vehicle's streams, as
+    #: its companion computer: heartbeat, stream requests).
+    profile: Profile = field(default_factory=default_profile)
     sample_period: float | None = None
     #: Release every step from the start (docs/lockstep.md); without it, lockstep starts
     #: when a vehicle announces it. Live only: not stored (replay sends nothing).
@@ -120,8 +141,23 @@ class ServiceConfig:
                 f"got {self.max_vehicles}"
             )
 
+    @property
+    def periodic(self) -> bool:
+        return self.profile.sampling.mode == "periodic"
+
+    def effective_units(self) -> Units:
+        """The units the service runs with: the overrides, else the profile's."""
+        return Units.of(self.profile) if self.units is None else self.units
+
+    def vehicle_profile(self) -> Profile:
+        """The profile with the units the service runs with."""
+        units = self.effective_units()
+        return self.profile.with_units(
+            units.full_scale, units.water_density, units.surface_pressure
+        )
+
     def mapping(self) -> TelemetryMapping:
-        return self.units.mapping()
+        return self.effective_units().mapping()
 
     def to_json(self) -> dict[str, Any]:
         """The ``service`` part of the stored configuration."""
@@ -133,19 +169,16 @@ class ServiceConfig:
             "signing": self.security.to_json(),
             "limits": _limits_json(self.limits),
             "max_vehicles": self.max_vehicles,
-            **(
-                {}
-                if self.profile is None
-                else {"profile": {"name": self.profile.name, "sample_period": self.sample_period}}
-            ),
+            "profile": {"name": self.profile.name, "sample_period": self.sample_period},
         }
 
     def stored(self) -> dict[str, Any]:
         """The configuration as a log stores it, decoded (what ``info`` prints)."""
-        stored = {SERVICE_KEY: self.to_json(), MAPPING_KEY: self.units.to_json()}
-        if self.profile is not None:
-            stored[PROFILE_KEY] = {"name": self.profile.name, "text": self.profile.text}
-        return stored
+        return {
+            SERVICE_KEY: self.to_json(),
+            MAPPING_KEY: self.effective_units().to_json(),
+            PROFILE_KEY: {"name": self.profile.name, "text": self.profile.text},
+        }
 
     def to_metadata(self) -> dict[str, str]:
         """The MCAP metadata record's content (string values, as MCAP requires)."""
@@ -160,8 +193,8 @@ class ServiceConfig:
         if not isinstance(service, dict) or "pipeline" not in service:
             return None
         limits = service.get("limits") or {}
-        profile = stored_profile(stored)
-        periodic = profile is not None and profile.sampling.mode == "periodic"
+        profile = stored_profile(stored) or default_profile()
+        periodic = profile.sampling.mode == "periodic"
         recorded = service.get("profile") or {}
         return cls(
             system_ids=tuple(service.get("system_ids", ())),
@@ -169,13 +202,13 @@ class ServiceConfig:
             stale_timeout=service.get("stale_timeout", 3.0),
             max_vehicles=service.get("max_vehicles", DEFAULT_MAX_VEHICLES),
             pipeline=PipelineSettings.from_json(service["pipeline"]),
-            units=Units.from_json(stored.get(MAPPING_KEY)),
+            units=Units.from_json(stored[MAPPING_KEY]) if stored.get(MAPPING_KEY) else None,
             limits=SetpointLimits(
                 limits.get("min_depth"), limits.get("max_depth"), limits.get("max_abs_pitch")
             ),
-            profile=profile if periodic else None,
+            profile=profile,
             sample_period=(recorded.get("sample_period") or profile.sampling.period)
-            if periodic and profile is not None
+            if periodic
             else None,
         )
 

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from hil_service.umodel import (
+    U_MODELS,
     CommandShaper,
     Estimate,
     PersistenceModel,
@@ -23,10 +24,8 @@ from hil_service.umodel import (
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats
+from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
-
-CHANNELS = ("depth", "pitch")
-MODEL_CHOICES = ("paper", "dynamic")
 
 #: Model options per channel on top of each model's defaults (none: the defaults hold for
 #: both channels, and a new vehicle gets no figure tuned to the emulator's).
@@ -89,8 +88,8 @@ class PipelineSettings:
     control: ControlSettings = field(default_factory=ControlSettings)
 
     def __post_init__(self) -> None:
-        if self.model not in MODEL_CHOICES:
-            raise ValueError(f"model must be one of {MODEL_CHOICES}, got {self.model!r}")
+        if self.model not in U_MODELS:
+            raise ValueError(f"model must be one of {U_MODELS}, got {self.model!r}")
 
     def replace(self, **changes: Any) -> PipelineSettings:
         return replace(self, **changes)
@@ -154,7 +153,7 @@ class ChannelPipeline:
         self.settings = settings
         options = settings.options_for(channel)
         model = build_model(settings.model, seed=seed, **options)
-        assert isinstance(model, PredictiveModel)  # MODEL_CHOICES are the U-models
+        assert isinstance(model, PredictiveModel)  # U_MODELS are the U-models
         self.model: PredictiveModel = model
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)

@@ -1,9 +1,12 @@
 """The HIL service runtime: MAVLink in, identification and control, Zenoh out, MCAP always.
 
 One thread owns the MAVLink link and everything on the per-sample path (decode, assemble,
-identify, decide, publish, send); Zenoh callbacks only fill the ``Inbox``; the recorder
-writes on its own thread. ``process_datagram`` is the same entry point for live traffic,
-replay and benchmarks.
+identify, decide, publish, send). Samples come from the profile's ``SampleSource``
+(``hil_service.sources``: lockstep or periodic); everything that consumes the stream (the
+log, Zenoh, the live view, replay's collector) is a listener of one ``Notifier``
+(``hil_service.listeners``). Zenoh callbacks only fill the ``Inbox``; the recorder writes on
+its own thread. ``process_datagram`` is the same entry point for live traffic, replay and
+benchmarks.
 """
 
 from __future__ import annotations
@@ -14,27 +17,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from hil_service.assembler import SampleAssembler
-from hil_service.companion import Companion, ack_is_ours
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
-from hil_service.lockstep import LockstepResponder
+from hil_service.listeners import Listener, Notifier
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
-from hil_service.profile_assembler import ProfileAssembler
-from hil_service.zenoh_bus import Bus
+from hil_service.sources import SampleSource, source_for
+from hil_service.sources.companion import ack_is_ours
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
-from protocols.mavlink_io import Address, Link, MavlinkCodec, MavMessage, dialect
+from protocols.mavlink_io import Address, Link, MavlinkCodec, MavMessage
 from protocols.samples import TelemetrySample
 
 #: The longest a companion's due message (heartbeat, stream request) waits for a tick, s.
 COMPANION_POLL = 0.01
-
-#: Who also sees each MAVLink frame: (direction, message or None, frame or None, time ns).
-MavlinkTap = Callable[[str, MavMessage | None, bytes | None, int], None]
-
 
 @dataclass
 class VehicleRuntime:
@@ -60,7 +57,7 @@ class HilService:
     def __init__(
         self,
         config: ServiceConfig,
-        bus: Bus,
+        notifier: Notifier | Listener,
         inbox: Inbox,
         link: Link | None = None,
         recorder: McapRecorder | None = None,
@@ -68,28 +65,22 @@ class HilService:
         send_commands: bool = True,
     ):
         self.config = config
-        self.bus = bus
+        #: Every consumer of the stream. A single listener is given a notifier of its own;
+        #: ``recorder``, when given, is one of the listeners (and reports in health).
+        self.notifier = notifier if isinstance(notifier, Notifier) else Notifier([notifier])
+        if recorder is not None and recorder not in self.notifier.listeners:
+            self.notifier.add_listener(recorder)
         self.inbox = inbox
         self.link = link
         self.recorder = recorder
-        self.mapping = config.mapping()
+        self.profile = config.vehicle_profile()
         self.clock = clock
         self.send_commands = send_commands and link is not None
-        self.periodic: ProfileAssembler | None = None
-        #: Each served vehicle's companion (heartbeat; stream requests on periodic profiles).
-        self.companions: dict[int, Companion] = {}
         #: What the service sends to a vehicle is framed as that vehicle's companion (its
         #: system id, component 191), one codec (sequence, signing stream) per vehicle.
         self._senders: dict[int, MavlinkCodec] = {}
         #: Where each vehicle's frames last came from (udpin): its replies go there.
         self._routes: dict[int, Address] = {}
-        if config.profile is not None:
-            self.periodic = ProfileAssembler(
-                config.profile,
-                config.sample_period,
-                config.system_ids or None,
-                max_vehicles=config.max_vehicles,
-            )
         # Decoding (and checking signatures) only: nothing is sent under this identity.
         self.codec = MavlinkCodec.for_link(
             config.service_system_id,
@@ -98,25 +89,22 @@ class HilService:
             accept_unsigned=config.security.accept_unsigned,
         )
         self.verifier = self.codec.verifier
-        self.assembler = SampleAssembler(
-            self.mapping, config.system_ids or None, config.max_vehicles
+        #: Where samples come from, as the profile says (lockstep or periodic); what it
+        #: sends (releases, heartbeats, stream requests) goes out as the vehicle's companion.
+        self.source: SampleSource = source_for(
+            config, self._send if self.send_commands else None, clock
         )
+        #: Each served vehicle's companion (the source's).
+        self.companions = self.source.companions
         self.sequence = SequenceTracker()
         self.vehicles: dict[int, VehicleRuntime] = {}
         self._next_health = 0.0
         self._next_poll = 0.0  # when the companions are polled next (tick)
         self._health_turn = 0  # the next vehicle (in order of first sample) whose health is due
-        #: Lockstep with the glider profile's emulator (docs/lockstep.md); None: periodic.
-        self.lockstep: LockstepResponder | None = (
-            None if self.periodic is not None else LockstepResponder(config.lockstep)
-        )
         self._lock = threading.Lock()  # guards snapshots read by the state queryable
         #: The live view's counters (``LiveView.counters``) when one runs: health's
         #: ``service_wide`` carries them (builder.wire sets it).
         self.live_counters: Callable[[], dict[str, int]] | None = None
-        #: The live view's MAVLink feed (``LiveView.offer_mavlink``): direction, message,
-        #: frame, time; every frame received, refused and sent, as the log records them.
-        self.live_mavlink: MavlinkTap | None = None
 
     # ---- the per-datagram path --------------------------------------------------------
     def process_datagram(
@@ -127,72 +115,33 @@ class HilService:
         now_ns = time.time_ns()
         samples = []
         messages = self.codec.parse(data, datagram=datagram)
-        live = self.live_mavlink
-        if self.recorder is not None:
-            # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
-            for frame in self.codec.last_rejected:
-                self.recorder.raw("rejected", frame, now_ns)
-        if live is not None:
-            for frame in self.codec.last_rejected:
-                live("rejected", None, frame, now_ns)
+        notifier = self.notifier
+        # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
+        for frame in self.codec.last_rejected:
+            notifier.mavlink("rejected", None, frame, now_ns)
         if source is not None:
             for message in messages:
                 self._routes[message.get_srcSystem()] = source
         for message in messages:
-            if self.recorder is not None:
-                self.recorder.raw("in", bytes(message.get_msgbuf()), now_ns)
-                self.recorder.mavlink("in", message, now_ns)
-            if live is not None:
-                live("in", message, None, now_ns)
-            if self.periodic is not None:
-                samples.extend(self._process_periodic(message))
-                continue
-            sample = self.process_message(message)
-            if sample is not None:
-                samples.append(sample)
+            notifier.mavlink("in", message, None, now_ns)
+            samples.extend(self.process_message(message))
         return samples
 
-    def process_message(self, message: MavMessage) -> TelemetrySample | None:
-        if self.periodic is not None:
-            found = self._process_periodic(message)
-            return found[-1] if found else None
+    def process_message(self, message: MavMessage) -> list[TelemetrySample]:
+        """One decoded message: the samples it completes (a periodic source may complete
+        several after a gap), each identified, decided and commanded."""
         header = message.get_header()
         self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
+        flagged = self.source.take(message)
         if message.get_type() == MSG_ACK:
-            self._on_ack(message)
-            return None
-        if self.lockstep is not None:
-            self.lockstep.observe(message)
-        sample = self.assembler.add(message)
-        if sample is not None:
-            self.process_sample(sample)
-        elif self.assembler.refused_ms >= 0:
-            refused = self.assembler.take_refused()
-            if self.lockstep is not None and self.send_commands:
-                # Refusing a sample is finishing with it: release its step (docs/lockstep.md).
-                system_id = header.srcSystem
-                self.lockstep.after_refused(
-                    refused, lambda released: self._send(released, system_id)
-                )
-        return sample
-
-    def _process_periodic(self, message: MavMessage) -> list[TelemetrySample]:
-        """A periodic profile's path: a message may complete several samples (a gap)."""
-        assert self.periodic is not None
-        header = message.get_header()
-        self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
-        companion = self.companions.get(header.srcSystem)
-        if companion is not None:
-            companion.on_message(message, self.clock())
-        if message.get_type() == "COMMAND_ACK":
-            if message.command != dialect.MAV_CMD_SET_MESSAGE_INTERVAL:
+            if self.source.is_command_ack(message):
                 self._on_ack(message)
             return []
-        flagged = self.periodic.add_all_flagged(message)
-        samples = [sample for sample, _ in flagged]
+        if not flagged:
+            return []
         for sample, inputs_reused in flagged:
             self.process_sample(sample, inputs_reused)
-        return samples
+        return [sample for sample, _ in flagged]
 
     def process_sample(self, sample: TelemetrySample, inputs_reused: bool = False) -> None:
         vehicle = self._vehicle(sample.system_id)
@@ -201,10 +150,10 @@ class HilService:
         vehicle.last_sample_wall = now
         system_id = sample.system_id
         topics = vehicle.keys
-        self.bus.publish(topics.telemetry, sample.to_payload())
-        estimates = vehicle.pipeline.observe(sample, inputs_reused, self.periodic is not None)
+        self.notifier.publish(topics.telemetry, sample.to_payload())
+        estimates = vehicle.pipeline.observe(sample, inputs_reused, self.source.periodic)
         for channel, payload in estimates.items():
-            self.bus.publish(topics.umodel[channel], payload)
+            self.notifier.publish(topics.umodel[channel], payload)
         inputs = self.inbox.inputs_for(sample)
         enabled = self.config.control_default if inputs.enabled is None else inputs.enabled
         reset = vehicle.reset_pending or inputs.reset
@@ -216,12 +165,11 @@ class HilService:
             # What the decision below used, stamped with the sample: replay applies exactly
             # this at exactly this sample, so recomputed commands match bit for bit.
             vehicle.last_applied = applied
-            if self.recorder is not None:
-                self.recorder.zenoh(
-                    topics.decision_inputs,
-                    {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
-                    "internal",
-                )
+            self.notifier.record(
+                topics.decision_inputs,
+                {"time_boot_ms": sample.time_boot_ms, **applied, "reset": reset},
+                "internal",
+            )
         decision = vehicle.pipeline.decide(sample, inputs.setpoints, enabled)
         with self._lock:
             vehicle.last_sample = sample
@@ -229,24 +177,20 @@ class HilService:
             vehicle.control_reason = decision.reason
             if decision.payload is not None:
                 vehicle.last_command = decision.payload
+        commanded = False
         if decision.command is not None and decision.payload is not None:
+            commanded = True
             # The vehicle first: the Zenoh publish blocks (congestion control BLOCK) while a
             # slow subscriber catches up, and must not hold the command back.
-            if self.send_commands and self.config.profile is not None:
+            if self.send_commands:
                 command = decision.command
-                for message in self.config.profile.command_messages(
+                for message in self.profile.command_messages(
                     command.u_depth, command.u_pitch, system_id
                 ):
                     self._send(message, system_id)
-            elif self.send_commands:
-                self._send(self.mapping.ballast_command(decision.command, system_id), system_id)
-            self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
+            self.notifier.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
-        if self.lockstep is not None and self.send_commands:
-            commanded = decision.command is not None and decision.payload is not None
-            self.lockstep.after_sample(  # after the command
-                sample, commanded, lambda message: self._send(message, system_id)
-            )
+        self.source.after_sample(sample, commanded)  # after the command
 
     def _send(self, message: MavMessage, system_id: int) -> None:
         """``message`` to vehicle ``system_id``, as its companion, where its frames came from."""
@@ -259,12 +203,7 @@ class HilService:
             self._senders[system_id] = codec
         frame = codec.pack(message)
         self.link.send_to(frame, self._routes.get(system_id))
-        if self.recorder is not None:
-            now_ns = time.time_ns()
-            self.recorder.raw("out", frame, now_ns)
-            self.recorder.mavlink("out", message, now_ns)
-        if self.live_mavlink is not None:
-            self.live_mavlink("out", message, frame, time.time_ns())
+        self.notifier.mavlink("out", message, frame, time.time_ns())
 
     def _on_ack(self, message: MavMessage) -> None:
         vehicle = self.vehicles.get(message.get_srcSystem())
@@ -281,9 +220,8 @@ class HilService:
             pipeline = VehiclePipeline(self.config.pipeline)
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle
-            period = None if self.periodic is None else self.periodic.config.period
-            self.companions[system_id] = Companion(self.config.profile, period, system_id)
-            self.bus.declare_vehicle(system_id, lambda: self.state(system_id))
+            self.source.vehicle_seen(system_id)
+            self.notifier.declare_vehicle(system_id, lambda: self.state(system_id))
         return vehicle
 
     # ---- periodic work ------------------------------------------------------------------
@@ -296,9 +234,8 @@ class HilService:
             # heard), four times a sample; what they send is due on a scale of seconds
             # (heartbeats, stream requests).
             self._next_poll = now + COMPANION_POLL
-            for system_id, companion in self.companions.items():
-                for message in companion.poll(now):
-                    self._send(message, system_id)
+            for system_id, message in self.source.due(now):
+                self._send(message, system_id)
         if now < self._next_health:
             return
         # One vehicle's health at a time, round robin, paced at health_period / vehicles:
@@ -315,7 +252,7 @@ class HilService:
             system_id = order[self._health_turn % len(order)]
             self._health_turn += 1
             published += 1
-            self.bus.publish(self.vehicles[system_id].keys.health, self.health(system_id, now))
+            self.notifier.publish(self.vehicles[system_id].keys.health, self.health(system_id, now))
             self._next_health += pace
         if now >= self._next_health:  # far behind (or the first time): no catching-up burst
             self._next_health = now + pace
@@ -367,8 +304,6 @@ class HilService:
             if vehicle.last_sample_wall is None
             else now - vehicle.last_sample_wall,
         }
-        if self.lockstep is not None and self.lockstep.active:
-            payload["lockstep"] = self.lockstep.as_dict()
         payload["signing"] = {
             **self.config.security.to_json(),
             "rejected": 0 if self.verifier is None else self.verifier.counters.rejected,
@@ -376,19 +311,7 @@ class HilService:
         }
         if self.recorder is not None:
             payload["logging"] = self.recorder.report()
-        if self.periodic is not None:
-            sampled = self.periodic.counters_for(system_id)
-            payload["sampling"] = {
-                "period": self.periodic.config.period,
-                "incomplete_reasons": sampled.reasons,
-                "fallbacks": sampled.fallbacks,
-            }
-        companion = self.companions.get(system_id)
-        if companion is not None:
-            payload["companion"] = {
-                **companion.counters.as_dict(),
-                "stream_requests": companion.states,
-            }
+        payload.update(self.source.health(system_id))
         if self.inbox.last_rejection:
             payload["last_rejected_input"] = self.inbox.last_rejection
         return payload
@@ -399,9 +322,7 @@ class HilService:
         served, and (with signing) the verifier's counts."""
         counters = {
             **self.codec.counters.as_dict(),
-            "unknown_system": self.assembler.unknown_system
-            if self.periodic is None
-            else self.periodic.counters.unknown_system,
+            "unknown_system": self.source.unknown_system,
         }
         if self.verifier is not None:
             counters.update(self.verifier.counters.as_dict())
@@ -433,33 +354,18 @@ class HilService:
 
     def _assembled(self, system_id: int) -> dict[str, int]:
         """One vehicle's assembly counters (lockstep or periodic, the same names)."""
-        if self.periodic is None:
-            return self.assembler.counters_for(system_id).as_dict()
-        counted = self.periodic.counters_for(system_id)
-        return {
-            "samples": counted.samples,
-            "incomplete": counted.incomplete,
-            "out_of_order": counted.out_of_order,
-            "invalid": counted.invalid,
-            "restarts": counted.restarts,
-        }
-
-    def _assembly(self) -> dict[str, Any]:
-        """Every vehicle's assembly counters together (lockstep or periodic)."""
-        if self.periodic is not None:
-            return self.periodic.counters.as_dict()
-        return dict(self.assembler.counters.as_dict())
+        return self.source.counters_for(system_id)
 
     def summary(self) -> dict[str, Any]:
         """Counters and per-vehicle identification scores, printed when the service stops."""
         return {
-            **({} if self.lockstep is None else {"lockstep": self.lockstep.as_dict()}),
+            **self.source.summary(),
             "companions": {
                 str(system_id): {**c.counters.as_dict(), "stream_requests": c.states}
                 for system_id, c in self.companions.items()
             },
             "counters": {
-                **self._assembly(),
+                **self.source.totals(),
                 **self.codec.counters.as_dict(),
                 **({} if self.verifier is None else self.verifier.counters.as_dict()),
             },

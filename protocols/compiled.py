@@ -10,6 +10,12 @@ native classes directly, so a mix would not work.
 
 This module lives in ``protocols`` because every entry point imports that package first
 (``protocols/__init__.py`` and ``hil_service/__init__.py`` both call ``apply_choice``).
+
+``HOT_PATH`` names the ``hil_service`` modules by string, and must: ``setup.py`` reads the
+list to hand mypyc its source paths without importing the package it is about to compile,
+and the source finder has to recognise a module by name *before* it is imported (importing
+it to ask would load the compiled one). ``tests/test_compiled.py`` imports every name (a
+renamed module fails it).
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.rbf",
     "hil_service.umodel.reproducible",
     "hil_service.umodel.rls",
-    "hil_service.assembler",
+    "hil_service.sources.lockstep_assembler",
     "hil_service.link_stats",
     "hil_service.mcap.writer",
     "hil_service.mcap.recorder",

@@ -7,7 +7,7 @@ streams, SERVO_OUTPUT_RAW PWM, DO_SET_SERVO). ``load_profile`` takes a built-in 
 file path; a bad file raises ``ProfileError`` naming the file and the line.
 
 A profile turns a received message into *readings* (signal, source rank, value) and a clock
-reading (which clock, raw value), which ``hil_service.sampler`` turns into samples; and it
+reading (which clock, raw value), which ``hil_service.sources.sampler`` turns into samples; and it
 turns a ballast command into the messages that carry it.
 """
 
@@ -16,14 +16,14 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
 
 from protocols.mavlink_io import MavMessage, dialect
-from protocols.units import PressureDepth
+from protocols.units import InputScale, PressureDepth
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -38,7 +38,7 @@ CONVERSIONS = ("linear", "pressure_to_depth")
 MODES = ("lockstep", "periodic")
 READBACKS = {"SERVO_OUTPUT_RAW": ("pwm", 16), "ACTUATOR_OUTPUT_STATUS": ("normalised", 32)}
 COMMANDS = {"DO_SET_SERVO": ("pwm", 16), "DO_SET_ACTUATOR": ("normalised", 6)}
-#: Clock kinds of ``hil_service.sampler``: name → (seconds per tick, wrap modulus or 0).
+#: Clock kinds of ``hil_service.sources.sampler``: name → (seconds per tick, wrap modulus or 0).
 CLOCKS = {"ms32": (1e-3, 1 << 32), "us32": (1e-6, 1 << 32), "us64": (1e-6, 0)}
 AUTOPILOT_COMPONENT = 1
 
@@ -93,7 +93,7 @@ class PwmRange:
 class Ballast:
     readback: str = "ACTUATOR_OUTPUT_STATUS"
     command: str = "DO_SET_ACTUATOR"
-    full_scale: float = 2.0  # model units at wire 1.0 (the paper's ±2)
+    full_scale: float = InputScale.full_scale  # model units at wire 1.0 (the paper's ±2)
     pwm: PwmRange = field(default_factory=PwmRange)
     depth_output: int = 1  # servo number (PWM) or actuator number (normalised), 1-based
     pitch_output: int = 2
@@ -169,6 +169,37 @@ class Profile:
         limits["u_pitch"] = ballast
         return limits
 
+    def step_messages(self) -> tuple[str, ...]:
+        """The messages a lockstep step needs, all stamped with the step's time: the
+        preferred source of every signal that is not optional, and the ballast readback."""
+        names = [
+            sources[0].message
+            for sources in self.signals.values()
+            if not all(s.optional for s in sources)
+        ]
+        names.append(self.ballast.readback)
+        return tuple(dict.fromkeys(names))
+
+    def with_units(
+        self,
+        full_scale: float | None = None,
+        water_density: float | None = None,
+        surface_hpa: float | None = None,
+    ) -> Profile:
+        """This profile with other units (None: keep the profile's); the text is kept."""
+        pressure = replace(
+            self.pressure,
+            water_density=self.pressure.water_density if water_density is None else water_density,
+            surface_hpa=self.pressure.surface_hpa if surface_hpa is None else surface_hpa,
+        )
+        ballast = replace(
+            self.ballast,
+            full_scale=self.ballast.full_scale if full_scale is None else full_scale,
+        )
+        if pressure == self.pressure and ballast == self.ballast:
+            return self
+        return replace(self, pressure=pressure, ballast=ballast)
+
     def optional_signals(self) -> frozenset[str]:
         return frozenset(
             name for name, sources in self.signals.items() if all(s.optional for s in sources)
@@ -201,6 +232,8 @@ class Profile:
     def _convert(self, source: Source, raw: float) -> float:
         if source.convert == "pressure_to_depth":
             return self.pressure.depth_m(raw)
+        if source.scale == 1.0 and source.offset == 0.0:
+            return raw  # the field as it is (a -0.0 stays -0.0)
         return raw * source.scale + source.offset
 
     # ---- commanding ------------------------------------------------------------------
@@ -250,6 +283,12 @@ def _clock_field(cls: Any) -> tuple[str, str] | None:
     return None
 
 
+def clock_of(message_name: str) -> tuple[str, str] | None:
+    """The clock a message type carries: (``ms32``/``us32``/``us64``, field name), or None."""
+    cls = getattr(dialect, f"MAVLink_{message_name.lower()}_message", None)
+    return None if cls is None else _clock_field(cls)
+
+
 def message_clock(message: MavMessage) -> tuple[str, int] | None:
     """The vehicle-clock stamp a message carries: (``ms32``/``us32``/``us64``, raw value),
     or None (VFR_HUD has none)."""
@@ -292,6 +331,10 @@ def parse_profile(text: str, origin: str = "<profile>") -> Profile:
         raise ProfileError(f"{origin}: not valid TOML: {error}") from error
     return _Parser(text, origin).profile(data)
 
+
+#: The parser's defaults are the dataclasses' own (the units': ``protocols.units``).
+_PRESSURE = PressureDepth()
+_INPUTS = InputScale()
 
 _HEADER = re.compile(r"^\s*\[\[?\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_\-\"']+)\s*=")
@@ -404,17 +447,31 @@ class _Parser:
         units = self._table(data, "units", {"water_density", "surface_pressure_hpa"})
         try:
             pressure = PressureDepth(
-                self._number(units, "units", "water_density", 1025.0, positive=True),
-                self._number(units, "units", "surface_pressure_hpa", 1013.25, positive=True),
+                self._number(
+                    units, "units", "water_density", _PRESSURE.water_density, positive=True
+                ),
+                self._number(
+                    units, "units", "surface_pressure_hpa", _PRESSURE.surface_hpa, positive=True
+                ),
             )
         except ValueError as error:
             self.fail(str(error), "units")
         signals = self._signals(data.get("signals", {}))
         ballast = self._ballast(data.get("ballast", {}))
-        return Profile(name, description, sampling, pressure, signals, ballast, self.text)
+        profile = Profile(name, description, sampling, pressure, signals, ballast, self.text)
+        if sampling.mode == "lockstep":
+            for message in profile.step_messages():
+                if clock_of(message) is None:
+                    self.fail(
+                        f"lockstep groups a step's messages by their timestamp, and {message} "
+                        "carries none: make its signal optional or sample periodically",
+                        "sampling",
+                        "mode",
+                    )
+        return profile
 
     def _sampling(self, table: dict) -> Sampling:
-        mode = self._string(table, "sampling", "mode", "lockstep", MODES)
+        mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)
         period = self._number(table, "sampling", "period", None, positive=True)
         delay = self._number(table, "sampling", "delay", None)
         if delay is not None and delay < 0:
@@ -502,9 +559,9 @@ class _Parser:
             message=message,
             field=field_name,
             index=index,
-            convert=self._string(entry, name, "convert", "linear", CONVERSIONS, occurrence),
-            scale=self._number(entry, name, "scale", 1.0, occurrence),
-            offset=self._number(entry, name, "offset", 0.0, occurrence),
+            convert=self._string(entry, name, "convert", Source.convert, CONVERSIONS, occurrence),
+            scale=self._number(entry, name, "scale", Source.scale, occurrence),
+            offset=self._number(entry, name, "offset", Source.offset, occurrence),
             interval=self._number(entry, name, "interval", None, occurrence, positive=True),
             stale_after=self._number(entry, name, "stale_after", None, occurrence, positive=True),
             optional=optional,
@@ -524,12 +581,12 @@ class _Parser:
             "pitch",
         }
         table = self._table({"ballast": table}, "ballast", allowed)
-        readback = self._string(table, "ballast", "readback", "ACTUATOR_OUTPUT_STATUS", READBACKS)
-        command = self._string(table, "ballast", "command", "DO_SET_ACTUATOR", COMMANDS)
+        readback = self._string(table, "ballast", "readback", Ballast.readback, READBACKS)
+        command = self._string(table, "ballast", "command", Ballast.command, COMMANDS)
         pwm = PwmRange(
-            self._integer(table, "ballast", "pwm_min", 1100, 500, 2500),
-            self._integer(table, "ballast", "pwm_max", 1900, 500, 2500),
-            self._integer(table, "ballast", "pwm_neutral", 1500, 500, 2500),
+            self._integer(table, "ballast", "pwm_min", PwmRange.minimum, 500, 2500),
+            self._integer(table, "ballast", "pwm_max", PwmRange.maximum, 500, 2500),
+            self._integer(table, "ballast", "pwm_neutral", PwmRange.neutral, 500, 2500),
         )
         if not pwm.minimum < pwm.neutral < pwm.maximum:
             self.fail(
@@ -542,17 +599,16 @@ class _Parser:
         for channel in ("depth", "pitch"):
             sub = self._table(table, f"ballast.{channel}", {"output"})
             high = min(READBACKS[readback][1], COMMANDS[command][1])
-            outputs.append(
-                self._integer(
-                    sub, f"ballast.{channel}", "output", 1 if channel == "depth" else 2, 1, high
-                )
-            )
+            default = Ballast.depth_output if channel == "depth" else Ballast.pitch_output
+            outputs.append(self._integer(sub, f"ballast.{channel}", "output", default, 1, high))
         if outputs[0] == outputs[1]:
             self.fail("depth and pitch need different outputs", "ballast.pitch", "output")
         return Ballast(
             readback=readback,
             command=command,
-            full_scale=self._number(table, "ballast", "full_scale", 2.0, positive=True),
+            full_scale=self._number(
+                table, "ballast", "full_scale", _INPUTS.full_scale, positive=True
+            ),
             pwm=pwm,
             depth_output=outputs[0],
             pitch_output=outputs[1],

@@ -1,4 +1,8 @@
-"""Unit conversions shared by the emulator and the service (docs/mavlink.md)."""
+"""Unit conversions shared by the emulator and the service (docs/mavlink.md).
+
+The one home of the unit defaults (sea water, standard atmosphere, the paper's ±2 ballast
+at wire ±1): the profiles' parser, the service's ``Units`` and the emulator take them from
+these dataclasses."""
 
 from __future__ import annotations
 

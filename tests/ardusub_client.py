@@ -8,9 +8,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from hil_service.companion import COMPANION_COMPONENT, Companion
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
-from hil_service.profile_assembler import ProfileAssembler
+from hil_service.sources.companion import COMPANION_COMPONENT, Companion
+from hil_service.sources.periodic_assembler import ProfileAssembler
 from protocols.profiles import Profile
 from tests.mavlink_peer import UdpPeer
 

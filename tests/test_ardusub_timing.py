@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from hil_service.experiment.jitter import jittered_loop
-from hil_service.sampler import SamplerConfig, StreamSampler
+from hil_service.sources.sampler import SamplerConfig, StreamSampler
 from hil_service.umodel.dynamics import StaticMap
 from hil_service.umodel.predictive import monotone_range
 

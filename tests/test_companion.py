@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from hil_service.companion import COMPANION_COMPONENT, Companion, CompanionConfig
+from hil_service.sources.companion import COMPANION_COMPONENT, Companion, CompanionConfig
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.profiles import load_profile
 

@@ -1,5 +1,5 @@
 """``glider/{id}/health`` counts one vehicle's traffic, with what belongs to no one vehicle
-named as link-wide (issue 14): two vehicles and a stranger on one MAVLink link."""
+named as link-wide: two vehicles and a stranger on one MAVLink link."""
 
 from __future__ import annotations
 

@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 
 from hil_service.config import ServiceConfig
+from hil_service.listeners import Listener
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.replay import ReplayInbox
 from hil_service.service import HilService
-from hil_service.zenoh_bus import NullBus
 from protocols import keys
 from protocols.mavlink_io import Link, MavlinkCodec
 from tests.conftest import DATA, free_udp_port
@@ -68,7 +68,7 @@ def test_a_udp_link_still_opens(tmp_path):
 # ---- the vehicle first, then Zenoh ---------------------------------------------------------
 
 
-class OrderBus(NullBus):
+class OrderBus(Listener):
     """A bus that, at the n-th command publish, looks whether n command datagrams have
     reached the vehicle's socket (waiting up to ``patience``: a send that comes only after
     the publish never arrives in time)."""
@@ -79,7 +79,9 @@ class OrderBus(NullBus):
         self.commands: list[bool] = []  # per command publish: was its datagram there?
         self.frames: list[bytes] = []
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+    def on_publish(
+        self, key: str, payload: dict[str, Any], data: bytes, reliable: bool
+    ) -> None:
         if not key.endswith("/command/ballast"):
             return
         wanted = len(self.commands) + 1

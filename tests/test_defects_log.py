@@ -15,12 +15,12 @@ from mcap.reader import make_reader
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners.zenoh import ZenohPublisher
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.report import write_report
 from hil_service.service import HilService
-from hil_service.zenoh_bus import ZenohBus
-from hil_service.zenoh_config import ZenohOptions, open_session
 from protocols.mavlink_io import Link
 from tests.conftest import DATA, free_tcp_port
 
@@ -85,7 +85,7 @@ def rebooted_log(tmp_path_factory) -> Path:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     session = open_session(ZenohOptions(listen=(endpoint,)))
     inbox = Inbox()
-    bus = ZenohBus(session, inbox, recorder)
+    bus = ZenohPublisher(session, inbox, recorder.on_record)
     vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # where commands go
     vehicle.bind(("127.0.0.1", 0))
     link = Link(f"udpout:127.0.0.1:{vehicle.getsockname()[1]}")
@@ -94,21 +94,22 @@ def rebooted_log(tmp_path_factory) -> Path:
     try:
         _send_inputs(endpoint, inbox)
         for run in (FIRST_RUN, SECOND_RUN):
-            before = service.assembler.counters.samples + service.assembler.counters.out_of_order
+            counted = service.source.assembler.counters
+            before = counted.samples + counted.out_of_order
             for frame in frames:
                 service.process_datagram(frame)
                 wall[0] += 0.05
                 service.tick()
-                counted = service.assembler.counters
+                counted = service.source.assembler.counters
                 if counted.samples + counted.out_of_order - before >= run:
                     break
     finally:
-        bus.close()
+        bus.stop()
         session.close()
         recorder.close()
         link.close()
         vehicle.close()
-    assert service.assembler.counters.restarts == 1
+    assert service.source.assembler.counters.restarts == 1
     [log] = directory.glob("*.mcap")
     return log
 

@@ -8,7 +8,7 @@ import threading
 
 import zenoh
 
-from hil_service.zenoh_config import (
+from hil_service.listeners.zenoh_config import (
     ZenohOptions,
     add_zenoh_arguments,
     open_session,

@@ -12,9 +12,9 @@ import pytest
 
 from hil_service.builder import open_recorder, wire
 from hil_service.config import LinkSecurity, LogOptions, ServiceConfig
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.mcap.reader import LogReader
 from hil_service.pipeline import PipelineSettings
-from hil_service.zenoh_config import ZenohOptions, open_session
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols import keys
@@ -288,7 +288,14 @@ def test_logs_written_before_the_config_module_still_read(name, capsys):
     assert main(["info", "--json", str(DATA / f"{name}.mcap")]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["config"] == config.stored()
-    assert info["config_defaults"] == ["service.limits", "service.max_vehicles"]
+    # The log predates the stored profile too: it reads as the built-in glider profile.
+    assert info["config_defaults"] == [
+        "service.limits",
+        "service.max_vehicles",
+        "service.profile",
+        "profile",
+    ]
+    assert config.profile.name == "glider"
 
 
 def test_serve_flags_reach_replay_through_the_stored_configuration():
@@ -312,3 +319,11 @@ def test_serve_flags_reach_replay_through_the_stored_configuration():
     )
     assert again.mapping().inputs.full_scale == 1.5
     assert again.pipeline.model == "paper" and again.pipeline.burn_in == 77
+
+
+def test_the_docs_index_lists_every_document():
+    index = (DOCS / "README.md").read_text()
+    for path in sorted(DOCS.rglob("*")):
+        if path.is_file() and path.name != "README.md":
+            name = path.relative_to(DOCS).as_posix()
+            assert name in index, f"docs/README.md does not list {name}"

@@ -119,14 +119,14 @@ def test_two_services_one_router(fleet_rig) -> None:
 
 def test_an_explicit_sysid_list_is_served_whole() -> None:
     """``--sysid 1-50``: every listed vehicle is assembled, beyond the open-link cap of 32."""
-    from hil_service.assembler import SampleAssembler
+    from hil_service.sources.lockstep_assembler import SampleAssembler
     from plant_emulator.plant import GliderPlant, PlantConfig
     from protocols.mapping import TelemetryMapping
     from protocols.mavlink_io import MavlinkCodec
 
     mapping = TelemetryMapping()
-    listed = SampleAssembler(mapping, parse_system_ids("1-50"))
-    open_link = SampleAssembler(mapping)
+    listed = SampleAssembler(None, parse_system_ids("1-50"))
+    open_link = SampleAssembler()
     reader = MavlinkCodec(255, 0)
     for system_id in range(1, 51):
         sample = GliderPlant(PlantConfig(), system_id=system_id).step(0.0, 0.0)

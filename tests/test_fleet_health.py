@@ -14,6 +14,7 @@ from typing import Any
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners import Listener
 from hil_service.service import COMPANION_POLL, HilService
 from protocols import keys
 from protocols.mavlink_io import Link
@@ -21,21 +22,15 @@ from protocols.mavlink_io import Link
 STEP = 0.01  # s between two ticks, as a busy service's loop calls tick after each datagram
 
 
-class CaptureBus:
+class CaptureBus(Listener):
     def __init__(self, clock: Callable[[], float]):
         self.clock = clock
         self.health: list[tuple[float, int]] = []  # (time, system id)
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
         parsed = keys.parse(key)
         assert parsed is not None and parsed.kind == keys.HEALTH
         self.health.append((self.clock(), parsed.system_id))
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def run(vehicles: list[int], seconds: float, late: tuple[int, ...] = ()) -> list[tuple[float, int]]:

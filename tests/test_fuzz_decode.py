@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners import Listener
 from hil_service.service import HilService
-from hil_service.zenoh_bus import NullBus
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.samples import TelemetrySample
@@ -32,11 +32,13 @@ MAPPING = TelemetryMapping()
 MAX_FRAME = 280  # MAVLink 2: 10 header + 255 payload + 2 CRC + 13 signature
 
 
-class CapturingBus(NullBus):
+class CapturingBus(Listener):
     def __init__(self) -> None:
         self.published: list[tuple[str, dict[str, Any]]] = []
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
+    def on_publish(
+        self, key: str, payload: dict[str, Any], data: bytes, reliable: bool
+    ) -> None:
         self.published.append((key, payload))
 
 
@@ -72,11 +74,11 @@ def test_arbitrary_datagrams_never_raise_or_wedge_the_parser(datagrams):
     service, bus, _ = _service()
     for data in datagrams:
         service.process_datagram(data)
-    before = service.assembler.counters.samples
+    before = service.source.assembler.counters.samples
     # Whatever came before, whole datagrams of good telemetry are decoded again at once.
     for frame in _good_steps(MavlinkCodec(1, 1), 10**9, 3):
         service.process_datagram(frame)
-    assert service.assembler.counters.samples >= before + 2
+    assert service.source.assembler.counters.samples >= before + 2
     assert all(_all_finite(payload) for _, payload in bus.published)
 
 
@@ -96,7 +98,7 @@ def test_garbage_on_a_stream_link_costs_at_most_one_frame_length(garbage):
     stream = garbage + b"".join(b"".join(frames) for frames in steps)
     service.process_datagram(stream, datagram=False)
     assert safe >= 6
-    assert service.assembler.counters.samples >= safe
+    assert service.source.assembler.counters.samples >= safe
 
 
 finite_or_not = st.one_of(
@@ -150,7 +152,7 @@ def test_absurd_but_well_formed_messages_are_counted_and_never_reach_the_identif
         if message.get_type() in ("ATTITUDE", "SCALED_PRESSURE2", "ACTUATOR_OUTPUT_STATUS")
     }
     steps = {(s, stamp) for s, _, stamp in stamped}
-    assembled = service.assembler.counters
+    assembled = service.source.assembler.counters
     assert assembled.samples + assembled.invalid <= len(steps)
     # Nothing non-finite was published, and every published sample is physically sane.
     for key, payload in bus.published:

@@ -1,5 +1,5 @@
 """The one definition of the multi-step figures (``scoring.normalised_square_error``), used
-by ``experiment``/``report`` (``experiment/multistep.py``) and ``health``
+by ``experiment``/``report`` (``umodel/multistep.py``) and ``health``
 (``scoring.MultiStepStats``), and the free-run fit's ceiling (``identification.fit_bound``)."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from hil_service.experiment.identification import (
     plant_outputs,
     run_identification,
 )
-from hil_service.experiment.multistep import MultiStepScores, fit_percent, nmse
 from hil_service.umodel import build_model
+from hil_service.umodel.multistep import MultiStepScores, fit_percent, nmse
 from hil_service.umodel.scoring import (
     MultiStepStats,
     fit_from_nmse,

@@ -13,10 +13,10 @@ import time
 
 import pytest
 
-from hil_service.assembler import SampleAssembler
 from hil_service.link_stats import SequenceTracker
 from hil_service.mcap.reader import LogReader
 from hil_service.pipeline import PipelineSettings, StepContinuity, VehiclePipeline
+from hil_service.sources.lockstep_assembler import SampleAssembler
 from hil_service.umodel import build_model
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
@@ -77,7 +77,7 @@ def test_identifier_skips_after_a_missing_step_instead_of_misaligning():
 
 
 def test_assembler_follows_a_vehicle_reboot_but_not_a_single_late_step():
-    codec, assembler = MavlinkCodec(1, 1), SampleAssembler(MAPPING)
+    codec, assembler = MavlinkCodec(1, 1), SampleAssembler()
     plant = GliderPlant(PlantConfig(seed=0))
 
     def feed(stamps):

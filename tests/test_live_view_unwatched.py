@@ -1,5 +1,5 @@
 """The live view queues no MAVLink message of an advertised type while no client watches a
-MAVLink channel (issue 17: the control path's cost of a viewer that watches telemetry only).
+MAVLink channel (the control path's cost of a viewer that watches telemetry only).
 With a viewer subscribed to them, `tests/test_foxglove_live.py` receives and validates them."""
 
 from __future__ import annotations

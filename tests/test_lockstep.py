@@ -11,8 +11,8 @@ from hil_service.campaign.hil_run import run_hil
 from hil_service.campaign.mission import Mission
 from hil_service.cli import main
 from hil_service.cli.processes import last_json
-from hil_service.lockstep import LockstepResponder
 from hil_service.mcap.reader import LogReader
+from hil_service.sources.lockstep_responder import LockstepResponder
 from plant_emulator.autopilot import Autopilot, AutopilotConfig
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.lockstep import LockstepRunner

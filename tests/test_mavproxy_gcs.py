@@ -18,7 +18,7 @@ import pytest
 
 from hil_service.cli.processes import free_port, start_verb, stop_process
 from hil_service.offline.tlog_import import TlogReport, read_tlog
-from hil_service.sampler import SamplerConfig, StreamSampler
+from hil_service.sources.sampler import SamplerConfig, StreamSampler
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.profiles import load_profile, message_clock
 

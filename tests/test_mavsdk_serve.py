@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("mavsdk", reason="MAVSDK-Python is a test dependency ([dev])")
 from mavsdk.action import ActionError
 
-from hil_service.companion import ack_is_ours, addressed_to_companion
+from hil_service.sources.companion import ack_is_ours, addressed_to_companion
 from protocols.mavlink_io import MavlinkCodec, dialect
 from tests.conftest import free_tcp_port, free_udp_port
 from tests.test_mavproxy_router import MAVPROXY, _mavproxy, _stop_mavproxy

@@ -1,4 +1,4 @@
-"""The yardsticks of issue 15: the free-run fit and k-step NMSE, the known-model oracle, and
+"""The yardsticks of the controller: the free-run fit and k-step NMSE, the known-model oracle, and
 the random plant families. Short runs on fixed seeds."""
 
 from __future__ import annotations
@@ -20,16 +20,16 @@ from hil_service.experiment.closed_loop import (
     score,
     setpoint_schedule,
 )
-from hil_service.experiment.multistep import (
+from hil_service.experiment.oracle import KnownPlant, OracleController, OracleSettings
+from hil_service.experiment.random_loop import channel_levels, oracle_settings_for
+from hil_service.umodel import build_model
+from hil_service.umodel.multistep import (
     fit_percent,
     free_run,
     multistep_scores,
     nmse,
     train,
 )
-from hil_service.experiment.oracle import KnownPlant, OracleController, OracleSettings
-from hil_service.experiment.random_loop import channel_levels, oracle_settings_for
-from hil_service.umodel import build_model
 from plant_emulator.actuator import BallastActuator, PumpNonlinearity
 from plant_emulator.models import DEFAULT_DESIGNS
 from plant_emulator.plant import GliderPlant, PlantConfig

@@ -6,7 +6,7 @@ import itertools
 
 import pytest
 
-from hil_service.profile_assembler import ProfileAssembler
+from hil_service.sources.periodic_assembler import ProfileAssembler
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.profiles import load_profile
 

@@ -262,11 +262,11 @@ def test_non_default_units_replay_with_the_units_of_the_log(tmp_path):
     actuator full scale) replays bit for bit only with the units stored in it."""
     from hil_service.config import ServiceConfig, Units
     from hil_service.inputs import Inbox
+    from hil_service.listeners import Notifier
     from hil_service.mcap.recorder import McapRecorder
     from hil_service.offline.replay import ReplayOptions, replay
     from hil_service.pipeline import PipelineSettings
     from hil_service.service import HilService
-    from hil_service.zenoh_bus import NullBus
     from plant_emulator.excitation import RandomSteps
     from plant_emulator.plant import GliderPlant, PlantConfig
     from protocols.mavlink_io import MavlinkCodec
@@ -279,11 +279,8 @@ def test_non_default_units_replay_with_the_units_of_the_log(tmp_path):
     metadata = config.to_metadata()
     recorder = McapRecorder(tmp_path, metadata=metadata).start()
 
-    class LoggingBus(NullBus):
-        def publish(self, key, payload, reliable=False):
-            recorder.zenoh(key, payload, "out")
-
-    service = HilService(config, LoggingBus(), Inbox(), recorder=recorder)
+    # The recorder, the only listener, logs every publication as serve's does.
+    service = HilService(config, Notifier(), Inbox(), recorder=recorder)
     service.inbox.set_setpoint(1, "depth", 16.0)
     plant, codec = GliderPlant(PlantConfig(seed=2, input_limit=1.5)), MavlinkCodec(1, 1)
     excitation = RandomSteps(amplitude=1.4, min_hold=5, max_hold=20, seed=2)

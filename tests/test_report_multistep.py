@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from hil_service.experiment.multistep import longest_contiguous
 from hil_service.offline.report import recorded_horizon, write_report
 from hil_service.offline.series import load_series
+from hil_service.umodel.multistep import longest_contiguous
 
 DATA = Path(__file__).parent / "data"
 

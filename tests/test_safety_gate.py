@@ -26,10 +26,10 @@ import pytest
 
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox, SetpointLimits
+from hil_service.listeners import Listener
 from hil_service.pipeline import PipelineSettings
 from hil_service.service import HilService
 from hil_service.umodel import build_model
-from hil_service.zenoh_bus import NullBus
 from plant_emulator.excitation import RandomSteps
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping, is_ballast_command
@@ -391,7 +391,7 @@ def in_process():
         link = SentFrames()
         links.append(link)
         config = ServiceConfig(control_default=True, pipeline=settings)
-        return HilService(config, NullBus(), inbox or Inbox(), link=link.link), link
+        return HilService(config, Listener(), inbox or Inbox(), link=link.link), link
 
     yield make
     for link in links:

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hil_service.sampler import SamplerConfig, StreamSampler
+from hil_service.sources.sampler import SamplerConfig, StreamSampler
 
 PERIOD = 0.1
 US32_SPAN = (1 << 32) / 1e6  # s, 71.6 min

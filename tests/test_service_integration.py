@@ -143,8 +143,8 @@ def test_identify_command_disable_and_stale(rig, processes):
 
 def check_log(log_dir, probe_telemetry):
     """Every channel of docs/mcap.md with schemas; raw frames decode to the same samples."""
-    from hil_service.assembler import SampleAssembler
     from hil_service.mcap.reader import LogReader
+    from hil_service.sources.lockstep_assembler import SampleAssembler
     from protocols.mavlink_io import MavlinkCodec
 
     files = sorted(log_dir.glob("*.mcap"))

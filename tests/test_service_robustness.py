@@ -203,11 +203,12 @@ def test_health_turns_stale_exactly_after_the_timeout_on_the_service_clock():
     stale just after, and the controllers re-arm before the next decision."""
     from hil_service.config import ServiceConfig
     from hil_service.inputs import Inbox
+    from hil_service.listeners import Listener
     from hil_service.service import HilService
-    from hil_service.zenoh_bus import NullBus
 
     now = [50.0]
-    service = HilService(ServiceConfig(stale_timeout=3.0), NullBus(), Inbox(), clock=lambda: now[0])
+    config = ServiceConfig(stale_timeout=3.0)
+    service = HilService(config, Listener(), Inbox(), clock=lambda: now[0])
     codec = MavlinkCodec(1, 1)
     for k in range(10):
         for message in MAPPING.encode_telemetry(TelemetrySample(1, k * 1000, 15.0, 0.0, 0.1, -0.1)):

@@ -11,12 +11,12 @@ import pytest
 
 from hil_service.config import LinkSecurity, ServiceConfig
 from hil_service.inputs import Inbox
+from hil_service.listeners import Listener, Notifier
 from hil_service.mcap.reader import LogReader
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.replay import ReplayOptions, replay
 from hil_service.service import HilService
 from hil_service.umodel import build_model
-from hil_service.zenoh_bus import NullBus
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec, dialect
@@ -192,13 +192,13 @@ def _telemetry_frames(codec: MavlinkCodec, steps: int) -> list[bytes]:
 def test_service_requires_signed_telemetry_counts_refusals_and_logs_them(tmp_path):
     recorder = McapRecorder(tmp_path, metadata={}).start()
     config = ServiceConfig(security=LinkSecurity(KEY))
-    service = HilService(config, NullBus(), Inbox(), recorder=recorder)
+    service = HilService(config, Listener(), Inbox(), recorder=recorder)
     signed = _telemetry_frames(MavlinkCodec(1, 1, signing_key=KEY), 20)
     unsigned = _telemetry_frames(MavlinkCodec(1, 1), 5)
     forged = _telemetry_frames(MavlinkCodec(1, 1, signing_key=OTHER_KEY), 5)
     for datagram in signed[:10] + unsigned + forged + signed[10:]:
         service.process_datagram(datagram)
-    assert service.assembler.counters.samples == 20
+    assert service.source.assembler.counters.samples == 20
     health = service.health(1)
     counters = health["link_wide"]  # the verifier sees frames, not vehicles
     assert counters["signing_signed_accepted"] == 80
@@ -223,10 +223,10 @@ def test_service_requires_signed_telemetry_counts_refusals_and_logs_them(tmp_pat
 
 def test_service_may_accept_unsigned_telemetry_when_configured():
     config = ServiceConfig(security=LinkSecurity(KEY, accept_unsigned=True))
-    service = HilService(config, NullBus(), Inbox())
+    service = HilService(config, Listener(), Inbox())
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 5):
         service.process_datagram(datagram)
-    assert service.assembler.counters.samples == 5
+    assert service.source.assembler.counters.samples == 5
     assert service.health(1)["link_wide"]["signing_unsigned_accepted"] == 20
 
 
@@ -242,7 +242,7 @@ def test_service_signs_the_commands_it_sends():
         pipeline=PipelineSettings(burn_in=BURN_IN),
         security=LinkSecurity(KEY),
     )
-    service = HilService(config, NullBus(), Inbox(), link=link.link)
+    service = HilService(config, Listener(), Inbox(), link=link.link)
     service.inbox.set_setpoint(1, "depth", 16.0)
     vehicle = MavlinkCodec(1, 1, signing_key=KEY)
     try:
@@ -263,21 +263,11 @@ def test_service_signs_the_commands_it_sends():
     assert [m.get_type() for m in decoded] == ["COMMAND_LONG"] * 10
 
 
-class LoggingBus(NullBus):
-    """Records every publication as the live Zenoh bus does, without a Zenoh session."""
-
-    def __init__(self, recorder: McapRecorder):
-        self.recorder = recorder
-
-    def publish(self, key, payload, reliable=False):
-        self.recorder.zenoh(key, payload, "out")
-
-
 @pytest.mark.timeout(60)
 def test_a_signed_log_replays_without_the_key_and_checks_bit_for_bit(tmp_path):
     config = ServiceConfig(security=LinkSecurity(KEY))
     recorder = McapRecorder(tmp_path, metadata=config.to_metadata()).start()
-    service = HilService(config, LoggingBus(recorder), Inbox(), recorder=recorder)
+    service = HilService(config, Notifier(), Inbox(), recorder=recorder)
     for datagram in _telemetry_frames(MavlinkCodec(1, 1), 3):  # refused, logged apart
         service.process_datagram(datagram)
     for datagram in _telemetry_frames(MavlinkCodec(1, 1, signing_key=KEY), 50):

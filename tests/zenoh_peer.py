@@ -8,7 +8,7 @@ import time
 from collections import defaultdict
 from typing import Any
 
-from hil_service.zenoh_config import ZenohOptions, open_session
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 
 
 class ZenohProbe:

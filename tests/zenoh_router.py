@@ -16,7 +16,7 @@ import threading
 import time
 from pathlib import Path
 
-from hil_service.zenoh_config import ZenohOptions, open_session
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 
 ROOT = Path(__file__).resolve().parent.parent
 

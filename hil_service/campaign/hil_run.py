@@ -4,7 +4,7 @@ in this one.
 The service is ``HilService`` wired by ``hil_service.builder`` as ``serve`` wires it, with
 two differences that keep the run reproducible and cheap: setpoints come from the mission's
 schedule, keyed by the sample's own timestamp (``ScheduledInbox``), instead of Zenoh, and
-publications are recorded to the MCAP log without a Zenoh session (``RecordingBus``). The
+there is no Zenoh session: the recorder is the service's only listener. The
 emulator is ``Autopilot`` driven by ``LockstepRunner``. A forked child starts in
 milliseconds (the modules are already imported), which is what makes a campaign of short
 missions fast; the service is a real process, so a test can kill it.
@@ -20,7 +20,6 @@ import socket
 import threading
 import time
 import traceback
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,11 +30,9 @@ from hil_service.builder import open_recorder, wire
 from hil_service.campaign.mission import Mission, Trace
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import ControlInputs, Inbox
-from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import PipelineSettings
 from plant_emulator.autopilot import Autopilot, AutopilotConfig
 from plant_emulator.lockstep import LockstepRunner
-from protocols import payload_json
 from protocols.mavlink_io import Link
 from protocols.samples import TelemetrySample
 
@@ -75,23 +72,6 @@ class ScheduledInbox(Inbox):
         return ControlInputs({"depth": None, "pitch": None}, True)
 
 
-class RecordingBus:
-    """Every publication into the log, byte for byte as Zenoh would carry it; no Zenoh."""
-
-    def __init__(self, recorder: McapRecorder | None):
-        self.recorder = recorder
-
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        if self.recorder is not None:
-            self.recorder.zenoh_encoded(key, payload_json.encode(payload), "out")
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def service_config(mission: Mission) -> ServiceConfig:
     return ServiceConfig(
         system_ids=(1,),
@@ -128,7 +108,7 @@ def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
     with socket.socket(fileno=os.dup(link.fileno())) as bound:
         port = bound.getsockname()[1]
     inbox = ScheduledInbox(mission.schedule(), mission.period)
-    wired = wire(config, link=link, recorder=recorder, inbox=inbox, bus=RecordingBus(recorder))
+    wired = wire(config, link=link, recorder=recorder, inbox=inbox)
     os.write(ready_fd, f"{port}\n".encode())
     os.close(ready_fd)
     try:

@@ -27,8 +27,9 @@ from hil_service.cli.processes import (
     start_verb,
     stop_process,
 )
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.live.address import LiveAddress
-from hil_service.zenoh_config import ZenohOptions, open_session
+from hil_service.umodel import U_MODELS
 from protocols import keys
 
 SYSTEM_ID = 1
@@ -39,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="wall s (default 60)")
     parser.add_argument("--speed", type=float, default=50.0, help="x real time (default 50)")
     parser.add_argument("--scenario", default="disturbed", help="emulator scenario")
-    parser.add_argument("--model", default="dynamic", choices=("paper", "dynamic"))
+    parser.add_argument("--model", default="dynamic", choices=U_MODELS)
     parser.add_argument("--log-dir", default="logs")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")

@@ -3,7 +3,7 @@
 Runs the emulator's plant models in-process (no sockets). By default: every model
 (``paper``, ``dynamic``, ``rls-arx``, ``persistence``) on the same samples, scored on the
 a-priori one-step prediction after a burn-in, and on the free-run fit and k-step NMSE of
-the model frozen at ``--fit-split`` (``experiment/multistep.py``). ``--closed-loop`` tracks
+the model frozen at ``--fit-split`` (``umodel/multistep.py``). ``--closed-loop`` tracks
 setpoint steps with the inverse controller and compares with the reference-only plant and
 with the oracle, a known-model constrained controller (``experiment/oracle.py``);
 ``--scenario random`` runs it on a seeded family of plants it was not tuned on.

@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from hil_service.zenoh_config import ZenohOptions, open_session
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from protocols import keys
 
 HEALTH_KEYS = f"{keys.ROOT}/*/{keys.HEALTH}"

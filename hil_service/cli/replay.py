@@ -5,15 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
-from hil_service.builder import publishing_bus
+from hil_service.builder import publisher
 from hil_service.cli.serve import add_foxglove_argument, foxglove_from_args, start_live
-from hil_service.live.bus import LiveBus
+from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
-from hil_service.zenoh_bus import NullBus
-from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
+from hil_service.umodel import U_MODELS
 from protocols.profiles import ProfileError
 
 
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--check", action="store_true", help="recomputed estimates and commands must match"
     )
-    parser.add_argument("--model", choices=("paper", "dynamic"), default=None)
+    parser.add_argument("--model", choices=U_MODELS, default=None)
     parser.add_argument(
         "--profile",
         default=None,
@@ -61,17 +61,19 @@ def run(args: argparse.Namespace) -> int:
         sample_period=args.sample_period,
         progress=_progress if args.fast and sys.stderr.isatty() else None,
     )
-    session = bus = live = None
+    session = zenoh = live = None
+    listeners: list[Any] = []
     try:
         live = start_live(foxglove_from_args(args), "replay")
         if args.publish:
             session = open_session(options_from_args(args))
-            bus = publishing_bus(session)
+            zenoh = publisher(session)
+            listeners.append(zenoh)
         if live is not None:
-            bus = LiveBus(NullBus() if bus is None else bus, live)
+            listeners.append(live)
         tune_for_service()
         while True:
-            result = replay(args.log, options, bus)
+            result = replay(args.log, options, listeners)
             if options.progress is not None:
                 print(file=sys.stderr)
             if result.recovered:
@@ -84,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     finally:
-        if bus is not None:
-            bus.close()
+        if zenoh is not None:
+            zenoh.stop()
         if live is not None:
             live.close()
         if session is not None:

@@ -26,12 +26,13 @@ from hil_service.config import (
     parse_system_ids,
 )
 from hil_service.inputs import SetpointLimits
+from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from hil_service.live.address import LiveAddress
-from hil_service.pipeline import MODEL_CHOICES, PipelineSettings
+from hil_service.pipeline import PipelineSettings
 from hil_service.process_tuning import tune_for_service
-from hil_service.zenoh_config import add_zenoh_arguments, open_session, options_from_args
+from hil_service.umodel import U_MODELS
 from protocols.mavlink_io import Link
-from protocols.profiles import DEFAULT_PROFILE, load_profile
+from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile
 from protocols.signing import load_key
 
 if TYPE_CHECKING:
@@ -73,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="periodic profiles: s between samples on the vehicle's clock (default: the "
         "profile's)",
     )
-    parser.add_argument("--model", choices=MODEL_CHOICES, default="dynamic")
+    parser.add_argument("--model", choices=U_MODELS, default="dynamic")
     parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
     control = parser.add_mutually_exclusive_group()
     control.add_argument(
@@ -93,9 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-log", action="store_true", help="do not record MCAP")
     parser.add_argument("--log-max-mb", type=float, default=256.0, help="rotate after this size")
     parser.add_argument("--log-max-s", type=float, default=3600.0, help="rotate after this long")
-    parser.add_argument("--full-scale", type=float, default=2.0, help="model units at wire 1.0")
-    parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
-    parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
+    units = parser.add_argument_group("units (default: the profile's)")
+    units.add_argument("--full-scale", type=float, default=None, help="model units at wire 1.0")
+    units.add_argument("--water-density", type=float, default=None, help="kg/m³")
+    units.add_argument("--surface-pressure", type=float, default=None, help="hPa")
     parser.add_argument("--duration", type=float, default=None, help="wall s, then exit")
     limits = parser.add_argument_group("limits (setpoints outside them are refused)")
     limits.add_argument("--min-depth", type=float, default=None, help="shallowest setpoint, m")
@@ -170,6 +172,19 @@ def security_from_args(args: argparse.Namespace) -> LinkSecurity:
     return LinkSecurity(load_key(args.signing_key), accept_unsigned=args.accept_unsigned)
 
 
+def units_from_args(args: argparse.Namespace, profile: Profile) -> Units | None:
+    """The units the flags give, each one not given the profile's; None without any."""
+    given = (args.full_scale, args.water_density, args.surface_pressure)
+    if all(value is None for value in given):
+        return None
+    stated = Units.of(profile)
+    return Units(
+        stated.full_scale if args.full_scale is None else args.full_scale,
+        stated.water_density if args.water_density is None else args.water_density,
+        stated.surface_pressure if args.surface_pressure is None else args.surface_pressure,
+    )
+
+
 def config_from_args(args: argparse.Namespace) -> ServeConfig:
     """Flags → configuration; raises ValueError (or OSError for the key file) on bad ones."""
     profile = load_profile(args.profile)
@@ -178,16 +193,16 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
     system_ids = [i for text in args.sysid for i in parse_system_ids(str(text))]
     if args.lockstep and periodic:
-        raise ValueError(f"--lockstep needs the glider profile; {profile.name} is periodic")
+        raise ValueError(f"--lockstep needs a lockstep profile; {profile.name} is periodic")
     service = ServiceConfig(
         system_ids=tuple(dict.fromkeys(system_ids)),
         control_default=args.control,
         stale_timeout=args.stale_timeout,
         pipeline=settings_from_args(args),
         security=security_from_args(args),
-        units=Units(args.full_scale, args.water_density, args.surface_pressure),
+        units=units_from_args(args, profile),
         limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),
-        profile=profile if periodic else None,
+        profile=profile,
         sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
         lockstep=args.lockstep,
         max_vehicles=args.max_vehicles,

@@ -18,24 +18,23 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.experiment.multistep import (
+from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
+from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
+from hil_service.umodel.multistep import (
     MultiStepScores,
+    control_horizon,
+    converged_at,
     fit_percent,
     model_inputs,
     multistep_scores,
     train,
 )
-from hil_service.pipeline import DEFAULT_MODEL_OPTIONS, ControlSettings
-from hil_service.umodel import MODEL_NAMES, OneStepModel, build_model, from_config, paper_preset
 from hil_service.umodel.predictive import PredictiveInverse
 from hil_service.umodel.scoring import ErrorStats
 from plant_emulator.disturbances import NoDisturbance
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig
-
-#: An error that stays within this share of the output's range counts as converged.
-CONVERGENCE_BAND = 0.05
 
 
 @dataclass(frozen=True)
@@ -84,11 +83,6 @@ class IdentificationSettings:
         return max(1, min(control_horizon(self.channel), self.horizon_cap))
 
 
-#: Used when ``ControlSettings`` has no fixed horizon for a channel and no identified model
-#: gives one (the fixed horizons of the controller before the predictive inverse).
-FALLBACK_HORIZON = {"depth": 150, "pitch": 3}
-
-
 def derived_horizon(model: OneStepModel, control: ControlSettings | None = None) -> int:
     """The prediction horizon the service's predictive inverse derives from ``model``'s
     identified dynamics (the settling time of its step response); 0 when the model has
@@ -101,14 +95,6 @@ def derived_horizon(model: OneStepModel, control: ControlSettings | None = None)
         -settings.u_limit, settings.u_limit, settings.rate_limit, settings.predictive()
     )
     return inverse.horizon_for(dynamics())
-
-
-def control_horizon(channel: str) -> int:
-    """The horizon the service's controller looks ahead on ``channel`` (its default)."""
-    horizon = getattr(ControlSettings(), "horizon", None)
-    if isinstance(horizon, dict) and isinstance(horizon.get(channel), int):
-        return int(horizon[channel])
-    return FALLBACK_HORIZON[channel]
 
 
 @dataclass
@@ -178,16 +164,6 @@ def experiment_models(channel: str, seed: int) -> dict[str, Any]:
         "rls-arx": build_model("rls-arx"),
         "persistence": build_model("persistence"),
     }
-
-
-def converged_at(error: np.ndarray, y: np.ndarray, band: float = CONVERGENCE_BAND) -> int | None:
-    """First sample after which |error| stays within ``band`` × range(y); None if never."""
-    span = float(np.max(y) - np.min(y)) if y.size else 0.0
-    outside = np.flatnonzero(np.abs(error) > band * span)
-    if outside.size == 0:
-        return 0
-    last = int(outside[-1])
-    return None if last == error.size - 1 else last + 1
 
 
 def _factory(config: dict[str, Any]) -> Callable[[], OneStepModel]:

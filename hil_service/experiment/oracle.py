@@ -1,6 +1,6 @@
 """The oracle: a constrained receding-horizon controller that knows the plant.
 
-A yardstick for the inverse controller (issue 15), not a product: it is given the plant's
+A yardstick for the inverse controller, not a product: it is given the plant's
 own state-space model (for the emulator, the stabilised inner loop of
 ``plant_emulator/models.py``; for ``--scenario random``, the drawn plant), the actuator's
 amplitude and rate limits and its static pump map, and nothing else. It sees no future
@@ -30,7 +30,7 @@ sides (the predicted free response, the input now) and the block bounds do. So o
 model is built per controller (``_LpModel``) and each sample updates those bounds and
 re-solves from the previous optimal basis (dual simplex warm start): the same LP that
 ``scipy.optimize.linprog(method="highs")`` would solve from scratch, at a fraction of the
-cost, which was mostly per-call overhead (building and presolving the model every sample).
+cost (building and presolving a model every sample would be mostly per-call overhead).
 """
 
 from __future__ import annotations

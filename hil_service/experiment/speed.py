@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 
 from hil_service.pipeline import ChannelPipeline, PipelineSettings
+from hil_service.umodel import U_MODELS
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -111,7 +112,7 @@ def measure_all(
     rows = _recorded(scenario, samples, seed)  # one recording serves every case
     figures = []
     for channel in CHANNELS:
-        for model in ("paper", "dynamic"):
+        for model in U_MODELS:
             runs = [measure(channel, model, samples, scenario, seed, rows) for _ in range(repeats)]
             figures.append(
                 SpeedFigure(

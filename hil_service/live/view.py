@@ -185,6 +185,16 @@ class LiveView:
         if t_ns >= self._flush_due:
             self._send_queued(False)
 
+    # ---- as a listener of the service's stream (hil_service.listeners) -----------------
+    def on_mavlink(
+        self, direction: str, message: MavMessage | None, frame: bytes | None, t_ns: int
+    ) -> None:
+        self.offer_mavlink(direction, message, frame, t_ns)
+
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
+        """A publication, as the bytes Zenoh and the log carry."""
+        self.offer(key, data, time.time_ns())
+
     def watched(self) -> bool:
         """Whether a client subscribes to at least one channel (as last reported)."""
         return bool(self._status.get("watched", False))

@@ -153,6 +153,25 @@ class McapRecorder:
         """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
         self._record(("zenoh", key, direction), data, _now_if_none(t_ns))
 
+    # ---- as a listener of the service's stream (hil_service.listeners) -----------------
+    def on_mavlink(
+        self, direction: str, message: MavMessage | None, frame: bytes | None, t_ns: int
+    ) -> None:
+        """A frame on ``mavlink/raw/{direction}`` (a received one: the message's own bytes)
+        and the message, if any, as JSON."""
+        if frame is None and message is not None:
+            frame = bytes(message.get_msgbuf())
+        if frame is not None:
+            self.raw(direction, frame, t_ns)
+        if message is not None:
+            self.mavlink(direction, message, t_ns)
+
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
+        self.zenoh_encoded(key, data, "out")
+
+    def on_record(self, key: str, payload: Any, direction: str) -> None:
+        self.zenoh(key, payload, direction)
+
     def _record(self, route: tuple[str, ...], data: bytes, t_ns: int) -> None:
         with self._lock:
             builder = self._builder

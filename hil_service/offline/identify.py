@@ -10,30 +10,27 @@ the ``LogSeries`` a live log's publications give, so the report reads both alike
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import orjson
 
+from hil_service.listeners import Listener
 from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
-from hil_service.offline.series import _SERIES_KINDS, CHANNELS, LogSeries, VehicleSeries, _add
-from hil_service.zenoh_bus import NullBus
-from protocols import keys, payload_json
+from hil_service.offline.series import _SERIES_KINDS, LogSeries, VehicleSeries, _add
+from protocols import keys
+from protocols.keys import CHANNELS
 
 
-class _Gathering(NullBus):
+class _Gathering(Listener):
     """Keeps every publication of the replayed service, as the JSON a log would hold."""
 
     def __init__(self) -> None:
         self.records: list[tuple[str, dict[str, Any]]] = []
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        self.records.append((key, orjson.loads(payload_json.encode(payload))))
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        pass
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
+        self.records.append((key, orjson.loads(data)))
 
 
 def has_estimates(series: LogSeries) -> bool:
@@ -46,7 +43,7 @@ def identify_offline(path: str | Path, series: LogSeries) -> LogSeries | None:
     has no raw frames to replay (or they cannot be read)."""
     bus = _Gathering()
     try:
-        replay(path, ReplayOptions(), bus=bus)
+        replay(path, ReplayOptions(), [bus])
     except (ReplayError, LogError, ValueError):
         return None
     vehicles: dict[int, VehicleSeries] = {}

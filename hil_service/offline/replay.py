@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import time
 from collections import defaultdict, deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -24,10 +24,10 @@ from typing import Any
 from hil_service.builder import wire
 from hil_service.config import ServiceConfig, stored_profile
 from hil_service.inputs import ControlInputs, Inbox
+from hil_service.listeners import Listener
 from hil_service.mcap.reader import LogMessage, LogReader
 from hil_service.mcap.recorder import RAW_TOPIC
 from hil_service.service import HilService
-from hil_service.zenoh_bus import Bus, NullBus
 from protocols import keys, payload_json
 from protocols.profiles import Profile, load_profile
 from protocols.samples import TelemetrySample
@@ -109,27 +109,16 @@ class ReplayInbox(Inbox):
         return ControlInputs(dict(current["setpoints"]), current["enabled"], reset)
 
 
-class RecordingBus(NullBus):
-    """Keeps what the replayed service publishes, as the bytes the live bus would send."""
+class Collector(Listener):
+    """Keeps what the replayed service publishes on the checked keys, as the bytes the live
+    service sent, to compare with the log's."""
 
-    def __init__(self, inner: Bus | None = None, capture: bool = True):
-        self.inner = inner
-        self.capture = capture
+    def __init__(self) -> None:
         self.published: dict[str, deque[bytes]] = defaultdict(deque)
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        if self.capture and _kind(key) in CHECKED_KINDS:
-            self.published[key].append(payload_json.encode(payload))
-        if self.inner is not None:
-            self.inner.publish(key, payload, reliable)
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        if self.inner is not None:
-            self.inner.declare_vehicle(system_id, state)
-
-    def close(self) -> None:
-        if self.inner is not None:
-            self.inner.close()
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
+        if _kind(key) in CHECKED_KINDS:
+            self.published[key].append(data)
 
 
 def _kind(key: str) -> str:
@@ -137,7 +126,9 @@ def _kind(key: str) -> str:
     return "" if parsed is None else parsed.kind
 
 
-def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> ReplayResult:
+def replay(
+    path: str | Path, options: ReplayOptions, listeners: Sequence[Any] = ()
+) -> ReplayResult:
     """One pass over the log: its raw frames through the service, compared if ``check``.
 
     In file order a sample's decision inputs (and its published estimates and command)
@@ -145,16 +136,19 @@ def replay(path: str | Path, options: ReplayOptions, bus: Bus | None = None) -> 
     the live service logged them. So each raw frame is held until the next one is read:
     by then the inputs it needs are known, and the records to compare with are at hand.
     """
-    return _Replay(Path(path), options, bus).run()
+    return _Replay(Path(path), options, listeners).run()
 
 
 class _Replay:
-    def __init__(self, path: Path, options: ReplayOptions, bus: Bus | None) -> None:
+    def __init__(self, path: Path, options: ReplayOptions, listeners: Sequence[Any]) -> None:
         self.path = path
         self.options = options
         self.reader = LogReader(path)
         self.inbox = ReplayInbox()
-        self.recording = RecordingBus(bus, capture=options.check)
+        self.collector = Collector()
+        #: The replayed service's listeners: the collector (with ``check``), then the
+        #: caller's (``replay --publish``, ``--foxglove``).
+        self.listeners = [*([self.collector] if options.check else []), *listeners]
         self.service: HilService | None = None
         self.result = ReplayResult()
         self.recorded_index: dict[str, int] = defaultdict(int)
@@ -197,7 +191,7 @@ class _Replay:
         service.process_datagram(frame.data)
         result.frames += 1
         for message in self.to_compare:
-            mismatch = _compare(message, self.recording, self.recorded_index)
+            mismatch = _compare(message, self.collector, self.recorded_index)
             result.compared += 1
             if mismatch is not None:
                 result.mismatch = mismatch
@@ -216,15 +210,16 @@ class _Replay:
         if self.options.model is not None:
             config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
         profile = self._profile(stored)
-        if profile is not None and profile.sampling.mode == "periodic":
+        if profile is not None:
             recorded = (stored.get("service") or {}).get("profile") or {}
             period = (
                 self.options.sample_period
                 or recorded.get("sample_period")
                 or profile.sampling.period
             )
-            config = replace(config, profile=profile, sample_period=period)
-        wired = wire(config, inbox=self.inbox, bus=self.recording, send_commands=False)
+            periodic = profile.sampling.mode == "periodic"
+            config = replace(config, profile=profile, sample_period=period if periodic else None)
+        wired = wire(config, inbox=self.inbox, listeners=self.listeners, send_commands=False)
         self.service = wired.service
         return self.service
 
@@ -237,11 +232,7 @@ class _Replay:
     def _finish(self) -> ReplayResult:
         result, report, service = self.result, self.reader.report, self.service
         assert service is not None
-        result.samples = (
-            service.assembler.counters.samples
-            if service.periodic is None
-            else service.periodic.counters.samples
-        )
+        result.samples = service.source.samples
         result.complete = report.complete
         if report.ended and not report.complete:
             # Only a read that reached the end can tell a damaged file (--check stops early).
@@ -250,7 +241,7 @@ class _Replay:
         result.summary = service.summary()
         if self.options.check and result.mismatch is None and report.complete:
             # A finished log holds every publication: anything left over was never recorded.
-            for key, queue in self.recording.published.items():
+            for key, queue in self.collector.published.items():
                 if queue:
                     index = self.recorded_index[key]
                     recomputed = queue[0].decode()
@@ -278,12 +269,12 @@ def _wait_until(deadline: float) -> float:
 
 
 def _compare(
-    message: LogMessage, recording: RecordingBus, recorded_index: dict[str, int]
+    message: LogMessage, collector: Collector, recorded_index: dict[str, int]
 ) -> Mismatch | None:
     key = message.topic
     index = recorded_index[key]
     recorded_index[key] += 1
-    queue = recording.published.get(key)
+    queue = collector.published.get(key)
     if not queue:
         return Mismatch(key, index, _t(message.data), message.data.decode(), "<nothing>")
     recomputed = queue.popleft()

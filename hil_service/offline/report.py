@@ -18,19 +18,22 @@ from typing import Any
 import numpy as np
 
 from hil_service.config import ServiceConfig
-from hil_service.experiment.identification import (
-    CONVERGENCE_BAND,
-    control_horizon,
-    converged_at,
-)
-from hil_service.experiment.multistep import MultiStepScores, longest_contiguous, multistep_scores
 from hil_service.offline.field.report import field_section
 from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
-from hil_service.offline.series import CHANNELS, LogSeries, VehicleSeries, load_series
+from hil_service.offline.series import LogSeries, VehicleSeries, load_series
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from hil_service.umodel import from_config
+from hil_service.umodel.multistep import (
+    CONVERGENCE_BAND,
+    MultiStepScores,
+    control_horizon,
+    converged_at,
+    longest_contiguous,
+    multistep_scores,
+)
 from hil_service.umodel.scoring import ErrorStats
+from protocols.keys import CHANNELS
 
 DEFAULT_BURN_IN = 300
 
@@ -48,7 +51,7 @@ class ChannelSummary:
     tracking_mae: float | None  # mean |y − setpoint| over commanded samples
     tracking_rms: float | None
     # Free-run fit (%) and k-step NMSE of the logged model re-identified on the first half
-    # of the longest gap-free stretch and frozen (hil_service/experiment/multistep.py).
+    # of the longest gap-free stretch and frozen (hil_service/umodel/multistep.py).
     fit: float | None = None
     k_step_nmse: float | None = None
     horizon: int | None = None

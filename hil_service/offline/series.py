@@ -21,8 +21,8 @@ import numpy as np
 
 from hil_service.mcap.reader import LogReader, ReadReport
 from protocols import keys
+from protocols.keys import CHANNELS
 
-CHANNELS = keys.CHANNELS
 _SERIES_KINDS = frozenset({keys.TELEMETRY, keys.UMODEL, keys.COMMAND_BALLAST, keys.HEALTH})
 
 

@@ -15,6 +15,7 @@ from .inverse import (
 from .models import (
     MODEL_NAMES,
     STATUSES,
+    U_MODELS,
     DynamicUModel,
     Estimate,
     OneStepModel,
@@ -37,6 +38,7 @@ __all__ = [
     "NLMS",
     "RLS",
     "STATUSES",
+    "U_MODELS",
     "CommandShaper",
     "DivergenceMonitor",
     "DynamicUModel",

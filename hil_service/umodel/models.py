@@ -44,6 +44,7 @@ from .rls import RLS, ListRLS
 __all__ = [
     "MODEL_NAMES",
     "STATUSES",
+    "U_MODELS",
     "DynamicUModel",
     "Estimate",
     "OneStepModel",
@@ -56,7 +57,10 @@ __all__ = [
     "paper_preset",
 ]
 
-MODEL_NAMES: tuple[str, ...] = ("paper", "dynamic", "rls-arx", "persistence")
+#: The U-models: what the service identifies and inverts (``PipelineSettings.model``).
+U_MODELS: tuple[str, ...] = ("paper", "dynamic")
+#: Every model, the U-models and the baselines the experiments score them against.
+MODEL_NAMES: tuple[str, ...] = (*U_MODELS, "rls-arx", "persistence")
 Status = Literal["ok", "rejected", "diverged", "frozen"]
 STATUSES: tuple[str, ...] = ("ok", "rejected", "diverged", "frozen")
 
@@ -74,8 +78,8 @@ class Estimate(NamedTuple):
     ``alpha`` = (α₀, α₁, …) are the U-model coefficients *that produced y_hat*, i.e.
     y_hat = α₀ + Σ α_i u_prev^i (up to rounding): for ``rls-arx`` α₁ is b₁ and α₀ the rest
     of the ARX sum; for ``persistence`` alpha = (y(t−1),). ``weights`` are the other adapted
-    parameters before this step's update: RBF weights (``paper``), RBF weights followed by
-    [bias, a_1..a_na, b_2..b_nb] (``dynamic``), the full ARX vector (``rls-arx``).
+    parameters before this step's update: RBF weights (``paper``), [c, a_1..a_na, b_2..b_nb]
+    (``dynamic``, which has no RBF), the full ARX vector (``rls-arx``).
     For a rejected sample, ``error`` is 0.0 and a non-finite ``y`` is replaced by ``y_hat``
     so that no field is ever NaN.
     """
@@ -295,9 +299,9 @@ def _norm_ok(sq_norm: float, limit: float) -> bool:
 
 
 class _UModelCore(_ModelBase):
-    """Shared RBF + polynomial machinery of ``paper`` and ``dynamic``.
+    """The RBF + polynomial machinery of ``paper`` (NLMS on a static U-model).
 
-    θ layout: [w_1..w_J (RBF), α_1..α_M, extra...]; φ is built in the same order. Plain
+    θ layout: [w_1..w_J (RBF), α_1..α_M]; φ is built in the same order. Plain
     Python lists are used on the per-sample path (see :mod:`.nlms`).
     """
 
@@ -311,7 +315,6 @@ class _UModelCore(_ModelBase):
         beta: float,
         init_scale: float,
         seed: int,
-        n_extra: int,
         guard: GuardConfig | dict[str, Any] | None,
         poly_scale: float = 1.0,
     ) -> None:
@@ -336,7 +339,7 @@ class _UModelCore(_ModelBase):
         self.seed = int(seed)
         self._nr = self.rbf.size
         self._np = self._nr + self.degree  # end of the polynomial block
-        n = self._np + n_extra
+        n = self._np
         rng = np.random.default_rng(self.seed)
         self._theta0: tuple[float, ...] = tuple(
             rng.uniform(-self.init_scale, self.init_scale, size=n).tolist()
@@ -345,7 +348,6 @@ class _UModelCore(_ModelBase):
         self._sq_norm = dot(self._theta, self._theta)  # ‖θ‖², kept up to date by _adapt
         self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
         self._theta_phi = 0.0  # scratch: θᵀφ of the last _predict
-        self._lin: list[float] = []  # history tail of φ (dynamic model only)
 
     def _fill(self, u: float) -> list[float]:
         phi = self.rbf.values_list(u)
@@ -354,7 +356,6 @@ class _UModelCore(_ModelBase):
         for _ in range(self.degree):
             p *= x
             phi.append(p)
-        phi += self._lin
         return phi
 
     def _predict(self, u: float) -> float:
@@ -430,7 +431,6 @@ class PaperUModel(_UModelCore):
             beta=beta,
             init_scale=init_scale,
             seed=seed,
-            n_extra=0,
             guard=guard,
         )
 

@@ -113,21 +113,3 @@ class GaussianRBF:
             s += g
             ds += d * g
         return s, -2.0 * k * ds
-
-    def weighted_curvature(self, u: float, weights: Sequence[float]) -> tuple[float, float, float]:
-        """(Σ w_j Φ_j, Σ w_j dΦ_j/du, Σ w_j d²Φ_j/du²) in one pass (same cut-off as
-        ``weighted``); d²Φ_j/du² = (4k²(u − c_j)² − 2k)·Φ_j(u), k = 1/β²."""
-        k = self._inv_b2
-        s = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        exp = math.exp
-        cs, weights = self._window(u, weights)
-        for c, w in zip(cs, weights, strict=True):
-            d = u - c
-            d2 = d * d
-            g = w * exp(-d2 * k)
-            s += g
-            s1 += d * g
-            s2 += d2 * g
-        return s, -2.0 * k * s1, 4.0 * k * k * s2 - 2.0 * k * s

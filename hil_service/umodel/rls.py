@@ -20,23 +20,34 @@ import numpy as np
 __all__ = ["RLS", "ListRLS"]
 
 
+#: Defaults of both estimators (the models pass their own).
+LAMBDA = 0.999
+P0 = 100.0
+
+
+def _checked(n: int, lam: float, p0: float, trace_max: float | None) -> float:
+    """Validate the estimator's settings (both classes); the trace bound to use."""
+    if n < 1:
+        raise ValueError("RLS needs at least one parameter")
+    if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
+        raise ValueError(f"forgetting factor must satisfy 0 < lam <= 1, got {lam!r}")
+    if not (math.isfinite(p0) and p0 > 0.0):
+        raise ValueError("p0 must be finite and > 0")
+    tmax = n * p0 if trace_max is None else float(trace_max)
+    if not (math.isfinite(tmax) and tmax > 0.0):
+        raise ValueError("trace_max must be finite and > 0")
+    return tmax
+
+
 class RLS:
     """In-place RLS update of an external θ; owns the covariance P."""
 
     __slots__ = ("_eye", "lam", "n", "p", "p0", "trace_max")
 
     def __init__(
-        self, n: int, lam: float = 0.995, p0: float = 100.0, trace_max: float | None = None
+        self, n: int, lam: float = LAMBDA, p0: float = P0, trace_max: float | None = None
     ) -> None:
-        if n < 1:
-            raise ValueError("RLS needs at least one parameter")
-        if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
-            raise ValueError(f"forgetting factor must satisfy 0 < lam <= 1, got {lam!r}")
-        if not (math.isfinite(p0) and p0 > 0.0):
-            raise ValueError("p0 must be finite and > 0")
-        tmax = n * p0 if trace_max is None else float(trace_max)
-        if not (math.isfinite(tmax) and tmax > 0.0):
-            raise ValueError("trace_max must be finite and > 0")
+        tmax = _checked(n, lam, p0, trace_max)
         self.n = n
         self.lam = float(lam)
         self.p0 = float(p0)
@@ -80,17 +91,9 @@ class ListRLS:
     __slots__ = ("lam", "n", "p", "p0", "trace_max")
 
     def __init__(
-        self, n: int, lam: float = 0.999, p0: float = 100.0, trace_max: float | None = None
+        self, n: int, lam: float = LAMBDA, p0: float = P0, trace_max: float | None = None
     ) -> None:
-        if n < 1:
-            raise ValueError("RLS needs at least one parameter")
-        if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
-            raise ValueError(f"forgetting factor must satisfy 0 < lam <= 1, got {lam!r}")
-        if not (math.isfinite(p0) and p0 > 0.0):
-            raise ValueError("p0 must be finite and > 0")
-        tmax = n * p0 if trace_max is None else float(trace_max)
-        if not (math.isfinite(tmax) and tmax > 0.0):
-            raise ValueError("trace_max must be finite and > 0")
+        tmax = _checked(n, lam, p0, trace_max)
         self.n = n
         self.lam = float(lam)
         self.p0 = float(p0)

@@ -93,7 +93,7 @@ def normalised_square_error(y: Sequence[float], error: Sequence[float]) -> float
 
     The one definition of the multi-step figures: the k-step NMSE, and through
     ``fit_from_nmse`` the free-run fit, in ``experiment``, ``report`` (through
-    ``hil_service.experiment.multistep``) and ``health`` (``MultiStepStats``). None for
+    ``hil_service.umodel.multistep``) and ``health`` (``MultiStepStats``). None for
     fewer than two samples, a non-finite y or error, or a flat output (no scale to judge
     the prediction by). Fixed-order sums: the same figures on every run.
     """

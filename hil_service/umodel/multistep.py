@@ -42,10 +42,33 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.umodel import OneStepModel
-from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error, significant
+from .interface import OneStepModel
+from .scoring import fit_from_nmse, normalised_square_error, significant
 
 ModelFactory = Callable[[], OneStepModel]
+
+
+#: An error that stays within this share of the output's range counts as converged.
+CONVERGENCE_BAND = 0.05
+
+#: The k of the k-step scores where neither the log nor an identified model gives a
+#: horizon (the fixed horizons of the controller before the predictive inverse).
+FALLBACK_HORIZON = {"depth": 150, "pitch": 3}
+
+
+def control_horizon(channel: str) -> int:
+    """The k-step horizon scored on ``channel`` when nothing derives one."""
+    return FALLBACK_HORIZON[channel]
+
+
+def converged_at(error: np.ndarray, y: np.ndarray, band: float = CONVERGENCE_BAND) -> int | None:
+    """First sample after which |error| stays within ``band`` × range(y); None if never."""
+    span = float(np.max(y) - np.min(y)) if y.size else 0.0
+    outside = np.flatnonzero(np.abs(error) > band * span)
+    if outside.size == 0:
+        return 0
+    last = int(outside[-1])
+    return None if last == error.size - 1 else last + 1
 
 
 def fit_percent(

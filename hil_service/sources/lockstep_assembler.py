@@ -1,8 +1,10 @@
-"""MAVLink messages → one ``TelemetrySample`` per plant step and vehicle.
+"""MAVLink messages → one ``TelemetrySample`` per plant step and vehicle, as a lockstep
+profile describes (``glider``: docs/mavlink.md).
 
-Message fields are read through ``protocols.mapping`` only (docs/mavlink.md). A step is
-complete when its ATTITUDE, SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATUS, all stamped with
-the same time, have arrived (VFR_HUD carries no timestamp and is not needed).
+Message fields are read through the profile only (``Profile.readings``). A step is complete
+when every message it needs (``Profile.step_messages``: for ``glider`` ATTITUDE,
+SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATUS), all stamped with the same time, has arrived;
+a message without a timestamp (VFR_HUD) takes no part.
 A step with a missing piece is counted when a later step supersedes it, never guessed;
 a timestamp at or before the last emitted one is counted as out of order and dropped;
 non-finite or physically absurd values are counted as invalid and dropped. A vehicle whose
@@ -17,15 +19,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
-from protocols.mapping import (
-    MSG_ATTITUDE,
-    MSG_PRESSURE,
-    TelemetryMapping,
-    pitch_from_attitude,
-    pitch_rate_from_attitude,
-    step_time_ms,
-)
 from protocols.mavlink_io import MavMessage
+from protocols.profiles import DEFAULT_PROFILE, Profile, clock_of, load_profile
 from protocols.samples import TelemetrySample, is_plausible
 
 MAX_PENDING_STEPS = 4
@@ -62,18 +57,9 @@ class AssemblyCounters:
 
 
 @dataclass
-class _Pending:
-    attitude: MavMessage | None = None
-    pressure: MavMessage | None = None
-    actuators: MavMessage | None = None
-
-    def complete(self) -> bool:
-        return None not in (self.attitude, self.pressure, self.actuators)
-
-
-@dataclass
 class _VehicleState:
-    pending: dict[int, _Pending] = field(default_factory=dict)
+    #: Per step time (ms): the step's messages so far, by type.
+    pending: dict[int, dict[str, MavMessage]] = field(default_factory=dict)
     last_emitted_ms: int | None = None
     last_late_ms: int | None = None
     late_run: int = 0  # distinct, increasing late timestamps in a row
@@ -85,11 +71,19 @@ class SampleAssembler:
 
     def __init__(
         self,
-        mapping: TelemetryMapping | None = None,
+        profile: Profile | None = None,
         system_ids: Iterable[int] | None = None,
         max_vehicles: int = 32,
     ):
-        self.mapping = mapping or TelemetryMapping()
+        self.profile = load_profile(DEFAULT_PROFILE) if profile is None else profile
+        #: Each stamped message type the profile reads → (ticks per ms, its clock field).
+        self._clocks: dict[str, tuple[int, str]] = {}
+        for name in self.profile.messages():
+            clock = clock_of(name)
+            if clock is not None:
+                self._clocks[name] = (1 if clock[0] == "ms32" else 1000, clock[1])
+        self._step_messages = self.profile.step_messages()
+        self._full_scale = self.profile.ballast.full_scale
         self.allowed = frozenset(system_ids) if system_ids else None
         # An explicit list (serve --sysid 1-50) is served whole; the cap guards open links.
         self.max_vehicles = max(max_vehicles, len(self.allowed or ()))
@@ -125,9 +119,10 @@ class SampleAssembler:
     def add(self, message: MavMessage) -> TelemetrySample | None:
         """Take one decoded message; return the sample it completes, if any."""
         kind = message.get_type()
-        stamp = step_time_ms(message, kind)
-        if stamp < 0:
+        clock = self._clocks.get(kind)
+        if clock is None:
             return None
+        stamp = int(getattr(message, clock[1])) // clock[0]
         vehicle = self._vehicle(message.get_srcSystem())
         if vehicle is None:
             return None
@@ -148,15 +143,10 @@ class SampleAssembler:
         vehicle.late_run = 0
         pending = vehicle.pending.get(stamp)
         if pending is None:
-            pending = vehicle.pending[stamp] = _Pending()
+            pending = vehicle.pending[stamp] = {}
             self._evict(vehicle)
-        if kind == MSG_ATTITUDE:
-            pending.attitude = message
-        elif kind == MSG_PRESSURE:
-            pending.pressure = message
-        else:
-            pending.actuators = message
-        if not pending.complete():
+        pending[kind] = message
+        if not self._complete(pending):
             return None
         del vehicle.pending[stamp]
         # Older steps still pending can no longer complete in order.
@@ -199,23 +189,32 @@ class SampleAssembler:
             if vehicle.last_emitted_ms is None or oldest > vehicle.last_emitted_ms:
                 vehicle.counters.incomplete += 1
 
-    def _build(self, system_id: int, stamp: int, pending: _Pending) -> TelemetrySample | None:
-        attitude = pending.attitude
-        if attitude is None:
-            return None
+    def _complete(self, pending: dict[str, MavMessage]) -> bool:
+        if len(pending) < len(self._step_messages):
+            return False
+        return all(name in pending for name in self._step_messages)
+
+    def _build(
+        self, system_id: int, stamp: int, pending: dict[str, MavMessage]
+    ) -> TelemetrySample | None:
+        values: dict[str, tuple[int, float]] = {}  # signal → (source rank, value)
         try:
-            depth = self.mapping.depth_from_pressure(pending.pressure)
-            u_depth, u_pitch = self.mapping.inputs_from_actuators(pending.actuators)
+            for message in pending.values():
+                for signal, rank, value in self.profile.readings(message):
+                    held = values.get(signal)
+                    if held is None or rank < held[0]:
+                        values[signal] = (rank, value)
             sample = TelemetrySample(
                 system_id=system_id,
                 time_boot_ms=stamp,
-                depth=depth,
-                pitch=pitch_from_attitude(attitude),
-                u_depth=u_depth,
-                u_pitch=u_pitch,
-                pitch_rate=pitch_rate_from_attitude(attitude),
+                depth=values["depth"][1],
+                pitch=values["pitch"][1],
+                u_depth=values["u_depth"][1],
+                u_pitch=values["u_pitch"][1],
+                pitch_rate=values["pitch_rate"][1] if "pitch_rate" in values else 0.0,
+                climb=values["climb"][1] if "climb" in values else 0.0,
             )
-        except (TypeError, ValueError, IndexError, AttributeError):
+        except (TypeError, ValueError, IndexError, AttributeError, KeyError):
             return None
-        plausible = is_plausible(sample, self.mapping.inputs.full_scale)
+        plausible = is_plausible(sample, self._full_scale)
         return sample if plausible else None

@@ -1,55 +1,33 @@
-"""The service's Zenoh side behind a small interface (``Bus``), so replay and benchmarks can
-swap it.
+"""The service's Zenoh side, a listener of its stream (``hil_service.listeners``).
 
-``ZenohBus`` publishes JSON payloads (commands with congestion control BLOCK, the rest with
-DROP), records every publication and every received input to MCAP, and hands received
-setpoints and control messages to an ``Inbox`` without blocking Zenoh's callback threads.
+``ZenohPublisher`` puts every publication's bytes on its key (commands with congestion
+control BLOCK, the rest with DROP), declares each vehicle's liveliness token and state
+queryable, and hands received setpoints and control messages to an ``Inbox`` without
+blocking Zenoh's callback threads; each received input is also told to ``record`` (the
+notifier's, so that the log keeps it; refused ones apart, with the reason).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import zenoh
 
 from hil_service.inputs import Inbox
-from hil_service.mcap.recorder import McapRecorder
+from hil_service.listeners import Listener
 from protocols import keys, payload_json
 
-
-class Bus(Protocol):
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None: ...
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None: ...
-
-    def close(self) -> None: ...
+#: Where a received input goes besides the inbox: (key, payload, direction).
+Record = Callable[[str, Any, str], None]
 
 
-class NullBus:
-    """Publishes nothing: replay without ``--publish``, benchmarks of the decode path."""
-
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        pass
-
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-class ZenohBus:
-    def __init__(
-        self,
-        session: zenoh.Session,
-        inbox: Inbox,
-        recorder: McapRecorder | None = None,
-    ):
+class ZenohPublisher(Listener):
+    def __init__(self, session: zenoh.Session, inbox: Inbox, record: Record | None = None):
         self.session = session
         self.inbox = inbox
-        self.recorder = recorder
+        self.record = record
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._declared: dict[int, list[Any]] = {}
         self._subscribers: list[Any] = [
@@ -62,21 +40,16 @@ class ZenohBus:
         key = str(sample.key_expr)
         raw = sample.payload.to_bytes()
         reason = self.inbox.accept(key, raw)
-        if self.recorder is None:
+        if self.record is None:
             return
         if reason:  # kept apart, so each input channel holds only what its schema allows
             text = raw.decode("utf-8", "replace")
             refused = {"key": key, "text": text, "reason": reason}
-            self.recorder.zenoh(keys.rejected_inputs(), refused, "in")
+            self.record(keys.rejected_inputs(), refused, "in")
         else:
-            self.recorder.zenoh(key, json.loads(raw), "in")
+            self.record(key, json.loads(raw), "in")
 
-    def publish(self, key: str, payload: dict[str, Any], reliable: bool = False) -> None:
-        self.publish_encoded(key, payload_json.encode(payload), reliable)
-
-    def publish_encoded(self, key: str, data: bytes, reliable: bool = False) -> None:
-        """``publish`` of a payload already encoded (``payload_json.encode``): the live view's
-        bus encodes once for Zenoh, the log and the viewer."""
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
         publisher = self._publishers.get(key)
         if publisher is None:
             congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
@@ -85,10 +58,8 @@ class ZenohBus:
             )
             self._publishers[key] = publisher
         publisher.put(data)
-        if self.recorder is not None:
-            self.recorder.zenoh_encoded(key, data, "out")
 
-    def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
+    def on_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
         """Liveliness token and state queryable for a newly seen vehicle."""
         if system_id in self._declared:
             return
@@ -101,7 +72,7 @@ class ZenohBus:
             self.session.declare_queryable(keys.state(system_id), answer),
         ]
 
-    def close(self) -> None:
+    def stop(self) -> None:
         for declared in [*self._subscribers, *self._publishers.values()]:
             declared.undeclare()
         for items in self._declared.values():

@@ -1,6 +1,6 @@
 """Telemetry samples from a vehicle that streams asynchronously, as its profile describes.
 
-The periodic counterpart of ``hil_service.assembler.SampleAssembler`` (lockstep): one
+The periodic counterpart of ``lockstep_assembler.SampleAssembler`` (lockstep): one
 ``StreamSampler`` per vehicle (system id) fed with the profile's readings and clock stamps,
 each complete tick turned into a ``TelemetrySample`` (``time_boot_ms``: the tick's time,
 increasing across reboots and clock wraps). Its counters carry the lockstep assembler's
@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-from hil_service.sampler import SamplerConfig, StreamSampler, Tick
+from hil_service.sources.sampler import SamplerConfig, StreamSampler, Tick
 from protocols.mavlink_io import MavMessage
 from protocols.profiles import Profile, message_clock
 from protocols.samples import TelemetrySample, is_plausible
