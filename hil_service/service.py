@@ -235,6 +235,10 @@ class HilService:
                 self._send(self.mapping.ballast_command(decision.command, system_id), system_id)
             self.bus.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
+        for event in vehicle.pipeline.take_events(sample.time_boot_ms):
+            # A supervisor's trip or re-arm (docs/control.md): on Zenoh, and in the log
+            # through the bus; counted in health's identifier.{channel}.supervisor.
+            self.bus.publish(topics.supervisor, event, reliable=True)
         if self.lockstep is not None and self.send_commands:
             commanded = decision.command is not None and decision.payload is not None
             self.lockstep.after_sample(  # after the command
