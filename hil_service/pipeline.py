@@ -214,6 +214,7 @@ class ChannelPipeline:
         self._until_evaluation = 0  # samples to the horizon test's next evaluation
         self._horizon_ok = False  # its last verdict
         self.qualified = False  # passed the horizon test since the last disqualifying event
+        self.ever_qualified = False
         self.supervisor = Supervisor()
         self.tripped = False
         self.safe_u = 0.0
@@ -410,7 +411,7 @@ class ChannelPipeline:
             ):
                 return f"supervisor: {self.supervisor.reason} ({self.channel})"
             self.tripped = False
-            self.qualified = True
+            self.qualified = self.ever_qualified = True
             self.supervisor.rearms += 1
             self.events.append(self._event("rearm", ""))
             return ""
@@ -427,7 +428,7 @@ class ChannelPipeline:
                     f"{self.horizon_test.horizon}-step "
                     f"horizon, needs {self.horizon_test.threshold:g} %)"
                 )
-            self.qualified = True
+            self.qualified = self.ever_qualified = True
         return ""
 
     def _evaluate_horizon(self) -> None:
