@@ -505,6 +505,7 @@ class ChannelPipeline:
             "trips": self.supervisor.trips,
             "rearms": self.supervisor.rearms,
             "horizon_fit": significant(self.horizon_test.fit),
+            "window": self.supervisor.window,
         }
 
     def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
