@@ -479,9 +479,17 @@ class ChannelPipeline:
         return ""
 
     def _restart_supervised(self, y: float, setpoint: float, u_applied: float) -> None:
-        self._sup_run = self.model.dynamics()
+        run = self.model.dynamics()
+        self._sup_run = run
         self._sup_setpoint = setpoint
         self.supervisor.start_segment(y, y - setpoint, u_applied)
+        # The model's steady state at the neutral input (every input lag at 0): what
+        # holding trim would give, by the model's own account.
+        gain = 1.0
+        for a in run.ar:
+            gain -= a
+        if abs(gain) > 1e-9:
+            self.supervisor.neutral(run.bias / gain - setpoint)
 
     def _trip(self, reason: str, u_applied: float) -> None:
         control = self.settings.control

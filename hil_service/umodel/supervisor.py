@@ -26,7 +26,10 @@ from the measured outputs. At each segment's end the segment is judged:
 * ``beyond``: the prediction error's RMS exceeded its bound and the tracking error grew
   (two segments running);
 * ``oscillation``: the tracking error changed sign (by more than the bound each time) at
-  least ``half_cycles`` times over the last three segments while the prediction did not.
+  least ``half_cycles`` times over the last three segments while the prediction did not;
+* ``worse than trim``: the output settled (moved less than the bound over the segment) with
+  a tracking error larger, by more than the bound, than the model's steady state at the
+  neutral input would leave (a plan stalled where holding trim does better).
 
 The bound is ``bound_factor`` × the RMS model error of the horizon test at arming (at
 least ``hold_floor`` × the RMS hold error, so that a noise-free model still has one).
@@ -300,6 +303,11 @@ class Supervisor:
         self._sq = 0.0
         self._sat = 0
         self._u0 = u
+        self._neutral_error = math.inf
+
+    def neutral(self, error: float) -> None:
+        """|r − the model's steady state at the neutral input| for this segment."""
+        self._neutral_error = abs(error) if math.isfinite(error) else math.inf
 
     def segment_sample(
         self, y: float, y_pred: float, error: float, error_pred: float, saturated: bool
@@ -340,6 +348,12 @@ class Supervisor:
             return self._trip(
                 f"saturation held against the predicted response ({n} samples, "
                 f"error {self._e0:.3g} -> {abs(error):.3g})"
+            )
+        settled = abs(moved) < self.bound and abs(predicted) < self.bound
+        if settled and abs(error) > self._neutral_error + self.bound:
+            return self._trip(
+                f"output settled worse than holding trim (error {abs(error):.3g}, "
+                f"{self._neutral_error:.3g} at the neutral input)"
             )
         if rms > self.bound and growing:
             self._beyond_strikes += 1
