@@ -11,6 +11,7 @@ actuator positions through the true plant, so each is reachable.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -184,12 +185,17 @@ def run_vehicle(
     oracle = None
     failures = 0
     if settings.oracle:
+        # In the plant's own units (scale 1, offset 0): the oracle's LP and its settings
+        # are those of ``random_loop``, made for outputs of order one. The problem is the
+        # same in any unit, so its IAE scales with the output: multiplied back below.
+        plain = {ch: dataclasses.replace(specs[ch], scale=1.0, offset=0.0) for ch in CHANNELS}
+        plain_known = {ch: known(plain[ch]) for ch in CHANNELS}
         oracle, failures = oracle_run(
             settings,
-            vehicle(),
-            schedule,
-            {ch: oracle_settings_for(knowns[ch]) for ch in CHANNELS},
-            {ch: specs[ch].offset for ch in CHANNELS},
+            FamilyVehicle(plain["depth"], plain["pitch"], settings.seed),
+            setpoint_schedule(settings, {ch: levels(plain[ch]) for ch in CHANNELS}),
+            {ch: oracle_settings_for(plain_known[ch]) for ch in CHANNELS},
+            {ch: 0.0 for ch in CHANNELS},
         )
     for run in (inverse.trace, reference, oracle):
         if run is not None:
@@ -199,7 +205,7 @@ def run_vehicle(
         supervision = inverse.supervision[ch]
         oracle_iae = None
         if oracle is not None and specs[ch].wiener == 0.0:
-            oracle_iae = oracle.metrics[ch].iae
+            oracle_iae = oracle.metrics[ch].iae * specs[ch].scale
         rows.append(
             FamilyRow(
                 spec=specs[ch],
