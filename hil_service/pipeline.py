@@ -503,6 +503,11 @@ class ChannelPipeline:
         self.safe_u = min(control.u_limit, max(-control.u_limit, good))
         self.events.append(self._event("trip", reason))
 
+    def safe_command(self) -> float:
+        """A tripped channel's command: toward its safe input at the rate limit (the
+        shaper holds the last command sent), then the safe input itself."""
+        return self.shaper.shape(self.safe_u).u
+
     def _event(self, kind: str, reason: str) -> dict[str, Any]:
         return {
             "channel": self.channel,
@@ -636,7 +641,7 @@ class VehiclePipeline:
             if not blocked:
                 blocked = pipeline.supervise(active[ch], sample.input(ch))
             if pipeline.tripped:
-                values[ch] = pipeline.safe_u
+                values[ch] = pipeline.safe_command()
                 paths.append("safe")
                 reasons.append(blocked)
                 commanded = True
