@@ -437,7 +437,13 @@ class ChannelPipeline:
         qualified on a record shorter than the horizon, or tripped."""
         self._until_evaluation = self.settings.control.refresh
         dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
-        self._horizon_ok = self.horizon_test.evaluate(dynamics, self.controller.horizon)
+        horizon = self.controller.horizon
+        passed = self.horizon_test.evaluate(dynamics, horizon)
+        if self.qualified and self.horizon_test.steps < min(horizon, self.horizon_test.minimum):
+            # Too short a record since a telemetry gap to judge by: the verdict stands (a
+            # gap is not evidence against the model; a trip or a restart clears it).
+            return
+        self._horizon_ok = passed
 
     def _horizon_passes(self, horizon: int) -> bool:
         return self._horizon_ok
