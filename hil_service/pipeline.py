@@ -23,9 +23,14 @@ from hil_service.umodel import (
 )
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
-from hil_service.umodel.scoring import ErrorStats, MultiStepStats
+from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
+from hil_service.umodel.supervisor import HorizonTest, Supervisor
 from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
+
+#: What a channel's input goes to when its supervisor trips (docs/control.md): "hold" the
+#: input the last clean supervised segment started from, or "neutral" (0, the trim).
+SAFE_INPUTS = ("hold", "neutral")
 
 #: Model options per channel on top of each model's defaults (none: the defaults hold for
 #: both channels, and a new vehicle gets no figure tuned to the emulator's).
@@ -53,9 +58,16 @@ class ControlSettings:
     disturbance_share: float = 0.5  # disturbance estimate's time constant / horizon
     refresh: int = 50  # samples between two horizon derivations
     cost_points: int = 120  # strided points of the horizon in the cost (see cost_points)
+    #: The horizon test's threshold: the model's k-step fit relative to holding the output
+    #: (%, ``umodel.supervisor.HorizonTest``) a channel needs before it may command.
+    horizon_fit: float = 50.0
+    safe_input: str = "neutral"  # SAFE_INPUTS: where a tripped channel's input goes
 
     def __post_init__(self) -> None:
         self.predictive()  # validates the constants
+        HorizonTest(self.horizon_fit)  # validates the threshold
+        if self.safe_input not in SAFE_INPUTS:
+            raise ValueError(f"safe_input must be one of {SAFE_INPUTS}, got {self.safe_input!r}")
 
     def predictive(self) -> PredictiveSettings:
         return PredictiveSettings(
@@ -123,14 +135,21 @@ class StepContinuity:
     period_ms: int | None = None
     last_ms: int | None = None
     gaps: int = 0
+    #: Steps back in time: the vehicle's clock restarted (counted among the gaps too).
+    restarts: int = 0
+    restarted: bool = False  # the last sample followed a restart
 
     def follows(self, time_ms: int) -> bool:
         last, self.last_ms = self.last_ms, time_ms
+        self.restarted = False
         if last is None:
             return False
         step = time_ms - last
         if step <= 0:
             self.gaps += 1
+            if step < 0:
+                self.restarts += 1
+                self.restarted = True
             return False
         if self.period_ms is None or step < self.period_ms:
             self.period_ms = step
@@ -152,6 +171,9 @@ class ChannelPipeline:
         self.channel = channel
         self.settings = settings
         options = settings.options_for(channel)
+        if settings.model == "dynamic":
+            # Inputs normalised by the actuator's range: the same model in any input unit.
+            options.setdefault("u_scale", settings.control.u_limit)
         model = build_model(settings.model, seed=seed, **options)
         assert isinstance(model, PredictiveModel)  # U_MODELS are the U-models
         self.model: PredictiveModel = model
@@ -184,6 +206,26 @@ class ChannelPipeline:
         self.input_reuses = 0  # samples whose input reading was the previous sample's
         self._y_seen = math.nan
         self._learnt_last = False  # the previous sample trained the model
+        # Do no harm (docs/control.md): the horizon test qualifies the model to command;
+        # the supervisor watches the loop while it does.
+        self.horizon_test = HorizonTest(
+            control.horizon_fit, settings.window, control.max_horizon + 100, settings.burn_in
+        )
+        self._until_evaluation = 0  # samples to the horizon test's next evaluation
+        self._horizon_ok = False  # its last verdict
+        self.qualified = False  # passed the horizon test since the last disqualifying event
+        self.ever_qualified = False
+        self.supervisor = Supervisor()
+        self.tripped = False
+        self.safe_u = 0.0
+        self.restarts = 0
+        self._since_trip = 0
+        self._sup_run: ModelDynamics | None = None
+        self._sup_pred = math.nan
+        self._sup_setpoint = math.nan
+        self._last_saturated = False
+        #: Trips and re-arms not yet published (``VehiclePipeline.take_events``).
+        self.events: list[dict[str, Any]] = []
 
     def config(self) -> dict[str, Any]:
         return self.model.config()
@@ -228,6 +270,7 @@ class ChannelPipeline:
             self.resync = self.model.history_length
             self.refill = 0
             self._free_run, self._free_run_left = None, 0
+            self._sup_run = None
             self.controller.reset()
             self.dynamics = None
         elif repeat and self.resync == 0:
@@ -245,10 +288,16 @@ class ChannelPipeline:
                 self.model.undo_last_update()
             self.refill = self.model.history_length
             return None
+        self._sup_pred = math.nan
+        self._until_evaluation -= 1
+        if self.tripped:
+            self._since_trip += 1
         if self.refill > 0 and self.resync == 0:
+            self._sup_run = None  # the supervisor's prediction restarts after the refill
             assert self.u_prev is not None
             self.model.observe_only(self.u_prev, y)
             self.persistence.observe_only(self.u_prev, y)
+            self.horizon_test.record(y, self.u_prev)
             self.u_prev = u_now
             self.refill -= 1
             self.skipped += 1
@@ -256,6 +305,8 @@ class ChannelPipeline:
             self.controller.track(self.dynamics, y)
             return None
         if self.resync > 0:
+            self._sup_run = None
+            self.horizon_test.break_record()  # consecutive samples only
             u_guess = u_now if self.u_prev is None else self.u_prev
             self.model.observe_only(u_guess, y)
             self.persistence.observe_only(u_guess, y)
@@ -267,8 +318,12 @@ class ChannelPipeline:
         assert u_prev is not None  # set by every sample, resynchronising ones included
         free_run = self._free_run
         if free_run is not None and math.isfinite(y):
-            self.multistep.add(y, free_run.advance(u_prev))
+            y_sim = free_run.advance(u_prev)
+            self.multistep.add(y, y_sim)
+        if self._sup_run is not None:
+            self._sup_pred = self._sup_run.advance(u_prev)
         estimate = self.model.step(u_prev, y)
+        self.horizon_test.record(y, u_prev)
         self._learnt_last = True
         baseline = self.persistence.step(u_prev, y)
         self.u_prev = u_now
@@ -278,6 +333,7 @@ class ChannelPipeline:
         elif estimate.status == "diverged":
             self.divergences += 1
             self.converged = False
+            self.disqualify()
         else:
             self.stats.add(y, estimate.error, baseline.error)
             if not self.converged and self.stats.count >= self.settings.burn_in:
@@ -289,6 +345,9 @@ class ChannelPipeline:
         self._free_run_left -= 1
         if self._free_run_left <= 0:
             self._restart_free_run()
+        due = self.converged and self._until_evaluation <= 0
+        if due and (self.tripped or not (self.qualified and self.horizon_test.full)):
+            self._evaluate_horizon()
         return {
             "t": t,
             "y": estimate.y,
@@ -320,7 +379,153 @@ class ChannelPipeline:
                 f"{min(self.stats.count, self.settings.burn_in)}/{self.settings.burn_in} samples, "
                 f"recent skill {self.stats.recent_skill()})"
             )
+        return self._harm_reason()
+
+    def identified(self) -> bool:
+        """The identifier's own gate is open: resynchronised, converged, not diverged."""
+        return (
+            self.resync == 0
+            and self.last is not None
+            and self.last.status != "diverged"
+            and self.converged
+        )
+
+    def _harm_reason(self) -> str:
+        """The horizon test and the supervisor's verdict (docs/control.md, "Do no harm").
+
+        A tripped channel re-arms once its hold-off has passed and the model passes the
+        horizon test on data taken after the trip; an unqualified one qualifies by passing
+        it. Once qualified, the test stays passed until a trip, a vehicle restart or a
+        divergence: while the loop holds the output at its setpoint there is no change left
+        for the test to judge by, and the supervisor watches the loop instead."""
+        horizon = self.controller.horizon
+        if self.tripped:
+            if self.supervisor.latched:
+                return (
+                    f"supervisor: {self.supervisor.reason}; tripped "
+                    f"{self.supervisor.strikes} times, off until control is re-enabled "
+                    f"({self.channel})"
+                )
+            if self._since_trip < self.supervisor.holdoff(horizon) or not (
+                self._horizon_passes(horizon)
+            ):
+                return f"supervisor: {self.supervisor.reason} ({self.channel})"
+            self.tripped = False
+            self.qualified = self.ever_qualified = True
+            self.supervisor.rearms += 1
+            self.events.append(self._event("rearm", ""))
+            return ""
+        if not self.qualified or not self.horizon_test.full:
+            # Until a verdict covers the whole horizon (the record may be shorter at
+            # first), the test is re-run every ``refresh`` samples, commanding or not.
+            if not self._horizon_passes(horizon):
+                self.qualified = False
+                fit = self.horizon_test.fit
+                shown = "n/a" if fit is None else f"{fit:.1f} %"
+                return (
+                    f"model does not predict over the horizon ({self.channel}: "
+                    f"{self.horizon_test.steps}-step fit {shown} of a "
+                    f"{self.horizon_test.horizon}-step "
+                    f"horizon, needs {self.horizon_test.threshold:g} %)"
+                )
+            self.qualified = self.ever_qualified = True
         return ""
+
+    def _evaluate_horizon(self) -> None:
+        """The horizon test on the current model, every ``refresh`` samples (it runs the
+        model over the whole record) while its verdict matters: not yet qualified, or
+        qualified on a record shorter than the horizon, or tripped."""
+        self._until_evaluation = self.settings.control.refresh
+        dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
+        horizon = self.controller.horizon
+        passed = self.horizon_test.evaluate(dynamics, horizon)
+        if self.qualified and self.horizon_test.steps < min(horizon, self.horizon_test.minimum):
+            # Too short a record since a telemetry gap to judge by: the verdict stands (a
+            # gap is not evidence against the model; a trip or a restart clears it).
+            return
+        self._horizon_ok = passed
+
+    def _horizon_passes(self, horizon: int) -> bool:
+        return self._horizon_ok
+
+    def disqualify(self) -> None:
+        """The model must pass the horizon test again, on data taken from now on."""
+        self.qualified = False
+        self.horizon_test.reset()
+        self._horizon_ok = False
+        self._until_evaluation = 0
+
+    def on_restart(self) -> None:
+        """The vehicle's clock restarted: stop commanding until the model passes the
+        horizon test on data after the restart."""
+        self.restarts += 1
+        self.disqualify()
+        self.deactivate()
+
+    def supervise(self, setpoint: float, u_applied: float) -> str:
+        """The supervisor's verdict on this commanded sample ("" or the trip's reason)."""
+        if not self.active:
+            return ""
+        y = self._y_seen
+        pred = self._sup_pred
+        error = y - setpoint
+        if self._sup_run is None or not math.isfinite(pred) or setpoint != self._sup_setpoint:
+            if setpoint != self._sup_setpoint:
+                self.supervisor.new_reference()
+            self._restart_supervised(y, setpoint, u_applied)
+            return ""
+        reason = self.supervisor.segment_sample(
+            y, pred, error, pred - setpoint, self._last_saturated
+        )
+        if reason:
+            self._trip(reason, u_applied)
+            return f"supervisor: {reason} ({self.channel})"
+        if self.supervisor.segment_done():
+            self._restart_supervised(y, setpoint, u_applied)
+        return ""
+
+    def _restart_supervised(self, y: float, setpoint: float, u_applied: float) -> None:
+        run = self.model.dynamics()
+        self._sup_run = run
+        self._sup_setpoint = setpoint
+        self.supervisor.start_segment(y, y - setpoint, u_applied)
+        # The model's steady state at the neutral input (every input lag at 0): what
+        # holding trim would give, by the model's own account.
+        gain = 1.0
+        for a in run.ar:
+            gain -= a
+        if abs(gain) > 1e-9:
+            self.supervisor.neutral(run.bias / gain - setpoint)
+
+    def _trip(self, reason: str, u_applied: float) -> None:
+        control = self.settings.control
+        self.tripped = True
+        self._since_trip = 0
+        self.disqualify()
+        self.deactivate()
+        good = self.supervisor.good_u if control.safe_input == "hold" else 0.0
+        if not math.isfinite(good):
+            good = u_applied if math.isfinite(u_applied) else 0.0
+        self.safe_u = min(control.u_limit, max(-control.u_limit, good))
+        self.events.append(self._event("trip", reason))
+
+    def safe_command(self) -> float:
+        """A tripped channel's command: toward its safe input at the rate limit (the
+        shaper holds the last command sent), then the safe input itself."""
+        return self.shaper.shape(self.safe_u).u
+
+    def _event(self, kind: str, reason: str) -> dict[str, Any]:
+        return {
+            "channel": self.channel,
+            "event": kind,
+            "reason": reason,
+            "safe_input": self.safe_u if kind == "trip" else None,
+            "safe_mode": self.settings.control.safe_input,
+            "trips": self.supervisor.trips,
+            "rearms": self.supervisor.rearms,
+            "horizon_fit": significant(self.horizon_test.fit),
+            "window": self.supervisor.window,
+        }
 
     def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
         """One predictive-inverse step: (command, path, saturated); path is the inverse
@@ -333,13 +538,23 @@ class ChannelPipeline:
             # at the end of identification in the runs that ended 0.2-0.3 m off).
             self.controller.reset()
             self.active = True
+            self.supervisor.arm(
+                self.horizon_test.model_rms,
+                self.horizon_test.hold_rms,
+                self.controller.horizon,
+                u_applied,
+            )
+            self._restart_supervised(self._y_seen, setpoint, u_applied)
         dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
         u, path, saturated = self.controller.decide(dynamics, u_applied, setpoint)
         shaped = self.shaper.shape(u)
+        self._last_saturated = saturated or shaped.saturated
         return shaped.u, path, saturated or shaped.saturated or shaped.rate_limited
 
     def deactivate(self) -> None:
         self.active = False
+        self._sup_run = None
+        self.supervisor.disarm()
 
     def health(self) -> dict[str, Any]:
         return {
@@ -351,6 +566,18 @@ class ChannelPipeline:
             "skipped": self.skipped,
             **self.stats.summary(),
             **self.multistep.summary(self.controller.horizon),
+            "horizon_fit": significant(self.horizon_test.fit),
+            "horizon_samples": self.horizon_test.count,
+            "horizon_qualified": self.qualified,
+            "restarts": self.restarts,
+            "supervisor": {
+                "state": "tripped" if self.tripped else "armed" if self.active else "idle",
+                "trips": self.supervisor.trips,
+                "rearms": self.supervisor.rearms,
+                "reason": self.supervisor.reason,
+                "safe_input": self.safe_u if self.tripped else None,
+                "safe_mode": self.settings.control.safe_input,
+            },
         }
 
 
@@ -370,6 +597,9 @@ class VehiclePipeline:
         ``inputs_reused``: the sample's input readings are the previous sample's (an
         asynchronous sampler knows; see ``ChannelPipeline.observe``)."""
         follows = self.gaps.follows(sample.time_boot_ms)
+        if self.gaps.restarted:
+            for pipeline in self.channels.values():
+                pipeline.on_restart()
         estimates = {}
         for ch, pipeline in self.channels.items():
             estimate = pipeline.observe(
@@ -386,25 +616,55 @@ class VehiclePipeline:
         active = {ch: v for ch, v in setpoints.items() if v is not None and math.isfinite(v)}
         if not enabled:
             reason = "control disabled"
+            for pipeline in self.channels.values():
+                pipeline.supervisor.operator_reset()
         elif not active:
             reason = "no setpoint"
         else:
-            reason = next((r for ch in active if (r := self.channels[ch].blocked_reason())), "")
+            reason = ""
         if reason:
             for pipeline in self.channels.values():
                 pipeline.deactivate()
             return Decision(None, None, reason)
+        # Each channel on its own: a blocked one holds (NaN: the vehicle keeps its input),
+        # a tripped one sends its safe input, the others command.
         values = {"depth": math.nan, "pitch": math.nan}
-        paths, saturated = [], False
+        paths: list[str] = []
+        reasons: list[str] = []
+        saturated = commanded = False
         for ch, pipeline in self.channels.items():
             if ch not in active:
                 pipeline.deactivate()
                 paths.append("-")
                 continue
+            blocked = pipeline.blocked_reason()
+            if blocked and not pipeline.identified():
+                # The identifier's own gate (resynchronising, diverged, not converged)
+                # holds the whole vehicle, as it always has.
+                for other in self.channels.values():
+                    other.deactivate()
+                return Decision(None, None, blocked)
+            if not blocked:
+                blocked = pipeline.supervise(active[ch], sample.input(ch))
+            if pipeline.tripped:
+                values[ch] = pipeline.safe_command()
+                paths.append("safe")
+                reasons.append(blocked)
+                commanded = True
+                continue
+            if blocked:
+                pipeline.deactivate()
+                paths.append("-")
+                reasons.append(blocked)
+                continue
             u, path, sat = pipeline.solve(active[ch], sample.input(ch))
             values[ch] = u
             paths.append(path)
             saturated = saturated or sat
+            commanded = True
+        reason = "; ".join(reasons)
+        if not commanded:
+            return Decision(None, None, reason)
         payload = {
             "t": sample.t,
             "u_depth": None if math.isnan(values["depth"]) else values["depth"],
@@ -413,7 +673,16 @@ class VehiclePipeline:
             "saturated": saturated,
             "mode": "/".join(paths),
         }
-        return Decision(BallastCommand(values["depth"], values["pitch"]), payload, "")
+        return Decision(BallastCommand(values["depth"], values["pitch"]), payload, reason)
+
+    def take_events(self, time_boot_ms: int) -> list[dict[str, Any]]:
+        """The supervisors' trips and re-arms since the last call, stamped with the sample."""
+        events: list[dict[str, Any]] = []
+        for pipeline in self.channels.values():
+            for event in pipeline.events:
+                events.append({"time_boot_ms": time_boot_ms, **event})
+            pipeline.events.clear()
+        return events
 
     def mark_stale(self) -> None:
         for pipeline in self.channels.values():
@@ -424,4 +693,3 @@ class VehiclePipeline:
 
     def configs(self) -> dict[str, dict[str, Any]]:
         return {ch: pipeline.config() for ch, pipeline in self.channels.items()}
-

@@ -190,6 +190,10 @@ class HilService:
                     self._send(message, system_id)
             self.notifier.publish(topics.command_ballast, decision.payload, reliable=True)
             vehicle.commands_sent += 1
+        for event in vehicle.pipeline.take_events(sample.time_boot_ms):
+            # A supervisor's trip or re-arm (docs/control.md): on Zenoh and in the log through
+            # the listeners; counted in health's identifier.{channel}.supervisor.
+            self.notifier.publish(topics.supervisor, event, reliable=True)
         self.source.after_sample(sample, commanded)  # after the command
 
     def _send(self, message: MavMessage, system_id: int) -> None:

@@ -12,8 +12,9 @@ from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
 from plant_emulator.lockstep import DEFAULT_TIMEOUT, LockstepRunner
+from plant_emulator.models import CHANNELS
 from plant_emulator.plant import GliderPlant, PlantConfig
-from plant_emulator.scenarios import SCENARIOS
+from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
@@ -87,6 +88,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --signing-key: also accept unsigned frames that are not commands",
     )
+    parser.add_argument(
+        "--change",
+        choices=tuple(PLANT_CHANGES),
+        default=None,
+        help="the plant changes at --change-at: 'flip' the input's sign, 'gain5' a fivefold "
+        "gain (on --change-channel)",
+    )
+    parser.add_argument("--change-channel", choices=CHANNELS, default="pitch")
+    parser.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
     parser.add_argument("--full-scale", type=float, default=2.0, help="model units at wire 1.0")
     parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
     parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
@@ -146,6 +156,10 @@ def run(args: argparse.Namespace) -> int:
             ),
             system_id=args.sysid,
         )
+        if args.change is not None:
+            actuator = plant.actuators[args.change_channel]
+            changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
+            plant.actuators[args.change_channel] = changing  # type: ignore[assignment]
         config = AutopilotConfig(
             system_id=args.sysid,
             speed=args.speed,

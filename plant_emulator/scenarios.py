@@ -49,3 +49,29 @@ def build_disturbance(scenario: str, channel: str, seed: int = 0) -> Disturbance
 def check_scenario(scenario: str) -> None:
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
+
+
+#: Plant changes an emulated vehicle can undergo mid-run (``emulate --change``): the
+#: channel's effective input multiplied by this from a given step on.
+PLANT_CHANGES = {"flip": -1.0, "gain5": 5.0}
+
+
+class ChangingActuator:
+    """A channel's actuator whose effective input is multiplied by ``factor`` from step
+    ``at`` on (0-based, counted in ``apply`` calls): a plant whose input sign flips, or
+    whose gain grows, after identification. Everything else is the wrapped actuator's."""
+
+    def __init__(self, inner: BallastActuator, factor: float, at: int) -> None:
+        self.inner = inner
+        self.factor = float(factor)
+        self.at = int(at)
+        self.steps = 0
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.inner, name)
+
+    def apply(self, command: float) -> float:
+        effective = self.inner.apply(command)
+        changed = self.steps >= self.at
+        self.steps += 1
+        return effective * self.factor if changed else effective

@@ -22,6 +22,7 @@ COMMAND_BALLAST = "command/ballast"
 SETPOINT = "setpoint"
 CONTROL = "control"
 HEALTH = "health"
+SUPERVISOR = "supervisor"  # the closed-loop supervisor's trips and re-arms
 STATE = "state"
 SERVICE = "service"
 DECISION_INPUTS = "decision-inputs"
@@ -30,7 +31,17 @@ REJECTED_INPUTS = "rejected-inputs"  # service-wide log channel: no system id
 #: Kinds followed by ``/{channel}``.
 CHANNEL_KINDS = frozenset({UMODEL, SETPOINT})
 #: Kinds under ``glider/{id}/`` (Zenoh), and under ``glider-hil/{id}/`` (MCAP only).
-ZENOH_KINDS = (TELEMETRY, UMODEL, COMMAND_BALLAST, SETPOINT, CONTROL, HEALTH, STATE, SERVICE)
+ZENOH_KINDS = (
+    TELEMETRY,
+    UMODEL,
+    COMMAND_BALLAST,
+    SETPOINT,
+    CONTROL,
+    HEALTH,
+    SUPERVISOR,
+    STATE,
+    SERVICE,
+)
 LOG_KINDS = (DECISION_INPUTS,)
 
 #: Subscriptions of the service: every vehicle's operator inputs.
@@ -72,6 +83,12 @@ def control(system_id: int) -> str:
 def health(system_id: int) -> str:
     _check(system_id)
     return f"{ROOT}/{system_id}/{HEALTH}"
+
+
+def supervisor(system_id: int) -> str:
+    """Events of the channels' closed-loop supervisors (a trip, a re-arm)."""
+    _check(system_id)
+    return f"{ROOT}/{system_id}/{SUPERVISOR}"
 
 
 def service(system_id: int) -> str:
@@ -150,6 +167,7 @@ class VehicleKeys:
     command_ballast: str
     health: str
     decision_inputs: str
+    supervisor: str
 
     @classmethod
     def of(cls, system_id: int) -> VehicleKeys:
@@ -159,6 +177,7 @@ class VehicleKeys:
             command_ballast=command_ballast(system_id),
             health=health(system_id),
             decision_inputs=decision_inputs(system_id),
+            supervisor=supervisor(system_id),
         )
 
 
@@ -171,6 +190,7 @@ SCHEMA_FOR_KIND = {
     SETPOINT: "setpoint",
     CONTROL: "control",
     HEALTH: "health",
+    SUPERVISOR: "supervisor_event",
     DECISION_INPUTS: "decision_inputs",
 }
 

@@ -16,6 +16,7 @@ SCHEMA_NAMES = (
     "setpoint",
     "control",
     "health",
+    "supervisor_event",
     "decision_inputs",
     "rejected_input",
 )

@@ -33,6 +33,7 @@ FORMATTERS = {
     keys.UMODEL: keys.umodel,
     keys.COMMAND_BALLAST: keys.command_ballast,
     keys.HEALTH: keys.health,
+    keys.SUPERVISOR: keys.supervisor,
     keys.SETPOINT: keys.setpoint,
     keys.CONTROL: keys.control,
     keys.STATE: keys.state,

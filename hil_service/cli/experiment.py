@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from hil_service.experiment.closed_loop import ClosedLoopResult, ClosedLoopSettings, run_closed_loop
+from hil_service.experiment.family_loop import FamilyResult, run_family_closed_loop
 from hil_service.experiment.identification import (
     IdentificationResult,
     IdentificationSettings,
@@ -44,9 +45,10 @@ from protocols import compiled
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scenario",
-        choices=(*SCENARIOS, "random", "all"),
+        choices=(*SCENARIOS, "random", "family", "all"),
         default="paper",
-        help="'random': a seeded family of plants (closed loop only)",
+        help="'random': a seeded family of plants; 'family': the do-no-harm benchmark's "
+        "family (plant_emulator/family.py; closed loop only)",
     )
     parser.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
     parser.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
@@ -88,7 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--plants",
         type=int,
         default=DEFAULT_PLANTS,
-        help=f"scenario random: plants per run (default {DEFAULT_PLANTS})",
+        help=f"scenarios random and family: plants per run (default {DEFAULT_PLANTS})",
     )
     parser.add_argument(
         "--fit-split",
@@ -123,8 +125,10 @@ def _choices(value: str, options: tuple[str, ...]) -> tuple[str, ...]:
 
 # ---- identification ----------------------------------------------------------------------
 def _identification(args: argparse.Namespace) -> int:
-    if args.scenario == "random":
-        raise ValueError("--scenario random is a closed-loop scenario (add --closed-loop)")
+    if args.scenario in ("random", "family"):
+        raise ValueError(
+            f"--scenario {args.scenario} is a closed-loop scenario (add --closed-loop)"
+        )
     results = []
     for scenario in _choices(args.scenario, SCENARIOS):
         for channel in _choices(args.channel, CHANNELS):
@@ -199,7 +203,7 @@ def _identification_plots(result: IdentificationResult, directory: Path) -> None
 # ---- closed loop -------------------------------------------------------------------------
 def _closed_loop(args: argparse.Namespace) -> int:
     scenarios = _choices(args.scenario, SCENARIOS)
-    results: list[ClosedLoopResult | RandomResult] = []
+    results: list[ClosedLoopResult | RandomResult | FamilyResult] = []
     for scenario in scenarios:
         settings = ClosedLoopSettings(
             scenario=scenario,
@@ -214,6 +218,9 @@ def _closed_loop(args: argparse.Namespace) -> int:
             random_result = run_random_closed_loop(settings, plants=args.plants)
             results.append(random_result)
             continue
+        if scenario == "family":
+            results.append(run_family_closed_loop(settings, plants=args.plants))
+            continue
         result = run_closed_loop(settings)
         results.append(result)
         if args.plots:
@@ -222,10 +229,44 @@ def _closed_loop(args: argparse.Namespace) -> int:
     return 0
 
 
-def _closed_loop_text(result: ClosedLoopResult | RandomResult) -> str:
+def _closed_loop_text(result: ClosedLoopResult | RandomResult | FamilyResult) -> str:
     if isinstance(result, RandomResult):
         return random_table(result)
+    if isinstance(result, FamilyResult):
+        return family_table(result)
     return closed_loop_table(result)
+
+
+def family_table(result: FamilyResult) -> str:
+    s = result.settings
+    summary = result.summary()
+    lines = [
+        f"closed loop, scenario family ({summary['plants']} plants, two per vehicle, seed "
+        f"{s.seed}), {s.samples} samples ({s.identify} identifying, then a setpoint step every "
+        f"{s.step_every}); IAE in output units·s",
+        f"{'veh':>4s} {'ch':5s} {'inverse':>11s} {'ref-only':>11s} {'oracle':>11s} "
+        f"{'inv/ref':>8s} {'inv/orc':>8s} {'trips':>5s} {'passed':>6s} {'cmd':>6s}  plant",
+    ]
+    for row in result.rows:
+        r = row.as_json()
+        lines.append(
+            f"{row.spec.vehicle:>4d} {row.spec.channel:5s} {_fmt(r['inverse_iae'], '11.4g'):>11s} "
+            f"{_fmt(r['reference_only_iae'], '11.4g'):>11s} {_fmt(r['oracle_iae'], '11.4g'):>11s} "
+            f"{_fmt(r['iae_ratio_reference_only'], '.3f'):>8s} "
+            f"{_fmt(r['iae_ratio_oracle'], '.3f'):>8s} {row.trips:>5d} "
+            f"{'yes' if row.horizon_passed else 'no':>6s} {row.commanded:>6d}  "
+            f"{row.spec.describe()}"
+        )
+    lines.append(
+        f"worst inverse / reference-only {_fmt(summary['worst_ratio_reference_only'], '.3f')} "
+        f"({summary['above_harm_limit']} plants above 1.1); median inverse / oracle where the "
+        f"horizon test passed {_fmt(summary['median_ratio_oracle_where_passed'], '.3f')} "
+        f"({summary['oracle_rows_where_passed']} plants with an oracle); horizon test passed "
+        f"on {summary['horizon_passed']}, controlled {summary['controlled']} of "
+        f"{summary['plants']} ({_fmt(summary['share_controlled'], '.3f')}); supervisor trips "
+        f"{summary['trips']}; oracle LP failures {summary['oracle_failures']}"
+    )
+    return "\n".join(lines)
 
 
 def random_table(result: RandomResult) -> str:

@@ -67,6 +67,9 @@ class ClosedLoopSettings:
     # Also run the known-model yardstick (an LP per sample: slow). The CLI turns it on;
     # off by default here so that library callers and tests pay for it only when asked.
     oracle: bool = False
+    #: The excitation ends at the neutral input (0) on its last sample: a controller that
+    #: does not command leaves the vehicle at neutral, not wherever the excitation was.
+    neutral_after_identify: bool = False
 
     def __post_init__(self) -> None:
         if self.identify < 1 or self.samples <= self.identify + 1:
@@ -288,6 +291,8 @@ def _drive(
         requested = controller(k, sample)
         if k < settings.identify:
             command = (excitation["depth"].value(k), excitation["pitch"].value(k))
+            if settings.neutral_after_identify and k == settings.identify - 1:
+                command = (0.0, 0.0)
         elif requested is not None:
             for ch, value in zip(CHANNELS, requested, strict=True):
                 if not math.isfinite(value):
@@ -345,6 +350,9 @@ class InverseRun:
     blocked: int
     divergences: dict[str, int]
     identifier: dict[str, Any]
+    #: Per channel: supervisor trips, whether the horizon test ever passed, and the
+    #: samples the channel commanded (its safe input not counted).
+    supervision: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def inverse_run(
@@ -373,12 +381,23 @@ def inverse_run(
         return decision.command.u_depth, decision.command.u_pitch
 
     trace = _drive(settings, plant, schedule, inverse_control)
+    supervision = {}
+    for i, (ch, channel) in enumerate(pipeline.channels.items()):
+        commanded = sum(
+            n for mode, n in paths.items() if mode.split("/")[i] not in ("-", "safe")
+        )
+        supervision[ch] = {
+            "trips": channel.supervisor.trips,
+            "horizon_passed": channel.ever_qualified,
+            "commanded": commanded,
+        }
     return InverseRun(
         trace=trace,
         paths=paths,
         blocked=blocked,
         divergences={ch: p.divergences for ch, p in pipeline.channels.items()},
         identifier=pipeline.identifier_health(),
+        supervision=supervision,
     )
 
 

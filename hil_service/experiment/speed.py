@@ -2,7 +2,8 @@
 
 Two figures per channel and model: the identifier update alone (``model.step`` on recorded
 samples), and the service's control step (identifier update + IMC target + forecast +
-inverse solve + command shaping, ``ChannelPipeline.observe`` and ``solve``) in closed loop
+inverse solve + command shaping + the supervisor, ``ChannelPipeline.observe``,
+``supervise`` and ``solve``) in closed loop
 with the plant. The plant's own cost is excluded from both timings.
 """
 
@@ -93,6 +94,7 @@ def measure(
         setpoint = levels[(k // 200) % len(levels)]
         t0 = time.perf_counter()
         pipeline.observe(float(k), y, u_now)
+        pipeline.supervise(setpoint, u_now)  # the closed-loop supervisor's check
         u, path, _ = pipeline.solve(setpoint, u_now)
         timed += time.perf_counter() - t0
         fallbacks += path == "fallback"

@@ -1,0 +1,405 @@
+"""Do no harm: the horizon test that qualifies a model to command, and the closed-loop
+supervisor that stops a loop making things worse (docs/control.md, "Do no harm").
+
+Both are pure and scale-free: every threshold is a ratio of two errors measured on the
+channel's own data, or a count of samples derived from the identified horizon.
+
+**Horizon test.** Today's model, frozen, runs free on the applied inputs from the measured
+outputs at segment starts k (the control horizon) apart, so each sample of a segment is
+a j-step prediction, j = 1 … k. Beside it, the "hold" prediction is the output at the
+segment's start, held. Over the last ``max(window, k)`` samples
+
+    horizon fit = 100 · (1 − ‖y − ŷ_model‖ / ‖y − y_hold‖)   (%)
+
+The model qualifies when at least k consecutive samples recorded since the last
+disqualifying event (a trip, a vehicle restart, a divergence, a telemetry gap) give a fit
+of at least ``threshold``.
+
+**Supervisor.** While a channel commands, a second frozen copy of the model runs free on
+the applied inputs over segments of ``window`` samples (the horizon, clamped), restarted
+from the measured outputs. At each segment's end the segment is judged:
+
+* ``against``: the output moved one way and the model predicted the other, both by more
+  than the prediction's bound;
+* ``saturated``: the command saturated the whole segment and the tracking error did not
+  fall;
+* ``beyond``: the prediction error's RMS exceeded its bound and the tracking error grew
+  (two segments running);
+* ``oscillation``: the tracking error changed sign (by more than the bound each time) at
+  least ``half_cycles`` times over the last three segments while the prediction did not;
+* ``worse than trim``: the output settled (moved less than the bound over the segment) with
+  a tracking error larger, by more than the bound, than the model's steady state at the
+  neutral input would leave (a plan stalled where holding trim does better).
+
+The bound is ``bound_factor`` × the RMS model error of the horizon test at arming (at
+least ``hold_floor`` × the RMS hold error, so that a noise-free model still has one).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+from .dynamics import ModelDynamics
+
+__all__ = ["HorizonTest", "Supervisor", "SupervisorSettings"]
+
+
+class HorizonTest:
+    """The current model against holding the output, over the controller's horizon, on
+    the recent samples (see the module docstring).
+
+    The samples are kept (``record``); ``evaluate`` runs today's model frozen from the
+    measured outputs at segment starts k apart, newest segment ending at the newest
+    sample, over the last ``max(window, k)`` samples: the verdict is on the model that
+    would command, not on a copy frozen a horizon ago.
+    """
+
+    __slots__ = (
+        "_inputs",
+        "_outputs",
+        "fit",
+        "full",
+        "hold_rms",
+        "horizon",
+        "minimum",
+        "model_rms",
+        "steps",
+        "threshold",
+        "window",
+    )
+
+    def __init__(
+        self, threshold: float = 50.0, window: int = 500, capacity: int = 1100, minimum: int = 2
+    ) -> None:
+        if not (math.isfinite(threshold) and threshold < 100.0):
+            raise ValueError("horizon threshold must be finite and below 100 %")
+        if window < 2:
+            raise ValueError("horizon window must be >= 2")
+        self.threshold = float(threshold)
+        self.window = int(window)
+        size = max(capacity, window) + 16
+        self._outputs: deque[float] = deque(maxlen=size)
+        self._inputs: deque[float] = deque(maxlen=size)  # the input that produced each output
+        #: The fewest prediction steps a verdict rests on while the record is shorter
+        #: than the horizon (the pipeline's burn-in).
+        self.minimum = max(int(minimum), 2)
+        self.fit: float | None = None
+        self.steps = 0  # the prediction steps of the last evaluation's segments
+        self.full = False  # they covered the whole horizon
+        self.horizon = 0  # the horizon of the last evaluation
+        self.model_rms = 0.0
+        self.hold_rms = 0.0
+
+    def break_record(self) -> None:
+        """A hole in the samples (a telemetry gap): the record starts again, the last
+        verdict stands."""
+        self._outputs.clear()
+        self._inputs.clear()
+
+    def reset(self) -> None:
+        """Forget every sample: the next verdict is on data recorded after this call."""
+        self._outputs.clear()
+        self._inputs.clear()
+        self.fit = None
+        self.steps = 0
+        self.full = False
+        self.model_rms = self.hold_rms = 0.0
+
+    @property
+    def count(self) -> int:
+        return len(self._outputs)
+
+    def record(self, y: float, u_prev: float) -> None:
+        """One consecutive sample: ``y`` and the input applied one step before it."""
+        if math.isfinite(y) and math.isfinite(u_prev):
+            self._outputs.append(y)
+            self._inputs.append(u_prev)
+        else:
+            self.break_record()  # consecutive samples only
+
+    def evaluate(self, dyn: ModelDynamics, horizon: int) -> bool:
+        """Score ``dyn`` over the record; True when it passes.
+
+        Segments are ``horizon`` long, or as long as the record allows while it is shorter
+        (at least ``minimum`` steps, and ``full`` is then False: the pipeline re-evaluates
+        until a verdict covers the whole horizon)."""
+        horizon = max(horizon, 1)
+        self.horizon = horizon
+        history = max(len(dyn.ar), len(dyn.lag_polys), 1)
+        n = len(self._outputs)
+        span = max(self.window, horizon)
+        first = max(history - 1, n - 1 - span)
+        self.fit = None
+        self.model_rms = self.hold_rms = 0.0
+        self.steps = max(0, min(horizon, n - 1 - first))
+        self.full = self.steps >= horizon
+        if self.steps < min(horizon, self.minimum):
+            return False
+        horizon = self.steps
+        ys, us = self._outputs, self._inputs
+        na, nb = len(dyn.ar), len(dyn.lag_polys)
+        sum_m = sum_h = 0.0
+        count = 0
+        end = n - 1
+        while end - horizon >= first:
+            s = end - horizon
+            run = ModelDynamics(
+                dyn.ar,
+                dyn.bias,
+                dyn.lag_polys,
+                dyn.poly_scale,
+                [ys[s - i] for i in range(na)],
+                [us[s - i] for i in range(nb)],
+                dyn.rbf,
+                dyn.rbf_weights,
+            )
+            y0 = ys[s]
+            for j in range(s + 1, end + 1):
+                y = ys[j]
+                e = y - run.advance(us[j])
+                if not (math.isfinite(e) and abs(e) < 1e100):
+                    e = 1e100
+                h = y - y0
+                sum_m += e * e
+                sum_h += h * h
+                count += 1
+            end = s
+        if count == 0 or not sum_h > 0.0 or not math.isfinite(sum_m / sum_h):
+            return False
+        self.fit = 100.0 * (1.0 - math.sqrt(sum_m / sum_h))
+        self.model_rms = math.sqrt(sum_m / count)
+        self.hold_rms = math.sqrt(sum_h / count)
+        return self.fit >= self.threshold
+
+
+class SupervisorSettings:
+    """Scale-free constants of the supervisor (counts, and ratios of measured errors)."""
+
+    __slots__ = (
+        "bound_factor",
+        "half_cycles",
+        "hold_floor",
+        "holdoff_factor",
+        "max_backoff",
+        "max_trips",
+        "max_window",
+        "min_window",
+    )
+
+    def __init__(
+        self,
+        bound_factor: float = 3.0,
+        hold_floor: float = 0.05,
+        min_window: int = 10,
+        max_window: int = 200,
+        half_cycles: int = 6,
+        max_backoff: int = 6,
+        holdoff_factor: int = 4,
+        max_trips: int = 3,
+    ) -> None:
+        if not (bound_factor > 0.0 and hold_floor >= 0.0):
+            raise ValueError("bound_factor must be > 0 and hold_floor >= 0")
+        if not 2 <= min_window <= max_window:
+            raise ValueError("need 2 <= min_window <= max_window")
+        self.bound_factor = float(bound_factor)
+        self.hold_floor = float(hold_floor)
+        self.min_window = int(min_window)
+        self.max_window = int(max_window)
+        self.half_cycles = int(half_cycles)
+        self.max_backoff = int(max_backoff)
+        #: The first hold-off after a trip, in horizons (or windows, the longer).
+        self.holdoff_factor = int(holdoff_factor)
+        #: Trips after which the channel stays off until control is disabled and enabled.
+        self.max_trips = int(max_trips)
+
+
+class Supervisor:
+    """One channel's watchdog over its commanded loop; see the module docstring.
+
+    The pipeline calls ``arm`` when the channel starts commanding, ``segment_sample`` with
+    every commanded sample's output, prediction and tracking error, and reads ``reason``
+    once it trips. ``holdoff`` (samples) grows twofold with every trip: trips and re-arms
+    cannot chatter.
+    """
+
+    def __init__(self, settings: SupervisorSettings | None = None) -> None:
+        self.settings = settings or SupervisorSettings()
+        self.trips = 0
+        self.strikes = 0  # trips since the operator last disabled control
+        self.rearms = 0
+        self.reason = ""
+        self.window = self.settings.min_window
+        self.bound = 0.0
+        self.good_u = 0.0
+        self._armed = False
+        self._n = 0
+        self._y0 = 0.0
+        self._e0 = 0.0
+        self._sq = 0.0
+        self._sat = 0
+        self._beyond_strikes = 0
+        self._flips: deque[int] = deque()
+        self._flips_pred: deque[int] = deque()
+        self._sign = 0
+        self._sign_pred = 0
+        self._k = 0
+        self._u0 = 0.0
+
+    @property
+    def armed(self) -> bool:
+        return self._armed
+
+    def window_for(self, horizon: int) -> int:
+        s = self.settings
+        return max(s.min_window, min(s.max_window, horizon))
+
+    def holdoff(self, horizon: int) -> int:
+        """Samples after a trip before a re-arm may be considered (twice as many after
+        each trip since the operator last re-enabled control)."""
+        s = self.settings
+        doublings = min(max(self.strikes - 1, 0), s.max_backoff)
+        return s.holdoff_factor * max(horizon, self.window_for(horizon)) * (1 << doublings)
+
+    @property
+    def latched(self) -> bool:
+        """Tripped ``max_trips`` times since control was last enabled: no re-arm."""
+        return self.strikes >= self.settings.max_trips
+
+    def operator_reset(self) -> None:
+        """Control disabled by the operator: the back-off and the latch start again."""
+        self.strikes = 0
+
+    def arm(self, model_rms: float, hold_rms: float, horizon: int, u: float) -> None:
+        s = self.settings
+        self.window = self.window_for(horizon)
+        self.bound = s.bound_factor * max(model_rms, s.hold_floor * hold_rms)
+        if not (math.isfinite(self.bound) and self.bound > 0.0):
+            self.bound = math.inf  # nothing to judge by: only the saturation test acts
+        self.good_u = u
+        self.reason = ""
+        self._armed = True
+        self._beyond_strikes = 0
+        self._flips.clear()
+        self._flips_pred.clear()
+        self._sign = self._sign_pred = 0
+        self._n = 0
+
+    def disarm(self) -> None:
+        self._armed = False
+
+    def new_reference(self) -> None:
+        """The setpoint changed: the tracking error's sign history starts again."""
+        self._flips.clear()
+        self._flips_pred.clear()
+        self._sign = self._sign_pred = 0
+        self._beyond_strikes = 0
+
+    def start_segment(self, y: float, error: float, u: float) -> None:
+        """A new segment from the measured output ``y`` (the prediction restarts there)."""
+        self._n = 0
+        self._y0 = y
+        self._e0 = abs(error)
+        self._sq = 0.0
+        self._sat = 0
+        self._u0 = u
+        self._neutral_error = math.inf
+
+    def neutral(self, error: float) -> None:
+        """|r − the model's steady state at the neutral input| for this segment."""
+        self._neutral_error = abs(error) if math.isfinite(error) else math.inf
+
+    def segment_sample(
+        self, y: float, y_pred: float, error: float, error_pred: float, saturated: bool
+    ) -> str:
+        """One commanded sample: ``error`` = y − r, ``error_pred`` = ŷ − r. Returns the trip
+        reason ("" when none); the segment ends after ``window`` samples."""
+        if not self._armed:
+            return ""
+        self._k += 1
+        self._n += 1
+        residual = y - y_pred
+        self._sq += residual * residual
+        if saturated:
+            self._sat += 1
+        self._note_flip(error, error_pred)
+        reason = self._oscillation()
+        if reason:
+            return self._trip(reason)
+        n = self._n
+        moved, predicted = y - self._y0, y_pred - self._y0
+        # The direction is judged from half a segment on: opposite moves, both beyond the
+        # bound, are evidence enough.
+        if (
+            2 * n >= self.window
+            and moved * predicted < 0.0
+            and abs(moved) > self.bound
+            and abs(predicted) > self.bound
+        ):
+            return self._trip(
+                f"output moving against the predicted direction ({moved:+.3g} measured, "
+                f"{predicted:+.3g} predicted over {n} samples)"
+            )
+        if n < self.window:
+            return ""
+        rms = math.sqrt(self._sq / n)
+        growing = abs(error) > self._e0
+        if self._sat >= n and abs(error) >= self._e0:
+            return self._trip(
+                f"saturation held against the predicted response ({n} samples, "
+                f"error {self._e0:.3g} -> {abs(error):.3g})"
+            )
+        settled = abs(moved) < self.bound and abs(predicted) < self.bound
+        if settled and abs(error) > self._neutral_error + self.bound:
+            return self._trip(
+                f"output settled worse than holding trim (error {abs(error):.3g}, "
+                f"{self._neutral_error:.3g} at the neutral input)"
+            )
+        if rms > self.bound and growing:
+            self._beyond_strikes += 1
+            if self._beyond_strikes >= 2:
+                return self._trip(
+                    f"error growing beyond the prediction's bounds (RMS {rms:.3g} > "
+                    f"{self.bound:.3g} over {2 * n} samples)"
+                )
+        else:
+            self._beyond_strikes = 0
+            self.good_u = self._u0  # the input this clean segment started from
+        return ""
+
+    def segment_done(self) -> bool:
+        return self._n >= self.window
+
+    def _note_flip(self, error: float, error_pred: float) -> None:
+        bound = self.bound
+        sign = 1 if error > bound else -1 if error < -bound else 0
+        if sign and sign != self._sign:
+            if self._sign:
+                self._flips.append(self._k)
+            self._sign = sign
+        sign_pred = 1 if error_pred > bound else -1 if error_pred < -bound else 0
+        if sign_pred and sign_pred != self._sign_pred:
+            if self._sign_pred:
+                self._flips_pred.append(self._k)
+            self._sign_pred = sign_pred
+        span = 3 * self.window
+        while self._flips and self._flips[0] <= self._k - span:
+            self._flips.popleft()
+        while self._flips_pred and self._flips_pred[0] <= self._k - span:
+            self._flips_pred.popleft()
+
+    def _oscillation(self) -> str:
+        flips = len(self._flips)
+        if flips >= self.settings.half_cycles and len(self._flips_pred) * 2 < flips:
+            return (
+                f"unpredicted oscillation ({flips} half-cycles in {3 * self.window} samples, "
+                f"{len(self._flips_pred)} predicted)"
+            )
+        return ""
+
+    def _trip(self, reason: str) -> str:
+        self.trips += 1
+        self.strikes += 1
+        self.reason = reason
+        self._armed = False
+        return reason

@@ -1,0 +1,181 @@
+"""Do no harm (docs/control.md): the horizon test keeps a model that cannot predict over
+its horizon from commanding, the supervisor stops a loop that a plant change has made
+harmful and sends the safe input, a vehicle restart re-qualifies the model, and the
+figures do not depend on the units of the output or the input. In process, on the
+plants of ``tests/harm_rig.py``."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from hil_service.pipeline import PipelineSettings
+from plant_emulator.actuator import PumpNonlinearity
+from tests.harm_rig import Loop, spec
+
+IDENTIFY = 1500
+CHANGE = 1900  # the plant changes here, 400 samples into control
+SETPOINT = 15.8  # trim 15, 0.8 above
+
+
+def _tripped_loop(change) -> Loop:
+    loop = Loop(spec(), spec(), change=change)
+    loop.run(IDENTIFY, {"depth": None, "pitch": None})
+    loop.run(2000, {"depth": SETPOINT, "pitch": None})
+    return loop
+
+
+def _first_trip(loop: Loop) -> int:
+    return next(k for k, m in enumerate(loop.modes) if m.startswith("safe"))
+
+
+@pytest.mark.parametrize(
+    "change",
+    [lambda k, u: -u if k >= CHANGE else u, lambda k, u: 5.0 * u if k >= CHANGE else u],
+    ids=["sign-flip", "gain-x5"],
+)
+def test_a_plant_change_trips_the_supervisor_and_the_safe_input_holds(change):
+    loop = _tripped_loop(change)
+    depth = loop.pipeline.channels["depth"]
+    window = depth.supervisor.window
+    trip = _first_trip(loop)
+    # Clean control before the change, a trip within two supervised segments after it
+    # (the change can fall anywhere in a segment; the next one is judged whole).
+    assert all(m.startswith(("newton", "fallback")) for m in loop.modes[IDENTIFY + 1 : CHANGE])
+    assert CHANGE < trip <= CHANGE + 2 * window, (trip, window)
+    assert loop.reasons[trip].startswith("supervisor: ") and loop.reasons[trip].endswith("(depth)")
+    # The safe input (neutral by default) is what the vehicle applies from then on.
+    assert depth.safe_u == 0.0
+    rearm = next(
+        (k for k, m in enumerate(loop.modes) if k > trip and not m.startswith("safe")), None
+    )
+    held = loop.u[trip + 6 : rearm]  # the actuator's rate limit: at 0 within 4 samples
+    assert len(held) >= 3 * window
+    assert all(u == 0.0 for u in held)
+    trips = [e for e in loop.events if e["event"] == "trip"]
+    assert trips and trips[0]["channel"] == "depth" and trips[0]["safe_input"] == 0.0
+    assert depth.health()["supervisor"]["trips"] == len(trips) >= 1
+    # No worse at the end than when control was enabled (the target: 1.2 times).
+    enabled_error = abs(loop.y[IDENTIFY] - SETPOINT)
+    end_error = sum(abs(y - SETPOINT) for y in loop.y[-100:]) / 100
+    assert end_error <= 1.2 * enabled_error, (end_error, enabled_error)
+
+
+def test_trips_and_rearms_are_rate_limited():
+    """After a trip the channel re-arms only once its hold-off has passed and its model
+    passed the horizon test on data after the trip; the hold-off doubles with each."""
+    loop = _tripped_loop(lambda k, u: -u if k >= CHANGE else u)
+    loop.run(6000, {"depth": SETPOINT, "pitch": None})
+    depth = loop.pipeline.channels["depth"]
+    horizon = depth.controller.horizon
+    times = [(e["event"], e["time_boot_ms"] // 100) for e in loop.events]  # samples (0.1 s)
+    trips = [t for kind, t in times if kind == "trip"]
+    assert trips, times
+    window = depth.supervisor.window
+    for kind, t in times:
+        if kind == "rearm":
+            previous_trip = max(x for x in trips if x < t)
+            n = trips.index(previous_trip) + 1
+            assert t - previous_trip >= 4 * max(horizon, window) * (1 << (n - 1)) - 1, times
+    # Three trips at most, then off until the operator disables and enables control.
+    assert len(trips) <= 3, times
+    if len(trips) == 3:
+        assert depth.supervisor.latched
+        assert "off until control is re-enabled" in loop.reasons[-1]
+        loop.run(1, {"depth": SETPOINT, "pitch": None}, enabled=False)
+        assert not depth.supervisor.latched
+
+
+def test_a_model_that_does_not_predict_over_the_horizon_never_commands():
+    """The issue's vehicle: 100 Hz, second order, a dead zone and a cubic pump, a periodic
+    disturbance as large as the control authority. One-step skill is excellent; over the
+    horizon the model is worse than holding the output, and the channel does not command."""
+    authority = PumpNonlinearity(dead_zone=0.3, cubic=0.1)(2.0)
+
+    def disturbance(k: int) -> float:
+        return authority * math.sin(2.0 * math.pi * k / 200)
+
+    loop = Loop(
+        spec((0.8, 0.8), period=0.01, dead_zone=0.3, cubic=0.1),
+        spec(period=0.01),
+        disturbance=disturbance,
+    )
+    loop.run(IDENTIFY, {"depth": None, "pitch": None})
+    loop.run(300, {"depth": 15.5, "pitch": None})
+    depth = loop.pipeline.channels["depth"]
+    assert depth.stats.recent_skill() > 0.9  # the one-step skill the issue saw
+    reasons = loop.reasons[IDENTIFY:]
+    assert all(r.startswith("model does not predict over the horizon (depth: ") for r in reasons)
+    assert all(m == "" for m in loop.modes[IDENTIFY:]), "a command was sent"
+    health = depth.health()
+    assert health["horizon_qualified"] is False and health["horizon_fit"] < 50.0
+    assert health["samples"] >= IDENTIFY + 290  # identification goes on
+
+
+def test_a_restart_while_commanding_stops_until_the_horizon_test_passes_again():
+    loop = Loop(spec(), spec())
+    loop.run(IDENTIFY, {"depth": None, "pitch": None})
+    loop.run(300, {"depth": SETPOINT, "pitch": None})
+    assert loop.modes[-1].startswith(("newton", "fallback"))
+    loop.restart_clock()
+    loop.run(600, {"depth": SETPOINT, "pitch": None})
+    depth = loop.pipeline.channels["depth"]
+    after = loop.modes[IDENTIFY + 300 :]
+    resumed = next(i for i, m in enumerate(after) if m)
+    # Not before the model has a burn-in's worth of post-restart data over its horizon.
+    assert resumed >= min(depth.settings.burn_in, depth.controller.horizon), resumed
+    assert "model does not predict over the horizon (depth" in loop.reasons[IDENTIFY + 320]
+    assert loop.pipeline.gaps.restarts == 1 and depth.restarts == 1
+    assert after[-1].startswith(("newton", "fallback"))
+
+
+def _iae(output_scale: float, offset: float, input_scale: float) -> tuple[float, float]:
+    settings = PipelineSettings()
+    control = dataclasses.replace(
+        settings.control,
+        u_limit=settings.control.u_limit * input_scale,
+        rate_limit=settings.control.rate_limit * input_scale,
+    )
+    loop = Loop(
+        spec((0.9, 0.6), dc_gain=1.7, dead_zone=0.1, cubic=0.05),
+        spec(),
+        settings=settings.replace(control=control),
+        scale=output_scale,
+        offset=offset,
+        input_scale=input_scale,
+    )
+    loop.run(IDENTIFY, {"depth": None, "pitch": None})
+    target = offset + 0.7 * output_scale
+    loop.run(1000, {"depth": target, "pitch": None})
+    loop.run(1000, {"depth": offset - 0.5 * output_scale, "pitch": None})
+    y = loop.y[IDENTIFY:]
+    targets = [target] * 1000 + [offset - 0.5 * output_scale] * 1000
+    iae = sum(abs(a - b) for a, b in zip(y, targets, strict=True)) / output_scale
+    reference = sum(abs(b - y[0]) for b in targets) / output_scale  # holding the output
+    return iae, reference
+
+
+#: Outputs scaled down: the identifier's RLS prior (P0 = p0·I) weighs the output-level
+#: columns by their scale, so small outputs are learnt more slowly (docs/control.md,
+#: "Scale"). Not solved: these cases fail today.
+SMALL_OUTPUTS = pytest.mark.xfail(strict=True, reason="RLS prior is not output-scale free")
+
+
+@pytest.mark.parametrize(
+    ("output_scale", "offset", "input_scale"),
+    [
+        (1e3, 1000.0, 1.0),
+        (1.0, 1000.0, 1e-3),
+        (1.0, 15.0, 1e3),
+        (1e3, 15.0, 1e-3),
+        pytest.param(1e-3, 15.0, 1.0, marks=SMALL_OUTPUTS),
+        pytest.param(1e-3, 1000.0, 1e3, marks=SMALL_OUTPUTS),
+    ],
+)
+def test_the_figures_do_not_depend_on_units(output_scale, offset, input_scale):
+    base, base_ref = _iae(1.0, 15.0, 1.0)
+    assert base < 0.2 * base_ref  # it controls
+    scaled, scaled_ref = _iae(output_scale, offset, input_scale)
+    assert scaled / scaled_ref == pytest.approx(base / base_ref, rel=0.01)

@@ -1,0 +1,80 @@
+"""The do-no-harm benchmark's family (``plant_emulator/family.py``) and its closed loop
+(``hil_service/experiment/family_loop.py``)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+
+from hil_service.experiment.closed_loop import ClosedLoopSettings
+from hil_service.experiment.family_loop import levels, run_vehicle
+from plant_emulator.family import FamilyVehicle, InputMap, draw_family, draw_vehicle
+
+
+def test_the_family_is_seeded_and_a_plant_does_not_depend_on_the_family_size():
+    assert draw_family(3, 40) == draw_family(3, 40)
+    assert draw_family(3, 40)[:5] == draw_family(3, 10)
+    assert draw_family(3, 10) != draw_family(4, 10)
+    assert draw_vehicle(3, 7) == draw_family(3, 16)[7]
+
+
+def test_200_plants_cover_what_the_benchmark_promises():
+    plants = [p for pair in draw_family(0, 200) for p in pair]
+    assert len(plants) == 200
+    assert {p.order for p in plants} == {1, 2, 3, 4}
+    assert {p.delay for p in plants} == {0, 1, 2, 3, 4, 5}
+    assert {p.kind for p in plants} == {"hammerstein", "wiener", "linear"}
+    assert {p.disturbance for p in plants} == {"none", "white", "coloured", "periodic"}
+    assert any(p.zero is not None for p in plants) and any(p.integrator for p in plants)
+    hammerstein = [p for p in plants if p.kind == "hammerstein"]
+    # Asymmetric saturation: below the unsaturated map's full output, unequal sides.
+    full = [InputMap(p.input_map.dead_zone, p.input_map.cubic)(2.0) for p in hammerstein]
+    assert all(p.input_map.upper < f for p, f in zip(hammerstein, full, strict=True))
+    unequal = [abs(p.input_map.upper + p.input_map.lower) for p in hammerstein]
+    assert max(u / f for u, f in zip(unequal, full, strict=True)) > 0.1
+    scales = [math.log10(p.scale) for p in plants]
+    assert max(scales) - min(scales) > 5.0  # six decades drawn, > 5 seen in 200
+    shares = [p.disturbance_level / p.authority() for p in plants if p.disturbance != "none"]
+    assert max(shares) > 0.7  # disturbances up to the control authority
+
+
+def test_a_plant_answers_after_its_delay_through_its_maps():
+    depth, pitch = next(
+        (d, p) for d, p in draw_family(1, 200) if d.delay >= 2 and d.disturbance == "none"
+    )
+    vehicle = FamilyVehicle(depth, pitch)
+    outputs = [vehicle.step(1.0, 0.0).depth for _ in range(depth.delay + depth.order + 3)]
+    # The position moves at the first step; the output answers after the delay and the
+    # plant's relative degree (the leading zeros of its numerator), not a sample sooner.
+    relative_degree = int(np.argmax(np.abs(depth.num()) > 0))
+    first = next(k for k, y in enumerate(outputs) if y != outputs[0])
+    assert first == depth.delay + relative_degree
+    for spec in (depth, pitch):
+        ws = np.linspace(-3.0, 3.0, 61) * spec.authority()
+        mapped = [spec.wiener_map(float(w)) for w in ws]
+        assert all(b > a for a, b in itertools.pairwise(mapped))  # monotone
+        assert spec.wiener_inverse(spec.wiener_map(0.37)) == pytest_approx(0.37)
+
+
+def pytest_approx(value: float):
+    import pytest
+
+    return pytest.approx(value, rel=1e-9, abs=1e-12)
+
+
+def test_a_vehicle_of_the_family_runs_the_three_loops():
+    depth, pitch = draw_vehicle(0, 0)
+    settings = ClosedLoopSettings(
+        scenario="family", samples=900, identify=400, step_every=250, oracle=True,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    rows, failures = run_vehicle(settings, depth, pitch)
+    assert [r.spec.channel for r in rows] == ["depth", "pitch"] and failures == 0
+    for row in rows:
+        assert math.isfinite(row.inverse_iae) and row.reference_iae > 0
+        assert row.oracle_iae is None or row.oracle_iae > 0
+        assert row.commanded == 0 or row.horizon_passed
+        reachable = levels(row.spec)
+        assert len(set(reachable)) == len(reachable)

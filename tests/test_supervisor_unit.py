@@ -1,0 +1,101 @@
+"""``hil_service.umodel.supervisor`` on its own: the horizon test's figure and threshold,
+each of the supervisor's trips, and its back-off."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hil_service.umodel.dynamics import ModelDynamics
+from hil_service.umodel.supervisor import HorizonTest, Supervisor
+
+
+def _first_order(a: float, b: float, bias: float = 0.0) -> ModelDynamics:
+    """y(t) = bias + a·y(t−1) + b·u(t−1) as a multi-step map."""
+    return ModelDynamics([a], bias, [[b]], 1.0, [0.0], [0.0])
+
+
+def test_a_model_that_predicts_the_mean_of_white_noise_scores_29_percent_and_fails():
+    rng = np.random.default_rng(0)
+    test = HorizonTest(threshold=50.0, window=4000, capacity=4000)
+    for y in rng.standard_normal(4000):
+        test.record(float(y), 0.0)
+    assert not test.evaluate(_first_order(0.0, 0.0), 20)
+    assert test.fit == pytest.approx(100.0 * (1.0 - 1.0 / math.sqrt(2.0)), abs=1.5)
+
+
+def test_the_true_model_passes_and_a_wrong_sign_fails():
+    rng = np.random.default_rng(1)
+    test = HorizonTest(threshold=50.0, window=500)
+    y, u = 0.0, 0.0
+    for k in range(600):
+        u_prev, u = u, float(rng.uniform(-1, 1)) if k % 10 == 0 else u
+        y = 0.9 * y + 0.5 * u_prev
+        test.record(y, u_prev)
+    assert test.evaluate(_first_order(0.9, 0.5), 40) and test.fit > 99.9 and test.full
+    assert not test.evaluate(_first_order(0.9, -0.5), 40) and test.fit < 0.0
+
+
+def test_a_short_record_gives_a_partial_verdict_and_none_below_the_minimum():
+    test = HorizonTest(threshold=50.0, window=500, minimum=30)
+    for k in range(20):
+        test.record(float(k), 1.0)
+    assert not test.evaluate(_first_order(1.0, 1.0), 100) and test.fit is None
+    for k in range(20, 60):
+        test.record(float(k), 1.0)
+    assert test.evaluate(_first_order(1.0, 1.0), 100)
+    assert not test.full and 30 <= test.steps < 100
+
+
+def _armed(window: int = 10) -> Supervisor:
+    supervisor = Supervisor()
+    supervisor.arm(model_rms=0.01, hold_rms=1.0, horizon=window, u=0.3)
+    supervisor.start_segment(0.0, -1.0, 0.3)
+    return supervisor
+
+
+def test_opposite_moves_trip_within_half_a_segment():
+    s = _armed()
+    reasons = [
+        s.segment_sample(-0.1 * k, 0.1 * k, -1.0 - 0.1 * k, -1.0 + 0.1 * k, False)
+        for k in range(1, 11)
+    ]
+    first = next(i for i, r in enumerate(reasons) if r)
+    assert first == 4 and reasons[first].startswith("output moving against the predicted direction")
+    assert s.trips == 1 and not s.armed
+
+
+def test_saturation_without_progress_trips_at_the_segment_end():
+    s = _armed()
+    reasons = [s.segment_sample(0.0, 0.0, -1.0, -1.0, True) for _ in range(10)]
+    assert reasons[:9] == [""] * 9 and reasons[9].startswith("saturation held")
+
+
+def test_settling_worse_than_trim_trips_and_a_good_loop_does_not():
+    s = _armed()
+    s.neutral(0.2)  # the model's steady state at neutral is 0.2 from the setpoint
+    reasons = [s.segment_sample(0.0, 0.0, -1.0, -1.0, False) for _ in range(10)]
+    assert reasons[9].startswith("output settled worse than holding trim")
+    good = _armed()
+    good.neutral(0.2)
+    assert all(good.segment_sample(0.0, 0.0, 0.05, 0.05, False) == "" for _ in range(30))
+
+
+def test_an_unpredicted_oscillation_trips():
+    s = _armed()
+    reasons = [s.segment_sample(0.0, 0.0, 0.5 * (-1) ** k, 0.0, False) for k in range(10)]
+    assert any(r.startswith("unpredicted oscillation") for r in reasons)
+
+
+def test_the_hold_off_doubles_and_three_trips_latch_until_the_operator_resets():
+    s = Supervisor()
+    holdoffs = []
+    for _ in range(3):
+        s.arm(0.01, 1.0, 20, 0.0)
+        s._trip("test")
+        holdoffs.append(s.holdoff(20))
+    assert holdoffs == [80, 160, 320] and s.latched
+    s.operator_reset()
+    assert not s.latched and s.holdoff(20) == 80 and s.trips == 3
