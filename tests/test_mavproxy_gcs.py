@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from hil_service.cli.processes import free_port, start_verb, stop_process
+from hil_service.cli.processes import dies_with_parent, free_port, start_verb, stop_process
 from hil_service.offline.tlog_import import TlogReport, read_tlog
 from hil_service.sources.sampler import SamplerConfig, StreamSampler
 from protocols.mavlink_io import MavlinkCodec, dialect
@@ -92,7 +92,7 @@ def mavproxy_tlog(tmp_path_factory) -> tuple[Path, dict]:
     ]
     console = open(base / "mavproxy.out", "w")  # noqa: SIM115 - closed below
     gcs = subprocess.Popen(
-        command,
+        dies_with_parent(command),
         cwd=base,
         stdin=subprocess.DEVNULL,
         # To a file: an undrained pipe fills up and MAVProxy stops routing when it blocks.

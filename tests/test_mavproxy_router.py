@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from hil_service.cli.processes import last_json, start_verb
+from hil_service.cli.processes import dies_with_parent, last_json, start_verb
 from hil_service.mcap.reader import LogReader
 from protocols.mavlink_io import dialect
 from tests.conftest import free_tcp_port, free_udp_port
@@ -43,7 +43,7 @@ STREAMS = {"SCALED_PRESSURE2", "VFR_HUD", "ATTITUDE", "SERVO_OUTPUT_RAW"}
 def _mavproxy(tmp_path: Path, master: int, out: int, tlog: Path, *extra: str):
     console = open(tmp_path / "mavproxy.out", "w")  # noqa: SIM115 - closed by _stop_mavproxy
     process = subprocess.Popen(
-        [
+        dies_with_parent([
             sys.executable,
             str(MAVPROXY),
             f"--master=udpin:127.0.0.1:{master}",
@@ -53,7 +53,7 @@ def _mavproxy(tmp_path: Path, master: int, out: int, tlog: Path, *extra: str):
             f"--state-basedir={tmp_path}",
             f"--logfile={tlog}",
             *extra,
-        ],
+        ]),
         cwd=tmp_path,
         stdin=subprocess.DEVNULL,
         # To a file: an undrained pipe fills up and MAVProxy stops routing when it blocks.

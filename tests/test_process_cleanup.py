@@ -36,8 +36,47 @@ def test_a_killed_demos_service_and_emulator_are_stopped_with_it(processes, tmp_
     demo = processes.start("demo", "--duration", "120", "--speed", "10", "--log-dir", str(tmp_path))
     # The service first, then the emulator: two processes of the demo's group.
     _until(lambda: len(_group_members(demo.pid)) >= 2, 120, "the demo's two processes")
-    demo.kill()  # dies without stopping them
+    demo.kill()  # dies without stopping them: they die with it (their parent-death signal)
     demo.wait(10)
-    assert _group_members(demo.pid), "the demo's processes should have outlived it"
-    processes.stop_all()
-    _until(lambda: not _group_members(demo.pid), 10, "the demo's processes to end")
+    _until(lambda: not _group_members(demo.pid), 10, "the demo's processes to end with it")
+
+
+def test_a_verb_dies_with_a_parent_that_is_sigkilled(tmp_path):
+    """A test run SIGKILLed mid-test leaves no ``serve`` behind: the parent here is a plain
+    Python process that starts ``serve`` as the suite does, then is SIGKILLed."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, time\n"
+        "from hil_service.cli.processes import free_port, start_service\n"
+        "import socket\n"
+        "service = start_service('--mavlink', f'udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}',"
+        " '--zenoh-listen', f'tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}',"
+        f" '--log-dir', {str(tmp_path)!r})\n"
+        "print(service.pid, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    root = Path(__file__).parent.parent
+    parent = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=root
+    )
+    try:
+        assert parent.stdout is not None
+        service = int(parent.stdout.readline())
+        assert _alive(service)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        _until(lambda: not _alive(service), 10, "the service to die with its parent")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"

@@ -16,6 +16,7 @@ import threading
 import time
 from pathlib import Path
 
+from hil_service.cli.processes import dies_with_parent
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -23,7 +24,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def start_router(endpoint: str, config_file: str | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, "-m", "tests.zenoh_router", endpoint, *filter(None, [config_file])],
+        dies_with_parent(
+            [sys.executable, "-m", "tests.zenoh_router", endpoint, *filter(None, [config_file])]
+        ),
         stdout=subprocess.PIPE,
         text=True,
         cwd=ROOT,

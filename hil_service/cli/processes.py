@@ -6,11 +6,13 @@ import contextlib
 import json
 import os
 import select
+import shutil
 import signal
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from typing import Any
 
 
@@ -21,15 +23,33 @@ def free_port(kind: int) -> int:
         return sock.getsockname()[1]
 
 
+#: util-linux's ``setpriv`` (in every Debian system): sets the parent-death signal, then
+#: execs the command, so the process keeps its pid and needs no ``preexec_fn`` (which is not
+#: safe in a process with threads, as every one with a Zenoh session has).
+SETPRIV = shutil.which("setpriv")
+
+
+def dies_with_parent(argv: Sequence[str]) -> list[str]:
+    """``argv`` run so that Linux SIGKILLs it when the process that starts it ends, even
+    when that one is SIGKILLed itself (``PR_SET_PDEATHSIG``): no ``serve``, ``emulate`` or
+    peer outlives a killed test run or demo. The signal follows the thread that starts the
+    child, so start it from a thread that lives as long as the child should. Without
+    ``setpriv`` (not Linux), ``argv`` unchanged."""
+    if SETPRIV is None:
+        return list(argv)
+    return [SETPRIV, "--pdeathsig", "KILL", *argv]
+
+
 def start_verb(*args: str, own_group: bool = False) -> subprocess.Popen[str]:
     """``glider-hil ARGS…`` with this interpreter, output captured, unbuffered.
 
     ``own_group``: the child leads a process group of its own, which ``stop_process`` ends
     as a whole, so a verb that starts processes of its own (``demo``) leaves none behind
-    even when it has to be killed.
+    even when it has to be killed. Either way the child dies with this process
+    (``dies_with_parent``).
     """
     process = subprocess.Popen(
-        [sys.executable, "-m", "hil_service.cli", *args],
+        dies_with_parent([sys.executable, "-m", "hil_service.cli", *args]),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
