@@ -49,6 +49,7 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.mcap.writer",
     "hil_service.mcap.recorder",
     "hil_service.umodel.scoring",
+    "hil_service.umodel.supervisor",
     "hil_service.service",
     "hil_service.pipeline",
     "protocols.frame_decoder",
