@@ -128,6 +128,7 @@ def test_report_on_a_field_import_scores_held_out_dives(tmp_path: Path) -> None:
     text = (tmp_path / "report" / "report.md").read_text()
     assert "## Field identification (seaglider SG542)" in text
     assert "steady-glide" in text and "rls-arx" in text and "persistence" in text
+    assert "| glide-u |" in text and "glide-u (buoyancy input and measured pitch)" in text
     assert "fit % dive 306" in text and "excited" in text
     assert (tmp_path / "report" / "field_depth_steady-glide.png").stat().st_size > 10_000
 

@@ -12,7 +12,14 @@ Models per channel (depth: buoyancy input; pitch: pitch input):
   balance for pitch, least squares on the same training samples; for depth also
   ``steady-glide-buoyancy-only``, the same model given only what the U-model is given (the
   buoyancy input; |pitch| held at its training mean), which says how much of the physical
-  model's lead is the measured pitch.
+  model's lead is the measured pitch;
+* for depth, ``glide-u`` (``hil_service.umodel.glide_umodel``): the U-model given what the
+  flight model is given, the buoyancy input and the measured pitch, its polynomial in the
+  buoyancy input scaled by |sin θ|^{3/2}; trained online on the training dives like the
+  single-input U-model.
+
+The dives are split as ``split`` says (``SPLITS``): the first ``train_fraction`` of them for
+training by default, or every other one.
 
 Scores per held-out dive (each its own segment; the first ``L`` samples, L = 1 + the longest
 history of the models, sync every model and are not scored):
@@ -45,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from hil_service.umodel import OneStepModel, PersistenceModel, build_model
+from hil_service.umodel.glide_umodel import GlideUModel
 from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
 from hil_service.umodel.steady_glide import fit_static_pitch, fit_steady_glide
 
@@ -53,6 +61,9 @@ EXCITATION_STD = 0.02
 EXCITATION_MOVES = 1.0  # move onsets per training dive
 EXCITATION_RCOND = 1e-3
 PHYSICAL = {"depth": "steady-glide", "pitch": "static-balance"}
+#: How the dives are split: ``first`` trains on the first ``train_fraction`` of them and
+#: scores the rest; ``alternate`` trains on dives 1, 3, 5, … and scores 2, 4, 6, ….
+SPLITS = ("first", "alternate")
 
 
 @dataclass(frozen=True)
@@ -270,6 +281,78 @@ def _glide_runner(
 
 
 BUOYANCY_ONLY = "steady-glide-buoyancy-only"
+GLIDE_U = GlideUModel.name
+
+
+def _glide_u_runner(
+    model: GlideUModel, arrays: Arrays, train: list[Segment], sync: int, horizon: int
+) -> Runner:
+    """The two-input U-model (buoyancy input and measured pitch), trained online on the
+    training segments like the single-input models, then run as ``_online_runner`` runs
+    them with θ(t−1) beside u(t−1)."""
+    y, u, th = arrays.depth, arrays.u_depth, arrays.pitch
+    lead = model.history_length
+    for s in train:
+        u_in = _model_inputs(u, s.start, s.stop)
+        th_in = _model_inputs(th, s.start, s.stop)
+        for j, k in enumerate(range(s.start, s.stop)):
+            if j < lead:
+                model.observe_only(float(u_in[j]), float(y[k]), float(th_in[j]))
+            else:
+                model.step(float(u_in[j]), float(y[k]), float(th_in[j]))
+
+    def run(s: Segment) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        u_in = _model_inputs(u, s.start, s.stop).tolist()
+        th_in = _model_inputs(th, s.start, s.stop).tolist()
+        yy = y[s.start : s.stop].tolist()
+        n = len(yy)
+
+        def resync(start: int) -> None:
+            for j in range(start - sync, start):
+                model.observe_only(u_in[j], yy[j], th_in[j])
+
+        one = np.empty(n - sync)
+        resync(sync)
+        for j in range(sync, n):
+            one[j - sync] = model.predict(u_in[j], th_in[j])
+            model.observe_only(u_in[j], yy[j], th_in[j])
+        sim = np.empty(n - sync)
+        resync(sync)
+        for j in range(sync, n):
+            value = model.predict(u_in[j], th_in[j])
+            model.observe_only(u_in[j], value, th_in[j])
+            sim[j - sync] = value
+        targets: list[int] = []
+        predictions: list[float] = []
+        for start in range(sync, n - horizon + 1, sync + horizon):
+            resync(start)
+            value = math.nan
+            for i in range(start, start + horizon):
+                value = model.predict(u_in[i], th_in[i])
+                model.observe_only(u_in[i], value, th_in[i])
+            targets.append(start + horizon - 1)
+            predictions.append(value)
+        return one, sim, np.asarray(targets, dtype=int), np.asarray(predictions)
+
+    return run
+
+
+def _glide_u(
+    arrays: Arrays,
+    train: list[Segment],
+    held: list[Segment],
+    horizon: int,
+    sync: int,
+    figure: Segment | None,
+    options: dict[str, Any],
+) -> ModelResult:
+    model = GlideUModel(u_scale=arrays.full_scale, **options)
+    result = ModelResult(GLIDE_U)
+    run = _glide_u_runner(model, arrays, train, sync, horizon)
+    names = [f"beta_{m + 1}" for m in range(model.degree)] + ["beta_0", "c", "gamma"]
+    result.parameters = dict(zip(names, model.parameters, strict=True))
+    _score(result, run, arrays.depth, held, sync, figure, horizon)
+    return result
 
 
 def _buoyancy_only(
@@ -376,8 +459,13 @@ def identify_dives(
     train_fraction: float = 0.5,
     horizon_s: float = 300.0,
     seed: int = 0,
+    glide_options: dict[str, Any] | None = None,
+    split: str = "first",
 ) -> list[ChannelResult]:
-    """Per channel: every model trained on the first dives and scored on the others."""
+    """Per channel: every model trained on the training dives and scored on the others.
+
+    ``glide_options``: options of ``GlideUModel`` (``u_scale`` is the log's full scale).
+    """
     segments = [s for s in arrays.segments if s.stop - s.start >= 2]
     if len({s.dive for s in segments}) < 2:
         # One file holding several yos (a Slocum segment file): its segments are the dives.
@@ -385,8 +473,13 @@ def identify_dives(
     dives = sorted({s.dive for s in segments})
     if len(dives) < 2:
         raise ValueError(f"at least two dives are needed to hold one out, got {len(dives)}")
-    n_train = min(len(dives) - 1, max(1, math.ceil(train_fraction * len(dives))))
-    train_dives, held_dives = dives[:n_train], dives[n_train:]
+    if split == "first":
+        n_train = min(len(dives) - 1, max(1, math.ceil(train_fraction * len(dives))))
+        train_dives, held_dives = dives[:n_train], dives[n_train:]
+    elif split == "alternate":
+        train_dives, held_dives = dives[0::2], dives[1::2]
+    else:
+        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
     train = [s for s in segments if s.dive in train_dives]
     held = [s for s in segments if s.dive in held_dives]
     horizon = max(2, round(horizon_s / arrays.period))
@@ -420,6 +513,9 @@ def identify_dives(
         models.append(result)
         if channel == "depth":
             models.append(_buoyancy_only(arrays, train, held, horizon, sync, figure))
+            models.insert(
+                3, _glide_u(arrays, train, held, horizon, sync, figure, glide_options or {})
+            )
         results.append(
             ChannelResult(
                 channel,

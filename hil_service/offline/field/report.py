@@ -3,8 +3,8 @@
 Reads the grid samples (``glider/{id}/telemetry``) and the segments the import stored
 (``field`` in the configuration, docs/mcap.md), runs ``evaluate.identify_dives`` and writes
 a table per channel (one-step skill, free-run fit per held-out dive, k-step NMSE, for
-persistence, RLS-ARX, the U-model and the first-principles baseline), whether the input
-was excited enough, and a figure per model of predicted vs actual over one held-out dive.
+persistence, RLS-ARX, the U-model, the two-input U-model of depth and the
+first-principles baseline), whether the input was excited enough, and a figure per model of predicted vs actual over one held-out dive.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.field.evaluate import (
+    GLIDE_U,
     PHYSICAL,
     Arrays,
     ChannelResult,
@@ -206,4 +207,12 @@ def _channel_lines(result: ChannelResult, period: float) -> list[str]:
     if physical is not None and physical.parameters:
         text = ", ".join(f"{k} {v:.4g}" for k, v in physical.parameters.items())
         lines += ["", f"{physical.model} parameters (least squares on the training dives): {text}"]
+    glide = next((m for m in result.models if m.model == GLIDE_U), None)
+    if glide is not None and glide.parameters:
+        text = ", ".join(f"{k} {v:.4g}" for k, v in glide.parameters.items())
+        lines += [
+            "",
+            f"{GLIDE_U} (buoyancy input and measured pitch) parameters after the training "
+            f"dives: {text}",
+        ]
     return lines

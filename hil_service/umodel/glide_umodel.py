@@ -1,0 +1,257 @@
+"""A two-input U-model of a glider's depth: the buoyancy input and the measured pitch.
+
+The single-input U-model of depth (``dynamic``) sees the buoyancy input u alone, while the
+vertical speed of a glider depends as much on its pitch θ: in steady flight (the flight
+model of :mod:`.steady_glide`, Graver 2005 ch. 3, Merckelbach et al. 2010)
+
+    ż = −k · sign(b) · √|b| · |sin θ|^{3/2},   b = u − v₀ − c_p·z.
+
+This model keeps the U-model's structure, a polynomial in the control input u(t−1) whose
+coefficients vary with time, and lets the pitch set them, as the flight model does::
+
+    y(t) = α₀(t) + Σ_{m=1..M} α_m(t) · x(t−1)^m,          x = u / u_scale,
+    α_m(t) = β_m · s(t−1),                                 s = |sin θ|^{3/2},
+    α₀(t) = y(t−1) + c + β₀ · s(t−1) + γ · s(t−1) · ζ(t−1),  ζ = y / y_scale.
+
+The polynomial β₀ + Σ β_m x^m stands for sign(b)·√|b| (the neutral volume v₀ in β₀ and the
+lower powers, the sign change and the square root in the odd and even powers), γ·ζ for the
+hull's compression with depth (c_p), c for a steady vertical drift. Depth is the integral of
+the vertical speed, so the output enters as y(t−1) with a unit coefficient (an integrator
+from physics, not a fitted a₁ ≈ 1 whose error would grow over a thousand-metre free run).
+Every term is linear in θ = [β₁..β_M, β₀, c, γ]: recursive least squares with forgetting
+(``ListRLS``, plain floats in a fixed order: deterministic, no random initialisation).
+
+Inputs: ``step(u_prev, y, pitch_prev)`` with u_prev = u(t−1), the buoyancy input applied
+before y(t) was measured, and pitch_prev = θ(t−1) in radians, the pitch measured then
+(see :mod:`.models` for the timing convention). A sample whose input, pitch or output is
+non-finite or absurd (beyond the guard's limits; |θ| > π) is rejected without touching the
+state, divergence is detected as in every other model (:mod:`.guards`), and ``predict``
+never returns NaN.
+
+Not a controller model: it has no multi-step map (``dynamics()``), since the pitch it needs
+is a measurement, not a command the controller chooses. Pure numerics, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+from .guards import DivergenceMonitor, GuardConfig
+from .models import Estimate, Status
+from .reproducible import dot
+from .rls import ListRLS
+
+__all__ = ["GlideUModel"]
+
+_isfinite = math.isfinite
+
+
+def glide_factor(pitch: float) -> float:
+    """|sin θ|^{3/2}, the flight model's pitch dependence of the vertical speed."""
+    return abs(math.sin(pitch)) ** 1.5
+
+
+class GlideUModel:
+    """Depth from the buoyancy input and the measured pitch (see the module)."""
+
+    name: ClassVar[str] = "glide-u"
+
+    def __init__(
+        self,
+        *,
+        degree: int = 3,
+        u_scale: float = 2.0,
+        y_scale: float = 100.0,
+        lam: float = 0.9999,
+        p0: float = 1000.0,
+        guard: GuardConfig | dict[str, Any] | None = None,
+    ) -> None:
+        if int(degree) != degree or degree < 1:
+            raise ValueError("degree M must be an integer >= 1")
+        for label, value in (("u_scale", u_scale), ("y_scale", y_scale)):
+            if not (isinstance(value, int | float) and _isfinite(value) and value > 0.0):
+                raise ValueError(f"{label} must be finite and > 0, got {value!r}")
+        self.guard = GuardConfig.coerce(guard)
+        self.degree = int(degree)
+        self.u_scale = float(u_scale)
+        self.y_scale = float(y_scale)
+        n = self.degree + 3
+        self.rls = ListRLS(n, lam, p0)
+        self._monitor = DivergenceMonitor(self.guard)
+        self._theta: list[float] = [0.0] * n
+        self._phi: list[float] = [0.0] * n
+        self._frozen = False
+        self._primed = False
+        self._y_last = 0.0
+        self._u_last = 0.0
+        self._pitch_last = 0.0
+        self._n_accepted = 0
+        self._n_rejected = 0
+
+    # ---- the regressor -----------------------------------------------------------------
+    def _regressor(self, u: float, pitch: float) -> list[float]:
+        s = glide_factor(pitch)
+        x = u / self.u_scale
+        phi = []
+        p = 1.0
+        for _ in range(self.degree):
+            p *= x
+            phi.append(s * p)
+        zeta = self._y_last / self.y_scale
+        phi += [s, 1.0, s * zeta]
+        return phi
+
+    def _valid(self, u: float, pitch: float) -> bool:
+        return (
+            _isfinite(u)
+            and abs(u) <= self.guard.input_limit
+            and _isfinite(pitch)
+            and abs(pitch) <= math.pi
+        )
+
+    def _output_ok(self, y: float) -> bool:
+        return _isfinite(y) and abs(y) <= self.guard.output_limit
+
+    # ---- public API --------------------------------------------------------------------
+    @property
+    def history_length(self) -> int:
+        """One sample: y(t−1) with u(t−1) and θ(t−1)."""
+        return 1
+
+    @property
+    def frozen(self) -> bool:
+        return self._frozen
+
+    @property
+    def parameters(self) -> tuple[float, ...]:
+        """θ = (β₁..β_M, β₀, c, γ)."""
+        return tuple(self._theta)
+
+    def predict(self, u_prev: float, pitch_prev: float) -> float:
+        """A-priori ŷ(t); invalid inputs are replaced by the last accepted ones, a
+        non-finite result by the last accepted output. No mutation."""
+        if not self._valid(u_prev, pitch_prev):
+            u_prev, pitch_prev = self._u_last, self._pitch_last
+        if not self._primed:
+            return self._y_last
+        y_hat = self._y_last + dot(self._theta, self._regressor(u_prev, pitch_prev))
+        return y_hat if _isfinite(y_hat) else self._y_last
+
+    def observe_only(self, u_prev: float, y: float, pitch_prev: float) -> bool:
+        """Advance the history by one sample without learning (after a gap, or a free run
+        fed its own predictions); invalid values are ignored (False)."""
+        if not (self._valid(u_prev, pitch_prev) and self._output_ok(y)):
+            return False
+        self._remember(u_prev, y, pitch_prev)
+        return True
+
+    def step(self, u_prev: float, y: float, pitch_prev: float) -> Estimate:
+        """Predict ŷ(t) from u(t−1), θ(t−1) and y(t−1), then learn from y(t)."""
+        if not (self._valid(u_prev, pitch_prev) and self._output_ok(y)):
+            self._n_rejected += 1
+            y_hat = self.predict(u_prev, pitch_prev)
+            return Estimate(
+                self.name,
+                "rejected",
+                y if _isfinite(y) else y_hat,
+                y_hat,
+                0.0,
+                self._alpha(self._u_last, self._pitch_last, y_hat),
+                tuple(self._theta),
+            )
+        if not self._primed:  # no y(t−1) yet: nothing to predict from
+            self._remember(u_prev, y, pitch_prev)
+            self._n_accepted += 1
+            return Estimate(self.name, "ok", y, y, 0.0, (y,), tuple(self._theta))
+        phi = self._regressor(u_prev, pitch_prev)
+        y_hat = self._y_last + dot(self._theta, phi)
+        status: Status = "frozen" if self._frozen else "ok"
+        if not _isfinite(y_hat):
+            y_hat = self._y_last
+            self._diverged()
+            status = "diverged"
+        error = y - y_hat
+        alpha = self._alpha(u_prev, pitch_prev, y_hat)
+        weights = tuple(self._theta)
+        if status == "ok" and not (self.rls.update(self._theta, phi, error) and self._params_ok()):
+            self._diverged()
+            status = "diverged"
+        if status != "diverged" and self._monitor.observe(y, error):
+            self._diverged()
+            status = "diverged"
+        self._remember(u_prev, y, pitch_prev)
+        self._n_accepted += 1
+        return Estimate(self.name, status, y, y_hat, error, alpha, weights)
+
+    def unfreeze(self) -> None:
+        self._frozen = False
+        self._monitor.count = 0
+
+    def reset(self) -> None:
+        """Back to the freshly constructed state."""
+        self._theta = [0.0] * len(self._theta)
+        self.rls.reset()
+        self._monitor.reset()
+        self._frozen = False
+        self._primed = False
+        self._y_last = self._u_last = self._pitch_last = 0.0
+        self._n_accepted = self._n_rejected = 0
+
+    def config(self) -> dict[str, Any]:
+        """JSON-serialisable construction parameters: ``GlideUModel(**cfg)`` minus the name
+        rebuilds the same model."""
+        return {
+            "name": self.name,
+            "degree": self.degree,
+            "u_scale": self.u_scale,
+            "y_scale": self.y_scale,
+            "lam": self.rls.lam,
+            "p0": self.rls.p0,
+            "guard": self.guard.to_dict(),
+        }
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "theta": list(self._theta),
+            "frozen": self._frozen,
+            "y_last": self._y_last,
+            "u_last": self._u_last,
+            "pitch_last": self._pitch_last,
+            "n_accepted": self._n_accepted,
+            "n_rejected": self._n_rejected,
+            "monitor": self._monitor.state(),
+        }
+
+    # ---- internals ---------------------------------------------------------------------
+    def _alpha(self, u: float, pitch: float, y_hat: float) -> tuple[float, ...]:
+        """(α₀, α₁..α_M) that produced ``y_hat``: y_hat = α₀ + Σ α_m u^m."""
+        s = glide_factor(pitch)
+        poly = [self._theta[m] * s / self.u_scale ** (m + 1) for m in range(self.degree)]
+        a0 = y_hat
+        p = 1.0
+        for a in poly:
+            p *= u
+            a0 -= a * p
+        return (a0, *poly)
+
+    def _remember(self, u: float, y: float, pitch: float) -> None:
+        self._primed = True
+        self._y_last = y
+        self._u_last = u
+        self._pitch_last = pitch
+
+    def _params_ok(self) -> bool:
+        limit = self.guard.param_limit
+        return dot(self._theta, self._theta) <= limit * limit
+
+    def _diverged(self) -> None:
+        mon = self._monitor
+        mon.n_divergences += 1
+        mon.count = 0
+        if self.guard.on_divergence == "reset" or not self._params_ok():
+            self._theta = [0.0] * len(self._theta)
+            self.rls.reset()
+        if self.guard.on_divergence == "freeze":
+            self._frozen = True
