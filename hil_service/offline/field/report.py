@@ -4,7 +4,8 @@ Reads the grid samples (``glider/{id}/telemetry``) and the segments the import s
 (``field`` in the configuration, docs/mcap.md), runs ``evaluate.identify_dives`` and writes
 a table per channel (one-step skill, free-run fit per held-out dive, k-step NMSE, for
 persistence, RLS-ARX, the U-model, the two-input U-model of depth and the
-first-principles baseline), whether the input was excited enough, and a figure per model of predicted vs actual over one held-out dive.
+first-principles baseline), whether the input was excited enough, and a figure per model of
+predicted vs actual over one held-out dive.
 """
 
 from __future__ import annotations
