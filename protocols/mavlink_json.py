@@ -61,11 +61,12 @@ def _field_schema(field_type: str, array_length: int) -> dict[str, Any]:
 def message_schema(message_type: str) -> dict[str, Any]:
     """JSON Schema of ``message_to_json`` output for a ``common`` dialect message type."""
     cls = getattr(dialect, f"MAVLink_{message_type.lower()}_message")
+    # pymavlink lists array lengths in wire order (ordered_fieldnames), types in declaration
+    # order (fieldnames): pair each by name.
+    lengths = dict(zip(cls.ordered_fieldnames, cls.array_lengths, strict=True))
     properties = {
-        name: _field_schema(ftype, length)
-        for name, ftype, length in zip(
-            cls.fieldnames, cls.fieldtypes, cls.array_lengths, strict=True
-        )
+        name: _field_schema(ftype, lengths[name])
+        for name, ftype in zip(cls.fieldnames, cls.fieldtypes, strict=True)
     }
     properties["_header"] = {
         "type": "object",

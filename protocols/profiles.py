@@ -530,7 +530,8 @@ class _Parser:
                 occurrence,
             )
         position = message_class.fieldnames.index(field_name)
-        length = message_class.array_lengths[position]
+        # Array lengths are in wire order (ordered_fieldnames), types in declaration order.
+        length = message_class.array_lengths[message_class.ordered_fieldnames.index(field_name)]
         if message_class.fieldtypes[position] == "char":
             self.fail(f"{message}.{field_name} is text, not a number", name, "field", occurrence)
         index = entry.get("index")

@@ -28,7 +28,7 @@ MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
 PERIOD = 0.1
 SPEED = 5.0
 BURN_IN = 400  # samples: 40 simulated s of PRBS
-CONTROL = 800  # samples of a depth and pitch step
+CONTROL = 1200  # samples of a depth and pitch step (the horizon test delays depth commanding)
 US32_SPAN = (1 << 32) / 1e6  # SERVO_OUTPUT_RAW.time_usec wraps at this uptime (s)
 # The vehicle's µs clock wraps this many simulated s after the emulator starts: after the
 # identification's 500 samples (at least 50 s, plus the time the stream requests take: ~20 s
