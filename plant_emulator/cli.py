@@ -7,20 +7,30 @@ import json
 import signal
 import sys
 import threading
+from collections.abc import Callable
 
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
 from plant_emulator.lockstep import DEFAULT_TIMEOUT, LockstepRunner
 from plant_emulator.models import CHANNELS
-from plant_emulator.plant import GliderPlant, PlantConfig
+from plant_emulator.plant import FamilyPlant, GliderPlant, PlantConfig, wire_bounds
+from plant_emulator.reboot import RebootAt
 from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
+from protocols.samples import TelemetrySample
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
+
+# The one home of each default: the dataclasses the options configure.
+_PLANT = PlantConfig()
+_AUTOPILOT = AutopilotConfig()
+_STREAMS = StreamConfig()
+_INPUTS = InputScale()
+_PRESSURE = PressureDepth()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,7 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="udpout:127.0.0.1:14550",
         help="pymavlink connection string of the link to the service (default %(default)s)",
     )
-    parser.add_argument("--sysid", type=int, default=1, help="MAVLink system id (default 1)")
+    parser.add_argument(
+        "--sysid",
+        type=int,
+        default=_AUTOPILOT.system_id,
+        help="MAVLink system id (default %(default)s)",
+    )
     parser.add_argument(
         "--profile",
         default=DEFAULT_PROFILE,
@@ -41,17 +56,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--period",
         type=float,
         default=None,
-        help="plant step, simulated s (default 1.0; a periodic profile: its sample period)",
+        help=f"plant step, simulated s (default {_PLANT.period:g}; a periodic profile: its "
+        "sample period)",
     )
     parser.add_argument(
         "--uptime",
         type=float,
-        default=0.0,
+        default=_STREAMS.uptime,
         help="periodic profiles: simulated s since boot at start (4290: the uint32 µs clock "
         "of SERVO_OUTPUT_RAW wraps 5 s in)",
     )
     parser.add_argument(
-        "--jitter", type=float, default=0.1, help="periodic profiles: fraction of each interval"
+        "--jitter",
+        type=float,
+        default=_STREAMS.jitter,
+        help="periodic profiles: fraction of each interval (default %(default)s)",
     )
     for name, hz in DEFAULT_RATES_HZ.items():
         parser.add_argument(
@@ -61,22 +80,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             metavar="HZ",
             help=f"periodic profiles: {name} per simulated s (default %(default)s, 0: off)",
         )
-    parser.add_argument("--speed", type=float, default=1.0, help="times faster than real time")
+    parser.add_argument(
+        "--speed", type=float, default=_AUTOPILOT.speed, help="times faster than real time"
+    )
     parser.add_argument(
         "--duration", type=float, default=None, help="simulated seconds to run (default: forever)"
     )
-    parser.add_argument("--scenario", choices=SCENARIOS, default="paper")
+    parser.add_argument("--scenario", choices=SCENARIOS, default=_PLANT.scenario)
     parser.add_argument("--excitation", choices=EXCITATIONS, default="steps")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--trim-depth", type=float, default=15.0, help="m (default 15)")
-    parser.add_argument("--rate-limit", type=float, default=0.5, help="model units per step")
+    parser.add_argument("--seed", type=int, default=_PLANT.seed)
+    parser.add_argument(
+        "--trim-depth", type=float, default=_PLANT.trim_depth, help="m (default %(default)s)"
+    )
+    parser.add_argument(
+        "--rate-limit",
+        type=float,
+        default=_PLANT.rate_limit,
+        help="model units per step (default %(default)s)",
+    )
     parser.add_argument(
         "--command-timeout",
         type=float,
-        default=10.0,
-        help="simulated s without a command before falling back (default 10)",
+        default=_AUTOPILOT.command_timeout,
+        help="simulated s without a command before falling back (default %(default)s)",
     )
-    parser.add_argument("--fallback", choices=FALLBACKS, default="excitation")
+    parser.add_argument("--fallback", choices=FALLBACKS, default=_AUTOPILOT.fallback)
     parser.add_argument(
         "--signing-key",
         metavar="FILE",
@@ -95,11 +123,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the plant changes at --change-at: 'flip' the input's sign, 'gain5' a fivefold "
         "gain (on --change-channel)",
     )
+    parser.add_argument(
+        "--family",
+        metavar="SEED:INDEX",
+        default=None,
+        help="emulate vehicle INDEX of the seeded family of SEED (plant_emulator/family.py) "
+        "instead of --scenario: its two plants behind the glider's actuator, at its drawn "
+        "sample period unless --period gives one",
+    )
+    parser.add_argument(
+        "--reboot-at",
+        type=int,
+        default=None,
+        metavar="STEP",
+        help="periodic profiles: the vehicle reboots after plant step STEP (its clock starts "
+        "again from boot, it forgets the companion's commands and stream rates)",
+    )
     parser.add_argument("--change-channel", choices=CHANNELS, default="pitch")
     parser.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
-    parser.add_argument("--full-scale", type=float, default=2.0, help="model units at wire 1.0")
-    parser.add_argument("--water-density", type=float, default=1025.0, help="kg/m³")
-    parser.add_argument("--surface-pressure", type=float, default=1013.25, help="hPa")
+    parser.add_argument(
+        "--full-scale",
+        type=float,
+        default=_INPUTS.full_scale,
+        help="model units at wire 1.0 (default %(default)s)",
+    )
+    parser.add_argument(
+        "--water-density",
+        type=float,
+        default=_PRESSURE.water_density,
+        help="kg/m³ (default %(default)s)",
+    )
+    parser.add_argument(
+        "--surface-pressure",
+        type=float,
+        default=_PRESSURE.surface_hpa,
+        help="hPa (default %(default)s)",
+    )
     parser.add_argument(
         "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
     )
@@ -128,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
             print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
             return 2
         if args.period is None:
-            args.period = 1.0  # the glider profile's plant step
+            args.period = _PLANT.period  # the glider profile's plant step
         return run_fleet(args)
     try:
         profile = load_profile(args.profile)
@@ -137,25 +196,35 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
         if not (args.lockstep_timeout > 0):
             raise ValueError("--lockstep-timeout must be positive")
+        if args.reboot_at is not None and not periodic:
+            raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
         period = args.period
-        if period is None:
-            period = profile.sampling.period if periodic and profile.sampling.period else 1.0
+        if period is None and args.family is None:  # a family vehicle has its own
+            period = (
+                profile.sampling.period
+                if periodic and profile.sampling.period
+                else _PLANT.period
+            )
         streams = StreamConfig(
             uptime=args.uptime,
             jitter=args.jitter,
             rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
             seed=args.seed,
         )
-        plant = GliderPlant(
-            PlantConfig(
-                scenario=args.scenario,
-                period=period,
-                seed=args.seed,
-                trim_depth=args.trim_depth,
-                rate_limit=args.rate_limit,
-            ),
-            system_id=args.sysid,
-        )
+        plant: GliderPlant | FamilyPlant
+        if args.family is not None:
+            plant = family_plant(args.family, period, args.sysid)
+        else:
+            plant = GliderPlant(
+                PlantConfig(
+                    scenario=args.scenario,
+                    period=period,
+                    seed=args.seed,
+                    trim_depth=args.trim_depth,
+                    rate_limit=args.rate_limit,
+                ),
+                system_id=args.sysid,
+            )
         if args.change is not None:
             actuator = plant.actuators[args.change_channel]
             changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
@@ -190,7 +259,10 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
 
     excitations = build_channel_excitations(args.excitation, seed=args.seed)
-    on_step = print_sample if args.print_every else None
+    on_step: Callable[[TelemetrySample], None] | None = print_sample if args.print_every else None
+    rebooter = None
+    if args.reboot_at is not None:
+        on_step = rebooter = RebootAt(args.reboot_at, on_step)
     autopilot: Autopilot
     if periodic:
         autopilot = ArduSubAutopilot(
@@ -198,11 +270,15 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         autopilot = Autopilot(plant, link, excitations, config, mapping, on_step=on_step)
+    if rebooter is not None:
+        assert isinstance(autopilot, ArduSubAutopilot)
+        rebooter.autopilot = autopilot
     lockstep = LockstepRunner(autopilot, args.lockstep_timeout) if args.lockstep else None
     pace = "in lockstep" if lockstep is not None else f"at {args.speed:g}x"
+    what = args.scenario if args.family is None else f"family {args.family}"
     print(
-        f"emulating glider sysid {args.sysid} ({args.scenario}, {args.excitation}, profile "
-        f"{profile.name}) on {args.connect} {pace}",
+        f"emulating glider sysid {args.sysid} ({what}, {args.excitation}, profile "
+        f"{profile.name}, {plant.config.period:g} s) on {args.connect} {pace}",
         file=sys.stderr,
         flush=True,
     )
@@ -217,5 +293,29 @@ def run(args: argparse.Namespace) -> int:
         summary["streams_sent"] = dict(autopilot.sent)
     if lockstep is not None:
         summary["lockstep"] = lockstep.stats.as_dict()
+    if isinstance(plant, FamilyPlant):
+        summary["family"] = {ch: spec.as_json() for ch, spec in plant.specs.items()}
+    if rebooter is not None:
+        summary["reboot"] = {"at_step": rebooter.step, "clock_back_s": rebooter.went_back}
     print(json.dumps({"emulator": summary}), flush=True)
     return 0
+
+
+def family_plant(choice: str, period: float | None, system_id: int) -> FamilyPlant:
+    """``--family SEED:INDEX``: the family's vehicle; a warning on stderr for an output
+    that may leave what the glider's telemetry carries (the service drops such samples)."""
+    seed, sep, index = choice.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        plant = FamilyPlant(int(seed), int(index), period, system_id)
+    except ValueError as error:
+        detail = f": {error}" if str(error) else ""
+        raise ValueError(
+            f"--family wants SEED:INDEX (two integers), got {choice!r}{detail}"
+        ) from None
+    for spec in plant.specs.values():
+        reason = wire_bounds(spec)
+        if reason:
+            print(f"glider-hil emulate: warning: family {choice} {reason}", file=sys.stderr)
+    return plant
