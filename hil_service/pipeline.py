@@ -597,7 +597,8 @@ class VehiclePipeline:
         ``inputs_reused``: the sample's input readings are the previous sample's (an
         asynchronous sampler knows; see ``ChannelPipeline.observe``)."""
         follows = self.gaps.follows(sample.time_boot_ms)
-        if self.gaps.restarted:
+        if self.gaps.restarted or sample.restarted:  # a periodic source marks a reboot
+            follows = False
             for pipeline in self.channels.values():
                 pipeline.on_restart()
         estimates = {}

@@ -25,6 +25,9 @@ class TelemetrySample(NamedTuple):
     u_pitch: float
     pitch_rate: float = 0.0
     climb: float = 0.0
+    #: The vehicle rebooted just before this sample, where the timestamp does not show it
+    #: (a periodic source keeps ``time_boot_ms`` increasing across a reboot).
+    restarted: bool = False
 
     @property
     def t(self) -> float:

@@ -50,6 +50,7 @@ class Loop:
         self.excite = [RandomSteps(2.0, 5, 30, seed=11), RandomSteps(2.0, 5, 30, seed=12)]
         self.k = 0
         self.time_offset_ms = 0
+        self.restart_mark = False  # the next sample is marked ``restarted``
         self.command = [0.0, 0.0]
         self.y: list[float] = []
         self.u: list[float] = []
@@ -72,6 +73,7 @@ class Loop:
         depth = out["depth"] + (self.disturbance(k) if self.disturbance else 0.0)
         self.k += 1
         t_ms = round(k * self.depth.period * 1000.0) - self.time_offset_ms
+        restarted, self.restart_mark = self.restart_mark, False
         return TelemetrySample(
             system_id=1,
             time_boot_ms=t_ms,
@@ -79,6 +81,7 @@ class Loop:
             pitch=out["pitch"],
             u_depth=applied["depth"],
             u_pitch=applied["pitch"],
+            restarted=restarted,
         )
 
     def run(self, steps: int, setpoints: dict[str, float | None], enabled: bool = True) -> None:
@@ -108,3 +111,8 @@ class Loop:
     def restart_clock(self) -> None:
         """The vehicle's clock starts again from zero (a reboot) at the next sample."""
         self.time_offset_ms = round(self.k * self.depth.period * 1000.0) - 1000
+
+    def reboot_marked(self) -> None:
+        """The vehicle reboots before the next sample, as a periodic source reports it: the
+        time goes on, the sample is marked ``restarted``."""
+        self.restart_mark = True

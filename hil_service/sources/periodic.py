@@ -85,6 +85,9 @@ class PeriodicSource:
                 "period": self.assembler.config.period,
                 "incomplete_reasons": sampled.reasons,
                 "fallbacks": sampled.fallbacks,
+                # The clock's segments (counters.restarts) as the sampler tells them apart.
+                "reboots": sampled.reboots,
+                "outages": sampled.restarts - sampled.reboots,
             },
             **companion_health(self.companions.get(system_id)),
         }

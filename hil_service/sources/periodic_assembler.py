@@ -8,6 +8,10 @@ names (``samples``, ``incomplete``, ``out_of_order``, ``invalid``, ``unknown_sys
 ``restarts``) so that ``health`` reads either, plus the reasons for incomplete samples.
 
 One message may complete several ticks (after a gap), so ``add_all`` returns a list.
+
+A reboot (the sampler's segment started by the vehicle's clock stepping back) marks the
+vehicle's next complete sample ``restarted``: its time does not step back, so the pipeline
+learns of the reboot from the mark (``VehiclePipeline.observe``).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ class ProfileAssemblyCounters:
     invalid: int = 0
     unknown_system: int = 0
     restarts: int = 0  # clock segments: reboots and outages
+    reboots: int = 0  # of those, the clock stepping back
     reasons: dict[str, int] = field(default_factory=dict)
     fallbacks: dict[str, int] = field(default_factory=dict)
 
@@ -42,6 +47,7 @@ class ProfileAssemblyCounters:
             "invalid": self.invalid,
             "unknown_system": self.unknown_system,
             "restarts": self.restarts,
+            "reboots": self.reboots,
             "incomplete_reasons": dict(self.reasons),
             "fallbacks": dict(self.fallbacks),
         }
@@ -76,6 +82,7 @@ class ProfileAssembler:
         self._invalid: dict[int, int] = {}  # per system id
         # per system id: the last tick's reading stamps (None after an incomplete tick)
         self._input_stamps: dict[int, dict[str, float] | None] = {}
+        self._rebooted: set[int] = set()  # a reboot not yet marked on a sample
 
     @property
     def system_ids(self) -> list[int]:
@@ -92,6 +99,7 @@ class ProfileAssembler:
             total.out_of_order += one.out_of_order
             total.invalid += one.invalid
             total.restarts += one.restarts
+            total.reboots += one.reboots
             for key, n in one.reasons.items():
                 total.reasons[key] = total.reasons.get(key, 0) + n
             for key, n in one.fallbacks.items():
@@ -110,6 +118,7 @@ class ProfileAssembler:
             counted.out_of_order = c.discarded
             counted.invalid += c.invalid
             counted.restarts = c.segments
+            counted.reboots = c.reboots
             counted.reasons = dict(c.reasons)
             counted.fallbacks = dict(c.fallbacks)
         return counted
@@ -135,7 +144,11 @@ class ProfileAssembler:
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return []
         samples: list[tuple[TelemetrySample, bool]] = []
-        for tick in sampler.observe(readings, message_clock(message)):
+        reboots = sampler.counters.reboots
+        ticks = sampler.observe(readings, message_clock(message))
+        if sampler.counters.reboots != reboots:
+            self._rebooted.add(system_id)  # every tick of this call is after the reboot
+        for tick in ticks:
             sample = self._build(system_id, tick)
             stamps = tick.stamps if sample is not None else None
             previous = self._input_stamps.get(system_id)
@@ -174,10 +187,12 @@ class ProfileAssembler:
             u_pitch=values["u_pitch"],
             pitch_rate=values.get("pitch_rate", 0.0),
             climb=values.get("climb", 0.0),
+            restarted=system_id in self._rebooted,
         )
         plausible = is_plausible(sample, self.profile.ballast.full_scale)
         if not plausible:
             self._invalid[system_id] = self._invalid.get(system_id, 0) + 1
             return None
         self._samples[system_id] = self._samples.get(system_id, 0) + 1
+        self._rebooted.discard(system_id)
         return sample

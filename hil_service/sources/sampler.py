@@ -19,6 +19,12 @@ Clocks, as real vehicles have them:
   a corrupt stamp goes anywhere) is believed only when the next stamp of the same clock
   agrees with it; then a new *segment* starts from nothing, and the samples' time ``t``
   keeps increasing across it. A lone stamp that disagrees is counted as ``discarded``.
+* What a segment tells: a confirmed step *back* is a reboot (a clock counting time since
+  boot goes back for nothing else), counted in ``reboots``; a step forward is an outage
+  (the clock ran on while nothing arrived). Without a wall clock the sampler cannot tell a
+  reboot whose new clock has already passed the old one (a vehicle that rebooted seconds
+  after booting, or a silence longer than its uptime before the reboot) from an outage:
+  that one is counted as an outage.
 """
 
 from __future__ import annotations
@@ -85,6 +91,7 @@ class SamplerCounters:
     reasons: dict[str, int] = field(default_factory=dict)
     fallbacks: dict[str, int] = field(default_factory=dict)
     segments: int = 0  # clock discontinuities believed (reboots, outages)
+    reboots: int = 0  # of those, the clock stepping back: the vehicle rebooted
     discarded: int = 0  # stamps that jumped and were not confirmed
     invalid: int = 0  # non-finite values
     unstamped: int = 0  # values without a stamp before any clock was seen
@@ -97,6 +104,7 @@ class SamplerCounters:
             "reasons": dict(self.reasons),
             "fallbacks": dict(self.fallbacks),
             "segments": self.segments,
+            "reboots": self.reboots,
             "discarded": self.discarded,
             "invalid": self.invalid,
             "unstamped": self.unstamped,
@@ -170,7 +178,9 @@ class StreamSampler:
     def _new_segment(self, t: float) -> None:
         self.counters.segments += 1
         assert self._frontier is not None
-        if t > self._frontier:  # an outage: the samples it cost are incomplete
+        if t < self._frontier:
+            self.counters.reboots += 1
+        elif t > self._frontier:  # an outage: the samples it cost are incomplete
             missed = math.floor((t - self._frontier) / self.config.period)
             if missed > 0:
                 self.counters.count("clock jump", missed)
