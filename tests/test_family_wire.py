@@ -7,9 +7,10 @@ the wire").
 The plants: the first ``PLANTS`` vehicles of family seed ``SEED`` whose outputs stay within
 what the glider profile's telemetry carries (``plant_emulator.plant.wire_bounds``: depth
 −50..11,000 m, |pitch| ≤ π; the others' samples would be dropped as implausible). Each
-vehicle is its own system id; all nine run at once, each ``SAMPLES`` samples at 100 samples
-per wall-clock second (the 100 Hz vehicle at real time, the others at ``--speed`` 10 and
-100). Setpoints: the output's steady state at half the positive input (reachable).
+vehicle is its own system id; all run at once, each ``SAMPLES`` samples in lockstep (each
+step waits for the service's decision: as fast as the loop allows, and a loaded machine
+slows the run down instead of dropping datagrams; the rate is the vehicle's clock).
+Setpoints: the output's steady state at half the positive input (reachable).
 
 Per channel the outcome a user relies on, one of: commanded, and the mean error over the
 last ``TAIL`` samples no worse than 1.2 times the mean error over the ``TAIL`` samples
@@ -35,10 +36,15 @@ from tests.zenoh_peer import ZenohProbe
 SEED = 0
 PLANTS = 3
 RATES_HZ = (1, 10, 100)
-WALL_RATE = 100  # samples per wall-clock second, every vehicle
 SAMPLES = 1000  # per vehicle: identification (burn-in 300) and 700 to control
 TAIL = 100
 HARM = 1.2
+#: Two more runs of the second plant at 10 Hz whose plant changes after identification,
+#: with control on (``emulate --change``): its pitch input's sign flips, its depth gain
+#: grows fivefold. Each must trip the supervisor within 4 W of the change (docs/control.md).
+CHANGE_RATE = 10
+CHANGE_AT = 600  # plant steps: 300 into control
+CHANGES = (("flip", "pitch"), ("gain5", "depth"))
 
 
 def wire_plants(seed: int, count: int) -> list[int]:
@@ -60,7 +66,7 @@ def _mean_error(values: list[float], setpoint: float) -> float:
     return sum(abs(v - setpoint) for v in values) / len(values)
 
 
-def _outcome(channel: str, setpoint: float, telemetry, commands, events, health) -> str:
+def _outcome(channel: str, setpoint: float, telemetry, commands, events, healths) -> str:
     """What happened on one channel of one vehicle; an AssertionError if it did harm."""
     slot = CHANNELS.index(channel)
     key = f"u_{channel}"
@@ -81,7 +87,10 @@ def _outcome(channel: str, setpoint: float, telemetry, commands, events, health)
         c for c in commands if c[key] is not None and c["mode"].split("/")[slot] != "-"
     ]
     if not commanded:
-        reason = health["control"]["reason"]
+        # The last health while the vehicle ran (after it, telemetry is stale).
+        live = [h for h in healths if h["control"]["reason"] != "telemetry stale"]
+        assert live, channel
+        reason = live[-1]["control"]["reason"]
         assert f"model does not predict over the horizon ({channel}" in reason, reason
         return "never commanded: horizon test"
     times = [s["t"] for s in telemetry]
@@ -104,23 +113,30 @@ def test_family_vehicles_at_1_10_and_100_hz_do_no_harm_on_the_wire(processes):
         "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint, "--no-log",
         "--model", "dynamic",
     )  # fmt: skip
-    runs = {}  # system id → (index, rate, setpoints)
+    plan = [(i, r, None) for i in indices for r in RATES_HZ]
+    plan += [(indices[1], CHANGE_RATE, change) for change in CHANGES]
+    runs = {}  # system id → (index, rate, change, setpoints)
     probe = ZenohProbe(endpoint)
     try:
-        for n, (index, rate) in enumerate((i, r) for i in indices for r in RATES_HZ):
+        for n, (index, rate, change) in enumerate(plan):
             sysid = n + 1
             specs = dict(zip(CHANNELS, draw_vehicle(SEED, index), strict=True))
             setpoints = {ch: levels(specs[ch])[0] for ch in CHANNELS}
-            runs[sysid] = (index, rate, setpoints)
+            runs[sysid] = (index, rate, change, setpoints)
             for ch in CHANNELS:
                 probe.put(f"glider/{sysid}/setpoint/{ch}", {"value": setpoints[ch]})
             probe.put(f"glider/{sysid}/control", {"enabled": True})
         emulators = {}
-        for sysid, (index, rate, _) in runs.items():
+        for sysid, (index, rate, change, _) in runs.items():
+            changing = [] if change is None else [
+                "--change", change[0], "--change-channel", change[1],
+                "--change-at", str(CHANGE_AT),
+            ]  # fmt: skip
             emulators[sysid] = processes.start(
                 "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--sysid", str(sysid),
                 "--family", f"{SEED}:{index}", "--period", str(1.0 / rate),
-                "--speed", str(WALL_RATE / rate), "--duration", str(SAMPLES / rate),
+                "--lockstep", "--lockstep-timeout", "30", "--duration", str(SAMPLES / rate),
+                *changing,
             )  # fmt: skip
         sent = {}
         for sysid, emulator in emulators.items():
@@ -134,25 +150,35 @@ def test_family_vehicles_at_1_10_and_100_hz_do_no_harm_on_the_wire(processes):
             return health.get("samples", 0) + health.get("malformed", 0)
 
         assert probe.wait_for(lambda: all(counted(s) >= SAMPLES for s in runs), 15), {
-            s: counted(s) for s in runs
+            s: (counted(s), probe.latest(f"glider/{s}/health", {}).get("link")) for s in runs
         }
         results = {}
-        for sysid, (index, rate, setpoints) in runs.items():
-            health = probe.latest(f"glider/{sysid}/health")
+        for sysid, (index, rate, change, setpoints) in runs.items():
+            healths = probe.payloads(f"glider/{sysid}/health")
+            health = healths[-1]
             telemetry = probe.payloads(f"glider/{sysid}/telemetry")
             commands = probe.payloads(f"glider/{sysid}/command/ballast")
             events = probe.payloads(f"glider/{sysid}/supervisor")
             assert counted(sysid) == SAMPLES and len(telemetry) == health["samples"]
             assert health["samples"] >= 0.95 * SAMPLES, health["counters"]
-            results[(index, rate)] = {
-                ch: _outcome(ch, setpoints[ch], telemetry, commands, events, health)
+            results[(index, rate, change)] = {
+                ch: _outcome(ch, setpoints[ch], telemetry, commands, events, healths)
                 for ch in CHANNELS
             }
+            if change is not None:
+                trips = [e for e in events if e["event"] == "trip" and e["channel"] == change[1]]
+                assert trips, (change, events)
+                after = round(trips[0]["time_boot_ms"] / 1000.0 * rate) - CHANGE_AT
+                assert 0 < after <= 4 * trips[0]["window"], (change, after, trips[0])
+                results[(index, rate, change)][change[1]] += (
+                    f"; {after} samples after the change (W {trips[0]['window']})"
+                )
     finally:
         probe.close()
         out, err = processes.stop(service)
     assert service.returncode == 0, err
-    for (index, rate), outcome in sorted(results.items()):
-        print(f"family {SEED}:{index} at {rate} Hz: {outcome}")
+    for (index, rate, change), outcome in results.items():
+        changed = "" if change is None else f", {change[0]} on {change[1]} at {CHANGE_AT}"
+        print(f"family {SEED}:{index} at {rate} Hz{changed}: {outcome}")
     # Control ran somewhere: a subset where nothing ever commands would test nothing.
     assert any(o.startswith("commanded") for r in results.values() for o in r.values())
