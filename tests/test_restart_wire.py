@@ -69,9 +69,11 @@ def test_a_reboot_on_the_periodic_profile_stops_commanding_until_a_new_horizon_p
         probe.close()
         processes.stop(service)
     assert vehicle["reboot"]["at_step"] == REBOOT_AT and vehicle["reboot"]["clock_back_s"] > 80
-    # health shows it: one reboot (not an outage), and each channel restarted once.
-    assert health["sampling"]["reboots"] == 1 and health["sampling"]["outages"] == 0
-    assert health["counters"]["restarts"] == 1
+    # health shows it: one reboot, told apart from outages (none unless a loaded machine
+    # stalled the service for 2 s of the vehicle's clock), each channel restarted once.
+    sampling = health["sampling"]
+    assert sampling["reboots"] == 1
+    assert health["counters"]["restarts"] == sampling["reboots"] + sampling["outages"]
     for channel in CHANNELS:
         assert health["identifier"][channel]["restarts"] == 1, health["identifier"][channel]
     # Before the reboot the sample time is the vehicle's uptime (no reboot yet): the
