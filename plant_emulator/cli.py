@@ -186,6 +186,11 @@ def run(args: argparse.Namespace) -> int:
         if args.profile != DEFAULT_PROFILE:
             print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
             return 2
+        if args.family is not None or args.reboot_at is not None:
+            print(
+                "glider-hil emulate: --family and --reboot-at run one vehicle", file=sys.stderr
+            )
+            return 2
         if args.period is None:
             args.period = _PLANT.period  # the glider profile's plant step
         return run_fleet(args)
@@ -198,6 +203,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--lockstep-timeout must be positive")
         if args.reboot_at is not None and not periodic:
             raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
+        if args.reboot_at is not None and args.reboot_at < 1:
+            raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
         period = args.period
         if period is None and args.family is None:  # a family vehicle has its own
             period = (

@@ -54,3 +54,17 @@ def test_a_marked_reboot_while_commanding_stops_until_the_horizon_test_passes_ag
     # The timestamps never stepped back: only the mark told the pipeline.
     assert loop.pipeline.gaps.restarts == 0 and depth.restarts == 1
     assert after[-1].startswith(("newton", "fallback"))
+
+
+def test_the_assembler_marks_the_first_sample_after_a_reboot_and_only_that_one():
+    from hil_service.sources.periodic_assembler import ProfileAssembler
+    from tests.test_profile_assembler import PROFILE, stream
+
+    assembler = ProfileAssembler(PROFILE)
+    first = [s for m in stream(1, 20.0) for s in assembler.add_all(m)]
+    again = [s for m in stream(1, 5.0) for s in assembler.add_all(m)]  # from 1 s after boot
+    assert first and again and not any(s.restarted for s in first)
+    assert [s.restarted for s in again] == [True] + [False] * (len(again) - 1)
+    assert again[0].time_boot_ms > first[-1].time_boot_ms  # the time line goes on
+    counted = assembler.counters_for(1)
+    assert (counted.restarts, counted.reboots) == (1, 1)
