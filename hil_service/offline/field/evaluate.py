@@ -135,6 +135,7 @@ class ChannelResult:
     excitation: Excitation
     models: list[ModelResult]
     figure_dive: int | None
+    sync: int = 0  # samples at the start of each scored dive that synchronise the models
 
 
 def nmse(y: np.ndarray, y_hat: np.ndarray) -> float | None:
@@ -553,6 +554,7 @@ def identify_dives(
                 excitation(arrays, channel, train),
                 models,
                 None if figure is None else figure.dive,
+                sync,
             )
         )
     return results
