@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -71,3 +72,12 @@ def test_the_choice_never_sees_the_held_out_dives(sea035: Arrays, split: str) ->
     assert glide_again.parameters["structure_choice"] == choice
     assert glide_again.parameters["structure"] == glide.parameters["structure"]
     assert glide_again.fit != glide.fit  # the scores did see the change
+
+
+def test_a_candidate_whose_free_run_diverges_is_scored_none_not_raised() -> None:
+    # A dive that starts at an absurd depth makes every polynomial's free run blow up.
+    pieces = [_dive(seed, [-1.6, -0.9, 0.5, 1.7]) for seed in range(3)]
+    wild = Piece(9, pieces[0].y * 1e150, pieces[0].u * 1e100, pieces[0].pitch)
+    choice = choose_structure([*pieces, wild], sync=3, min_samples=20, u_scale=2.0)
+    assert choice.folds == [0, 1, 2, 9]
+    assert all(v is None or math.isfinite(v) for v in choice.scores.values())

@@ -111,13 +111,26 @@ def _free_run_fit(
         phi = glide_regressor(
             float(piece.u[t - 1]), float(piece.pitch[t - 1]), value, degree, u_scale, y_scale, drift
         )
-        value += math.fsum(w * p for w, p in zip(weights, phi, strict=True))
+        value += sum(w * p for w, p in zip(weights, phi, strict=True))  # inf, never raises
         if not math.isfinite(value):
             return None
         sim.append(value)
     actual = piece.y[sync:]
     error = (actual - np.asarray(sim)).tolist()
     return fit_from_nmse(normalised_square_error(actual.tolist(), error))
+
+
+def _least_squares(x: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """θ of y ≈ x·θ over the finite rows; None when they cannot determine it."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        ok = np.all(np.isfinite(x), axis=1) & np.isfinite(y)
+    if np.count_nonzero(ok) < x.shape[1]:
+        return None
+    try:
+        theta, *_ = np.linalg.lstsq(x[ok], y[ok], rcond=None)
+    except np.linalg.LinAlgError:
+        return None
+    return theta if np.all(np.isfinite(theta)) else None
 
 
 def choose_structure(
@@ -146,8 +159,12 @@ def choose_structure(
         for held in folds:
             x = np.vstack([d[0] for i, d in enumerate(designs) if i != held])
             y = np.concatenate([d[1] for i, d in enumerate(designs) if i != held])
-            theta, *_ = np.linalg.lstsq(x, y, rcond=None)
-            fit = _free_run_fit(theta, pieces[held], degree, drift, u_scale, y_scale, sync)
+            theta = _least_squares(x, y)
+            fit = (
+                None
+                if theta is None
+                else _free_run_fit(theta, pieces[held], degree, drift, u_scale, y_scale, sync)
+            )
             fits.append(-math.inf if fit is None else fit)
         median = float(np.median(fits))
         scores[label(degree, drift)] = median if math.isfinite(median) else None
