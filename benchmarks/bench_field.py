@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.mcap.reader import LogReader  # noqa: E402
-from hil_service.offline.field.report import field_section  # noqa: E402
+from hil_service.offline.field.evaluate import ChannelResult  # noqa: E402
+from hil_service.offline.field.report import field_results, field_section  # noqa: E402
 
 #: The shared data sets: the nearest ``shared/data/field`` above the checkout.
 SHARED = next(
@@ -47,6 +48,32 @@ def _run(*args: str) -> tuple[float, str]:
     if done.returncode != 0:
         raise SystemExit(f"glider-hil {' '.join(args)} failed: {done.stderr}")
     return wall, done.stdout
+
+
+def _held_out(results: list[ChannelResult]) -> dict:
+    return {
+        r.channel: {
+            "train_dives": r.train_dives,
+            "held_out_dives": r.held_out,
+            "k": r.horizon,
+            "excited": r.excitation.excited,
+            "models": {
+                m.model: {
+                    "fit": None if m.fit is None else round(m.fit, 2),
+                    "skill": None if m.skill is None else round(m.skill, 4),
+                    "k_step_nmse": m.k_step_nmse,
+                    "fits": [None if d.fit is None else round(d.fit, 1) for d in m.dives],
+                    **(
+                        {"structure": m.parameters["structure"]}
+                        if "structure" in m.parameters
+                        else {}
+                    ),
+                }
+                for m in r.models
+            },
+        }
+        for r in results
+    }
 
 
 def bench(source: Path, out: Path, period: float | None) -> dict:
@@ -74,24 +101,8 @@ def bench(source: Path, out: Path, period: float | None) -> dict:
         "replay_identifier_skipped": {
             ch: v["skipped"] for ch, v in next(iter(identifier.values())).items()
         },
-        "held_out": {
-            r.channel: {
-                "train_dives": r.train_dives,
-                "held_out_dives": r.held_out,
-                "k": r.horizon,
-                "excited": r.excitation.excited,
-                "models": {
-                    m.model: {
-                        "fit": None if m.fit is None else round(m.fit, 2),
-                        "skill": None if m.skill is None else round(m.skill, 4),
-                        "k_step_nmse": m.k_step_nmse,
-                        "fits": [None if d.fit is None else round(d.fit, 1) for d in m.dives],
-                    }
-                    for m in r.models
-                },
-            }
-            for r in results
-        },
+        "held_out": _held_out(results),
+        "held_out_alternate": _held_out(field_results(log, reader.config(), split="alternate")[1]),
         "report": str(report_dir / "report.md"),
     }
 

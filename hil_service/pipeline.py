@@ -126,18 +126,34 @@ class PipelineSettings:
 class StepContinuity:
     """Tells whether a sample directly follows the previous one.
 
-    The plant period is learnt as the smallest positive timestamp step seen (the vehicle
-    does not announce it); a step longer than ``tolerance`` periods means samples are
-    missing in between.
+    The plant period is learnt from the timestamp steps (the vehicle does not announce
+    it): the lower median of the last ``window`` steps that followed on. A step longer than
+    ``tolerance`` periods means samples are missing in between. The median, not the
+    shortest step, so that a period that jitters is not mistaken for lost samples: with
+    each timestamp within ±j of a regular grid of period P, a step is P ± 2j and a step
+    over one lost sample 2P ± 2j, told apart at 1.5 P while j < P/4 (the shortest step,
+    P − 2j, would separate them only while j < P/10).
+
+    A period that changes for good to a longer one (a vehicle that goes from 5 s to 10 s
+    sampling) is learnt after ``relearn`` steps in a row too long for the old period that
+    agree with one another (the longest within ``tolerance`` of the shortest): those
+    count as gaps until the last of them, which follows on (``period_changes``). Samples
+    lost at regular intervals ``relearn`` times in a row are, from the timestamps alone,
+    the same thing. A shorter period moves the median down as its steps come in.
     """
 
     tolerance: float = 1.5
+    window: int = 9
+    relearn: int = 3
     period_ms: int | None = None
     last_ms: int | None = None
     gaps: int = 0
     #: Steps back in time: the vehicle's clock restarted (counted among the gaps too).
     restarts: int = 0
     restarted: bool = False  # the last sample followed a restart
+    period_changes: int = 0
+    recent: list[int] = field(default_factory=list)  # the last steps that followed on
+    too_long: list[int] = field(default_factory=list)  # the gap steps since the last one
 
     def follows(self, time_ms: int) -> bool:
         last, self.last_ms = self.last_ms, time_ms
@@ -147,16 +163,34 @@ class StepContinuity:
         step = time_ms - last
         if step <= 0:
             self.gaps += 1
+            self.too_long.clear()
             if step < 0:
                 self.restarts += 1
                 self.restarted = True
             return False
-        if self.period_ms is None or step < self.period_ms:
-            self.period_ms = step
-        if step > self.tolerance * self.period_ms:
-            self.gaps += 1
-            return False
-        return True
+        if self.period_ms is None or step <= self.tolerance * self.period_ms:
+            self.too_long.clear()
+            self._learn(step)
+            return True
+        self.too_long.append(step)
+        if len(self.too_long) >= self.relearn:
+            run = self.too_long[-self.relearn :]
+            if max(run) <= self.tolerance * min(run):
+                self.recent = list(run)
+                self.too_long.clear()
+                self._learn(None)
+                self.period_changes += 1
+                return True
+        self.gaps += 1
+        return False
+
+    def _learn(self, step: int | None) -> None:
+        if step is not None:
+            self.recent.append(step)
+            if len(self.recent) > self.window:
+                del self.recent[0]
+        ordered = sorted(self.recent)
+        self.period_ms = ordered[(len(ordered) - 1) // 2]
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ def test_glide_u_model_scored_with_the_others_and_beats_the_single_input_one(
     ]
     glide = models["glide-u"]
     assert glide.fit is not None and glide.skill is not None and glide.k_step_nmse is not None
-    assert glide.trace is not None and set(glide.parameters) >= {"beta_0", "c", "gamma"}
+    assert glide.trace is not None and set(glide.parameters) >= {"beta_0", "gamma", "structure"}
     # The measured pitch is what the single-input U-model lacks: on both slices the
     # two-input model's free run is at least 10 points better.
     assert models["dynamic"].fit is not None

@@ -131,3 +131,16 @@ def test_divergence_resets_the_parameters() -> None:
 def test_invalid_options_raise(bad: dict) -> None:
     with pytest.raises(ValueError):
         GlideUModel(**bad)
+
+
+def test_without_drift_one_parameter_less_and_rebuilt_from_its_config() -> None:
+    u, pitch, z = _glider(7, 400)
+    model = GlideUModel(degree=2, drift=False)
+    _train(model, u, pitch, z)
+    assert len(model.parameters) == 2 + 2  # β₁, β₂, β₀, γ
+    cfg = model.config()
+    assert cfg.pop("name") == "glide-u" and cfg["drift"] is False
+    again = GlideUModel(**cfg)
+    _train(again, u, pitch, z)
+    assert again.parameters == model.parameters
+    assert len(GlideUModel(degree=2).parameters) == 5

@@ -8,7 +8,8 @@ setpoint steps with the inverse controller and compares with the reference-only 
 with the oracle, a known-model constrained controller (``experiment/oracle.py``);
 ``--scenario random`` runs it on a seeded family of plants it was not tuned on.
 ``--bench`` prints how many samples per second one channel identifies and inverts on one
-core.
+core. ``--log FILE.mcap`` runs the identification experiment on a log's recorded samples
+instead of the emulator (a field import by its dives, ``experiment/field.py``).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 
 from hil_service.experiment.closed_loop import ClosedLoopResult, ClosedLoopSettings, run_closed_loop
 from hil_service.experiment.family_loop import FamilyResult, run_family_closed_loop
+from hil_service.experiment.field import FieldExperiment, field_table, run_field_experiment
 from hil_service.experiment.identification import (
     IdentificationResult,
     IdentificationSettings,
@@ -99,6 +101,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="identification: free-run fit and k-step NMSE after this sample (default: half)",
     )
     parser.add_argument(
+        "--log",
+        type=Path,
+        metavar="FILE.mcap",
+        help="identification on a log's recorded samples (a field import by its dives) "
+        "instead of the emulator's plant",
+    )
+    parser.add_argument(
+        "--split",
+        choices=("first", "alternate", "both"),
+        default="first",
+        help="--log of a field import: the first half of the dives trains, every other "
+        "dive trains, or both (default first)",
+    )
+    parser.add_argument(
         "--horizon",
         type=int,
         default=None,
@@ -109,6 +125,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        if args.log is not None:
+            return _field(args)
         if args.bench:
             return _bench(args)
         if args.closed_loop:
@@ -117,6 +135,15 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as error:
         print(f"glider-hil experiment: {error}", file=sys.stderr)
         return 2
+
+
+def _field(args: argparse.Namespace) -> int:
+    if args.closed_loop or args.bench:
+        raise ValueError("--log runs the identification experiment (no --closed-loop, --bench)")
+    splits = ("first", "alternate") if args.split == "both" else (args.split,)
+    results: list[FieldExperiment] = [run_field_experiment(args.log, split) for split in splits]
+    _emit(results, args.json, field_table)
+    return 0
 
 
 def _choices(value: str, options: tuple[str, ...]) -> tuple[str, ...]:

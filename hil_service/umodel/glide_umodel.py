@@ -13,12 +13,15 @@ coefficients vary with time, and lets the pitch set them, as the flight model do
     α_m(t) = β_m · s(t−1),                                 s = |sin θ|^{3/2},
     α₀(t) = y(t−1) + c + β₀ · s(t−1) + γ · s(t−1) · ζ(t−1),  ζ = y / y_scale.
 
+(c only with ``drift=True``, the default; the degree M and the drift are the structure,
+chosen per data set on its training dives by ``offline/field/structure.py``.)
+
 The polynomial β₀ + Σ β_m x^m stands for sign(b)·√|b| (the neutral volume v₀ in β₀ and the
 lower powers, the sign change and the square root in the odd and even powers), γ·ζ for the
 hull's compression with depth (c_p), c for a steady vertical drift. Depth is the integral of
 the vertical speed, so the output enters as y(t−1) with a unit coefficient (an integrator
 from physics, not a fitted a₁ ≈ 1 whose error would grow over a thousand-metre free run).
-Every term is linear in θ = [β₁..β_M, β₀, c, γ]: recursive least squares with forgetting
+Every term is linear in θ = [β₁..β_M, β₀, (c,) γ]: recursive least squares with forgetting
 (``ListRLS``, plain floats in a fixed order: deterministic, no random initialisation).
 
 Inputs: ``step(u_prev, y, pitch_prev)`` with u_prev = u(t−1), the buoyancy input applied
@@ -42,7 +45,7 @@ from .models import Estimate, Status
 from .reproducible import dot
 from .rls import ListRLS
 
-__all__ = ["GlideUModel"]
+__all__ = ["GlideUModel", "glide_factor", "glide_regressor"]
 
 _isfinite = math.isfinite
 
@@ -50,6 +53,30 @@ _isfinite = math.isfinite
 def glide_factor(pitch: float) -> float:
     """|sin θ|^{3/2}, the flight model's pitch dependence of the vertical speed."""
     return abs(math.sin(pitch)) ** 1.5
+
+
+def glide_regressor(
+    u: float,
+    pitch: float,
+    y: float,
+    degree: int,
+    u_scale: float,
+    y_scale: float,
+    drift: bool = True,
+) -> list[float]:
+    """φ(t) of ŷ(t) − y(t−1) = θ·φ(t) from u = u(t−1), pitch = θ(t−1), y = y(t−1)."""
+    s = glide_factor(pitch)
+    x = u / u_scale
+    phi = []
+    p = 1.0
+    for _ in range(degree):
+        p *= x
+        phi.append(s * p)
+    phi.append(s)
+    if drift:
+        phi.append(1.0)
+    phi.append(s * y / y_scale)
+    return phi
 
 
 class GlideUModel:
@@ -65,6 +92,7 @@ class GlideUModel:
         y_scale: float = 100.0,
         lam: float = 0.9999,
         p0: float = 1000.0,
+        drift: bool = True,
         guard: GuardConfig | dict[str, Any] | None = None,
     ) -> None:
         if int(degree) != degree or degree < 1:
@@ -76,7 +104,8 @@ class GlideUModel:
         self.degree = int(degree)
         self.u_scale = float(u_scale)
         self.y_scale = float(y_scale)
-        n = self.degree + 3
+        self.drift = bool(drift)
+        n = self.degree + (3 if self.drift else 2)
         self.rls = ListRLS(n, lam, p0)
         self._monitor = DivergenceMonitor(self.guard)
         self._theta: list[float] = [0.0] * n
@@ -91,16 +120,9 @@ class GlideUModel:
 
     # ---- the regressor -----------------------------------------------------------------
     def _regressor(self, u: float, pitch: float) -> list[float]:
-        s = glide_factor(pitch)
-        x = u / self.u_scale
-        phi = []
-        p = 1.0
-        for _ in range(self.degree):
-            p *= x
-            phi.append(s * p)
-        zeta = self._y_last / self.y_scale
-        phi += [s, 1.0, s * zeta]
-        return phi
+        return glide_regressor(
+            u, pitch, self._y_last, self.degree, self.u_scale, self.y_scale, self.drift
+        )
 
     def _valid(self, u: float, pitch: float) -> bool:
         return (
@@ -125,7 +147,7 @@ class GlideUModel:
 
     @property
     def parameters(self) -> tuple[float, ...]:
-        """θ = (β₁..β_M, β₀, c, γ)."""
+        """θ = (β₁..β_M, β₀, c, γ), without c when ``drift`` is off."""
         return tuple(self._theta)
 
     def predict(self, u_prev: float, pitch_prev: float) -> float:
@@ -208,6 +230,7 @@ class GlideUModel:
             "y_scale": self.y_scale,
             "lam": self.rls.lam,
             "p0": self.rls.p0,
+            "drift": self.drift,
             "guard": self.guard.to_dict(),
         }
 

@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from hil_service.offline.field.structure import Piece, choose_structure, label
 from hil_service.umodel import OneStepModel, PersistenceModel, build_model
 from hil_service.umodel.glide_umodel import GlideUModel
 from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
@@ -134,6 +135,7 @@ class ChannelResult:
     excitation: Excitation
     models: list[ModelResult]
     figure_dive: int | None
+    sync: int = 0  # samples at the start of each scored dive that synchronise the models
 
 
 def nmse(y: np.ndarray, y_hat: np.ndarray) -> float | None:
@@ -346,11 +348,31 @@ def _glide_u(
     figure: Segment | None,
     options: dict[str, Any],
 ) -> ModelResult:
+    options = dict(options)
+    choice = None
+    if "degree" not in options and "drift" not in options:
+        pieces = [
+            Piece(
+                s.dive,
+                arrays.depth[s.start : s.stop],
+                arrays.u_depth[s.start : s.stop],
+                arrays.pitch[s.start : s.stop],
+            )
+            for s in train
+        ]
+        choice = choose_structure(
+            pieces, sync, sync + horizon, arrays.full_scale, options.get("y_scale", 100.0)
+        )
+        options.update(degree=choice.degree, drift=choice.drift)
     model = GlideUModel(u_scale=arrays.full_scale, **options)
     result = ModelResult(GLIDE_U)
     run = _glide_u_runner(model, arrays, train, sync, horizon)
-    names = [f"beta_{m + 1}" for m in range(model.degree)] + ["beta_0", "c", "gamma"]
+    names = [f"beta_{m + 1}" for m in range(model.degree)] + ["beta_0"]
+    names += ["c", "gamma"] if model.drift else ["gamma"]
     result.parameters = dict(zip(names, model.parameters, strict=True))
+    result.parameters["structure"] = label(model.degree, model.drift)
+    if choice is not None:
+        result.parameters["structure_choice"] = choice.as_dict()
     _score(result, run, arrays.depth, held, sync, figure, horizon)
     return result
 
@@ -461,10 +483,13 @@ def identify_dives(
     seed: int = 0,
     glide_options: dict[str, Any] | None = None,
     split: str = "first",
+    extra_models: dict[str, Callable[[int], OneStepModel]] | None = None,
 ) -> list[ChannelResult]:
     """Per channel: every model trained on the training dives and scored on the others.
 
     ``glide_options``: options of ``GlideUModel`` (``u_scale`` is the log's full scale).
+    ``extra_models``: more online models scored beside ``model_name`` (name → a factory
+    given the channel's seed), as ``glider-hil experiment --log`` adds the paper's preset.
     """
     segments = [s for s in arrays.segments if s.stop - s.start >= 2]
     if len({s.dive for s in segments}) < 2:
@@ -493,6 +518,11 @@ def identify_dives(
             ("rls-arx", build_model("rls-arx")),
             (model_name, build_model(model_name, seed=seed * 2 + i, **options)),
         ]
+        built += [
+            (name, make(seed * 2 + i))
+            for name, make in (extra_models or {}).items()
+            if name not in dict(built)
+        ]
         sync = max(m.history_length for _, m in built) + 1
         models: list[ModelResult] = []
         for name, model in built:
@@ -513,9 +543,8 @@ def identify_dives(
         models.append(result)
         if channel == "depth":
             models.append(_buoyancy_only(arrays, train, held, horizon, sync, figure))
-            models.insert(
-                3, _glide_u(arrays, train, held, horizon, sync, figure, glide_options or {})
-            )
+            glide = _glide_u(arrays, train, held, horizon, sync, figure, glide_options or {})
+            models.insert(len(built), glide)
         results.append(
             ChannelResult(
                 channel,
@@ -525,6 +554,7 @@ def identify_dives(
                 excitation(arrays, channel, train),
                 models,
                 None if figure is None else figure.dive,
+                sync,
             )
         )
     return results

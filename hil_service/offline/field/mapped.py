@@ -138,18 +138,7 @@ def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int,
     """(the header's line, the header, (line, row) of every later line) of a file."""
     kind = mapping.get("file", "kind", "parquet" if path.suffix == ".parquet" else "csv")
     if kind == "parquet":
-        try:
-            import pyarrow.parquet as pq  # optional: not a dependency of the project
-        except ImportError as error:
-            raise FieldError(
-                f"{path}: reading Parquet needs pyarrow (pip install pyarrow)"
-            ) from error
-        table = pq.read_table(path)
-        header = list(table.column_names)
-        columns = [table.column(n).to_pylist() for n in header]
-        records = zip(*columns, strict=True)
-        body = [(k + 2, ["" if v is None else str(v) for v in r]) for k, r in enumerate(records)]
-        return 1, header, body
+        return _parquet_rows(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as error:
@@ -168,6 +157,28 @@ def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int,
     parsed = [(n, next(csv.reader([line], delimiter=delimiter))) for n, line in numbered]
     (header_line, header), body = parsed[0], parsed[1:]
     return header_line, [h.strip() for h in header], body
+
+
+def _parquet_rows(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+    """A Parquet file as the CSV path's rows: row k (from 1 after the header) is "line"
+    k + 1, each cell as text (a null cell empty), so both kinds are parsed and counted by
+    the same code."""
+    try:
+        import pyarrow.parquet as pq  # the [field] extra (pyproject.toml)
+    except ImportError as error:
+        raise FieldError(
+            f"{path}: reading Parquet needs pyarrow: pip install 'glider-hil[field]' "
+            "(or pip install pyarrow)"
+        ) from error
+    try:
+        table = pq.read_table(path)
+    except Exception as error:  # ArrowInvalid, OSError, …: whatever a damaged file raises
+        raise FieldError(f"{path}: not a readable Parquet file ({error})") from error
+    header = [str(name) for name in table.column_names]
+    columns = [table.column(name).to_pylist() for name in table.column_names]
+    records = zip(*columns, strict=True) if columns else iter(())
+    body = [(k + 2, ["" if v is None else str(v) for v in r]) for k, r in enumerate(records)]
+    return 1, header, body
 
 
 def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
@@ -261,7 +272,7 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
             if issues.unparsable_rows <= 5:
                 issues.notes.append(f"{path}:{line_no}: unparsable row dropped")
             continue
-        surface = surface_column in index and row[index[surface_column]].strip() in surface_values
+        surface = surface_column in index and _one_of(row[index[surface_column]], surface_values)
         columns.t.append(t)
         columns.depth.append(depth)
         columns.pitch.append(pitch)
@@ -269,6 +280,26 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
         columns.pitch_input.append(inputs["pitch_input"])
         columns.dive.append(dive)
         columns.in_dive.append(not surface)
+
+
+def _one_of(cell: str, values: set[str]) -> bool:
+    """The cell is one of the mapping's values, as text or as a number (a Parquet float
+    column gives "115.0" for the mapping's 115)."""
+    text = cell.strip()
+    if text in values:
+        return True
+    try:
+        number = float(text)
+    except ValueError:
+        return False
+    return any(_number(v) == number for v in values)
+
+
+def _number(text: str) -> float | None:
+    try:
+        return float(text)
+    except ValueError:
+        return None
 
 
 def _float(text: str) -> float:

@@ -55,6 +55,20 @@ def field_arrays(log: str | Path, field: dict[str, Any], system_id: int = 1) -> 
     )
 
 
+def field_results(
+    log: str | Path, config: dict[str, Any], system_id: int = 1, split: str = "first"
+) -> tuple[Arrays, list[ChannelResult]]:
+    """The grid samples of a field import and ``identify_dives`` on them with the log's
+    pipeline settings (the model, its options, the seed)."""
+    arrays = field_arrays(log, config["field"], system_id)
+    stored = (config.get("service") or {}).get("pipeline")
+    settings = (
+        PipelineSettings.from_json(stored) if isinstance(stored, dict) else PipelineSettings()
+    )
+    options = {ch: settings.options_for(ch) for ch in keys.CHANNELS}
+    return arrays, identify_dives(arrays, settings.model, options, seed=settings.seed, split=split)
+
+
 def _fmt(value: float | None, spec: str, why: str = "") -> str:
     if value is None or not math.isfinite(value):
         return f"– ({why})" if why else "–"
@@ -154,13 +168,7 @@ def field_section(
             [],
         )
     try:
-        arrays = field_arrays(log, field, system_id)
-        stored = (config.get("service") or {}).get("pipeline")
-        settings = (
-            PipelineSettings.from_json(stored) if isinstance(stored, dict) else PipelineSettings()
-        )
-        options = {ch: settings.options_for(ch) for ch in keys.CHANNELS}
-        results = identify_dives(arrays, settings.model, options, seed=settings.seed)
+        arrays, results = field_results(log, config, system_id)
     except (ValueError, KeyError, TypeError) as error:
         return [*lines, "", f"Identification not computed: {error}"], [], []
     figures: list[Path] = []
@@ -210,10 +218,21 @@ def _channel_lines(result: ChannelResult, period: float) -> list[str]:
         lines += ["", f"{physical.model} parameters (least squares on the training dives): {text}"]
     glide = next((m for m in result.models if m.model == GLIDE_U), None)
     if glide is not None and glide.parameters:
-        text = ", ".join(f"{k} {v:.4g}" for k, v in glide.parameters.items())
+        numbers = {k: v for k, v in glide.parameters.items() if isinstance(v, float)}
+        text = ", ".join(f"{k} {v:.4g}" for k, v in numbers.items())
         lines += [
             "",
-            f"{GLIDE_U} (buoyancy input and measured pitch) parameters after the training "
+            f"{GLIDE_U} (buoyancy input and measured pitch), structure "
+            f"{glide.parameters.get('structure', '–')}, parameters after the training "
             f"dives: {text}",
         ]
+        choice = glide.parameters.get("structure_choice")
+        if isinstance(choice, dict):
+            scores = ", ".join(
+                f"{k} {_fmt(v, '.1f')}" for k, v in (choice.get("median_fit") or {}).items()
+            )
+            lines.append(
+                f"Structure chosen on the training dives only ({choice.get('why')}; "
+                f"held out in turn: {choice.get('folds')}); median free-run fit %: {scores}."
+            )
     return lines
