@@ -196,6 +196,81 @@ def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
     return out
 
 
+def plan_matrices(
+    response: list[float], starts: list[int], points: list[int], weights: list[float]
+) -> tuple[list[list[float]], list[float], list[list[float]]]:
+    """Per cost point, each block's weighted effect on ŷ(k+j) (the columns) and the held
+    input's step s(j − 1) (the onset); and the output cost's Hessian Σ_p w_p·col·colᵀ."""
+    nblocks = len(starts)
+    columns: list[list[float]] = []
+    onset: list[float] = []
+    hessian = [[0.0] * nblocks for _ in range(nblocks)]
+    for p in range(len(points)):
+        j = points[p]
+        weight = weights[p]
+        # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
+        # (s(m) = 0 for m ≤ 0: an input acts one sample later).
+        col = [0.0] * nblocks
+        for b in range(nblocks):
+            first = j - starts[b]
+            on = response[first] if first > 0 else 0.0
+            off = 0.0
+            if b + 1 < nblocks:
+                after = j - starts[b + 1]
+                off = response[after] if after > 0 else 0.0
+            col[b] = on - off
+        # Stored weighted: the QP's linear term is Σ_p weight·col·residual.
+        columns.append([weight * c for c in col])
+        first0 = j - starts[0]
+        onset.append(response[first0] if first0 > 0 else 0.0)
+        for a in range(nblocks):
+            wa = weight * col[a]
+            for b in range(nblocks):
+                hessian[a][b] += wa * col[b]
+    return columns, onset, hessian
+
+
+def add_move_penalty(hessian: list[list[float]], move_weight: float) -> float:
+    """Add the move penalty ρ Σ (W_b − W_{b−1})² (W_{−1} = the applied input's level) to
+    ``hessian`` in place, ρ scaled to the output cost's size; returns ρ."""
+    nblocks = len(hessian)
+    trace = 0.0
+    for b in range(nblocks):
+        trace += hessian[b][b]
+    rho = move_weight * (trace / nblocks + 1e-12)
+    for b in range(nblocks):
+        hessian[b][b] += rho if b + 1 == nblocks else 2.0 * rho
+        if b + 1 < nblocks:
+            hessian[b][b + 1] -= rho
+            hessian[b + 1][b] -= rho
+    return rho
+
+
+def free_response_terms(
+    ar: list[float], lags: int, n: int, points: list[int]
+) -> tuple[list[float], list[list[float]]]:
+    """1/A(q) at the cost points, for the free response in closed form
+    (``PredictiveInverse._free_response``): S_A(j), the running sum of the impulse response
+    h_A, and h_A(j − l) for l = 1 … L, L = max(na, lags − 1, 1)."""
+    na = len(ar)
+    lead = max(na, lags - 1, 1)
+    impulse: list[float] = []
+    for m in range(n):
+        acc = 1.0 if m == 0 else 0.0
+        for i in range(na):
+            if m - 1 - i >= 0:
+                acc += ar[i] * impulse[m - 1 - i]
+        impulse.append(acc)
+    running = [0.0]
+    for m in range(n):
+        running.append(running[-1] + impulse[m])
+    step = [running[j] for j in points]
+    impulses = [
+        [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
+    ]
+    return step, impulses
+
+
 def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
     """The first sample after which the step response stays within ``band`` of its last
     value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
@@ -548,63 +623,12 @@ class PredictiveInverse:
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
         starts = block_starts(n, s.max_blocks)
-        nblocks = len(starts)
         stride = max(1, -(-n // s.cost_points))
         points, weights = cost_points(n, stride, starts, cost_start(response, n))
-        columns: list[list[float]] = []
-        onset: list[float] = []
-        hessian = [[0.0] * nblocks for _ in range(nblocks)]
-        for p in range(len(points)):
-            j = points[p]
-            weight = weights[p]
-            # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
-            # (s(m) = 0 for m ≤ 0: an input acts one sample later).
-            col = [0.0] * nblocks
-            for b in range(nblocks):
-                first = j - starts[b]
-                on = response[first] if first > 0 else 0.0
-                off = 0.0
-                if b + 1 < nblocks:
-                    after = j - starts[b + 1]
-                    off = response[after] if after > 0 else 0.0
-                col[b] = on - off
-            # Stored weighted: the QP's linear term is Σ_p weight·col·residual.
-            columns.append([weight * c for c in col])
-            first0 = j - starts[0]
-            onset.append(response[first0] if first0 > 0 else 0.0)
-            for a in range(nblocks):
-                wa = weight * col[a]
-                for b in range(nblocks):
-                    hessian[a][b] += wa * col[b]
-        # Move penalty ρ Σ (W_b − W_{b−1})², W_{−1} = the applied input's level, scaled to
-        # the output cost's size.
-        trace = 0.0
-        for b in range(nblocks):
-            trace += hessian[b][b]
-        rho = s.move_weight * (trace / nblocks + 1e-12)
-        for b in range(nblocks):
-            hessian[b][b] += rho if b + 1 == nblocks else 2.0 * rho
-            if b + 1 < nblocks:
-                hessian[b][b + 1] -= rho
-                hessian[b + 1][b] -= rho
-        # 1/A(q): impulse response h_A and its running sum S_A, for the free response.
-        na = len(ar)
-        lead = max(na, len(gains) - 1, 1)
-        impulse: list[float] = []
-        for m in range(n):
-            acc = 1.0 if m == 0 else 0.0
-            for i in range(na):
-                if m - 1 - i >= 0:
-                    acc += ar[i] * impulse[m - 1 - i]
-            impulse.append(acc)
-        running = [0.0]
-        for m in range(n):
-            running.append(running[-1] + impulse[m])
+        columns, onset, hessian = plan_matrices(response, starts, points, weights)
+        rho = add_move_penalty(hessian, s.move_weight)
         self._free_ar = list(ar)
-        self._free_step = [running[j] for j in points]
-        self._free_impulse = [
-            [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
-        ]
+        self._free_step, self._free_impulse = free_response_terms(ar, len(gains), n, points)
         self._horizon = n
         self._points = points
         self._columns = columns
