@@ -35,8 +35,10 @@ ENV_PURE_PYTHON = "GLIDER_HIL_PURE_PYTHON"  # at install time: compile nothing (
 #: of the time (the model's multi-step map, the predictive inverse and the root solver are
 #: the control step; the list-based RLS is the dynamic model's update).
 HOT_PATH: tuple[str, ...] = (
+    "hil_service.umodel.box_qp",
     "hil_service.umodel.dynamics",
     "hil_service.umodel.guards",
+    "hil_service.umodel.horizon",
     "hil_service.umodel.inverse",
     "hil_service.umodel.models",
     "hil_service.umodel.nlms",
