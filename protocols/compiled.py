@@ -37,6 +37,7 @@ ENV_PURE_PYTHON = "GLIDER_HIL_PURE_PYTHON"  # at install time: compile nothing (
 HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.box_qp",
     "hil_service.umodel.dynamics",
+    "hil_service.umodel.estimate",
     "hil_service.umodel.guards",
     "hil_service.umodel.horizon",
     "hil_service.umodel.inverse",
