@@ -13,8 +13,10 @@ $(STAMP): pyproject.toml setup.py
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# Compile in place when a module of protocols/compiled.py's list is missing or older than
-# its source; the check is cheap, and after an install that compiled them all it passes.
+# Delete compiled modules that are not on protocols/compiled.py's list (a removed or
+# delisted module's .so would run in place of its source), then compile in place when a
+# module of the list is missing or older than its source; the check is cheap, and after an
+# install that compiled them all it passes.
 build: $(STAMP)
 	$(BIN)/python protocols/compiled.py . || $(BIN)/python setup.py --quiet build_ext --inplace --force
 

@@ -1,6 +1,6 @@
 """Build step: the per-sample path is compiled to C with mypyc; everything else is plain Python.
 
-Why: the service's throughput target (issue 4) needs about 1.3× more than CPython runs this
+Why: the service's throughput target needs about 1.3× more than CPython runs this
 code at, and mypyc gets it from the same typed sources, with no second implementation to
 keep in step. The modules stay ordinary Python: ``GLIDER_HIL_PURE_PYTHON=1`` at install
 time skips compilation and everything runs interpreted, with the same results to the bit

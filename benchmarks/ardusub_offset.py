@@ -1,4 +1,4 @@
-"""The ArduSub depth step in process (issue 15's stall): how fast the offset goes.
+"""The ArduSub depth step in process (the depth stall): how fast the offset goes.
 
 ``tests/test_mavproxy_router.py`` runs ``serve --profile ardusub`` through MAVProxy: the
 glider plant at 0.1 s, PRBS identification (burn-in 400 samples, the setpoint put about 100

@@ -1,4 +1,4 @@
-"""The fleet targets of issue 17, on this machine: N vehicles at 10 samples/s each, two
+"""The fleet targets on this machine: N vehicles at 10 samples/s each, two
 service processes (half the system ids each, ``--sysid`` ranges), one Zenoh router
 (``glider-hil router``), one emulator process (``emulate --vehicles N``), a subscriber on
 the router. Printed per fleet size:
@@ -180,7 +180,7 @@ def tail_attribution(
     latencies in the same windows (what chance alone would give). Also how many distinct
     100 ms slots hold them (few slots: stalls that hit many vehicles at once). The health
     windows tell something only of a service that publishes its fleet's health in a burst
-    (as before the round robin): spread over the second, they cover most of the run."""
+    (not round robin): spread over the second, they cover most of the run."""
     if not trace:
         return {}
     ordered = sorted(latency for _, _, latency in trace)

@@ -1,5 +1,5 @@
 """Replay speed: `replay --fast` with identification on both channels, beside the MCAP
-reader alone yielding the same log's messages (issue target: ≥ 10,000 samples/s).
+reader alone yielding the same log's messages (target: ≥ 10,000 samples/s).
 
 Run: .venv/bin/python benchmarks/bench_replay.py [--samples 100000]
 The log is written by the service's own recorder from the emulator's plant (raw frames and

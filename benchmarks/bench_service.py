@@ -1,4 +1,4 @@
-"""End-to-end figures of the HIL service (issue targets; printed, not asserted).
+"""End-to-end figures of the HIL service (against the targets; printed, not asserted).
 
 1. Throughput on one core: MAVLink datagrams → sample → both identifiers → Zenoh publish →
    MCAP write, next to pymavlink alone parsing the same frames, in the same run. Measured

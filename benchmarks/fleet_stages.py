@@ -9,8 +9,8 @@ process of ours competing for the cores): the per-stage budget behind
   and command published on a Zenoh session) for a fleet of ``--vehicles`` served by one
   service, control on with a depth setpoint each, after the burn-in;
 * health: a ``tick()`` that publishes health (one vehicle's at a time, round robin, each
-  vehicle once a second; it used to be every vehicle's at once, which the samples arriving
-  meanwhile waited for). The service runs on the fleet's clock: a sample every
+  vehicle once a second, so that no burst of every vehicle's keeps the samples arriving
+  meanwhile waiting). The service runs on the fleet's clock: a sample every
   0.1 s / vehicles, ``tick()`` after every datagram as ``serve``'s loop calls it.
 
 Printed: p50 / p99 / max in ms per stage, and the CPU one service and the emulator need for

@@ -1,4 +1,4 @@
-"""Issue 15's identification targets over seeds: the `experiment` identification run on
+"""The identification targets over seeds: the `experiment` identification run on
 every scenario and channel for each seed, medians per model, the ARX ordering count on
 `nonlinear`, and beside the `dynamic` model's free-run fit the fit's ceiling for a model
 driven by the input alone (``experiment.identification.fit_bound``).
@@ -36,7 +36,7 @@ from hil_service.experiment.identification import (  # noqa: E402
 from plant_emulator.models import CHANNELS  # noqa: E402
 from plant_emulator.scenarios import SCENARIOS  # noqa: E402
 
-#: Targets of issue 15: the dynamic model's median free-run fit per scenario.
+#: Targets: the dynamic model's median free-run fit per scenario.
 FIT_TARGET = {"paper": 90.0, "disturbed": 90.0, "nonlinear": 85.0}
 DISTURBED = ("disturbed",)
 

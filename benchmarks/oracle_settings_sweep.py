@@ -1,5 +1,5 @@
-"""The glider oracle's depth IAE under other settings (issues 15 and 18: can a fair, better
-known-model controller bring paper depth to issue 15's 12,829?). Printed, not a test.
+"""The glider oracle's depth IAE under other settings (can a fair, better known-model
+controller bring paper depth to the target's 12,829?). Printed, not a test.
 
     .venv/bin/python benchmarks/oracle_settings_sweep.py --scenarios paper --variants main,previous
 
@@ -28,8 +28,8 @@ from hil_service.experiment.oracle import OracleSettings
 from plant_emulator.plant import GliderPlant, PlantConfig
 
 BASE = GLIDER_ORACLE["depth"]
-#: Before issue 15's oracle row was brought to the full-resolution optimum (blocks of 4
-#: samples, the error costed every 4th sample): 12,835.28 on paper.
+#: The coarse oracle (blocks of 4 samples, the error costed every 4th sample): 12,835.28 on
+#: paper, where the full-resolution optimum is ``BASE``.
 PREVIOUS = replace(
     BASE,
     horizon=600,

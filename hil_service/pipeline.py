@@ -4,7 +4,8 @@ and the in-process experiment all feed it the same samples and get the same numb
 Each channel (depth, pitch) has its identifier, a persistence baseline beside it, error
 statistics, and an inverse controller that is allowed to act only once the identifier has
 converged (``burn_in`` samples and a recent skill versus persistence of at least
-``min_skill``) and has not diverged since.
+``min_skill``) and has not diverged since. One module over 500 lines: the settings, the
+channel's pipeline and the vehicle's are one unit that replay checks bit for bit.
 """
 
 from __future__ import annotations

@@ -23,6 +23,8 @@ import control
 import numpy as np
 from numpy.typing import NDArray
 
+from protocols.keys import CHANNELS  # the one list; the emulator's modules import it from here
+
 Array = NDArray[np.float64]
 
 #: Paper eq. 12, ballast rate → depth, coefficients in descending powers of z.
@@ -32,8 +34,6 @@ DEPTH_DEN = (1.0, -2.02, 0.063, 1.934, -0.977)
 #: Paper eq. 13, ballast rate → pitch, coefficients in descending powers of z.
 PITCH_NUM = (10.1, 21.94, 0.0, 16.84, -21.7, 9.56, 0.0)
 PITCH_DEN = (1.0, -1.95, 1.083, -1.17, 1.69, -0.37, -0.33, 0.05)
-
-CHANNELS = ("depth", "pitch")
 
 
 def cancel_common_roots(

@@ -35,8 +35,11 @@ ENV_PURE_PYTHON = "GLIDER_HIL_PURE_PYTHON"  # at install time: compile nothing (
 #: of the time (the model's multi-step map, the predictive inverse and the root solver are
 #: the control step; the list-based RLS is the dynamic model's update).
 HOT_PATH: tuple[str, ...] = (
+    "hil_service.umodel.box_qp",
     "hil_service.umodel.dynamics",
+    "hil_service.umodel.estimate",
     "hil_service.umodel.guards",
+    "hil_service.umodel.horizon",
     "hil_service.umodel.inverse",
     "hil_service.umodel.models",
     "hil_service.umodel.nlms",
@@ -142,6 +145,28 @@ def unbuilt_modules(root: Path) -> list[str]:
     return [name for name in HOT_PATH if _build_state(root, name) != "built"]
 
 
+#: The packages whose modules may be compiled: where ``orphan_binaries`` looks.
+PACKAGES: tuple[str, ...] = ("hil_service", "protocols", "plant_emulator")
+
+
+def orphan_binaries(root: Path) -> list[Path]:
+    """Compiled modules under ``root``'s packages that are not a HOT_PATH module: their
+    source is gone, or the module left the list. Python imports an extension module before
+    the ``.py`` beside it, and the stale check only looks at HOT_PATH, so such a file would
+    silently run in place of an existing source; ``make build`` deletes them."""
+    wanted = {root / _source(name) for name in HOT_PATH}
+    suffixes = sorted(importlib.machinery.EXTENSION_SUFFIXES, key=len, reverse=True)
+    found = []
+    for package in PACKAGES:
+        for binary in sorted((root / package).rglob("*.*")):
+            suffix = next((s for s in suffixes if binary.name.endswith(s)), None)
+            if suffix is None or not binary.is_file():
+                continue
+            if binary.with_name(binary.name[: -len(suffix)] + ".py") not in wanted:
+                found.append(binary)
+    return found
+
+
 def summary() -> str:
     """"compiled", "interpreted" or "mixed (…)", for reports and benchmark output."""
     kinds = module_kinds()
@@ -152,10 +177,13 @@ def summary() -> str:
 
 
 if __name__ == "__main__":
-    # `python protocols/compiled.py ROOT`: exit 1 when a module under ROOT needs compiling
-    # (``make build`` asks before compiling; after an install that compiled them all there
-    # is nothing to do).
+    # `python protocols/compiled.py ROOT`: delete the orphan compiled modules under ROOT,
+    # then exit 1 when a module needs compiling (``make build`` asks before compiling;
+    # after an install that compiled them all there is nothing to do).
     root = Path(sys.argv[1] if len(sys.argv) > 1 else ".")
+    for orphan in orphan_binaries(root):
+        orphan.unlink()
+        print(f"removed {orphan} (no HOT_PATH module of that name)")
     missing = [] if flag(ENV_PURE_PYTHON) else unbuilt_modules(root)
     if missing:
         print("to compile: " + ", ".join(missing))

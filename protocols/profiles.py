@@ -8,7 +8,8 @@ file path; a bad file raises ``ProfileError`` naming the file and the line.
 
 A profile turns a received message into *readings* (signal, source rank, value) and a clock
 reading (which clock, raw value), which ``hil_service.sources.sampler`` turns into samples; and it
-turns a ballast command into the messages that carry it.
+turns a ballast command into the messages that carry it. One module over 500 lines: the
+profile's dataclasses and their TOML parser (``_Parser``) change together, field by field.
 """
 
 from __future__ import annotations

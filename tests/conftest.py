@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from hil_service.cli.processes import end_group, free_port, start_service, start_verb, stop_process
-from protocols.compiled import ENV_INTERPRETED, flag, stale_modules
+from protocols.compiled import ENV_INTERPRETED, flag, orphan_binaries, stale_modules
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -25,8 +25,15 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     """Refuse to test compiled modules built from older sources (they would be what runs).
 
     With GLIDER_HIL_INTERPRETED=1 the sources run, here and in every child process, so a
-    stale build does not matter (``make mutate`` edits sources without recompiling).
+    stale build does not matter (``make mutate`` edits sources without recompiling). A
+    compiled module outside HOT_PATH matters either way: the switch does not cover it.
     """
+    orphans = orphan_binaries(ROOT)
+    if orphans:
+        raise pytest.UsageError(
+            f"compiled modules with no HOT_PATH source: {', '.join(map(str, orphans))}; "
+            "run `make build` (it deletes them)"
+        )
     stale = [] if flag(ENV_INTERPRETED) else stale_modules(ROOT)
     if stale:
         raise pytest.UsageError(

@@ -7,6 +7,8 @@ builds are held to the same bits.
 
 from __future__ import annotations
 
+import importlib.machinery
+import os
 import subprocess
 import sys
 
@@ -60,3 +62,40 @@ def test_compiled_and_interpreted_experiments_print_the_same_figures():
     assert native.returncode == source.returncode == 0, native.stderr + source.stderr
     assert native.stdout == source.stdout
     assert '"dynamic"' in native.stdout
+
+
+def _tree(root, modules: dict[str, float]) -> None:
+    """Sources and compiled modules under ``root``: relative path → mtime."""
+    for relative, mtime in modules.items():
+        path = root / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("")
+        os.utime(path, (mtime, mtime))
+
+
+def test_make_build_deletes_compiled_modules_that_are_not_on_the_list(tmp_path):
+    """A compiled module whose source is gone, or that left HOT_PATH while its source stays
+    (it would run in place of that source), is deleted; HOT_PATH's are kept, and a stale
+    one is reported for compiling."""
+    ext = importlib.machinery.EXTENSION_SUFFIXES[0]
+    hot = compiled.HOT_PATH[0].replace(".", "/")
+    _tree(tmp_path, {
+        f"{hot}.py": 200.0, f"{hot}{ext}": 100.0,  # stale: older than its source
+        f"hil_service/assembler{ext}": 100.0,  # its source is gone
+        "hil_service/config.py": 100.0, f"hil_service/config{ext}": 200.0,  # not on the list
+        f"plant_emulator/sub/x{ext}": 100.0,
+    })  # fmt: skip
+    orphans = {p.relative_to(tmp_path).as_posix() for p in compiled.orphan_binaries(tmp_path)}
+    assert orphans == {
+        f"hil_service/assembler{ext}", f"hil_service/config{ext}", f"plant_emulator/sub/x{ext}"
+    }
+    assert compiled.stale_modules(tmp_path) == [compiled.HOT_PATH[0]]
+    out = run_child([str(ROOT / "protocols" / "compiled.py"), str(tmp_path)], interpreted=True)
+    assert out.returncode == 1  # something to compile
+    assert out.stdout.count("removed ") == 3
+    assert compiled.orphan_binaries(tmp_path) == []
+    assert (tmp_path / f"{hot}{ext}").is_file() and (tmp_path / "hil_service/config.py").is_file()
+
+
+def test_a_checkout_built_from_its_sources_has_no_orphan():
+    assert compiled.orphan_binaries(ROOT) == []

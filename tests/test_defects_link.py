@@ -1,4 +1,4 @@
-"""The MAVLink side of issue 14's defects: a file is not a link, and the vehicle gets the
+"""The MAVLink side of the service's contract: a file is not a link, and the vehicle gets the
 command before Zenoh does."""
 
 from __future__ import annotations

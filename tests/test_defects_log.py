@@ -1,5 +1,5 @@
 """A log in which the vehicle rebooted: its report covers every segment, and every JSON
-channel of it has a JSON Schema that each payload matches (issue 14's defects)."""
+channel of it has a JSON Schema that each payload matches."""
 
 from __future__ import annotations
 

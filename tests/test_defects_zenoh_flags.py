@@ -1,4 +1,4 @@
-"""Zenoh flags given on the command line win over ``--zenoh-config`` (issue 14)."""
+"""Zenoh flags given on the command line win over ``--zenoh-config``."""
 
 from __future__ import annotations
 

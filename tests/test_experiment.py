@@ -55,7 +55,7 @@ def test_dynamic_model_is_no_worse_than_arx_where_the_plant_is_nonlinear(default
 
 
 def test_dynamic_model_holds_over_the_horizon(default_runs):
-    """Issue 15's free-run targets on seed 0 (README: 100/99.7, 87.7/96.4, 96.0/95.5 %)."""
+    """The free-run targets on seed 0 (README: 100/99.7, 87.7/96.4, 96.0/95.5 %)."""
     for (scenario, channel), result in default_runs.items():
         models = result.models
         fit, arx = models["dynamic"].fit, models["rls-arx"].fit

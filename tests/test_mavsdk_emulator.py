@@ -102,7 +102,7 @@ async def exercise(drone: System, profile: str) -> dict:
     found: dict = {}
     version = await call(drone.info.get_version())
     found["version"] = (version.flight_sw_major, version.flight_sw_minor)
-    # Parameters: integers exactly (the bug was 1065353216 for 1), a change that persists.
+    # Parameters: integers exactly (1, not its float's bits 1065353216), a change that persists.
     found["SYSID_THISMAV"] = await call(drone.param.get_param_int("SYSID_THISMAV"))
     found["CMD_TIMEOUT"] = await call(drone.param.get_param_float("CMD_TIMEOUT"))
     await call(drone.param.set_param_int("CMD_FALLBACK", 1))

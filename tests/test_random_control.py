@@ -1,10 +1,10 @@
-"""Issue 15's random target on fixed plants: the predictive inverse against the known-model
+"""The random-plant target on fixed plants: the predictive inverse against the known-model
 oracle and the reference input alone, on plants the controller was not tuned on.
 
-The two plants are seed 0's worst of ``--scenario random`` before the plan was made one
-model's (docs/control.md, "Random plants, plant by plant"): a third-order plant with a dead
-zone and a cubic pump term (plant 6: 3.76x the oracle then) and a third-order plant with a
-non-minimum-phase zero, a dead zone and a cubic term (plant 16: 1.996x). Written out here so
+The two plants are seed 0's worst of ``--scenario random`` for a plan mixing two models
+(docs/control.md, "Random plants, plant by plant"): a third-order plant with a dead zone and
+a cubic pump term (plant 6: 3.76x the oracle with such a plan) and a third-order plant with
+a non-minimum-phase zero, a dead zone and a cubic term (plant 16: 1.996x). Written out here so
 that a change to the random family's draws does not change the test. Short runs (two
 setpoint steps after identification): seconds.
 """
@@ -94,10 +94,11 @@ def test_the_inverse_is_near_the_oracle_and_beats_the_reference_alone(runs, chan
     orc = oracle.metrics[channel].iae
     # Measured on these two steps (IAE, output units·s): dead-zone plant (depth) inverse
     # 1.889, oracle 1.779, reference 2.816; NMP plant (pitch) inverse 15.11, oracle 13.62,
-    # reference 17.87. Before the plan was one model's: depth inverse 3.043
-    # (1.71x the oracle, above the reference alone), pitch 15.68; the input over the last
-    # half of the first step moved 0.70 in total (now 0.023). The issue's target is 2x;
-    # 1.4x here keeps a margin over the measured 1.06 and 1.11 and fails the old plan.
+    # reference 17.87. A plan whose free response and block effects come from two
+    # different models gives depth inverse 3.043 (1.71x the oracle, above the reference
+    # alone) and pitch 15.68, and its input moves 0.70 in total over the last half of the
+    # first step (0.023 with one model). The target is 2x; 1.4x here keeps a margin over
+    # the measured 1.06 and 1.11 and fails such a plan.
     assert orc < ref
     assert inv < 1.4 * orc, (inv, orc)
     assert inv < ref, (inv, ref)

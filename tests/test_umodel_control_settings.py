@@ -36,3 +36,67 @@ def test_invalid_predictive_constants_are_refused() -> None:
         ControlSettings(max_blocks=1)
     with pytest.raises(ValueError):
         ControlSettings(min_horizon=1)
+
+
+#: The control block of a stored configuration with every key a user or a log writes today,
+#: none at its default.
+STORED_CONTROL = {
+    "u_limit": 1.5,
+    "rate_limit": 0.25,
+    "min_horizon": 7,
+    "max_horizon": 600,
+    "settle_band": 0.1,
+    "max_blocks": 6,
+    "move_weight": 0.05,
+    "disturbance_share": 0.75,
+    "refresh": 25,
+    "cost_points": 90,
+    "horizon_fit": 60.0,
+    "safe_input": "hold",
+}
+
+
+def test_a_stored_configuration_with_every_control_key_loads_and_is_written_back_alike() -> None:
+    settings = PipelineSettings.from_json({"control": dict(STORED_CONTROL)})
+    control = settings.control
+    predictive = control.predictive()
+    assert (predictive.min_horizon, predictive.max_horizon, predictive.band) == (7, 600, 0.1)
+    assert (predictive.max_blocks, predictive.move_weight) == (6, 0.05)
+    assert (predictive.disturbance_share, predictive.refresh, predictive.cost_points) == (
+        0.75,
+        25,
+        90,
+    )
+    assert (control.u_limit, control.rate_limit) == (1.5, 0.25)
+    assert (control.horizon_fit, control.safe_input) == (60.0, "hold")
+    # The same flat keys, the same values, in what is stored again.
+    assert settings.to_json()["control"] == STORED_CONTROL
+
+
+def test_the_control_block_of_a_fixture_log_loads() -> None:
+    """The control block the replay fixtures store (written before the horizon test's
+    settings existed) reads with today's defaults for what it lacks."""
+    from hil_service.mcap.reader import LogReader
+    from tests.conftest import DATA
+
+    reader = LogReader(DATA / "paper.mcap")
+    for _ in reader.messages():
+        pass
+    stored = reader.config()["service"]["pipeline"]
+    assert "settle_band" in stored["control"]
+    control = PipelineSettings.from_json(stored).control
+    for key, value in stored["control"].items():
+        assert getattr(control, key) == value
+    assert control.horizon_fit == ControlSettings().horizon_fit
+
+
+def test_the_control_defaults_are_the_predictive_defaults() -> None:
+    """ControlSettings carries the predictive inverse's constants for the stored
+    configuration; its defaults are PredictiveSettings' own."""
+    from hil_service.umodel.predictive import PredictiveSettings
+
+    ours, theirs = ControlSettings().predictive(), PredictiveSettings()
+    names = ("min_horizon", "max_horizon", "band", "max_blocks", "move_weight",
+             "disturbance_share", "refresh", "cost_points")  # fmt: skip
+    for name in names:
+        assert getattr(ours, name) == getattr(theirs, name), name

@@ -1,4 +1,4 @@
-"""Issue 15's ArduSub stall: the depth offset must go at the plant's pace, not linger.
+"""The ArduSub depth stall: the depth offset must go at the plant's pace, not linger.
 
 On ``tests/test_mavproxy_router.py`` depth sometimes stalled 0.5-1.2 m short of a 16 m
 setpoint for about 550 samples. In process (``benchmarks/ardusub_offset.py``) the internal

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from hil_service.umodel import build_model
+from hil_service.umodel.box_qp import solve_box_qp
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import (
     PredictiveInverse,
-    _solve_box_qp,
     factorise,
     settling_horizon,
     step_response,
@@ -60,9 +60,9 @@ def test_box_qp_is_the_minimum_over_the_box(seed: int) -> None:
     h = (a @ a.T + 0.1 * np.eye(3)).tolist()
     f = rng.normal(size=3).tolist()
     lo, hi = [-1.0, -0.5, 0.0], [1.0, 0.5, 2.0]
-    x, state = _solve_box_qp(h, f, lo, hi)
-    assert _solve_box_qp(h, f, lo, hi, state)[0] == pytest.approx(x)  # warm start
-    assert _solve_box_qp(h, f, lo, hi, [1, -1, 1])[0] == pytest.approx(x)  # a wrong one
+    x, state = solve_box_qp(h, f, lo, hi)
+    assert solve_box_qp(h, f, lo, hi, state)[0] == pytest.approx(x)  # warm start
+    assert solve_box_qp(h, f, lo, hi, [1, -1, 1])[0] == pytest.approx(x)  # a wrong one
     assert all(lo[i] - 1e-12 <= x[i] <= hi[i] + 1e-12 for i in range(3))
 
     def cost(v: np.ndarray) -> float:

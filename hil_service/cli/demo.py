@@ -101,12 +101,7 @@ def run(args: argparse.Namespace) -> int:
     t_control, t_second = 0.4 * sim_total, 0.7 * sim_total
     Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     key_dir = tempfile.TemporaryDirectory(prefix="glider-hil-demo-")
-    signing: list[str] = []
-    if args.signing:
-        key_path = Path(key_dir.name) / "mavlink.key"
-        key_path.touch(mode=0o600)
-        key_path.write_bytes(os.urandom(32))
-        signing = ["--signing-key", str(key_path)]
+    signing = signing_arguments(Path(key_dir.name)) if args.signing else []
     try:
         service = start_service(
             "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
@@ -144,17 +139,7 @@ def run(args: argparse.Namespace) -> int:
             f"t={t_control:.0f}s, then setpoint steps at t={t_control:.0f}s and {t_second:.0f}s",
             flush=True,
         )
-        deadline = time.monotonic() + args.duration + 20
-        step = 0
-        while emulator.poll() is None and time.monotonic() < deadline:
-            t = observations.latest_t()
-            if step < len(plan) and t >= plan[step][0]:
-                session.put(keys.control(SYSTEM_ID), json.dumps({"enabled": True}))
-                for channel, value in plan[step][1].items():
-                    session.put(keys.setpoint(SYSTEM_ID, channel), json.dumps({"value": value}))
-                print(f"demo: t={t:.0f}s control on, setpoints {plan[step][1]}", flush=True)
-                step += 1
-            time.sleep(0.05)
+        follow_plan(session, observations, emulator, plan, time.monotonic() + args.duration + 20)
         subscriber.undeclare()
     finally:
         emulator_out = stop_process(emulator)[0] if emulator is not None else ""
@@ -166,6 +151,51 @@ def run(args: argparse.Namespace) -> int:
     if not summary:
         print(f"demo: the service printed no summary\n{service_err}", file=sys.stderr)
         return 1
+    result = demo_result(summary, observations, plan, sim_total, emulator_out)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print_summary(result)
+    return 0 if result["samples"] and result["log"] else 1
+
+
+def signing_arguments(key_dir: Path) -> list[str]:
+    """A fresh signing key in ``key_dir`` (owner-only), as both processes' flag."""
+    key_path = key_dir / "mavlink.key"
+    key_path.touch(mode=0o600)
+    key_path.write_bytes(os.urandom(32))
+    return ["--signing-key", str(key_path)]
+
+
+def follow_plan(
+    session: Any,
+    observations: Observations,
+    emulator: Any,
+    plan: list[tuple[float, dict[str, float]]],
+    deadline: float,
+) -> None:
+    """Enable control and put each step's setpoints once the telemetry reaches its time,
+    until the emulator exits or the wall-clock deadline passes."""
+    step = 0
+    while emulator.poll() is None and time.monotonic() < deadline:
+        t = observations.latest_t()
+        if step < len(plan) and t >= plan[step][0]:
+            session.put(keys.control(SYSTEM_ID), json.dumps({"enabled": True}))
+            for channel, value in plan[step][1].items():
+                session.put(keys.setpoint(SYSTEM_ID, channel), json.dumps({"value": value}))
+            print(f"demo: t={t:.0f}s control on, setpoints {plan[step][1]}", flush=True)
+            step += 1
+        time.sleep(0.05)
+
+
+def demo_result(
+    summary: dict[str, Any],
+    observations: Observations,
+    plan: list[tuple[float, dict[str, float]]],
+    sim_total: float,
+    emulator_out: str,
+) -> dict[str, Any]:
+    """The demo's figures from the service's summary and what the subscriber saw."""
     segments = {
         ch: [
             (plan[0][0], plan[1][0], plan[0][1][ch]),
@@ -178,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
         commands = observations.commands
         health = dict(observations.health)
     vehicle = summary.get("vehicles", {}).get(str(SYSTEM_ID), {})
-    result = {
+    return {
         "samples": summary.get("counters", {}).get("samples", 0),
         "identification": {
             ch: {k: v[k] for k in ("nmse", "persistence_nmse", "skill")}
@@ -195,11 +225,6 @@ def run(args: argparse.Namespace) -> int:
             k: v for k, v in summary.get("counters", {}).items() if k.startswith("signing_")
         },
     }
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        print_summary(result)
-    return 0 if result["samples"] and result["log"] else 1
 
 
 def print_summary(result: dict[str, Any]) -> None:

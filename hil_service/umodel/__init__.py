@@ -8,7 +8,6 @@ from .interface import PredictiveModel
 from .inverse import (
     CommandShaper,
     InverseResult,
-    ReferenceFilter,
     ShapedCommand,
     solve_inverse,
 )
@@ -50,7 +49,6 @@ __all__ = [
     "PaperUModel",
     "PersistenceModel",
     "PredictiveModel",
-    "ReferenceFilter",
     "RlsArxModel",
     "ShapedCommand",
     "Status",

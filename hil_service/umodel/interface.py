@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
     from .dynamics import ModelDynamics
-    from .models import Estimate
+    from .estimate import Estimate
 
 
 @runtime_checkable

@@ -14,10 +14,6 @@ polynomials; the predictive inverse passes a model's static input map (:mod:`.pr
   out of reach) is refined by a stationary-point search (regula falsi on f', golden section
   as backup) in its neighbouring cells. Ties go to u0 (then the lower u), which avoids
   needless jumps when f is flat (e.g. the persistence model).
-* With f'' (``d2f``, optional) the stationary-point search takes Newton steps on f': first
-  from u0 when u0 lies in those cells (the previous answer is usually next to the new one),
-  accepted only if it stays in the cells and lands on a minimum of |f − v|; else kept inside
-  the bracket. Same point as regula falsi within its tolerance, in a few evaluations.
 """
 
 from __future__ import annotations
@@ -33,7 +29,6 @@ import numpy as np
 __all__ = [
     "CommandShaper",
     "InverseResult",
-    "ReferenceFilter",
     "ShapedCommand",
     "solve_inverse",
 ]
@@ -114,23 +109,13 @@ def _extremum(
     b: float,
     xtol: float,
     max_iter: int,
-    d2f: Callable[[float], float] | None = None,
-    start: float | None = None,
 ) -> tuple[float, float, int]:
     """Minimise |f − v| on [a, b] when f − v keeps its sign there (touching or unreachable
     target): the minimiser is a stationary point of f, found by Illinois regula falsi on f'
-    when f' changes sign over [a, b] (bracketed Newton on f' when f'' is given), else by
-    golden-section search."""
-    if d2f is not None and start is not None and a < start < b:
-        warm = _warm_stationary(f, df, d2f, v, a, b, start, xtol, max_iter)
-        if warm is not None:
-            return warm
+    when f' changes sign over [a, b], else by golden-section search."""
     da, db = df(a), df(b)
     it = 0
     if math.isfinite(da) and math.isfinite(db) and da * db < 0.0:
-        if d2f is not None:
-            u, it = _stationary_newton(df, d2f, a, b, da, db, xtol, max_iter, start)
-            return u, _abs_res(f, u, v), it
         side = 0
         u = a
         while it < max_iter and (b - a) > xtol:
@@ -166,87 +151,6 @@ def _extremum(
     return (c, fc, it) if fc <= fd else (d, fd, it)
 
 
-def _warm_stationary(
-    f: Callable[[float], float],
-    df: Callable[[float], float],
-    d2f: Callable[[float], float],
-    v: float,
-    a: float,
-    b: float,
-    start: float,
-    xtol: float,
-    max_iter: int,
-) -> tuple[float, float, int] | None:
-    """Newton on f' from ``start`` (the previous command, usually last step's answer), for
-    the common case where the unreachable target's best point has barely moved.
-
-    Accepted only if every iterate stays inside (a, b), a step shorter than ``xtol`` is
-    reached and the point is a minimum of |f − v| (f − v and f'' of the same sign), i.e.
-    the stationary point the bracketed search would find; saves evaluating f' at both
-    cell ends. None means "run the bracketed search".
-    """
-    u = start
-    for it in range(1, min(max_iter, 8) + 1):
-        h = d2f(u)
-        du = df(u)
-        if not (math.isfinite(du) and math.isfinite(h)) or h == 0.0:
-            return None
-        u_new = u - du / h
-        if not a < u_new < b:
-            return None
-        if abs(u_new - u) <= xtol:
-            r = f(u_new) - v
-            return (u_new, abs(r), it) if math.isfinite(r) and r * h > 0.0 else None
-        u = u_new
-    return None
-
-
-def _stationary_newton(
-    df: Callable[[float], float],
-    d2f: Callable[[float], float],
-    a: float,
-    b: float,
-    da: float,
-    db: float,
-    xtol: float,
-    max_iter: int,
-    start: float | None,
-) -> tuple[float, int]:
-    """Zero of f' in [a, b] (f'(a)·f'(b) < 0) by Newton on f', kept inside the bracket.
-
-    Converges quadratically where Illinois regula falsi needs many one-sided steps, and a
-    warm ``start`` (the previous command, often the previous step's stationary point) is
-    usually a step or two from the answer. A step that would leave the shrinking bracket
-    is replaced by a regula falsi step, so the iteration can never leave [a, b]. Stops when
-    a Newton step moves less than ``xtol`` (then the error is far below ``xtol``) or the
-    bracket is narrower than ``xtol``.
-    """
-    u = start if start is not None and a < start < b else (a * db - b * da) / (db - da)
-    it = 0
-    while it < max_iter:
-        it += 1
-        h = d2f(u)  # first: a model may compute f' in the same pass
-        du = df(u)
-        if not math.isfinite(du) or du == 0.0:
-            break
-        if (du < 0.0) == (da < 0.0):
-            a, da = u, du
-        else:
-            b, db = u, du
-        u_new = u - du / h if math.isfinite(h) and h != 0.0 else math.nan
-        if a < u_new < b:
-            if abs(u_new - u) <= xtol:
-                return u_new, it
-        else:
-            u_new = (a * db - b * da) / (db - da)
-            if not a < u_new < b:
-                u_new = 0.5 * (a + b)
-        u = u_new
-        if b - a <= xtol:
-            break
-    return u, it
-
-
 @lru_cache(maxsize=32)
 def _grid(lo: float, hi: float, n: int) -> np.ndarray:
     g = np.linspace(lo, hi, n)
@@ -257,7 +161,6 @@ def _grid(lo: float, hi: float, n: int) -> np.ndarray:
 def _fallback(
     f: Callable[[float], float],
     df: Callable[[float], float],
-    f_vec: Callable[[np.ndarray], np.ndarray] | None,
     v: float,
     u0: float,
     lo: float,
@@ -265,13 +168,9 @@ def _fallback(
     tol: float,
     grid_points: int,
     refine_iter: int,
-    d2f: Callable[[float], float] | None = None,
 ) -> InverseResult:
     grid = _grid(lo, hi, grid_points)
-    if f_vec is not None:
-        vals = np.asarray(f_vec(grid), dtype=float)
-    else:
-        vals = np.array([f(u) for u in grid.tolist()], dtype=float)
+    vals = np.array([f(u) for u in grid.tolist()], dtype=float)
     r = vals - v
     iters = 0
     low, high = float(r.min()), float(r.max())  # NaN anywhere → NaN → the general scan
@@ -327,7 +226,7 @@ def _fallback(
             ga = float(grid[max(i - 1, 0)])
             gb = float(grid[min(i + 1, last)])
             # |f − v| is flat at a stationary point: 1e-7 of the range in u is plenty.
-            uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter, d2f, u0)
+            uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter)
             if rc < best:
                 u = uc
     # u0 itself wins ties: no needless move when f is flat there.
@@ -351,8 +250,6 @@ def solve_inverse(
     u_min: float,
     u_max: float,
     *,
-    f_vec: Callable[[np.ndarray], np.ndarray] | None = None,
-    d2f: Callable[[float], float] | None = None,
     tol: float = 1e-9,
     max_iter: int = 12,
     min_slope: float = 1e-12,
@@ -361,8 +258,6 @@ def solve_inverse(
 ) -> InverseResult:
     """Find u ∈ [u_min, u_max] with f(u) = v (|f − v| ≤ tol·max(1, |v|)); see module doc.
 
-    ``f_vec`` (optional) evaluates f on a numpy array at once to speed up the fallback grid;
-    ``d2f`` (optional, f'') lets the fallback's stationary-point search take Newton steps.
     A non-finite ``v`` cannot be met: the clamped u0 is returned on the fallback path with
     an infinite residual. A non-finite ``u0`` is replaced by the range midpoint.
     """
@@ -399,7 +294,7 @@ def solve_inverse(
         if not (u_min <= u_new <= u_max):
             break
         u = u_new
-    return _fallback(f, df, f_vec, v, start, u_min, u_max, tol_abs, grid_points, refine_iter, d2f)
+    return _fallback(f, df, v, start, u_min, u_max, tol_abs, grid_points, refine_iter)
 
 
 @dataclass(frozen=True, slots=True)
@@ -450,38 +345,3 @@ class CommandShaper:
                 limited = True
         self._u = u
         return ShapedCommand(u, sat, limited)
-
-
-class ReferenceFilter:
-    """First-order reference filter r_f ← a·r_f + (1 − a)·r.
-
-    ``a`` ∈ [0, 1): 0 = no filtering; larger = smoother, slower reference. The filter starts
-    from ``initial`` if given, else from the first measured output (bumpless start).
-    """
-
-    __slots__ = ("_rf", "a")
-
-    def __init__(self, a: float = 0.9, initial: float | None = None) -> None:
-        if not (math.isfinite(a) and 0.0 <= a < 1.0):
-            raise ValueError("filter coefficient a must be in [0, 1)")
-        self.a = float(a)
-        self._rf = None if initial is None or not math.isfinite(initial) else float(initial)
-
-    @property
-    def value(self) -> float | None:
-        return self._rf
-
-    def reset(self, value: float | None = None) -> None:
-        self._rf = None if value is None or not math.isfinite(value) else float(value)
-
-    def filter(self, setpoint: float, start: float | None = None) -> float:
-        """Advance the filter one sample and return r_f (non-finite setpoints are ignored)."""
-        rf = self._rf
-        if rf is None:
-            rf = start if start is not None and math.isfinite(start) else setpoint
-            if not math.isfinite(rf):
-                rf = 0.0
-        if math.isfinite(setpoint):
-            rf = self.a * rf + (1.0 - self.a) * setpoint
-        self._rf = rf
-        return rf

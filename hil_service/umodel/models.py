@@ -22,6 +22,10 @@ Models (``MODEL_NAMES``):
 
 Every model rejects non-finite/absurd samples without touching its state, detects
 divergence (see :mod:`.guards`) and never returns NaN.
+
+The four identifiers share one module, over 500 lines: each is a short set of hooks on the
+same step skeleton (``_ModelBase``), which reads best beside them, and ``build_model``
+registers them all.
 """
 
 from __future__ import annotations
@@ -29,11 +33,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from operator import mul
-from typing import Any, ClassVar, Literal, NamedTuple
+from typing import Any, ClassVar
 
 import numpy as np
 
 from .dynamics import ModelDynamics
+from .estimate import STATUSES, Estimate, Status
 from .guards import DivergenceMonitor, GuardConfig
 from .interface import OneStepModel
 from .nlms import DEFAULT_EPS, NLMS
@@ -61,8 +66,6 @@ __all__ = [
 U_MODELS: tuple[str, ...] = ("paper", "dynamic")
 #: Every model, the U-models and the baselines the experiments score them against.
 MODEL_NAMES: tuple[str, ...] = (*U_MODELS, "rls-arx", "persistence")
-Status = Literal["ok", "rejected", "diverged", "frozen"]
-STATUSES: tuple[str, ...] = ("ok", "rejected", "diverged", "frozen")
 
 PAPER_DEGREE = 3
 PAPER_MU = 0.5
@@ -70,27 +73,6 @@ PAPER_N_CENTRES = 17
 PAPER_CENTRE_RANGE = (-2.0, 2.0)
 PAPER_BETA = 0.25
 PAPER_INIT_SCALE = 0.1
-
-
-class Estimate(NamedTuple):
-    """Result of one ``step`` (immutable; a named tuple because four are made per sample).
-
-    ``alpha`` = (α₀, α₁, …) are the U-model coefficients *that produced y_hat*, i.e.
-    y_hat = α₀ + Σ α_i u_prev^i (up to rounding): for ``rls-arx`` α₁ is b₁ and α₀ the rest
-    of the ARX sum; for ``persistence`` alpha = (y(t−1),). ``weights`` are the other adapted
-    parameters before this step's update: RBF weights (``paper``), [c, a_1..a_na, b_2..b_nb]
-    (``dynamic``, which has no RBF), the full ARX vector (``rls-arx``).
-    For a rejected sample, ``error`` is 0.0 and a non-finite ``y`` is replaced by ``y_hat``
-    so that no field is ever NaN.
-    """
-
-    model: str
-    status: Status
-    y: float
-    y_hat: float
-    error: float
-    alpha: tuple[float, ...]
-    weights: tuple[float, ...]
 
 
 _isfinite = math.isfinite
@@ -332,7 +314,7 @@ class _UModelCore(_ModelBase):
             centres = evenly_spaced_centres(PAPER_N_CENTRES, *PAPER_CENTRE_RANGE)
         self.rbf = GaussianRBF(centres, beta)
         self.degree = int(degree)
-        #: poly_scale^i for α_i in ``_coefficients`` (the same ``**`` as per sample before).
+        #: poly_scale^i for α_i in ``_coefficients``, computed once.
         self._scale_powers = [self.poly_scale ** (i + 1) for i in range(self.degree)]
         self.nlms = NLMS(float(mu), float(eps))
         self.init_scale = float(init_scale)

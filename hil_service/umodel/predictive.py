@@ -35,13 +35,28 @@ from __future__ import annotations
 
 import math
 
+from .box_qp import solve_box_qp
 from .dynamics import ModelDynamics, StaticMap
+from .horizon import (
+    add_move_penalty,
+    block_starts,
+    cost_points,
+    cost_start,
+    free_response_terms,
+    plan_matrices,
+    settling_horizon,
+    step_response,
+)
 from .inverse import solve_inverse
 
 __all__ = [
     "PredictiveInverse",
     "PredictiveSettings",
+    "block_starts",
     "cost_points",
+    "cost_start",
+    "factorise",
+    "monotone_range",
     "settling_horizon",
     "step_response",
 ]
@@ -99,123 +114,6 @@ class PredictiveSettings:
         #: At most this many points of the horizon enter the cost (evenly spaced, the last
         #: one always).
         self.cost_points = int(cost_points)
-
-
-def block_starts(horizon: int, max_blocks: int) -> list[int]:
-    """First samples of the input blocks: 1 (the command), then geometrically spaced up to
-    the horizon (ratio 2, or larger so that there are at most ``max_blocks``): fine where
-    the plan is applied next, coarse where only its level matters."""
-    ratio = 2.0
-    if max_blocks > 2:
-        ratio = max(ratio, math.exp(math.log(max(horizon, 2)) / (max_blocks - 1)))
-    starts = [1]
-    edge = 1.0
-    while True:
-        edge *= ratio
-        start = round(edge)
-        if start >= horizon:
-            break
-        if start > starts[-1]:
-            starts.append(start)
-    if len(starts) == 1 and horizon > 1:
-        starts.append(2)
-    return starts
-
-
-def cost_points(
-    horizon: int, stride: int, starts: list[int], first: int = 1
-) -> tuple[list[int], list[float]]:
-    """The samples j of the horizon whose predicted error enters the cost, newest first,
-    and each one's weight (the samples it stands for, in strides).
-
-    Every ``stride``-th sample from the horizon down, and every sample while the input
-    blocks are shorter than a stride: a block's level moves the output at once (on the
-    ArduSub depth channel by −2.1 m per unit within one sample, a wrong-way response that
-    lasts as long as the block), so a block between two cost points could pulse unseen.
-    The plan then kept an unseen pulse in its second block and the applied first block
-    near the held input, every sample again (a stall 0.8 m short for 450 samples;
-    docs/control.md, "Blocks the cost does not see"). A point stands for the samples down
-    to the next one, so the sum stays a consistent approximation of the whole horizon's.
-    """
-    dense = 0
-    for b in range(len(starts)):
-        end = starts[b + 1] if b + 1 < len(starts) else horizon
-        if end - starts[b] >= stride:
-            break
-        dense = end
-    dense = min(dense, horizon)
-    first = max(1, min(first, horizon))
-    points = list(range(horizon, max(dense, first - 1), -stride))
-    points += list(range(min(dense, points[-1] - 1 if points else horizon), first - 1, -1))
-    weights: list[float] = []
-    for p in range(len(points)):
-        below = points[p + 1] if p + 1 < len(points) else first - 1
-        weights.append(1.0 if points[p] - below >= stride else (points[p] - below) / stride)
-    return points, weights
-
-
-def cost_start(response: list[float], horizon: int) -> int:
-    """The first sample of the horizon whose error enters the cost (GPC's minimum costing
-    horizon N1): 1, or the sample m at which the step response peaks the wrong way (5 on
-    ArduSub and glider depth: −2.13 after one sample, −2.44 after five).
-
-    Before it the output moves the wrong way whatever the plan does now. The first
-    block acts from sample 2, so its own wrong-way peak is at m + 1 and its jump is seen at
-    one point of the cost: a partial charge. Measured both ways (docs/control.md, "Blocks
-    the cost does not see"): from m + 1 (the jump never charged) the plan was bolder and
-    disturbed glider depth 3.8 % (5,000 samples) and 7.3 % (20,000) worse; from m, 1.9 %
-    and 2.6 %; a cost from sample 1 holds the steady-state input and never kicks (paper
-    depth 33 % worse)."""
-    final = response[-1] if response else 0.0
-    if not (math.isfinite(final) and final != 0.0):
-        return 1
-    worst = 0.0
-    at = 0
-    for m in range(min(horizon, len(response))):
-        wrong = -response[m] if final > 0.0 else response[m]
-        if wrong > worst:
-            worst, at = wrong, m
-    return at if at > 0 else 1
-
-
-def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
-    """s(0 … n−1): the output j samples after w steps from 0 to 1 (s(0) = 0: no
-    feedthrough), for y(t) = Σ c_i y(t−i) + Σ_L g_L w(t−L)."""
-    na = len(ar)
-    nb = len(gains)
-    out: list[float] = []
-    forcing = 0.0
-    for j in range(n):
-        if 1 <= j <= nb:
-            forcing += gains[j - 1]
-        acc = forcing
-        for i in range(na):
-            if j - 1 - i >= 0:
-                acc += ar[i] * out[j - 1 - i]
-        out.append(acc)
-    return out
-
-
-def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
-    """The first sample after which the step response stays within ``band`` of its last
-    value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
-    settle or is not finite."""
-    n = len(response)
-    if n == 0:
-        return lo
-    final = response[-1]
-    if not math.isfinite(final) or final == 0.0:
-        return hi
-    # Not settled if it still moves at the end: compare with the value a tenth earlier.
-    check = response[n - 1 - n // 10]
-    tol = band * abs(final)
-    if abs(check - final) > tol:
-        return hi
-    last = 0
-    for j in range(n):
-        if abs(response[j] - final) > tol:
-            last = j + 1
-    return lo if last < lo else hi if last > hi else last
 
 
 def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float], StaticMap] | None:
@@ -302,116 +200,6 @@ def _reachable(u0: float, reach: float, lo: float, hi: float) -> tuple[float, fl
         return a, b
     p = u0 + reach if u0 < lo else u0 - reach
     return p, p
-
-
-def _solve_linear(a: list[list[float]], b: list[float]) -> list[float] | None:
-    """x with a·x = b by Gaussian elimination with partial pivoting (a and b are
-    consumed); None when a is singular to working precision."""
-    k = len(b)
-    for col in range(k):
-        piv = col
-        for r in range(col + 1, k):
-            if abs(a[r][col]) > abs(a[piv][col]):
-                piv = r
-        if not abs(a[piv][col]) > 1e-300:
-            return None
-        if piv != col:
-            a[col], a[piv] = a[piv], a[col]
-            b[col], b[piv] = b[piv], b[col]
-        pivot_row = a[col]
-        for r in range(col + 1, k):
-            row = a[r]
-            factor = row[col] / pivot_row[col]
-            if factor != 0.0:
-                for c in range(col, k):
-                    row[c] -= factor * pivot_row[c]
-                b[r] -= factor * b[col]
-    x = [0.0] * k
-    for r in range(k - 1, -1, -1):
-        acc = b[r]
-        row = a[r]
-        for c in range(r + 1, k):
-            acc -= row[c] * x[c]
-        x[r] = acc / row[r]
-    return x
-
-
-def _solve_box_qp(
-    h: list[list[float]],
-    f: list[float],
-    lo: list[float],
-    hi: list[float],
-    warm: list[int] | None = None,
-) -> tuple[list[float], list[int]]:
-    """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite): a primal
-    active-set method (Nocedal & Wright, §16.5) from the centre of the box. Each
-    iteration solves for the free variables, steps until a bound blocks, and releases
-    the bound whose multiplier has the wrong sign once no step is left; finite, exact to
-    rounding, deterministic. Returns the best point reached if the iteration limit hits,
-    and the working set (0 free, −1 at lo, +1 at hi): given back as ``warm`` on the next
-    sample, the last plan's active bounds, it usually leaves one or two iterations."""
-    n = len(f)
-    state = [0] * n
-    if warm is not None and len(warm) == n:
-        state = list(warm)
-    x = [lo[i] if state[i] < 0 else hi[i] if state[i] > 0 else 0.5 * (lo[i] + hi[i])
-         for i in range(n)]  # fmt: skip
-    for _ in range(8 * n + 8):
-        grad = [0.0] * n
-        for i in range(n):
-            acc = f[i]
-            row = h[i]
-            for j in range(n):
-                acc += row[j] * x[j]
-            grad[i] = acc
-        free = [i for i in range(n) if state[i] == 0]
-        step = [0.0] * n
-        moved = False
-        if free:
-            sol = _solve_linear(
-                [[h[i][j] for j in free] for i in free], [-grad[i] for i in free]
-            )
-            if sol is None:
-                return x, state
-            for r in range(len(free)):
-                step[free[r]] = sol[r]
-            scale = 0.0
-            for i in range(n):
-                scale = max(scale, abs(x[i]), hi[i] - lo[i])
-            moved = any(abs(v) > 1e-14 * (1.0 + scale) for v in step)
-        if moved:
-            alpha = 1.0
-            block = -1
-            for i in free:
-                v = step[i]
-                if v < 0.0 and x[i] + v < lo[i]:
-                    t = (lo[i] - x[i]) / v
-                    if t < alpha:
-                        alpha, block = t, i
-                elif v > 0.0 and x[i] + v > hi[i]:
-                    t = (hi[i] - x[i]) / v
-                    if t < alpha:
-                        alpha, block = t, i
-            for i in free:
-                x[i] += alpha * step[i]
-            if block >= 0:
-                if step[block] < 0.0:
-                    x[block], state[block] = lo[block], -1
-                else:
-                    x[block], state[block] = hi[block], 1
-            continue
-        # No step left on this face: release the bound that most wants to move inward.
-        worst = -1
-        worst_value = 0.0
-        for i in range(n):
-            # At lo the gradient must be ≥ 0, at hi ≤ 0 (multipliers of the right sign).
-            g = grad[i] if state[i] == -1 else -grad[i] if state[i] == 1 else 0.0
-            if g < worst_value:
-                worst, worst_value = i, g
-        if worst < 0:
-            return x, state
-        state[worst] = 0
-    return x, state
 
 
 class PredictiveInverse:
@@ -548,63 +336,12 @@ class PredictiveInverse:
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
         starts = block_starts(n, s.max_blocks)
-        nblocks = len(starts)
         stride = max(1, -(-n // s.cost_points))
         points, weights = cost_points(n, stride, starts, cost_start(response, n))
-        columns: list[list[float]] = []
-        onset: list[float] = []
-        hessian = [[0.0] * nblocks for _ in range(nblocks)]
-        for p in range(len(points)):
-            j = points[p]
-            weight = weights[p]
-            # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
-            # (s(m) = 0 for m ≤ 0: an input acts one sample later).
-            col = [0.0] * nblocks
-            for b in range(nblocks):
-                first = j - starts[b]
-                on = response[first] if first > 0 else 0.0
-                off = 0.0
-                if b + 1 < nblocks:
-                    after = j - starts[b + 1]
-                    off = response[after] if after > 0 else 0.0
-                col[b] = on - off
-            # Stored weighted: the QP's linear term is Σ_p weight·col·residual.
-            columns.append([weight * c for c in col])
-            first0 = j - starts[0]
-            onset.append(response[first0] if first0 > 0 else 0.0)
-            for a in range(nblocks):
-                wa = weight * col[a]
-                for b in range(nblocks):
-                    hessian[a][b] += wa * col[b]
-        # Move penalty ρ Σ (W_b − W_{b−1})², W_{−1} = the applied input's level, scaled to
-        # the output cost's size.
-        trace = 0.0
-        for b in range(nblocks):
-            trace += hessian[b][b]
-        rho = s.move_weight * (trace / nblocks + 1e-12)
-        for b in range(nblocks):
-            hessian[b][b] += rho if b + 1 == nblocks else 2.0 * rho
-            if b + 1 < nblocks:
-                hessian[b][b + 1] -= rho
-                hessian[b + 1][b] -= rho
-        # 1/A(q): impulse response h_A and its running sum S_A, for the free response.
-        na = len(ar)
-        lead = max(na, len(gains) - 1, 1)
-        impulse: list[float] = []
-        for m in range(n):
-            acc = 1.0 if m == 0 else 0.0
-            for i in range(na):
-                if m - 1 - i >= 0:
-                    acc += ar[i] * impulse[m - 1 - i]
-            impulse.append(acc)
-        running = [0.0]
-        for m in range(n):
-            running.append(running[-1] + impulse[m])
+        columns, onset, hessian = plan_matrices(response, starts, points, weights)
+        rho = add_move_penalty(hessian, s.move_weight)
         self._free_ar = list(ar)
-        self._free_step = [running[j] for j in points]
-        self._free_impulse = [
-            [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
-        ]
+        self._free_step, self._free_impulse = free_response_terms(ar, len(gains), n, points)
         self._horizon = n
         self._points = points
         self._columns = columns
@@ -713,7 +450,7 @@ class PredictiveInverse:
         for value in f:
             if not math.isfinite(value):
                 return u0, "hold", False
-        plan, self._plan_state = _solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
+        plan, self._plan_state = solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
         target = plan[0]
         if not math.isfinite(target):
             return u0, "hold", False

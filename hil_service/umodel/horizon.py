@@ -1,0 +1,214 @@
+"""The predictive inverse's plan, from the identified linear part: its horizon, input
+blocks and cost points, and the fixed matrices of the QP over them (see :mod:`.predictive`).
+
+Pure functions of the step response (and the AR part for the free response); they change
+as slowly as the model does, and ``PredictiveInverse`` derives them again every
+``refresh`` samples.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = [
+    "add_move_penalty",
+    "block_starts",
+    "cost_points",
+    "cost_start",
+    "free_response_terms",
+    "plan_matrices",
+    "settling_horizon",
+    "step_response",
+]
+
+
+def block_starts(horizon: int, max_blocks: int) -> list[int]:
+    """First samples of the input blocks: 1 (the command), then geometrically spaced up to
+    the horizon (ratio 2, or larger so that there are at most ``max_blocks``): fine where
+    the plan is applied next, coarse where only its level matters."""
+    ratio = 2.0
+    if max_blocks > 2:
+        ratio = max(ratio, math.exp(math.log(max(horizon, 2)) / (max_blocks - 1)))
+    starts = [1]
+    edge = 1.0
+    while True:
+        edge *= ratio
+        start = round(edge)
+        if start >= horizon:
+            break
+        if start > starts[-1]:
+            starts.append(start)
+    if len(starts) == 1 and horizon > 1:
+        starts.append(2)
+    return starts
+
+
+def cost_points(
+    horizon: int, stride: int, starts: list[int], first: int = 1
+) -> tuple[list[int], list[float]]:
+    """The samples j of the horizon whose predicted error enters the cost, newest first,
+    and each one's weight (the samples it stands for, in strides).
+
+    Every ``stride``-th sample from the horizon down, and every sample while the input
+    blocks are shorter than a stride: a block's level moves the output at once (on the
+    ArduSub depth channel by −2.1 m per unit within one sample, a wrong-way response that
+    lasts as long as the block), so a block between two cost points could pulse unseen.
+    The plan then kept an unseen pulse in its second block and the applied first block
+    near the held input, every sample again (a stall 0.8 m short for 450 samples;
+    docs/control.md, "Blocks the cost does not see"). A point stands for the samples down
+    to the next one, so the sum stays a consistent approximation of the whole horizon's.
+    """
+    dense = 0
+    for b in range(len(starts)):
+        end = starts[b + 1] if b + 1 < len(starts) else horizon
+        if end - starts[b] >= stride:
+            break
+        dense = end
+    dense = min(dense, horizon)
+    first = max(1, min(first, horizon))
+    points = list(range(horizon, max(dense, first - 1), -stride))
+    points += list(range(min(dense, points[-1] - 1 if points else horizon), first - 1, -1))
+    weights: list[float] = []
+    for p in range(len(points)):
+        below = points[p + 1] if p + 1 < len(points) else first - 1
+        weights.append(1.0 if points[p] - below >= stride else (points[p] - below) / stride)
+    return points, weights
+
+
+def cost_start(response: list[float], horizon: int) -> int:
+    """The first sample of the horizon whose error enters the cost (GPC's minimum costing
+    horizon N1): 1, or the sample m at which the step response peaks the wrong way (5 on
+    ArduSub and glider depth: −2.13 after one sample, −2.44 after five).
+
+    Before it the output moves the wrong way whatever the plan does now. The first
+    block acts from sample 2, so its own wrong-way peak is at m + 1 and its jump is seen at
+    one point of the cost: a partial charge. Measured both ways (docs/control.md, "Blocks
+    the cost does not see"): from m + 1 (the jump never charged) the plan was bolder and
+    disturbed glider depth 3.8 % (5,000 samples) and 7.3 % (20,000) worse; from m, 1.9 %
+    and 2.6 %; a cost from sample 1 holds the steady-state input and never kicks (paper
+    depth 33 % worse)."""
+    final = response[-1] if response else 0.0
+    if not (math.isfinite(final) and final != 0.0):
+        return 1
+    worst = 0.0
+    at = 0
+    for m in range(min(horizon, len(response))):
+        wrong = -response[m] if final > 0.0 else response[m]
+        if wrong > worst:
+            worst, at = wrong, m
+    return at if at > 0 else 1
+
+
+def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
+    """s(0 … n−1): the output j samples after w steps from 0 to 1 (s(0) = 0: no
+    feedthrough), for y(t) = Σ c_i y(t−i) + Σ_L g_L w(t−L)."""
+    na = len(ar)
+    nb = len(gains)
+    out: list[float] = []
+    forcing = 0.0
+    for j in range(n):
+        if 1 <= j <= nb:
+            forcing += gains[j - 1]
+        acc = forcing
+        for i in range(na):
+            if j - 1 - i >= 0:
+                acc += ar[i] * out[j - 1 - i]
+        out.append(acc)
+    return out
+
+
+def plan_matrices(
+    response: list[float], starts: list[int], points: list[int], weights: list[float]
+) -> tuple[list[list[float]], list[float], list[list[float]]]:
+    """Per cost point, each block's weighted effect on ŷ(k+j) (the columns) and the held
+    input's step s(j − 1) (the onset); and the output cost's Hessian Σ_p w_p·col·colᵀ."""
+    nblocks = len(starts)
+    columns: list[list[float]] = []
+    onset: list[float] = []
+    hessian = [[0.0] * nblocks for _ in range(nblocks)]
+    for p in range(len(points)):
+        j = points[p]
+        weight = weights[p]
+        # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
+        # (s(m) = 0 for m ≤ 0: an input acts one sample later).
+        col = [0.0] * nblocks
+        for b in range(nblocks):
+            first = j - starts[b]
+            on = response[first] if first > 0 else 0.0
+            off = 0.0
+            if b + 1 < nblocks:
+                after = j - starts[b + 1]
+                off = response[after] if after > 0 else 0.0
+            col[b] = on - off
+        # Stored weighted: the QP's linear term is Σ_p weight·col·residual.
+        columns.append([weight * c for c in col])
+        first0 = j - starts[0]
+        onset.append(response[first0] if first0 > 0 else 0.0)
+        for a in range(nblocks):
+            wa = weight * col[a]
+            for b in range(nblocks):
+                hessian[a][b] += wa * col[b]
+    return columns, onset, hessian
+
+
+def add_move_penalty(hessian: list[list[float]], move_weight: float) -> float:
+    """Add the move penalty ρ Σ (W_b − W_{b−1})² (W_{−1} = the applied input's level) to
+    ``hessian`` in place, ρ scaled to the output cost's size; returns ρ."""
+    nblocks = len(hessian)
+    trace = 0.0
+    for b in range(nblocks):
+        trace += hessian[b][b]
+    rho = move_weight * (trace / nblocks + 1e-12)
+    for b in range(nblocks):
+        hessian[b][b] += rho if b + 1 == nblocks else 2.0 * rho
+        if b + 1 < nblocks:
+            hessian[b][b + 1] -= rho
+            hessian[b + 1][b] -= rho
+    return rho
+
+
+def free_response_terms(
+    ar: list[float], lags: int, n: int, points: list[int]
+) -> tuple[list[float], list[list[float]]]:
+    """1/A(q) at the cost points, for the free response in closed form
+    (``PredictiveInverse._free_response``): S_A(j), the running sum of the impulse response
+    h_A, and h_A(j − l) for l = 1 … L, L = max(na, lags − 1, 1)."""
+    na = len(ar)
+    lead = max(na, lags - 1, 1)
+    impulse: list[float] = []
+    for m in range(n):
+        acc = 1.0 if m == 0 else 0.0
+        for i in range(na):
+            if m - 1 - i >= 0:
+                acc += ar[i] * impulse[m - 1 - i]
+        impulse.append(acc)
+    running = [0.0]
+    for m in range(n):
+        running.append(running[-1] + impulse[m])
+    step = [running[j] for j in points]
+    impulses = [
+        [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
+    ]
+    return step, impulses
+
+
+def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
+    """The first sample after which the step response stays within ``band`` of its last
+    value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
+    settle or is not finite."""
+    n = len(response)
+    if n == 0:
+        return lo
+    final = response[-1]
+    if not math.isfinite(final) or final == 0.0:
+        return hi
+    # Not settled if it still moves at the end: compare with the value a tenth earlier.
+    check = response[n - 1 - n // 10]
+    tol = band * abs(final)
+    if abs(check - final) > tol:
+        return hi
+    last = 0
+    for j in range(n):
+        if abs(response[j] - final) > tol:
+            last = j + 1
+    return lo if last < lo else hi if last > hi else last
