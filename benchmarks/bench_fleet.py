@@ -246,6 +246,7 @@ def run_fleet(
     service_count: int = 2,
     link_count: int = 0,
     pin_service: int | None = None,
+    health_period: float = 1.0,
 ) -> dict[str, Any]:
     """``link_count`` > 0: one service with that many links, a system-id space each."""
     if link_count and service_count != 1:
@@ -272,6 +273,7 @@ def run_fleet(
             service = start_service(
                 *[arg for port in udp for arg in ("--mavlink", f"udpin:127.0.0.1:{port}")],
                 "--vehicle-ids", "link", "--max-vehicles", str(vehicles),
+                "--health-period", str(health_period),
                 "--zenoh-connect", router, "--zenoh-mode", "client", "--no-log",
                 "--burn-in", str(BURN_IN), "--control", timeout=120,
             )  # fmt: skip
@@ -358,6 +360,7 @@ def run_fleet(
             "services": service_count,
             "links": link_count or service_count,
             "service_pinned_to_cpu": pin_service,
+            "health_period_s": health_period,
             "rate_per_vehicle": rate,
             "samples_per_s_per_service": round(vehicles * rate / service_count, 1),
             "phase_locked": phase_locked,
@@ -444,6 +447,9 @@ def main() -> int:
         "--pin-service", type=int, default=None, metavar="CPU", help="run the service on one core"
     )
     parser.add_argument(
+        "--health-period", type=float, default=1.0, help="with --links: serve --health-period"
+    )
+    parser.add_argument(
         "--target-ms", type=float, default=TARGET_MS, help="p99 target (default %(default)s)"
     )
     args = parser.parse_args()
@@ -451,7 +457,7 @@ def main() -> int:
     for size in (int(s) for s in args.sizes.split(",")):
         result = run_fleet(
             size, args.seconds, args.phase_locked, args.rate, args.services, args.links,
-            args.pin_service,
+            args.pin_service, args.health_period,
         )  # fmt: skip
         print(json.dumps(result), flush=True)
         results.append(result)

@@ -142,6 +142,8 @@ class ServiceConfig:
     vehicle_ids: str = "sysid"
 
     def __post_init__(self) -> None:
+        if not (0 < self.health_period < float("inf")):
+            raise ValueError(f"--health-period must be positive s, got {self.health_period}")
         if self.vehicle_ids not in VEHICLE_ID_MODES:
             raise ValueError(
                 f"--vehicle-ids must be one of {', '.join(VEHICLE_ID_MODES)}, "

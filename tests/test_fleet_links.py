@@ -53,6 +53,9 @@ def test_the_setting_is_checked_and_stored_only_when_not_the_default() -> None:
         ServiceConfig(vehicle_ids="link", system_ids=(1, 2))
     with pytest.raises(ValueError, match=r"--max-vehicles must be 1\.\.255"):
         ServiceConfig(max_vehicles=1000)  # one id space
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="--health-period"):
+            ServiceConfig(health_period=bad)
 
 
 def _ack(system_id: int) -> object:

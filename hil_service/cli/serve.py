@@ -105,6 +105,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "when the vehicle announces lockstep)",
     )
     parser.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
+    parser.add_argument(
+        "--health-period",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="s between two health publications of one vehicle (default 1; a fleet at 1 Hz "
+        "publishes as many health payloads as samples: docs/fleet.md)",
+    )
     parser.add_argument("--burn-in", type=int, default=None, help="samples before control")
     parser.add_argument("--log-dir", default="logs", help="MCAP directory (default logs)")
     parser.add_argument("--no-log", action="store_true", help="do not record MCAP")
@@ -214,6 +222,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         system_ids=tuple(dict.fromkeys(system_ids)),
         control_default=args.control,
         stale_timeout=args.stale_timeout,
+        health_period=args.health_period,
         pipeline=settings_from_args(args),
         security=security_from_args(args),
         units=units_from_args(args, profile),
