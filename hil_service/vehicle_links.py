@@ -50,7 +50,9 @@ class LinkSet:
         except Exception:
             self.close()
             raise
-        self._ready: list[int] = []  # link indexes select found readable, not yet read
+        self._ready: list[int] = []  # link indexes select found readable, not yet drained
+        self._fds = [link.fileno() for link in self.links]
+        self._index_of = {fd: index for index, fd in enumerate(self._fds)}
 
     def fileno(self) -> int:
         return self.links[0].fileno()
@@ -59,20 +61,23 @@ class LinkSet:
         """Wait up to ``timeout`` s for a datagram on any link; True when one may be there."""
         if self._ready:
             return True
-        fds = {link.fileno(): index for index, link in enumerate(self.links)}
         try:
-            ready, _, _ = select.select(list(fds), [], [], max(timeout, 0.0))
+            ready, _, _ = select.select(self._fds, [], [], max(timeout, 0.0))
         except (OSError, ValueError):
             return False
-        self._ready = [fds[fd] for fd in ready]
+        self._ready = [self._index_of[fd] for fd in ready]
         return bool(self._ready)
 
     def recv_from(self) -> tuple[bytes, Address]:
-        """One datagram of a link ``wait`` found readable, with ``(link number, peer)``."""
+        """One datagram of a link ``wait`` found readable, with ``(link number, peer)``. A
+        link stays ready until a read finds nothing (the sockets do not block): a burst is
+        read without a ``select`` per datagram; the ready links take turns, so a busy one
+        does not hold the others back."""
         while self._ready:
             index = self._ready.pop()
             data, peer = self.links[index].recv_from()
             if data:
+                self._ready.insert(0, index)
                 return data, (index + 1, peer)
         return b"", None
 

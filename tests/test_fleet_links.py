@@ -105,6 +105,20 @@ def test_a_link_set_answers_each_peer_on_its_own_link() -> None:
         for n, peer in enumerate(peers):
             assert peer.wait(5)
             assert peer.recv() == b"reply to from %d" % n
+        # A burst on one link is read after one wait, datagram by datagram, then nothing.
+        for n in range(3):
+            peers[1].send(b"burst %d" % n)
+        assert links.wait(5)
+        burst = []
+        deadline = time.monotonic() + 5
+        while len(burst) < 3 and time.monotonic() < deadline:
+            data, address = links.recv_from()
+            if data:
+                burst.append((data, address[0]))
+            else:
+                links.wait(0.5)
+        assert burst == [(b"burst %d" % n, 2) for n in range(3)]
+        assert links.recv_from() == (b"", None) and not links.wait(0.0)
     finally:
         links.close()
         for peer in peers:
