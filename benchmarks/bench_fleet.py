@@ -27,8 +27,14 @@ samples/s of each vehicle (default 10): ``--services 1 --sizes 250 --rate 4`` is
 rate of 1,000 gliders at 1 Hz on one service process (a MAVLink link tells 255 system ids
 apart, docs/cluster.md), ``--sizes 250 --rate 1`` the largest fleet one link can carry.
 
+``--links L`` (with ``--services 1``) is a fleet beyond one link's 255 system ids: one
+service with L ``--mavlink`` links and ``--vehicle-ids link``, the emulator's vehicles in L
+blocks numbered from 1 on each (``--sysid-per-link``), a gateway each:
+``--services 1 --links 4 --sizes 1000 --rate 1`` is 1,000 gliders at 1 Hz on one service.
+``--pin-service CPU`` pins the service process (every thread) to one core, as ``taskset -c``.
+
 Run: .venv/bin/python benchmarks/bench_fleet.py [--sizes 100,150,200] [--seconds 40]
-         [--rate 10] [--services 2] [--target-ms 20]
+         [--rate 10] [--services 2] [--target-ms 20] [--links 4] [--pin-service 0]
 """
 
 from __future__ import annotations
@@ -61,7 +67,7 @@ from hil_service.cli.processes import (  # noqa: E402
     wait_for_line,
 )
 from hil_service.cli.router import ROUTER_READY  # noqa: E402
-from plant_emulator.fleet import connection_for  # noqa: E402
+from plant_emulator.fleet import connection_for, fleet_identities  # noqa: E402
 from protocols import keys  # noqa: E402
 
 RATE = 10.0  # samples/s per vehicle (plant period 1 s at speed 10)
@@ -90,6 +96,12 @@ def cpu_pressure_us() -> int | None:
     except OSError:
         return None
     return int(some[-1].partition("=")[2])
+
+
+def pin(pid: int, cpu: int) -> None:
+    """Every thread of ``pid`` on core ``cpu`` (threads it starts later inherit it)."""
+    for task in os.listdir(f"/proc/{pid}/task"):
+        os.sched_setaffinity(int(task), {cpu})
 
 
 def client_session(router: str) -> zenoh.Session:
@@ -232,7 +244,13 @@ def run_fleet(
     phase_locked: bool = False,
     rate: float = RATE,
     service_count: int = 2,
+    link_count: int = 0,
+    pin_service: int | None = None,
+    health_period: float = 1.0,
 ) -> dict[str, Any]:
+    """``link_count`` > 0: one service with that many links, a system-id space each."""
+    if link_count and service_count != 1:
+        raise ValueError("--links needs --services 1")
     router = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     processes: list[subprocess.Popen[str]] = []
     session = None
@@ -250,7 +268,18 @@ def run_fleet(
             f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in links
         ]
         services = []
-        for sysids, port in zip(ranges, udp, strict=True):
+        if link_count:
+            udp = [free_port(socket.SOCK_DGRAM) for _ in range(link_count)]
+            service = start_service(
+                *[arg for port in udp for arg in ("--mavlink", f"udpin:127.0.0.1:{port}")],
+                "--vehicle-ids", "link", "--max-vehicles", str(vehicles),
+                "--health-period", str(health_period),
+                "--zenoh-connect", router, "--zenoh-mode", "client", "--no-log",
+                "--burn-in", str(BURN_IN), "--control", timeout=120,
+            )  # fmt: skip
+            processes.append(service)
+            services.append(service)
+        for sysids, port in [] if link_count else zip(ranges, udp, strict=True):
             service = start_service(
                 "--mavlink", f"udpin:127.0.0.1:{port}", "--sysid", sysids,
                 "--zenoh-connect", router, "--zenoh-mode", "client", "--no-log",
@@ -258,6 +287,11 @@ def run_fleet(
             )  # fmt: skip
             processes.append(service)
             services.append(service)
+        if pin_service is not None:
+            for service in services:
+                pin(service.pid, pin_service)
+        identities = fleet_identities(vehicles, 1, len(udp), per_link=bool(link_count))
+        ids = [keys.vehicle_id(n, s) if link_count else s for n, s in identities]
         session = client_session(router)
         counts = Counts()
         subscribers = [
@@ -266,12 +300,13 @@ def run_fleet(
             session.declare_subscriber(f"{keys.ROOT}/*/{keys.HEALTH}", counts.on_health),
         ]
         time.sleep(1.0)  # the subscriptions reach the router and the services
-        for system_id in range(1, vehicles + 1):
+        for system_id in ids:
             session.put(keys.setpoint(system_id, "depth"), json.dumps({"value": 16.0}))
         emulator = start_verb(
             "emulate", "--vehicles", str(vehicles), "--sysid", "1", "--speed", str(rate),
             "--duration", str(seconds * rate), "--scenario", "paper",
             *(["--phase-locked"] if phase_locked else []),
+            *(["--sysid-per-link"] if link_count else []),
             "--latency-trace", trace_path,
             *[arg for port in udp for arg in ("--fleet-connect", f"udpout:127.0.0.1:{port}")],
         )  # fmt: skip
@@ -314,7 +349,7 @@ def run_fleet(
         assembled = sum(s.get("counters", {}).get("samples", 0) for s in summaries)
         with open(trace_path) as f:
             trace = [tuple(json.loads(line)) for line in f]
-        holder = {i: connection_for(i - 1, vehicles, links) for i in range(1, vehicles + 1)}
+        holder = {i: connection_for(n, vehicles, links) for n, i in enumerate(ids)}
         with counts.lock:
             tail = tail_attribution(trace, holder, list(counts.health), listing)  # type: ignore[arg-type]
             received = sum(counts.telemetry.values())
@@ -323,6 +358,9 @@ def run_fleet(
         return {
             "vehicles": vehicles,
             "services": service_count,
+            "links": link_count or service_count,
+            "service_pinned_to_cpu": pin_service,
+            "health_period_s": health_period,
             "rate_per_vehicle": rate,
             "samples_per_s_per_service": round(vehicles * rate / service_count, 1),
             "phase_locked": phase_locked,
@@ -334,6 +372,7 @@ def run_fleet(
             if assembled
             else None,
             "loss_emulator_to_services": round(1 - assembled / emulated["steps"], 6),
+            "samples_lost": emulated["steps"] - assembled,
             "vehicles_seen_by_subscriber": seen,
             "fleet_listed": len(listed),
             "fleet_coverage": round(len(listed) / vehicles, 3),
@@ -399,12 +438,27 @@ def main() -> int:
         help="service processes sharing the fleet in --sysid ranges (default 2)",
     )
     parser.add_argument(
+        "--links",
+        type=int,
+        default=0,
+        help="with --services 1: that many links, a system-id space each (--vehicle-ids link)",
+    )
+    parser.add_argument(
+        "--pin-service", type=int, default=None, metavar="CPU", help="run the service on one core"
+    )
+    parser.add_argument(
+        "--health-period", type=float, default=1.0, help="with --links: serve --health-period"
+    )
+    parser.add_argument(
         "--target-ms", type=float, default=TARGET_MS, help="p99 target (default %(default)s)"
     )
     args = parser.parse_args()
     results = []
     for size in (int(s) for s in args.sizes.split(",")):
-        result = run_fleet(size, args.seconds, args.phase_locked, args.rate, args.services)
+        result = run_fleet(
+            size, args.seconds, args.phase_locked, args.rate, args.services, args.links,
+            args.pin_service, args.health_period,
+        )  # fmt: skip
         print(json.dumps(result), flush=True)
         results.append(result)
     meeting = [

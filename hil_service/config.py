@@ -24,6 +24,7 @@ from hil_service.inputs import SetpointLimits
 from hil_service.listeners.zenoh_config import ZenohOptions
 from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
+from protocols.keys import MAX_LINKS
 from protocols.mapping import TelemetryMapping
 from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile, parse_profile
 from protocols.units import InputScale, PressureDepth
@@ -35,6 +36,9 @@ PROFILE_KEY = "profile"  # the vehicle profile: {"name", "text"} (docs/profiles.
 #: Vehicles a service takes on a link without ``--sysid`` unless ``--max-vehicles`` says.
 DEFAULT_MAX_VEHICLES = 32
 MAX_SYSTEM_IDS = 255  # a MAVLink system id is one byte (0 is the broadcast id)
+#: ``--vehicle-ids``: ``sysid`` (a system id is one vehicle on every link) or ``link`` (a
+#: vehicle is a system id on one of the service's links; hil_service/vehicle_links.py).
+VEHICLE_ID_MODES = ("sysid", "link")
 
 
 @dataclass(frozen=True)
@@ -133,13 +137,27 @@ class ServiceConfig:
     #: Vehicles served on a link without a ``system_ids`` list (``serve --max-vehicles``):
     #: the first this many system ids heard; a listed set is always served whole.
     max_vehicles: int = DEFAULT_MAX_VEHICLES
+    #: How vehicles are told apart (``serve --vehicle-ids``, docs/fleet.md): ``sysid``, or
+    #: ``link``: each link has a system-id space of its own, a vehicle is (link, system id).
+    vehicle_ids: str = "sysid"
 
     def __post_init__(self) -> None:
-        if not 1 <= self.max_vehicles <= MAX_SYSTEM_IDS:
+        if not (0 < self.health_period < float("inf")):
+            raise ValueError(f"--health-period must be positive s, got {self.health_period}")
+        if self.vehicle_ids not in VEHICLE_ID_MODES:
             raise ValueError(
-                f"--max-vehicles must be 1..{MAX_SYSTEM_IDS} (MAVLink system ids), "
-                f"got {self.max_vehicles}"
+                f"--vehicle-ids must be one of {', '.join(VEHICLE_ID_MODES)}, "
+                f"got {self.vehicle_ids!r}"
             )
+        if self.vehicle_ids == "link" and self.system_ids:
+            raise ValueError(
+                "--sysid names system ids of one id space: not with --vehicle-ids link "
+                "(every link's vehicles are served, up to --max-vehicles)"
+            )
+        most = MAX_SYSTEM_IDS if self.vehicle_ids == "sysid" else MAX_SYSTEM_IDS * MAX_LINKS
+        if not 1 <= self.max_vehicles <= most:
+            what = "MAVLink system ids" if self.vehicle_ids == "sysid" else "255 per link"
+            raise ValueError(f"--max-vehicles must be 1..{most} ({what}), got {self.max_vehicles}")
 
     @property
     def periodic(self) -> bool:
@@ -160,8 +178,9 @@ class ServiceConfig:
         return self.effective_units().mapping()
 
     def to_json(self) -> dict[str, Any]:
-        """The ``service`` part of the stored configuration."""
-        return {
+        """The ``service`` part of the stored configuration (``vehicle_ids`` only when not
+        the default, so that a log of one id space is stored as before)."""
+        stored = {
             "system_ids": list(self.system_ids),
             "control_default": self.control_default,
             "stale_timeout": self.stale_timeout,
@@ -171,6 +190,9 @@ class ServiceConfig:
             "max_vehicles": self.max_vehicles,
             "profile": {"name": self.profile.name, "sample_period": self.sample_period},
         }
+        if self.vehicle_ids != "sysid":
+            stored["vehicle_ids"] = self.vehicle_ids
+        return stored
 
     def stored(self) -> dict[str, Any]:
         """The configuration as a log stores it, decoded (what ``info`` prints)."""
@@ -201,6 +223,7 @@ class ServiceConfig:
             control_default=service.get("control_default", False),
             stale_timeout=service.get("stale_timeout", 3.0),
             max_vehicles=service.get("max_vehicles", DEFAULT_MAX_VEHICLES),
+            vehicle_ids=service.get("vehicle_ids", "sysid"),
             pipeline=PipelineSettings.from_json(service["pipeline"]),
             units=Units.from_json(stored[MAPPING_KEY]) if stored.get(MAPPING_KEY) else None,
             limits=SetpointLimits(
@@ -239,6 +262,8 @@ class ServeConfig:
     log: LogOptions = field(default_factory=LogOptions)
     duration: float | None = None  # wall s, then stop
     foxglove: LiveAddress | None = None  # the live view's address (None: no live view)
+    #: Further links (``serve --mavlink`` given again): links 2, 3, … (``LinkSet``).
+    more_mavlink: tuple[str, ...] = ()
 
 
 def parse_system_ids(text: str) -> tuple[int, ...]:

@@ -25,6 +25,7 @@ from hil_service.mcap.recorder import McapRecorder
 from hil_service.pipeline import VehiclePipeline
 from hil_service.sources import SampleSource, source_for
 from hil_service.sources.companion import ack_is_ours
+from hil_service.vehicle_links import LinkIdentity, LinkSet, identity_for
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
 from protocols.mavlink_io import Address, Link, MavlinkCodec, MavMessage
@@ -59,7 +60,7 @@ class HilService:
         config: ServiceConfig,
         notifier: Notifier | Listener,
         inbox: Inbox,
-        link: Link | None = None,
+        link: Link | LinkSet | None = None,
         recorder: McapRecorder | None = None,
         clock: Callable[[], float] = time.monotonic,
         send_commands: bool = True,
@@ -81,6 +82,8 @@ class HilService:
         self._senders: dict[int, MavlinkCodec] = {}
         #: Where each vehicle's frames last came from (udpin): its replies go there.
         self._routes: dict[int, Address] = {}
+        #: ``--vehicle-ids link``: messages renumbered to vehicle ids (vehicle_links.py).
+        self.identity: LinkIdentity | None = identity_for(config.vehicle_ids)
         # Decoding (and checking signatures) only: nothing is sent under this identity.
         self.codec = MavlinkCodec.for_link(
             config.service_system_id,
@@ -119,6 +122,9 @@ class HilService:
         # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
         for frame in self.codec.last_rejected:
             notifier.mavlink("rejected", None, frame, now_ns)
+        identity = self.identity
+        if identity is not None:
+            identity.admit(messages, source)
         if source is not None:
             for message in messages:
                 self._routes[message.get_srcSystem()] = source
@@ -199,11 +205,11 @@ class HilService:
     def _send(self, message: MavMessage, system_id: int) -> None:
         """``message`` to vehicle ``system_id``, as its companion, where its frames came from."""
         assert self.link is not None
+        identity = self.identity
+        wire = system_id if identity is None else identity.outgoing(message, system_id)
         codec = self._senders.get(system_id)
         if codec is None:
-            codec = MavlinkCodec(
-                system_id, SERVICE_COMPONENT, signing_key=self.config.security.key
-            )
+            codec = MavlinkCodec(wire, SERVICE_COMPONENT, signing_key=self.config.security.key)
             self._senders[system_id] = codec
         frame = codec.pack(message)
         self.link.send_to(frame, self._routes.get(system_id))

@@ -20,6 +20,11 @@ telemetry datagram to the arrival of the datagram holding the command; printed a
 with the per-vehicle statistics).
 ``--fleet-connect`` (repeatable) splits the vehicles in contiguous, equal blocks over several
 links, e.g. one per service; without it every vehicle uses ``--connect``.
+``--sysid-per-link`` numbers each link's block from ``--sysid`` again, as a fleet of more than
+255 gliders is numbered: each gateway (a link) has a system-id space of its own, and a
+service with ``--vehicle-ids link`` tells its vehicles apart by (link, system id). Such a
+vehicle's name in the summary and the latency trace is its key id ``{link}-{sysid}``
+(``protocols.keys.key_id``), link n being the n-th ``--fleet-connect``.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, AutopilotConfi
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.gcs import count_heartbeat
 from plant_emulator.plant import GliderPlant, PlantConfig
+from protocols import keys
 from protocols.mapping import TelemetryMapping, command_target_system, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
 from protocols.signing import load_key
@@ -67,6 +73,12 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="CONNECTION",
         help="with --vehicles: split the vehicles in contiguous blocks over these links "
         "(repeatable; default: all on --connect)",
+    )
+    group.add_argument(
+        "--sysid-per-link",
+        action="store_true",
+        help="with --fleet-connect: number each link's vehicles from --sysid again (more than "
+        "255 gliders: a system-id space per link, serve --vehicle-ids link)",
     )
     group.add_argument(
         "--latency-trace",
@@ -231,6 +243,8 @@ class TimedAutopilot(Autopilot):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        #: Its vehicle id (``protocols.keys``): the system id, or link * 256 + system id.
+        self.vehicle = self.config.system_id
         self.latencies: list[float] = []  # s
         self.sent_times: list[float] = []  # perf_counter at each latency's telemetry
         self._sent_at: float | None = None
@@ -304,26 +318,45 @@ def _autopilot(args: argparse.Namespace, system_id: int, seed: int, link: Vehicl
     )
 
 
+def fleet_identities(count: int, first: int, links: int, per_link: bool) -> list[tuple[int, int]]:
+    """(link number from 1, system id) of each vehicle: contiguous blocks (``connection_for``),
+    system ids from ``first`` on, again on each link with ``per_link``."""
+    out: list[tuple[int, int]] = []
+    block_start: dict[int, int] = {}
+    for index in range(count):
+        link = index * links // count
+        start = block_start.setdefault(link, index)
+        out.append((link + 1, first + (index - start if per_link else index)))
+    return out
+
+
 def run_fleet(args: argparse.Namespace) -> int:
     count = args.vehicles
-    last = args.sysid + count - 1
+    connections = list(args.fleet_connect) or [args.connect]
+    per_link = bool(args.sysid_per_link)
+    identities = fleet_identities(count, args.sysid, len(connections), per_link) if count else []
+    last = max((system_id for _, system_id in identities), default=args.sysid)
     if count < 1 or args.sysid < 1 or last > 255:
+        hint = "" if per_link else " (--sysid-per-link: a system-id space per --fleet-connect)"
         print(
-            f"glider-hil emulate: --vehicles {count} from --sysid {args.sysid} leaves 1..255",
+            f"glider-hil emulate: --vehicles {count} from --sysid {args.sysid} leaves 1..255"
+            + hint,
             file=sys.stderr,
         )
         return 2
-    connections = list(args.fleet_connect) or [args.connect]
     links: dict[str, SharedLink] = {}
     autopilots: list[TimedAutopilot] = []
     try:
         for connection in connections:
             links[connection] = SharedLink(connection)
-        for index in range(count):
-            system_id = args.sysid + index
-            shared = links[connection_for(index, count, connections)]
+        for index, (link_number, system_id) in enumerate(identities):
+            shared = links[connections[link_number - 1]]
             autopilot = _autopilot(args, system_id, args.seed + index, shared.port())
             assert isinstance(autopilot, TimedAutopilot)
+            if per_link:
+                autopilot.vehicle = keys.vehicle_id(link_number, system_id)
+            if system_id in shared.autopilots:
+                raise ValueError(f"system id {system_id} twice on {connections[link_number - 1]}")
             shared.attach(autopilot)
             autopilots.append(autopilot)
     except (ValueError, OSError) as error:
@@ -338,7 +371,8 @@ def run_fleet(args: argparse.Namespace) -> int:
     offsets = [0.0 if args.phase_locked else i * wall_period / count for i in range(count)]
     scheduler = FleetScheduler(autopilots, list(links.values()), offsets)
     print(
-        f"emulating {count} gliders, sysid {args.sysid}-{last} ({args.scenario}, "
+        f"emulating {count} gliders, sysid {args.sysid}-{last}"
+        f"{' on each link' if per_link else ''} ({args.scenario}, "
         f"{args.excitation}) on {', '.join(connections)} at {args.speed:g}x",
         file=sys.stderr,
         flush=True,
@@ -350,7 +384,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         for shared in links.values():
             shared.close()
     per_vehicle: dict[str, Any] = {
-        str(a.config.system_id): a.stats.as_dict(a.codec) for a in autopilots
+        keys.key_id(a.vehicle): a.stats.as_dict(a.codec) for a in autopilots
     }
     steps = sum(v["steps"] for v in per_vehicle.values())
     latency = latency_summary([x for a in autopilots for x in a.latencies])
@@ -362,6 +396,12 @@ def run_fleet(args: argparse.Namespace) -> int:
         "late_steps": scheduler.late_steps,
         "cpu_s": round(time.process_time() - cpu_at_start, 3),  # while the fleet ran
         "heartbeats": _merged([shared.heartbeats for shared in links.values()]),
+        # Each link's own (link n: the n-th --fleet-connect): a service answering every
+        # vehicle on its own link is heard on that link only.
+        "heartbeats_by_link": {
+            str(n + 1): dict(links[connection].heartbeats)
+            for n, connection in enumerate(dict.fromkeys(connections))
+        },
         "per_vehicle": per_vehicle,
     }
     if args.latency_trace:
@@ -372,9 +412,10 @@ def run_fleet(args: argparse.Namespace) -> int:
 
 def write_latency_trace(path: str, autopilots: list[TimedAutopilot]) -> None:
     """Every latency with its telemetry's send time (CLOCK_MONOTONIC, comparable across the
-    processes of one machine) and vehicle, for a benchmark to find when the slow ones were."""
+    processes of one machine) and vehicle (its vehicle id, ``TimedAutopilot.vehicle``), for a
+    benchmark to find when the slow ones were."""
     with open(path, "w") as f:
         for autopilot in autopilots:
-            system_id = autopilot.config.system_id
+            system_id = autopilot.vehicle
             for sent, latency in zip(autopilot.sent_times, autopilot.latencies, strict=True):
                 f.write(f"[{sent:.6f}, {system_id}, {latency:.6f}]\n")

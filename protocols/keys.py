@@ -1,4 +1,11 @@
-"""The Zenoh key space (docs/zenoh.md), ``{id}`` being the MAVLink system id.
+"""The Zenoh key space (docs/zenoh.md), ``{id}`` being the vehicle's key id.
+
+A vehicle is a MAVLink system id on a link. Its key id is the plain system id (``7``) when
+system ids are unique across the service's links (``serve --vehicle-ids sysid``, the
+default), or ``{link}-{sysid}`` (``2-7``: system id 7 on the service's second ``--mavlink``
+link) when each link has a system-id space of its own (``--vehicle-ids link``). Inside the
+service a vehicle is one int, its *vehicle id*: the system id itself, or
+``link * 256 + sysid`` (``vehicle_id``); the functions below take that int and format it.
 
 The only module that formats or parses a key: everything else calls the functions below
 (``parse`` for a key received or read from a log). The MCAP channel of the control inputs
@@ -48,65 +55,119 @@ LOG_KINDS = (DECISION_INPUTS,)
 INPUT_SUBSCRIPTIONS = (f"{ROOT}/*/{SETPOINT}/*", f"{ROOT}/*/{CONTROL}")
 
 
-def _check(system_id: int, channel: str | None = None) -> None:
+#: Links a service tells apart by number (``--mavlink`` given this many times at most).
+MAX_LINKS = 255
+_LINK_STRIDE = 256  # a system id is one byte: vehicle id = link * 256 + system id
+
+
+def vehicle_id(link: int, system_id: int) -> int:
+    """The vehicle id of ``system_id`` on link ``link`` (1-based; 0: no link, the plain
+    system id)."""
+    if not 0 <= link <= MAX_LINKS:
+        raise ValueError(f"link must be 0..{MAX_LINKS}, got {link}")
     if not 1 <= system_id <= 255:
         raise ValueError(f"system id must be 1..255, got {system_id}")
+    return link * _LINK_STRIDE + system_id
+
+
+def split_vehicle_id(vehicle: int) -> tuple[int, int]:
+    """(link, MAVLink system id) of a vehicle id; link 0 for a plain system id."""
+    return divmod(vehicle, _LINK_STRIDE)
+
+
+def is_vehicle_id(vehicle: int) -> bool:
+    link, system_id = divmod(vehicle, _LINK_STRIDE)
+    return 0 <= link <= MAX_LINKS and 1 <= system_id <= 255
+
+
+def key_id(vehicle: int) -> str:
+    """The ``{id}`` part of a vehicle's keys: ``7``, or ``2-7`` for system id 7 on link 2."""
+    link, system_id = divmod(vehicle, _LINK_STRIDE)
+    return str(system_id) if link == 0 else f"{link}-{system_id}"
+
+
+def _decimal(text: str) -> int | None:
+    if not text.isdigit() or not text.isascii() or text != str(int(text)):
+        return None
+    return int(text)
+
+
+def parse_key_id(text: str) -> int | None:
+    """The vehicle id a key id names (``7`` or ``2-7``), or None: decimals without leading
+    zeros, a system id 1..255 and a link 1..MAX_LINKS."""
+    link_text, dash, number = text.rpartition("-")
+    system_id = _decimal(number)
+    if system_id is None or not 1 <= system_id <= 255:
+        return None
+    if not dash:
+        return system_id
+    link = _decimal(link_text)
+    if link is None or not 1 <= link <= MAX_LINKS:
+        return None
+    return link * _LINK_STRIDE + system_id
+
+
+def _check(system_id: int, channel: str | None = None) -> None:
+    if not is_vehicle_id(system_id):
+        raise ValueError(
+            f"vehicle id must be a system id 1..255 or link * 256 + system id, got {system_id}"
+        )
     if channel is not None and channel not in CHANNELS:
         raise ValueError(f"channel must be one of {CHANNELS}, got {channel!r}")
 
 
 def telemetry(system_id: int) -> str:
     _check(system_id)
-    return f"{ROOT}/{system_id}/{TELEMETRY}"
+    return f"{ROOT}/{key_id(system_id)}/{TELEMETRY}"
 
 
 def umodel(system_id: int, channel: str) -> str:
     _check(system_id, channel)
-    return f"{ROOT}/{system_id}/{UMODEL}/{channel}"
+    return f"{ROOT}/{key_id(system_id)}/{UMODEL}/{channel}"
 
 
 def command_ballast(system_id: int) -> str:
     _check(system_id)
-    return f"{ROOT}/{system_id}/{COMMAND_BALLAST}"
+    return f"{ROOT}/{key_id(system_id)}/{COMMAND_BALLAST}"
 
 
 def setpoint(system_id: int, channel: str) -> str:
     _check(system_id, channel)
-    return f"{ROOT}/{system_id}/{SETPOINT}/{channel}"
+    return f"{ROOT}/{key_id(system_id)}/{SETPOINT}/{channel}"
 
 
 def control(system_id: int) -> str:
     _check(system_id)
-    return f"{ROOT}/{system_id}/{CONTROL}"
+    return f"{ROOT}/{key_id(system_id)}/{CONTROL}"
 
 
 def health(system_id: int) -> str:
     _check(system_id)
-    return f"{ROOT}/{system_id}/{HEALTH}"
+    return f"{ROOT}/{key_id(system_id)}/{HEALTH}"
 
 
 def supervisor(system_id: int) -> str:
     """Events of the channels' closed-loop supervisors (a trip, a re-arm)."""
     _check(system_id)
-    return f"{ROOT}/{system_id}/{SUPERVISOR}"
+    return f"{ROOT}/{key_id(system_id)}/{SUPERVISOR}"
 
 
 def service(system_id: int) -> str:
     """Liveliness token held while the service runs for this vehicle."""
     _check(system_id)
-    return f"{ROOT}/{system_id}/{SERVICE}"
+    return f"{ROOT}/{key_id(system_id)}/{SERVICE}"
 
 
 def state(system_id: int) -> str:
     """Queryable answering the latest sample, estimates and command."""
     _check(system_id)
-    return f"{ROOT}/{system_id}/{STATE}"
+    return f"{ROOT}/{key_id(system_id)}/{STATE}"
 
 
 def decision_inputs(system_id: int) -> str:
     """MCAP channel of the control inputs each decision used (recorded on change)."""
     _check(system_id)
-    return f"{LOG_ROOT}/{system_id}/{DECISION_INPUTS}"
+    return f"{LOG_ROOT}/{key_id(system_id)}/{DECISION_INPUTS}"
 
 
 def rejected_inputs() -> str:
@@ -117,12 +178,13 @@ def rejected_inputs() -> str:
 def vehicle_pattern(system_id: int) -> str:
     """Key expression of everything about one vehicle (``glider/{id}/**``)."""
     _check(system_id)
-    return f"{ROOT}/{system_id}/**"
+    return f"{ROOT}/{key_id(system_id)}/**"
 
 
 @dataclass(frozen=True)
 class ParsedKey:
-    """A concrete key taken apart: ``kind`` is one of the kind constants above."""
+    """A concrete key taken apart: ``kind`` is one of the kind constants above,
+    ``system_id`` the vehicle id (the system id itself unless the key id names a link)."""
 
     system_id: int
     kind: str
@@ -132,8 +194,9 @@ class ParsedKey:
 def parse(key: str) -> ParsedKey | None:
     """The parts of a key of this key space, or None for anything else (no exception).
 
-    Strict: the system id must be a decimal 1..255, the kind known, and the channel, for
-    kinds that take one, ``depth`` or ``pitch``.
+    Strict: the key id must be a system id (decimal 1..255) or ``{link}-{sysid}``
+    (``parse_key_id``; ``system_id`` is then the vehicle id), the kind known, and the
+    channel, for kinds that take one, ``depth`` or ``pitch``.
     """
     root, sep, rest = key.partition("/")
     if not sep:
@@ -145,10 +208,10 @@ def parse(key: str) -> ParsedKey | None:
     else:
         return None
     number, sep, kind = rest.partition("/")
-    if not sep or not number.isdigit() or not number.isascii() or number != str(int(number)):
+    if not sep:
         return None
-    system_id = int(number)
-    if not 1 <= system_id <= 255:
+    system_id = parse_key_id(number)
+    if system_id is None:
         return None
     if kind in kinds and kind not in CHANNEL_KINDS:
         return ParsedKey(system_id, kind)

@@ -6,6 +6,10 @@ later change, and a service that stops or dies (its session's lease runs out at 
 drops its vehicles out. Each row shows what the vehicle's ``health`` (link rate, loss,
 identification fit, control state) and ``command/ballast`` keys last said.
 
+A row names its vehicle by key id (``vehicle``: ``7``, or ``2-7`` for system id 7 on a
+service's link 2, ``serve --vehicle-ids link``), with ``system_id`` (the MAVLink one) and
+``link`` (None for a plain system id) beside it.
+
 Without ``--json``: a table refreshed in place every ``--period`` s until Ctrl-C. With
 ``--json``: one snapshot after ``--wait`` s (long enough for every service's 1 Hz health).
 """
@@ -33,7 +37,7 @@ SERVICE_KEYS = f"{keys.ROOT}/*/{keys.SERVICE}"
 
 @dataclass
 class VehicleRow:
-    system_id: int
+    system_id: int  # the vehicle id (protocols.keys)
     health: dict[str, Any] = field(default_factory=dict)
     health_at: float | None = None  # monotonic s
     command: dict[str, Any] = field(default_factory=dict)
@@ -43,8 +47,11 @@ class VehicleRow:
         health = self.health
         identifier = health.get("identifier") or {}
         control = health.get("control") or {}
+        link, system_id = keys.split_vehicle_id(self.system_id)
         return {
-            "system_id": self.system_id,
+            "vehicle": keys.key_id(self.system_id),
+            "system_id": system_id,
+            "link": link or None,
             "link_rate": health.get("link_rate"),
             "packet_loss": health.get("packet_loss"),
             "fit": {
@@ -146,7 +153,7 @@ def _fmt(value: Any, spec: str = ".3g") -> str:
 
 def render(rows: list[dict[str, Any]]) -> str:
     header = (
-        f"{'id':>4} {'rate/s':>7} {'loss':>7} {'fit d':>7} {'fit p':>7} "
+        f"{'id':>7} {'rate/s':>7} {'loss':>7} {'fit d':>7} {'fit p':>7} "
         f"{'control':<34} {'last command (u_d, u_p)':<24} {'age s':>6}"
     )
     lines = [f"glider-hil fleet: {len(rows)} vehicles served", header]
@@ -162,7 +169,7 @@ def render(rows: list[dict[str, Any]]) -> str:
             else (f"{_fmt(command.get('u_depth'))}, {_fmt(command.get('u_pitch'))}")
         )
         lines.append(
-            f"{row['system_id']:>4} {_fmt(row['link_rate'], '.1f'):>7} "
+            f"{row.get('vehicle', row['system_id']):>7} {_fmt(row['link_rate'], '.1f'):>7} "
             f"{_fmt(row['packet_loss'], '.2%'):>7} {_fmt(row['fit'].get('depth')):>7} "
             f"{_fmt(row['fit'].get('pitch')):>7} {state[:34]:<34} {last[:24]:<24} "
             f"{_fmt(row['command_age_s'], '.1f'):>6}"

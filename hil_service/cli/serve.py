@@ -18,6 +18,7 @@ from hil_service.builder import open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
 from hil_service.config import (
     DEFAULT_MAX_VEHICLES,
+    VEHICLE_ID_MODES,
     LinkSecurity,
     LogOptions,
     ServeConfig,
@@ -31,6 +32,7 @@ from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
+from hil_service.vehicle_links import LinkSet
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile
 from protocols.signing import load_key
@@ -38,12 +40,25 @@ from protocols.signing import load_key
 if TYPE_CHECKING:
     from hil_service.live.view import LiveView
 
+DEFAULT_MAVLINK = "udpin:127.0.0.1:14550"
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--mavlink",
-        default="udpin:127.0.0.1:14550",
-        help="pymavlink connection string: udpin:HOST:PORT, udpout:, tcp:, or a serial device",
+        action="append",
+        default=[],
+        metavar="CONNECTION",
+        help="pymavlink connection string: udpin:HOST:PORT, udpout:, tcp:, or a serial device "
+        f"(default {DEFAULT_MAVLINK}); repeatable: UDP links 1, 2, … (a gateway each; "
+        "docs/fleet.md)",
+    )
+    parser.add_argument(
+        "--vehicle-ids",
+        choices=VEHICLE_ID_MODES,
+        default="sysid",
+        help="sysid: a system id is one vehicle on every link (key id 7); link: each link "
+        "has its own system ids, a vehicle is (link, system id) (key id 2-7; docs/zenoh.md)",
     )
     parser.add_argument(
         "--sysid",
@@ -58,8 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=DEFAULT_MAX_VEHICLES,
         metavar="N",
-        help="without --sysid: serve the first N system ids heard on the link, 1..255 "
-        "(default %(default)s; stored in the log's configuration; a --sysid list is served whole)",
+        help="without --sysid: serve the first N vehicles heard, 1..255 (--vehicle-ids link: "
+        "255 per link) (default %(default)s; stored in the log's configuration; a --sysid "
+        "list is served whole)",
     )
     parser.add_argument(
         "--profile",
@@ -89,6 +105,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "when the vehicle announces lockstep)",
     )
     parser.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
+    parser.add_argument(
+        "--health-period",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="s between two health publications of one vehicle (default 1; a fleet at 1 Hz "
+        "publishes as many health payloads as samples: docs/fleet.md)",
+    )
     parser.add_argument("--burn-in", type=int, default=None, help="samples before control")
     parser.add_argument("--log-dir", default="logs", help="MCAP directory (default logs)")
     parser.add_argument("--no-log", action="store_true", help="do not record MCAP")
@@ -198,6 +222,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         system_ids=tuple(dict.fromkeys(system_ids)),
         control_default=args.control,
         stale_timeout=args.stale_timeout,
+        health_period=args.health_period,
         pipeline=settings_from_args(args),
         security=security_from_args(args),
         units=units_from_args(args, profile),
@@ -206,19 +231,24 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
         lockstep=args.lockstep,
         max_vehicles=args.max_vehicles,
+        vehicle_ids=args.vehicle_ids,
     )
     log = LogOptions(
         directory=None if args.no_log else args.log_dir,
         max_bytes=int(args.log_max_mb * 1024 * 1024),
         max_seconds=args.log_max_s,
     )
+    links = list(dict.fromkeys(args.mavlink)) or [DEFAULT_MAVLINK]
+    if len(links) != len(args.mavlink) and args.mavlink:
+        raise ValueError("--mavlink: the same link given twice")
     return ServeConfig(
         service,
-        args.mavlink,
+        links[0],
         options_from_args(args),
         log,
         args.duration,
         foxglove_from_args(args),
+        more_mavlink=tuple(links[1:]),
     )
 
 
@@ -239,10 +269,16 @@ def main(config: ServeConfig) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
     recorder = open_recorder(config.service, config.log)
+    connections = (config.mavlink, *config.more_mavlink)
     try:
-        link = Link(config.mavlink, source_system=255, source_component=191)
+        link: Link | LinkSet
+        if len(connections) > 1 or config.service.vehicle_ids == "link":
+            # Replies carry the link number (LinkSet): each vehicle's go back on its own.
+            link = LinkSet(connections, source_system=255, source_component=191)
+        else:
+            link = Link(config.mavlink, source_system=255, source_component=191)
     except Exception as error:  # pymavlink raises many kinds for a bad connection string
-        print(f"glider-hil serve: cannot open {config.mavlink}: {error}", file=sys.stderr)
+        print(f"glider-hil serve: cannot open {', '.join(connections)}: {error}", file=sys.stderr)
         if recorder is not None:
             recorder.close()
         return 2
@@ -266,7 +302,9 @@ def main(config: ServeConfig) -> int:
     wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
     tune_for_service()
     model = config.service.pipeline.model
-    print(f"{SERVICE_READY} on {config.mavlink}, model {model}", file=sys.stderr, flush=True)
+    print(
+        f"{SERVICE_READY} on {', '.join(connections)}, model {model}", file=sys.stderr, flush=True
+    )
     if config.duration is not None:
         timer = threading.Timer(config.duration, stop.set)
         timer.daemon = True
