@@ -77,15 +77,17 @@ def main() -> int:
     datagrams = bench_service.telemetry_datagrams(args.samples)
     with tempfile.TemporaryDirectory() as log_dir:
         service, recorder, session = bench_service.build_service(log_dir)
-        profiler = cProfile.Profile(time.process_time)
-        profiler.enable()
-        for data in datagrams:
-            service.process_datagram(data)
-        recorder.close(timeout=600)  # the log drained: its writer thread's time is not seen
-        profiler.disable()
-        samples = service.assembler.counters.samples
-        service.bus.close()
-        session.close()
+        try:
+            profiler = cProfile.Profile(time.process_time)
+            profiler.enable()
+            for data in datagrams:
+                service.process_datagram(data)
+            recorder.close(timeout=600)  # the log drained: its writer thread's time is not seen
+            profiler.disable()
+            samples = service.source.totals()["samples"]
+        finally:
+            service.notifier.stop()
+            session.close()  # Zenoh's threads would otherwise keep the process alive
     stats = pstats.Stats(profiler)
     per_stage: dict[str, float] = defaultdict(float)
     functions = []
