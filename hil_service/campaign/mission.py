@@ -99,14 +99,14 @@ class Mission:
 
     def plant(self, system_id: int = 1) -> Plant:
         """A fresh plant at rest, with this mission's disturbance (seeded): a copy of one
-        built once per process, because building one designs its inner loops (about 0.1 s)
+        built once per process, because building one designs its inner loops (tens of ms)
         and a mission steps three (the HIL run's, the reference-only run's, the oracle's)."""
         return copy.deepcopy(_pristine_plant(self, system_id))
 
     @property
     def period(self) -> float:
         """s per step, from the plant's configuration: building the plant itself designs
-        its inner loops (about 0.1 s), and scoring asks for the period several times."""
+        its inner loops (tens of ms), and scoring asks for the period several times."""
         if self.scenario == "random":
             return float(self._random_config().period)
         return float(PlantConfig(scenario=self.scenario, seed=self.seed).period)
