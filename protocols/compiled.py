@@ -56,6 +56,7 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.service",
     "hil_service.pipeline",
     "protocols.frame_decoder",
+    "protocols.frame_encoder",
     "protocols.mapping",
     "protocols.mavlink_io",
     "protocols.mavlink_json",

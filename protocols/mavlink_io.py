@@ -24,6 +24,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as dialect
 
 from protocols.frame_decoder import FrameDecoder
+from protocols.frame_encoder import FrameEncoder
 from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
@@ -81,6 +82,7 @@ class MavlinkCodec:
         self._mav = dialect.MAVLink(None, srcSystem=self.system_id, srcComponent=self.component_id)
         self._mav.robust_parsing = True
         self._frames = FrameDecoder(dialect)
+        self._encoder = FrameEncoder(dialect)
         self._packer = self._mav
         if self.signing_key is not None:
             self._packer = dialect.MAVLink(
@@ -115,7 +117,10 @@ class MavlinkCodec:
         if self.signing_key is not None:
             # Never behind the wall clock, always increasing: receivers reject anything else.
             packer.signing.timestamp = max(packer.signing.timestamp, signing_timestamp())
-        frame = bytes(message.pack(packer))
+            frame = bytes(message.pack(packer))
+        else:
+            encoded = self._encoder.encode(message, packer.seq, self.system_id, self.component_id)
+            frame = bytes(message.pack(packer)) if encoded is None else encoded
         packer.seq = (packer.seq + 1) % 256  # pymavlink advances it only in send()
         return frame
 

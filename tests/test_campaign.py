@@ -175,3 +175,24 @@ def test_the_oracle_is_on_by_default_and_off_on_request(tmp_path: Path) -> None:
     (row_off,) = rows(off)
     assert row_off["depth_iae_oracle"] == "" and row_off["oracle_failures"] == ""
     assert row_off["depth_iae"] == row["depth_iae"]  # the HIL run itself is the same
+
+
+@pytest.mark.parametrize("scenario", ["paper", "disturbed", "nonlinear", "random"])
+def test_a_missions_plants_are_fresh_independent_copies_and_its_period_is_theirs(
+    scenario: str,
+) -> None:
+    """``Mission.plant`` copies one plant built per process: a copy stepped first leaves the
+    next one at rest, and both step as a plant built from scratch; ``period`` is read from
+    the configuration, without building a plant."""
+    from hil_service.campaign.mission import _pristine_plant
+
+    mission = Mission(scenario, 3, 1200, 400, 200)
+    first, second = mission.plant(), mission.plant()
+    assert first is not second
+    built = _pristine_plant.__wrapped__(mission, 1)  # not the cached one
+    assert mission.period == float(built.config.period)
+    inputs = [(0.4 * np.sin(k / 17), -0.3 * np.cos(k / 11)) for k in range(300)]
+    stepped_first = [tuple(first.step(*u)) for u in inputs]
+    stepped_second = [tuple(second.step(*u)) for u in inputs]
+    from_scratch = [tuple(built.step(*u)) for u in inputs]
+    assert stepped_first == stepped_second == from_scratch

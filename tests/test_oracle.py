@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +23,12 @@ from hil_service.experiment.closed_loop import (
     score,
     setpoint_schedule,
 )
-from hil_service.experiment.oracle import KnownPlant, OracleController, OracleSettings
+from hil_service.experiment.oracle import (
+    KnownPlant,
+    OracleController,
+    OracleSettings,
+    _quiet_highs,
+)
 from hil_service.experiment.random_loop import channel_levels, oracle_settings_for
 from hil_service.umodel import build_model
 from hil_service.umodel.multistep import (
@@ -512,6 +520,27 @@ def test_closed_loop_json_has_the_oracle_beside_inverse_and_reference(capsys):
         assert ratio == pytest.approx(entry["inverse"]["iae"] / entry["oracle"]["iae"], rel=1e-3)
     assert data["non_finite_commands"] == {"depth": 0, "pitch": 0}
     assert data["oracle_failures"] == 0
+
+
+def test_closed_loop_json_on_stdout_is_json_alone_in_a_fresh_process():
+    """HiGHS writes its banner onto file descriptor 1 from C++ the first time a solver is
+    made in a process: a fresh process, so that this run makes the first one."""
+    command = [sys.executable, "-m", "hil_service.cli", "experiment", "--closed-loop",
+               "--scenario", "paper", "--samples", "900", "--identify", "500",
+               "--step-every", "200", "--json"]  # fmt: skip
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run(command, cwd=root, capture_output=True, timeout=300, check=True)
+    data = json.loads(done.stdout)
+    assert data["oracle_failures"] == 0
+    assert data["channels"]["pitch"]["oracle"]["iae"] > 0
+
+
+def test_silencing_the_solver_keeps_what_python_printed_around_it(capfd):
+    print("before", end=" ")  # still in Python's buffer when the descriptor is switched
+    highs = _quiet_highs()
+    print("after")
+    highs.run()  # an empty model: with output_flag off, nothing on the console either
+    assert capfd.readouterr().out == "before after\n"
 
 
 def test_random_closed_loop_reports_every_plant_and_the_summary(capsys):

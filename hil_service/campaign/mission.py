@@ -14,6 +14,8 @@ to the identification phase, which no metric scores.
 
 from __future__ import annotations
 
+import copy
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -96,14 +98,18 @@ class Mission:
         return RandomVehicleConfig(depth=depth, pitch=pitch)
 
     def plant(self, system_id: int = 1) -> Plant:
-        """A fresh plant at rest, with this mission's disturbance (seeded)."""
-        if self.scenario == "random":
-            return RandomPlant(self._random_config(), system_id)
-        return GliderPlant(PlantConfig(scenario=self.scenario, seed=self.seed), system_id)
+        """A fresh plant at rest, with this mission's disturbance (seeded): a copy of one
+        built once per process, because building one designs its inner loops (tens of ms)
+        and a mission steps three (the HIL run's, the reference-only run's, the oracle's)."""
+        return copy.deepcopy(_pristine_plant(self, system_id))
 
     @property
     def period(self) -> float:
-        return float(self.plant().config.period)
+        """s per step, from the plant's configuration: building the plant itself designs
+        its inner loops (tens of ms), and scoring asks for the period several times."""
+        if self.scenario == "random":
+            return float(self._random_config().period)
+        return float(PlantConfig(scenario=self.scenario, seed=self.seed).period)
 
     def trims(self) -> dict[str, float]:
         if self.scenario == "random":
@@ -152,6 +158,14 @@ class Mission:
             )
 
         return glider_reference
+
+
+@functools.lru_cache(maxsize=8)
+def _pristine_plant(mission: Mission, system_id: int) -> Plant:
+    """The mission's plant at rest, never stepped: ``Mission.plant`` hands out copies."""
+    if mission.scenario == "random":
+        return RandomPlant(mission._random_config(), system_id)
+    return GliderPlant(PlantConfig(scenario=mission.scenario, seed=mission.seed), system_id)
 
 
 @dataclass

@@ -35,12 +35,16 @@ cost (building and presolving a model every sample would be mostly per-call over
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
-from collections.abc import Callable
+import os
+import sys
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
+import highspy
 import numpy as np
-from highspy import _core as highs_core
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
@@ -115,25 +119,54 @@ LP_OPTIONS: dict[str, object] = {
     "output_flag": False,  # a library: nothing on the console
     "threads": 1,  # one LP per controller; campaigns run missions in parallel processes
 }
-INF = float(highs_core.kHighsInf)
+INF = float(highspy.kHighsInf)
+
+_LIBC = ctypes.CDLL(None)
+
+
+@contextlib.contextmanager
+def _stdout_to_devnull() -> Iterator[None]:
+    """File descriptor 1 onto /dev/null for the duration, C's stdio buffers flushed on
+    both sides: constructing a ``highspy.Highs`` writes HiGHS's banner from C++ straight onto
+    stdout, before any option can turn it off, and a program whose stdout is JSON
+    (``experiment --json``) must not carry it. Python's own pending output is written
+    first; what any thread writes to stdout during the construction is lost."""
+    if sys.stdout is not None:
+        sys.stdout.flush()
+    _LIBC.fflush(None)
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        _LIBC.fflush(None)  # what HiGHS buffered goes to /dev/null, not to the real stdout
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _quiet_highs() -> highspy.Highs:
+    """A ``highspy.Highs`` with nothing on the console and no Python callback: the
+    public class registers one for every solve (for its interrupt and logging events),
+    which a controller that solves once per sample does not use."""
+    with _stdout_to_devnull():
+        highs = highspy.Highs()
+    highs.disableCallbacks()
+    for name, value in LP_OPTIONS.items():
+        highs.setOptionValue(name, value)
+    return highs
 
 
 class _LpModel:
     """min cᵀx s.t. A x ≤ b, lo ≤ x ≤ hi, with A and c fixed: one persistent HiGHS model
-    whose b and bounds change per solve, each solve warm-started from the last basis.
-
-    ``highspy._core._Highs`` is the solver class the public ``highspy.Highs`` wraps; the
-    wrapper adds a Python callback to every solve and prints a banner on stdout when the
-    first one is made, neither of which a controller that solves once per sample wants.
-    """
+    whose b and bounds change per solve, each solve warm-started from the last basis."""
 
     def __init__(self, cost: Array, a_ub: Array, lower: Array, upper: Array):
         rows, cols = a_ub.shape
         self.rows, self.cols = rows, cols
-        self.highs = highs_core._Highs()
-        for name, value in LP_OPTIONS.items():
-            self.highs.setOptionValue(name, value)
-        lp = highs_core.HighsLp()
+        self.highs = _quiet_highs()
+        lp = highspy.HighsLp()
         lp.num_col_, lp.num_row_ = cols, rows
         lp.col_cost_ = np.asarray(cost, dtype=np.float64)
         lp.col_lower_ = np.asarray(lower, dtype=np.float64)
@@ -147,12 +180,12 @@ class _LpModel:
             indices.extend(int(i) for i in nonzero)
             values.extend(float(v) for v in matrix[nonzero, j])
             starts.append(len(indices))
-        lp.a_matrix_.format_ = highs_core.MatrixFormat.kColwise
+        lp.a_matrix_.format_ = highspy.MatrixFormat.kColwise
         lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = cols, rows
         lp.a_matrix_.start_ = np.array(starts, dtype=np.int32)
         lp.a_matrix_.index_ = np.array(indices, dtype=np.int32)
         lp.a_matrix_.value_ = np.array(values, dtype=np.float64)
-        if self.highs.passModel(lp) != highs_core.HighsStatus.kOk:
+        if self.highs.passModel(lp) != highspy.HighsStatus.kOk:
             raise ValueError("HiGHS refused the oracle's LP")
         self._row_index = np.arange(rows, dtype=np.int32)
         self._row_lower = np.full(rows, -INF)
@@ -164,9 +197,9 @@ class _LpModel:
         highs = self.highs
         highs.changeRowsBounds(self.rows, self._row_index, self._row_lower, b_ub)
         highs.changeColsBounds(col_index.size, col_index, lower, upper)
-        if highs.run() != highs_core.HighsStatus.kOk:
+        if highs.run() != highspy.HighsStatus.kOk:
             return None
-        if highs.getModelStatus() != highs_core.HighsModelStatus.kOptimal:
+        if highs.getModelStatus() != highspy.HighsModelStatus.kOptimal:
             return None
         return np.asarray(highs.getSolution().col_value, dtype=np.float64)
 
