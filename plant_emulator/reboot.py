@@ -13,7 +13,6 @@ emulated here.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 from plant_emulator.streams import ArduSubAutopilot
@@ -25,27 +24,9 @@ BOOT_S = 3.0
 
 
 def reboot(autopilot: ArduSubAutopilot, boot_s: float = BOOT_S) -> float:
-    """Restart ``autopilot``'s clock so that the next step is ``boot_s`` (rounded up to a
-    period) after boot; forget the companion's commands and stream rates. Returns how far
-    the clock went back (simulated s)."""
-    period = autopilot.plant.config.period
-    since_boot = autopilot._uptime + autopilot.plant.t  # the next step's, on the old clock
-    boot = math.ceil(boot_s / period - 1e-9) * period
-    back = since_boot - boot
-    # Every schedule is kept on the vehicle's clock: it goes back with it.
-    autopilot._uptime -= back
-    for schedule in (autopilot._gcs_due, autopilot._due):
-        for name in schedule:
-            schedule[name] -= back
-    autopilot._external = {"depth": math.nan, "pitch": math.nan}
-    autopilot._external_active = False
-    autopilot._last_command_t = None
-    rates = autopilot.streams.rates_hz
-    for name in autopilot.intervals:
-        hz = rates.get(name, 0.0)
-        autopilot.intervals[name] = 1.0 / hz if hz > 0 else None
-    autopilot._status("Rebooted")
-    return back
+    """Reboot ``autopilot`` so that its next step is ``boot_s`` after boot
+    (``ArduSubAutopilot.reboot``). Returns how far the clock went back (simulated s)."""
+    return autopilot.reboot(boot_s)
 
 
 class RebootAt:

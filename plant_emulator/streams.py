@@ -119,6 +119,30 @@ class ArduSubAutopilot(Autopilot):
             msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
             self.manners.on_demand[msg_id] = lambda name=name: self._send_stream(name)
 
+    def reboot(self, boot_s: float) -> float:
+        """Reboot as an autopilot does: the clock starts again so that the next step is
+        ``boot_s`` (rounded up to a period) after boot, and what a companion set (its
+        ballast commands, the stream rates it asked for) is forgotten. The plant goes on.
+        Returns how far the clock went back (simulated s)."""
+        period = self.plant.config.period
+        since_boot = self._uptime + self.plant.t  # the next step's, on the old clock
+        boot = math.ceil(boot_s / period - 1e-9) * period
+        back = since_boot - boot
+        # Every schedule is kept on the vehicle's clock: it goes back with it.
+        self._uptime -= back
+        for schedule in (self._gcs_due, self._due):
+            for name in schedule:
+                schedule[name] -= back
+        self._external = {"depth": math.nan, "pitch": math.nan}
+        self._external_active = False
+        self._last_command_t = None
+        rates = self.streams.rates_hz
+        for name in self.intervals:
+            hz = rates.get(name, 0.0)
+            self.intervals[name] = 1.0 / hz if hz > 0 else None
+        self._status("Rebooted")
+        return back
+
     # ---- settings ------------------------------------------------------------------------
     def parameters(self) -> list[Parameter]:
         params = super().parameters()
