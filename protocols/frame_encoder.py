@@ -46,7 +46,9 @@ class _Plan:
         return self.packer.pack(*values)
 
 
-def _plan_for(message_class: Any) -> _Plan | None:
+def _plan_for(message_class: Any, dialect: ModuleType) -> _Plan | None:
+    if dialect.mavlink_map.get(message_class.id) is not message_class:
+        return None  # not the dialect's generated class (PROTOCOL_VERSION): it packs itself
     if "char" in message_class.fieldtypes:
         return None  # text fields are encoded by the generated pack
     return _Plan(
@@ -79,7 +81,7 @@ class FrameEncoder:
         try:
             return self._plans[message_class]
         except KeyError:
-            plan = _plan_for(message_class)
+            plan = _plan_for(message_class, self._dialect)
             self._plans[message_class] = plan
             return plan
 

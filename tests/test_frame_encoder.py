@@ -11,6 +11,7 @@ import pytest
 from protocols.frame_encoder import FrameEncoder
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.mavlink_json import message_to_json
+from protocols.protocol_version import MSG_ID_PROTOCOL_VERSION, ProtocolVersionMessage
 
 #: Every message type of the dialect that the fast encoder handles (no text fields).
 FAST_TYPES = sorted(
@@ -68,6 +69,13 @@ def test_text_types_are_left_to_pymavlink_and_the_codec_still_frames_them() -> N
     codec, peer = MavlinkCodec(7, 1), MavlinkCodec(255, 190)
     (received,) = peer.parse(codec.pack(text), datagram=True)
     assert received.text == "ballast: external control" and received.get_srcSystem() == 7
+
+
+def test_a_message_class_of_our_own_packs_itself_through_the_codec() -> None:
+    message = ProtocolVersionMessage(200, 100, 200)
+    assert FrameEncoder(dialect).encode(message, 0, 1, 1) is None
+    frame = MavlinkCodec(1, 1).pack(message)
+    assert frame[0] == 0xFD and int.from_bytes(frame[7:10], "little") == MSG_ID_PROTOCOL_VERSION
 
 
 def test_the_codec_sequence_and_logged_json_match_pymavlink_on_both_paths() -> None:
