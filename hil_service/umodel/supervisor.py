@@ -27,6 +27,12 @@ from the measured outputs. At each segment's end the segment is judged:
   (two segments running);
 * ``oscillation``: the tracking error changed sign (by more than the bound each time) at
   least ``half_cycles`` times over the last three segments while the prediction did not;
+* ``worse than not commanding``: over a longer window (``compare_factor`` × the segment,
+  at least the horizon), the realised mean |tracking error| exceeded ``1 + compare_margin``
+  times the one the model predicts for the same window at the neutral input (a third
+  frozen copy, restarted from the measured outputs at the window's start, fed 0): the
+  loop is doing worse than not controlling, by the model's own account of the
+  alternative;
 * ``worse than trim``: the output settled (moved less than the bound over the segment) with
   a tracking error larger, by more than the bound, than the model's steady state at the
   neutral input would leave (a plan stalled where holding trim does better).
@@ -178,6 +184,8 @@ class SupervisorSettings:
 
     __slots__ = (
         "bound_factor",
+        "compare_factor",
+        "compare_margin",
         "half_cycles",
         "hold_floor",
         "holdoff_factor",
@@ -197,6 +205,8 @@ class SupervisorSettings:
         max_backoff: int = 6,
         holdoff_factor: int = 4,
         max_trips: int = 3,
+        compare_factor: int = 3,
+        compare_margin: float = 0.1,
     ) -> None:
         if not (bound_factor > 0.0 and hold_floor >= 0.0):
             raise ValueError("bound_factor must be > 0 and hold_floor >= 0")
@@ -212,6 +222,13 @@ class SupervisorSettings:
         self.holdoff_factor = int(holdoff_factor)
         #: Trips after which the channel stays off until control is disabled and enabled.
         self.max_trips = int(max_trips)
+        #: The "worse than not commanding" window, in segments (at least the horizon), and
+        #: the share by which the realised error must exceed the neutral input's predicted
+        #: one to trip (the family target's 1.1 ×).
+        if compare_factor < 1 or not compare_margin >= 0.0:
+            raise ValueError("compare_factor must be >= 1 and compare_margin >= 0")
+        self.compare_factor = int(compare_factor)
+        self.compare_margin = float(compare_margin)
 
 
 class Supervisor:
@@ -245,6 +262,11 @@ class Supervisor:
         self._sign_pred = 0
         self._k = 0
         self._u0 = 0.0
+        self._neutral_error = math.inf
+        self.compare_window = 0
+        self._cmp_n = 0
+        self._cmp_real = 0.0
+        self._cmp_alt = 0.0
 
     @property
     def armed(self) -> bool:
@@ -278,6 +300,8 @@ class Supervisor:
             self.bound = math.inf  # nothing to judge by: only the saturation test acts
         self.good_u = u
         self.reason = ""
+        self.compare_window = max(horizon, s.compare_factor * self.window)
+        self.start_comparison()
         self._armed = True
         self._beyond_strikes = 0
         self._flips.clear()
@@ -369,6 +393,35 @@ class Supervisor:
 
     def segment_done(self) -> bool:
         return self._n >= self.window
+
+    def start_comparison(self) -> None:
+        """A new "worse than not commanding" window (the neutral prediction restarts)."""
+        self._cmp_n = 0
+        self._cmp_real = self._cmp_alt = 0.0
+
+    def comparison_done(self) -> bool:
+        return self._cmp_n >= self.compare_window
+
+    def compare_sample(self, error: float, error_neutral: float) -> str:
+        """One commanded sample: ``error`` = y − r, ``error_neutral`` = the model's output
+        at the neutral input − r. The trip reason at the window's end ("" when none)."""
+        if not self._armed:
+            return ""
+        if not math.isfinite(error_neutral):
+            error_neutral = math.inf
+        self._cmp_n += 1
+        self._cmp_real += abs(error)
+        self._cmp_alt += abs(error_neutral)
+        if self._cmp_n < self.compare_window:
+            return ""
+        n = self._cmp_n
+        real, alt = self._cmp_real / n, self._cmp_alt / n
+        if real > (1.0 + self.settings.compare_margin) * alt:
+            return self._trip(
+                f"worse than not commanding (mean error {real:.3g} over {n} samples, "
+                f"{alt:.3g} predicted at the neutral input)"
+            )
+        return ""
 
     def _note_flip(self, error: float, error_pred: float) -> None:
         bound = self.bound
