@@ -224,9 +224,13 @@ class ChannelPipeline:
         self.restarts = 0
         self._since_trip = 0
         self._sup_run: ModelDynamics | None = None
-        self._alt_run: ModelDynamics | None = None  # the neutral input's counterfactual
-        self._alt_pred = math.nan
-        self._alt_u = 0.0  # its input
+        # The neutral input's counterfactual: two frozen copies from the same measured
+        # history, one fed the applied inputs, one the neutral input (reached at the rate
+        # limit); their difference is the effect of commanding by the model's account.
+        self._alt_run: ModelDynamics | None = None
+        self._app_run: ModelDynamics | None = None
+        self._alt_delta = math.nan  # ŷ(applied) − ŷ(neutral) for this sample
+        self._alt_u = 0.0  # the neutral copy's input
         self._sup_pred = math.nan
         self._sup_setpoint = math.nan
         self._last_saturated = False
@@ -296,7 +300,7 @@ class ChannelPipeline:
             self.refill = self.model.history_length
             return None
         self._sup_pred = math.nan
-        self._alt_pred = math.nan
+        self._alt_delta = math.nan
         self._until_evaluation -= 1
         if self.tripped:
             self._since_trip += 1
@@ -332,11 +336,12 @@ class ChannelPipeline:
             self.multistep.add(y, y_sim)
         if self._sup_run is not None:
             self._sup_pred = self._sup_run.advance(u_prev)
-        if self._alt_run is not None:
+        if self._alt_run is not None and self._app_run is not None:
             # The neutral input reached from the applied one at the actuator's rate limit.
             rate = self.settings.control.rate_limit
             self._alt_u = min(max(0.0, self._alt_u - rate), self._alt_u + rate)
-            self._alt_pred = self._alt_run.advance(self._alt_u)
+            neutral = self._alt_run.advance(self._alt_u)
+            self._alt_delta = self._app_run.advance(u_prev) - neutral
         estimate = self.model.step(u_prev, y)
         self.horizon_test.record(y, u_prev)
         self._learnt_last = True
@@ -506,8 +511,10 @@ class ChannelPipeline:
         reason = self.supervisor.segment_sample(
             y, pred, error, pred - setpoint, self._last_saturated
         )
-        if not reason and self._alt_run is not None and math.isfinite(self._alt_pred):
-            reason = self.supervisor.compare_sample(error, self._alt_pred - setpoint)
+        if not reason and self._alt_run is not None and math.isfinite(self._alt_delta):
+            # What the output would have been at the neutral input: the measured one
+            # (disturbance and noise included) without commanding's modelled effect.
+            reason = self.supervisor.compare_sample(error, error - self._alt_delta)
         if reason:
             self._trip(reason, u_applied)
             return f"supervisor: {reason} ({self.channel})"
@@ -521,6 +528,7 @@ class ChannelPipeline:
         """The neutral input's counterfactual from now: the model from the measured
         history, its input going from the applied one to 0 at the rate limit."""
         self._alt_run = self.model.dynamics()
+        self._app_run = self.model.dynamics()
         self._alt_u = u_applied if math.isfinite(u_applied) else 0.0
         self.supervisor.start_comparison()
 
