@@ -215,6 +215,11 @@ class ChannelPipeline:
             control.horizon_fit, settings.window, control.max_horizon + 100, settings.burn_in
         )
         self._until_evaluation = 0  # samples to the horizon test's next evaluation
+        #: ``decide`` asked this channel to command (control on, a setpoint) since the last
+        #: sample: the horizon test runs every ``refresh`` samples then, every ``window``
+        #: while nobody asks (health's verdict only).
+        self._asked = False
+        self._slow = False  # the last evaluation chose the slow cadence
         self._horizon_ok = False  # its last verdict
         self.qualified = False  # passed the horizon test since the last disqualifying event
         self.ever_qualified = False
@@ -422,6 +427,10 @@ class ChannelPipeline:
         its setpoint there is no change left for the test to judge by, and the supervisor
         watches the loop instead."""
         horizon = self.controller.horizon
+        self._asked = True
+        if self._slow and self.converged and not self.tripped:
+            # The first ask after a stretch on the slow cadence: a verdict on today's model.
+            self._evaluate_horizon()
         if self.tripped:
             if self.supervisor.latched:
                 return (
@@ -461,7 +470,11 @@ class ChannelPipeline:
         a verdict from a record shorter than the horizon. The model and its horizon keep
         changing while identification goes on: a verdict from an earlier model, or on a
         shorter horizon, is not one on the model that would command."""
-        self._until_evaluation = self.settings.control.refresh
+        refresh = self.settings.control.refresh
+        wanted = self._asked or self.tripped or self.active
+        self._slow = not wanted
+        self._until_evaluation = refresh if wanted else max(refresh, self.settings.window)
+        self._asked = False
         dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
         horizon = self.controller.horizon
         passed = self.horizon_test.evaluate(dynamics, horizon)
