@@ -14,12 +14,15 @@ where most of their IAE accrued, and by plant feature, beside the same count for
 known-model oracle.
 
     python benchmarks/family_harm.py --seeds 10 11 12 13 14 --plants 50
+    python benchmarks/family_harm.py --seeds 0 1 2 --plants 200 --save a.pkl   # and 3 4: b.pkl
+    python benchmarks/family_harm.py --combine a.pkl b.pkl
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
@@ -169,7 +172,21 @@ def main() -> None:
     parser.add_argument("--step-every", type=int, default=300)
     parser.add_argument("--no-oracle", action="store_true")
     parser.add_argument("--semantics", nargs="+", choices=RELEASED, default=list(RELEASED))
+    parser.add_argument("--save", help="also write the rows to this file (pickle)")
+    parser.add_argument(
+        "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
+    )
     args = parser.parse_args()
+    if args.combine:
+        rows: dict[str, list[FamilyRow]] = {}
+        for path in args.combine:
+            with open(path, "rb") as f:
+                for name, found in pickle.load(f).items():
+                    rows.setdefault(name, []).extend(found)
+        print(f"\ncombined {args.combine}")
+        for name, found in rows.items():
+            summarise(name, found)
+        return
     rows = run(
         args.seeds,
         args.plants,
@@ -185,6 +202,9 @@ def main() -> None:
     )
     for name, found in rows.items():
         summarise(name, found)
+    if args.save:
+        with open(args.save, "wb") as f:
+            pickle.dump(rows, f)
 
 
 if __name__ == "__main__":
