@@ -108,9 +108,9 @@ def summarise(name: str, rows: list[FamilyRow]) -> dict[str, object]:
             Counter(kind_of(r) for r in rows),
         )
         _table(
-            "phase holding most of the IAE (plants above the limit)",
+            "phase holding most of the IAE (of the plants above the limit)",
             Counter(dominant_phase(r) for r in above),
-            Counter(dominant_phase(r) for r in above),
+            Counter(dict.fromkeys(PHASES, len(above))),
         )
         _table(
             "by feature (above / all)",
