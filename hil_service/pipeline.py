@@ -4,8 +4,10 @@ and the in-process experiment all feed it the same samples and get the same numb
 Each channel (depth, pitch) has its identifier, a persistence baseline beside it, error
 statistics, and an inverse controller that is allowed to act only once the identifier has
 converged (``burn_in`` samples and a recent skill versus persistence of at least
-``min_skill``) and has not diverged since. One module over 500 lines: the settings, the
-channel's pipeline and the vehicle's are one unit that replay checks bit for bit.
+``min_skill``), has not diverged since and its model passes the horizon test. Every gate is
+per channel: a channel held by its own gate leaves the other channel's commands alone. One
+module over 500 lines: the settings, the channel's pipeline and the vehicle's are one unit
+that replay checks bit for bit.
 """
 
 from __future__ import annotations
@@ -30,8 +32,10 @@ from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
 
 #: What a channel's input goes to when its supervisor trips (docs/control.md): "hold" the
-#: input the last clean supervised segment started from, or "neutral" (0, the trim).
-SAFE_INPUTS = ("hold", "neutral")
+#: input the last clean supervised segment started from, "neutral" (0, the trim), or
+#: "release": the service stops commanding the channel (NaN), for a vehicle whose own
+#: controller takes the channel back when the service's commands for it stop.
+SAFE_INPUTS = ("hold", "neutral", "release")
 
 #: Model options per channel on top of each model's defaults (none: the defaults hold for
 #: both channels, and a new vehicle gets no figure tuned to the emulator's).
@@ -247,6 +251,11 @@ class ChannelPipeline:
             control.horizon_fit, settings.window, control.max_horizon + 100, settings.burn_in
         )
         self._until_evaluation = 0  # samples to the horizon test's next evaluation
+        #: ``decide`` asked this channel to command (control on, a setpoint) since the last
+        #: sample: the horizon test runs every ``refresh`` samples then, every ``window``
+        #: while nobody asks (health's verdict only).
+        self._asked = False
+        self._slow = False  # the last evaluation chose the slow cadence
         self._horizon_ok = False  # its last verdict
         self.qualified = False  # passed the horizon test since the last disqualifying event
         self.ever_qualified = False
@@ -256,6 +265,13 @@ class ChannelPipeline:
         self.restarts = 0
         self._since_trip = 0
         self._sup_run: ModelDynamics | None = None
+        # The neutral input's counterfactual: two frozen copies from the same measured
+        # history, one fed the applied inputs, one the neutral input (reached at the rate
+        # limit); their difference is the effect of commanding by the model's account.
+        self._alt_run: ModelDynamics | None = None
+        self._app_run: ModelDynamics | None = None
+        self._alt_delta = math.nan  # ŷ(applied) − ŷ(neutral) for this sample
+        self._alt_u = 0.0  # the neutral copy's input
         self._sup_pred = math.nan
         self._sup_setpoint = math.nan
         self._last_saturated = False
@@ -306,6 +322,7 @@ class ChannelPipeline:
             self.refill = 0
             self._free_run, self._free_run_left = None, 0
             self._sup_run = None
+            self._alt_run = None
             self.controller.reset()
             self.dynamics = None
         elif repeat and self.resync == 0:
@@ -324,11 +341,13 @@ class ChannelPipeline:
             self.refill = self.model.history_length
             return None
         self._sup_pred = math.nan
+        self._alt_delta = math.nan
         self._until_evaluation -= 1
         if self.tripped:
             self._since_trip += 1
         if self.refill > 0 and self.resync == 0:
             self._sup_run = None  # the supervisor's prediction restarts after the refill
+            self._alt_run = None
             assert self.u_prev is not None
             self.model.observe_only(self.u_prev, y)
             self.persistence.observe_only(self.u_prev, y)
@@ -341,6 +360,7 @@ class ChannelPipeline:
             return None
         if self.resync > 0:
             self._sup_run = None
+            self._alt_run = None
             self.horizon_test.break_record()  # consecutive samples only
             u_guess = u_now if self.u_prev is None else self.u_prev
             self.model.observe_only(u_guess, y)
@@ -357,6 +377,12 @@ class ChannelPipeline:
             self.multistep.add(y, y_sim)
         if self._sup_run is not None:
             self._sup_pred = self._sup_run.advance(u_prev)
+        if self._alt_run is not None and self._app_run is not None:
+            # The neutral input reached from the applied one at the actuator's rate limit.
+            rate = self.settings.control.rate_limit
+            self._alt_u = min(max(0.0, self._alt_u - rate), self._alt_u + rate)
+            neutral = self._alt_run.advance(self._alt_u)
+            self._alt_delta = self._app_run.advance(u_prev) - neutral
         estimate = self.model.step(u_prev, y)
         self.horizon_test.record(y, u_prev)
         self._learnt_last = True
@@ -381,7 +407,9 @@ class ChannelPipeline:
         if self._free_run_left <= 0:
             self._restart_free_run()
         due = self.converged and self._until_evaluation <= 0
-        if due and (self.tripped or not (self.qualified and self.horizon_test.full)):
+        if due and (
+            self.tripped or not self.active or not (self.qualified and self.horizon_test.full)
+        ):
             self._evaluate_horizon()
         return {
             "t": t,
@@ -430,10 +458,15 @@ class ChannelPipeline:
 
         A tripped channel re-arms once its hold-off has passed and the model passes the
         horizon test on data taken after the trip; an unqualified one qualifies by passing
-        it. Once qualified, the test stays passed until a trip, a vehicle restart or a
-        divergence: while the loop holds the output at its setpoint there is no change left
-        for the test to judge by, and the supervisor watches the loop instead."""
+        it. Once it commands on a verdict covering the whole horizon, the verdict stands
+        until a trip, a vehicle restart or a divergence: while the loop holds the output at
+        its setpoint there is no change left for the test to judge by, and the supervisor
+        watches the loop instead."""
         horizon = self.controller.horizon
+        self._asked = True
+        if self._slow and self.converged and not self.tripped:
+            # The first ask after a stretch on the slow cadence: a verdict on today's model.
+            self._evaluate_horizon()
         if self.tripped:
             if self.supervisor.latched:
                 return (
@@ -448,7 +481,7 @@ class ChannelPipeline:
             self.tripped = False
             self.qualified = self.ever_qualified = True
             self.supervisor.rearms += 1
-            self.events.append(self._event("rearm", ""))
+            self.events.append(self._event("rearm", "", self.supervisor.holdoff(horizon)))
             return ""
         if not self.qualified or not self.horizon_test.full:
             # Until a verdict covers the whole horizon (the record may be shorter at
@@ -468,9 +501,16 @@ class ChannelPipeline:
 
     def _evaluate_horizon(self) -> None:
         """The horizon test on the current model, every ``refresh`` samples (it runs the
-        model over the whole record) while its verdict matters: not yet qualified, or
-        qualified on a record shorter than the horizon, or tripped."""
-        self._until_evaluation = self.settings.control.refresh
+        model over the whole record) while its verdict matters: whenever the channel does
+        not command (control off, no setpoint, blocked, tripped), and while it commands on
+        a verdict from a record shorter than the horizon. The model and its horizon keep
+        changing while identification goes on: a verdict from an earlier model, or on a
+        shorter horizon, is not one on the model that would command."""
+        refresh = self.settings.control.refresh
+        wanted = self._asked or self.tripped or self.active
+        self._slow = not wanted
+        self._until_evaluation = refresh if wanted else max(refresh, self.settings.window)
+        self._asked = False
         dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
         horizon = self.controller.horizon
         passed = self.horizon_test.evaluate(dynamics, horizon)
@@ -479,6 +519,13 @@ class ChannelPipeline:
             # gap is not evidence against the model; a trip or a restart clears it).
             return
         self._horizon_ok = passed
+        # The verdict qualifies the channel here, on the observing side, whether control is
+        # on or not (health's ``horizon_qualified``); a tripped channel re-arms only through
+        # ``_harm_reason`` (its hold-off first).
+        if not self.tripped:
+            self.qualified = passed
+            if passed:
+                self.ever_qualified = True
 
     def _horizon_passes(self, horizon: int) -> bool:
         return self._horizon_ok
@@ -507,17 +554,32 @@ class ChannelPipeline:
         if self._sup_run is None or not math.isfinite(pred) or setpoint != self._sup_setpoint:
             if setpoint != self._sup_setpoint:
                 self.supervisor.new_reference()
+                self._restart_comparison(u_applied)
             self._restart_supervised(y, setpoint, u_applied)
             return ""
         reason = self.supervisor.segment_sample(
             y, pred, error, pred - setpoint, self._last_saturated
         )
+        if not reason and self._alt_run is not None and math.isfinite(self._alt_delta):
+            # What the output would have been at the neutral input: the measured one
+            # (disturbance and noise included) without commanding's modelled effect.
+            reason = self.supervisor.compare_sample(error, error - self._alt_delta)
         if reason:
             self._trip(reason, u_applied)
             return f"supervisor: {reason} ({self.channel})"
         if self.supervisor.segment_done():
             self._restart_supervised(y, setpoint, u_applied)
+        if self._alt_run is None or self.supervisor.comparison_done():
+            self._restart_comparison(u_applied)
         return ""
+
+    def _restart_comparison(self, u_applied: float) -> None:
+        """The neutral input's counterfactual from now: the model from the measured
+        history, its input going from the applied one to 0 at the rate limit."""
+        self._alt_run = self.model.dynamics()
+        self._app_run = self.model.dynamics()
+        self._alt_u = u_applied if math.isfinite(u_applied) else 0.0
+        self.supervisor.start_comparison()
 
     def _restart_supervised(self, y: float, setpoint: float, u_applied: float) -> None:
         run = self.model.dynamics()
@@ -538,28 +600,38 @@ class ChannelPipeline:
         self._since_trip = 0
         self.disqualify()
         self.deactivate()
-        good = self.supervisor.good_u if control.safe_input == "hold" else 0.0
+        good = self.supervisor.good_u if control.safe_input == "hold" else 0.0  # release: 0
         if not math.isfinite(good):
             good = u_applied if math.isfinite(u_applied) else 0.0
         self.safe_u = min(control.u_limit, max(-control.u_limit, good))
         self.events.append(self._event("trip", reason))
 
+    @property
+    def releases(self) -> bool:
+        """A tripped channel sends nothing: its vehicle's own controller takes over."""
+        return self.settings.control.safe_input == "release"
+
     def safe_command(self) -> float:
         """A tripped channel's command: toward its safe input at the rate limit (the
-        shaper holds the last command sent), then the safe input itself."""
+        shaper holds the last command sent), then the safe input itself; NaN (nothing)
+        when the safe input is "release"."""
+        if self.releases:
+            return math.nan
         return self.shaper.shape(self.safe_u).u
 
-    def _event(self, kind: str, reason: str) -> dict[str, Any]:
+    def _event(self, kind: str, reason: str, holdoff: int | None = None) -> dict[str, Any]:
         return {
             "channel": self.channel,
             "event": kind,
             "reason": reason,
-            "safe_input": self.safe_u if kind == "trip" else None,
+            "safe_input": self.safe_u if kind == "trip" and not self.releases else None,
             "safe_mode": self.settings.control.safe_input,
             "trips": self.supervisor.trips,
             "rearms": self.supervisor.rearms,
             "horizon_fit": significant(self.horizon_test.fit),
             "window": self.supervisor.window,
+            "horizon": self.controller.horizon,
+            "holdoff": holdoff,  # a re-arm: the samples it waited for at least
         }
 
     def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
@@ -589,6 +661,7 @@ class ChannelPipeline:
     def deactivate(self) -> None:
         self.active = False
         self._sup_run = None
+        self._alt_run = None
         self.supervisor.disarm()
 
     def health(self) -> dict[str, Any]:
@@ -610,7 +683,7 @@ class ChannelPipeline:
                 "trips": self.supervisor.trips,
                 "rearms": self.supervisor.rearms,
                 "reason": self.supervisor.reason,
-                "safe_input": self.safe_u if self.tripped else None,
+                "safe_input": self.safe_u if self.tripped and not self.releases else None,
                 "safe_mode": self.settings.control.safe_input,
             },
         }
@@ -676,16 +749,26 @@ class VehiclePipeline:
             blocked = pipeline.blocked_reason()
             if blocked and not pipeline.identified():
                 # The identifier's own gate (resynchronising, diverged, not converged)
-                # holds the whole vehicle, as it always has.
-                for other in self.channels.values():
-                    other.deactivate()
-                return Decision(None, None, blocked)
+                # holds this channel only: a tripped one goes on to its safe input, any
+                # other holds its input while the other channel commands.
+                pipeline.deactivate()
+                if pipeline.tripped and not pipeline.releases:
+                    values[ch] = pipeline.safe_command()
+                    paths.append("safe")
+                    commanded = True
+                else:
+                    paths.append("-")
+                reasons.append(blocked)
+                continue
             if not blocked:
                 blocked = pipeline.supervise(active[ch], sample.input(ch))
             if pipeline.tripped:
+                reasons.append(blocked)
+                if pipeline.releases:
+                    paths.append("released")
+                    continue
                 values[ch] = pipeline.safe_command()
                 paths.append("safe")
-                reasons.append(blocked)
                 commanded = True
                 continue
             if blocked:

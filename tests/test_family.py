@@ -78,3 +78,31 @@ def test_a_vehicle_of_the_family_runs_the_three_loops():
         assert row.commanded == 0 or row.horizon_passed
         reachable = levels(row.spec)
         assert len(set(reachable)) == len(reachable)
+
+
+def test_the_phases_add_up_and_a_released_channel_gets_the_vehicles_own_control():
+    """The IAE split by phase sums to the run's IAE. With ``released="vehicle"`` a channel
+    the service does not command gets the vehicle's own controller (reference-only): a
+    channel that never commands then has reference-only's IAE exactly."""
+    settings = ClosedLoopSettings(
+        scenario="family", samples=900, identify=400, step_every=250,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    checked = 0
+    for seed, vehicle in ((0, 0), (0, 1), (1, 2)):
+        depth, pitch = draw_vehicle(seed, vehicle)
+        held, _ = run_vehicle(settings, depth, pitch)
+        released, _ = run_vehicle(settings, depth, pitch, released="vehicle")
+        for row in (*held, *released):
+            assert sum(row.phases.values()) == pytest_approx(row.inverse_iae)
+        for row in released:
+            if row.commanded == 0 and row.trips == 0:
+                assert row.inverse_iae == pytest_approx(row.reference_iae)
+                checked += 1
+    assert checked >= 2, "no channel of these vehicles stayed uncommanded"
+    try:
+        run_vehicle(settings, depth, pitch, released="sometimes")
+    except ValueError as error:
+        assert "released must be one of" in str(error)
+    else:
+        raise AssertionError("an unknown released semantics was accepted")

@@ -96,12 +96,12 @@ def test_check_fails_naming_the_first_changed_estimate(tmp_path, capsys):
 def test_check_fails_on_one_changed_command_byte(tmp_path, capsys):
     changed = tmp_path / "changed.mcap"
     t = copy_with_changed_estimate(
-        DATA / "paper.mcap", changed, index=500, topic="glider/1/command/ballast", field="u_depth"
+        DATA / "paper.mcap", changed, index=600, topic="glider/1/command/ballast", field="u_depth"
     )
     assert main(["replay", "--fast", "--check", str(changed)]) == 1
     err = capsys.readouterr().err
     assert "glider/1/command/ballast" in err
-    assert f"message #500 (t = {t:g} s)" in err
+    assert f"message #600 (t = {t:g} s)" in err
 
 
 def test_truncated_fixture_replays_up_to_the_cut(tmp_path, replay_log):

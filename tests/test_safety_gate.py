@@ -206,10 +206,10 @@ def test_no_command_before_convergence_then_every_step_within_the_rate(make_rig)
     # test, docs/control.md), so depth holds (NaN) until it does.
     assert rig.stream(40) == 40
     health = rig.settle()
-    assert health["control"]["commanding"] is False
-    assert health["control"]["reason"].startswith(
-        "model does not predict over the horizon (depth:"
-    ), health["control"]
+    if health["control"]["commanding"] is False:  # depth may qualify later than pitch
+        assert health["control"]["reason"].startswith(
+            "model does not predict over the horizon (depth:"
+        ), health["control"]
     assert rig.stream(160) == 160
     health = rig.settle()
     # This vehicle ignores the commands, so a loop cannot work: the supervisor may see it
@@ -260,20 +260,28 @@ def test_divergence_stops_commands_until_skill_is_back(make_rig):
         return sample._replace(depth=10_000.0 if i % 2 == 0 else 0.0)
 
     # The first nine burst samples still look like a converged identifier; the tenth
-    # trips the divergence test, and that sample is not commanded.
-    assert rig.stream(10, burst) == 9
+    # trips the divergence test, and depth is not commanded from that sample on. The gate
+    # is per channel: pitch's commands go on (depth NaN: the vehicle keeps its input; or
+    # depth's safe input if its supervisor caught the burst first).
+    assert rig.stream(10, burst) == 10
     health = rig.settle()
     assert health["identifier"]["depth"]["divergences"] == 1
-    assert health["control"]["reason"] == "identifier diverged (depth)"
-    assert health["control"]["commanding"] is False
+    assert health["control"]["reason"].startswith("identifier diverged (depth)")
 
-    # Back to ordinary data: still nothing, because the identifier must converge again and
-    # its recent skill (the burst is in the window) is far below the minimum.
-    assert rig.stream(40) == 0
+    def depth_held(command: BallastCommand) -> bool:
+        return math.isnan(command.u_depth) or command.u_depth == 0.0  # NaN or neutral
+
+    assert depth_held(rig.vehicle.commands[-1][1])
+    assert math.isfinite(rig.vehicle.commands[-1][1].u_pitch)
+
+    # Back to ordinary data: depth still held, because its identifier must converge again
+    # and its recent skill (the burst is in the window) is far below the minimum.
+    assert rig.stream(40) == 40
     health = rig.settle()
     assert health["control"]["reason"].startswith("identifier not converged (depth:")
     assert health["identifier"]["depth"]["recent_skill"] < 0
-    assert health["counters"]["commands_sent"] == 49
+    assert health["counters"]["commands_sent"] == 90
+    assert all(depth_held(c) for _, c in rig.vehicle.commands[-40:])
 
 
 @pytest.mark.wire
@@ -598,28 +606,92 @@ def test_no_command_while_the_identifier_resynchronises_after_a_gap(in_process):
 
 def test_the_diverging_sample_is_not_commanded_nor_those_after_it(in_process):
     """In process, the forced divergence of the wire test: the sample that trips the
-    divergence test gets no command and says so; then the skill must come back."""
+    divergence test gets no command and says so; then the skill must come back. Only the
+    diverged channel is held: with both setpoints, a depth-only divergence leaves the
+    pitch commands going (NaN for depth: the vehicle keeps its depth input)."""
     service, link = in_process(PipelineSettings(burn_in=BURN_IN))
     service.inbox.set_setpoint(1, "depth", 1.0)
-    service.inbox.set_setpoint(1, "pitch", 0.05)
     codec = MavlinkCodec(1, 2)
     sent, reasons = [], []
+    # This plant ignores the commands (its own excitation drives it), so the supervisor
+    # may trip first; the divergence test is on the identifier either way.
     burst = range(BLOCKED + 40, BLOCKED + 50)
     for k, (sample, frames) in enumerate(plant_samples(BLOCKED + 90, trim_depth=0.5)):
         if k in burst:
             depth = 10_000.0 if (k - burst.start) % 2 == 0 else 0.0
             edited = sample._replace(depth=depth)
             frames = [codec.pack(m) for m in MAPPING.encode_telemetry(edited)]
+        before = len(link.frames)
         sent.append(feed(service, link, frames))
         reasons.append(service.vehicles[1].control_reason)
+        tripped_now = service.vehicles[1].pipeline.channels["depth"].tripped
+        if sent[-1] and k >= burst.stop - 1:  # only a tripped channel's safe input
+            assert tripped_now, k
+            assert [c.u_depth for c in commands_in(link.frames[before:])] == [0.0]
         if k == burst.stop - 1:  # what health says of the identifier at the tripping sample
             tripped = service.vehicles[1].pipeline.identifier_health()["depth"]
     assert sent[BLOCKED : burst.start] == [1] * 40
-    assert sent[burst.start : burst.stop] == [1] * 9 + [0]
-    assert reasons[burst.stop - 1] == "identifier diverged (depth)"
+    assert sent[burst.start : burst.stop - 1] == [1] * 9
+    assert reasons[burst.stop - 1].startswith("identifier diverged (depth)")
     assert tripped["divergences"] == 1 and tripped["converged"] is False
-    assert sent[burst.stop :] == [0] * 40
     assert all(r.startswith("identifier not converged (depth:") for r in reasons[burst.stop :])
+
+
+def test_the_identifier_gate_holds_one_channel_not_the_vehicle():
+    """The same divergence with both setpoints, on a plant that follows the commands:
+    depth's identifier gate holds depth (NaN, named in the reason) while pitch's commands
+    go on, sample after sample."""
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    plant = GliderPlant(PlantConfig(scenario="paper", seed=1, trim_depth=0.5))
+    excitation = [RandomSteps(1.5, 5, 20, seed=1 + i) for i in range(2)]
+    setpoints = {"depth": 1.0, "pitch": 0.05}
+    burst = range(BLOCKED + 40, BLOCKED + 50)
+    decisions = []
+    command = (0.0, 0.0)
+    for k in range(BLOCKED + 90):
+        sample = plant.step(*command)
+        if k in burst:
+            sample = sample._replace(depth=10_000.0 if (k - burst.start) % 2 == 0 else 0.0)
+        pipeline.observe(sample)
+        decision = pipeline.decide(sample, setpoints, True)
+        decisions.append(decision)
+        if k < BLOCKED:
+            command = (excitation[0].value(k), excitation[1].value(k))
+        elif decision.command is not None:
+            command = (decision.command.u_depth, decision.command.u_pitch)
+    assert not pipeline.channels["pitch"].tripped
+    after = decisions[burst.stop - 1 :]
+    assert not pipeline.channels["depth"].converged
+    assert all(d.command is not None for d in after)
+    assert all(math.isfinite(d.command.u_pitch) for d in after)
+    assert all(d.payload["mode"].split("/")[1] in ("newton", "fallback") for d in after)
+    # Depth holds (NaN) or, if its supervisor caught the burst first, sends its safe input.
+    depth = pipeline.channels["depth"]
+    for d in after:
+        path = d.payload["mode"].split("/")[0]
+        assert (path == "-" and math.isnan(d.command.u_depth)) or (
+            path == "safe" and depth.tripped and d.command.u_depth == depth.safe_u
+        ), d.payload
+    assert after[0].reason.startswith("identifier diverged (depth)")
+    assert all(d.reason.startswith("identifier not converged (depth:") for d in after[1:])
+    # Before the change, pitch was commanding too: the gate opened per channel.
+    assert all(d.command is not None for d in decisions[BLOCKED : burst.start])
+
+
+def test_the_horizon_test_qualifies_while_control_is_off():
+    """The horizon test runs on the observing side: health's ``horizon_qualified`` turns
+    true on identification data alone, control never enabled."""
+    from hil_service.pipeline import VehiclePipeline
+
+    pipeline = VehiclePipeline(PipelineSettings(burn_in=BURN_IN))
+    qualified = []
+    for sample, _ in plant_samples(BLOCKED + 600):
+        pipeline.observe(sample)
+        qualified.append(pipeline.identifier_health()["pitch"]["horizon_qualified"])
+    assert not qualified[0] and qualified[-1], "pitch never qualified with control off"
+    assert not any(p.active for p in pipeline.channels.values())
 
 
 def test_samples_the_identifier_rejects_never_count_toward_convergence():

@@ -353,6 +353,8 @@ class InverseRun:
     #: Per channel: supervisor trips, whether the horizon test ever passed, and the
     #: samples the channel commanded (its safe input not counted).
     supervision: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Per controlled sample, the decision's ``mode`` ("" when nothing was sent).
+    modes: list[str] = field(default_factory=list)
 
 
 def inverse_run(
@@ -360,11 +362,31 @@ def inverse_run(
     plant: SteppedPlant,
     schedule: dict[str, np.ndarray],
     pipeline_settings: PipelineSettings | None,
+    released: Controller | None = None,
 ) -> InverseRun:
-    """The service's pipeline (identifier + inverse controller) on ``plant``."""
+    """The service's pipeline (identifier + inverse controller) on ``plant``.
+
+    ``released``: what the vehicle's own controller commands on a channel the service
+    does not command (no decision, or a NaN for that channel); None: the vehicle holds
+    its input, as on a silent link."""
     pipeline = VehiclePipeline(pipeline_settings or PipelineSettings(seed=settings.seed))
     paths: dict[str, int] = {}
+    modes: list[str] = []
     blocked = 0
+
+    def own(
+        k: int, sample: TelemetrySample, values: tuple[float, float] | None
+    ) -> tuple[float, float] | None:
+        if released is None:
+            return values
+        fallback = released(k, sample)
+        if values is None or fallback is None:
+            return fallback if values is None else values
+        depth, pitch = values
+        return (
+            fallback[0] if math.isnan(depth) else depth,
+            fallback[1] if math.isnan(pitch) else pitch,
+        )
 
     def inverse_control(k: int, sample: TelemetrySample) -> tuple[float, float] | None:
         nonlocal blocked
@@ -375,17 +397,18 @@ def inverse_run(
         decision = pipeline.decide(sample, setpoints, True)
         if decision.command is None or decision.payload is None:
             blocked += 1  # the vehicle holds its last input, as it would on a silent link
-            return None
+            modes.append("")
+            return own(k, sample, None)
         mode = decision.payload["mode"]
+        modes.append(mode)
         paths[mode] = paths.get(mode, 0) + 1
-        return decision.command.u_depth, decision.command.u_pitch
+        return own(k, sample, (decision.command.u_depth, decision.command.u_pitch))
 
     trace = _drive(settings, plant, schedule, inverse_control)
     supervision = {}
     for i, (ch, channel) in enumerate(pipeline.channels.items()):
-        commanded = sum(
-            n for mode, n in paths.items() if mode.split("/")[i] not in ("-", "safe")
-        )
+        idle = ("-", "safe", "released")
+        commanded = sum(n for mode, n in paths.items() if mode.split("/")[i] not in idle)
         supervision[ch] = {
             "trips": channel.supervisor.trips,
             "horizon_passed": channel.ever_qualified,
@@ -398,6 +421,7 @@ def inverse_run(
         divergences={ch: p.divergences for ch, p in pipeline.channels.items()},
         identifier=pipeline.identifier_health(),
         supervision=supervision,
+        modes=modes,
     )
 
 

@@ -74,6 +74,8 @@ class FamilyRow:
     trips: int
     horizon_passed: bool
     commanded: int
+    #: The pipeline's IAE split by what the channel did (``phase_iae``).
+    phases: dict[str, float] = field(default_factory=dict)
 
     @property
     def reference_ratio(self) -> float | None:
@@ -96,7 +98,37 @@ class FamilyRow:
             "trips": self.trips,
             "horizon_passed": self.horizon_passed,
             "commanded": self.commanded,
+            "iae_phases": {k: _round(v) for k, v in self.phases.items()},
         }
+
+
+#: The phases of ``phase_iae``: before the channel first commands, while it commands,
+#: after a trip (its safe input, or released), held by a gate after having commanded.
+PHASES = ("before", "commanded", "tripped", "held")
+
+
+def phase_iae(
+    modes: list[str], index: int, y: np.ndarray, setpoint: np.ndarray, start: int, period: float
+) -> dict[str, float]:
+    """The IAE of samples ``start`` … split by the channel's mode (``index`` in the
+    decision's ``mode``) on the sample before: the command that sample sent acts on it."""
+    out = dict.fromkeys(PHASES, 0.0)
+    started = False
+    for i, mode in enumerate(modes):
+        k = start + i + 1
+        if k >= y.size:
+            break
+        path = mode.split("/")[index] if mode else "-"
+        if path in ("safe", "released"):
+            phase = "tripped"
+        elif path == "-":
+            phase = "held" if started else "before"
+        else:
+            started = True
+            phase = "commanded"
+        out[phase] += abs(float(y[k] - setpoint[k])) * period
+    out["before"] += abs(float(y[start] - setpoint[start])) * period
+    return out
 
 
 def _round(value: float | None) -> float | None:
@@ -144,15 +176,25 @@ class FamilyResult:
         }
 
 
+#: What a channel the service does not command gets in the simulation (``released``):
+#: "hold" — the vehicle holds its input (neutral after the excitation), as the
+#: emulator's does; "vehicle" — the vehicle's own controller takes the channel back:
+#: reference-only, from the sample the service stops commanding it (and a tripped
+#: channel's safe input is "release"). docs/control.md, "What a vehicle does when the
+#: service does not command".
+RELEASED = ("hold", "vehicle")
+
+
 def run_family_closed_loop(
     settings: ClosedLoopSettings,
     plants: int = DEFAULT_PLANTS,
     pipeline_settings: PipelineSettings | None = None,
+    released: str = "hold",
 ) -> FamilyResult:
     settings = replace(settings, scenario="family", neutral_after_identify=True)
     result = FamilyResult(settings=settings, plants=plants)
     for depth, pitch in draw_family(settings.seed, plants):
-        rows, failures = run_vehicle(settings, depth, pitch, pipeline_settings)
+        rows, failures = run_vehicle(settings, depth, pitch, pipeline_settings, released)
         result.rows += rows
         result.oracle_failures += failures
     return result
@@ -163,8 +205,11 @@ def run_vehicle(
     depth: FamilyPlantSpec,
     pitch: FamilyPlantSpec,
     pipeline_settings: PipelineSettings | None = None,
+    released: str = "hold",
 ) -> tuple[list[FamilyRow], int]:
     """One vehicle's three runs: its two rows and the oracle's failed LP solves."""
+    if released not in RELEASED:
+        raise ValueError(f"released must be one of {RELEASED}, got {released!r}")
     specs = {"depth": depth, "pitch": pitch}
     schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
     knowns = {ch: known(specs[ch]) for ch in CHANNELS}
@@ -180,7 +225,18 @@ def run_vehicle(
     def vehicle() -> FamilyVehicle:
         return FamilyVehicle(depth, pitch, settings.seed)
 
-    inverse = inverse_run(settings, vehicle(), schedule, pipeline_settings)
+    if released == "vehicle":
+        base = pipeline_settings or PipelineSettings(seed=settings.seed)
+        pipeline_settings = base.replace(
+            control=dataclasses.replace(base.control, safe_input="release")
+        )
+    inverse = inverse_run(
+        settings,
+        vehicle(),
+        schedule,
+        pipeline_settings,
+        reference_only if released == "vehicle" else None,
+    )
     reference = _drive(settings, vehicle(), schedule, reference_only)
     oracle = None
     failures = 0
@@ -201,8 +257,9 @@ def run_vehicle(
         if run is not None:
             score(run, settings, depth.period)
     rows = []
-    for ch in CHANNELS:
+    for i, ch in enumerate(CHANNELS):
         supervision = inverse.supervision[ch]
+        trace = inverse.trace
         oracle_iae = None
         if oracle is not None and specs[ch].wiener == 0.0:
             oracle_iae = oracle.metrics[ch].iae * specs[ch].scale
@@ -215,6 +272,14 @@ def run_vehicle(
                 trips=supervision["trips"],
                 horizon_passed=supervision["horizon_passed"],
                 commanded=supervision["commanded"],
+                phases=phase_iae(
+                    inverse.modes,
+                    i,
+                    trace.y[ch],
+                    trace.setpoint[ch],
+                    settings.identify,
+                    depth.period,
+                ),
             )
         )
     return rows, failures

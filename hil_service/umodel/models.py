@@ -271,6 +271,14 @@ class _ModelBase:
             self._frozen = True
 
 
+#: The dynamic U-model's output scale s is this many times the largest deviation from the
+#: first level seen when it last outgrew s (so it is re-expressed at most once per
+#: fourfold growth).
+SCALE_MARGIN = 4.0
+#: While its covariance has had fewer than this many × n updates, a rescale starts it
+#: again at p0·I (see ``DynamicUModel``).
+SCALE_SETTLE = 10
+
 #: Samples between two exact recomputations of ‖θ‖² (updated incrementally in between).
 NORM_RESYNC_PERIOD = 4096
 
@@ -450,6 +458,16 @@ class DynamicUModel(_ModelBase):
       times a linear filter (see :mod:`.predictive`).
 
     θ starts at persistence (a₁ = 1), so the first predictions are sane.
+
+    **Output scale.** The regression runs on normalised outputs (y − y_ref)/s, with y_ref
+    the first measured level and s = ``SCALE_MARGIN`` × the largest |y − y_ref| seen when it
+    last outgrew s. So θ, the prior P0 = p0·I and the error fed to RLS are the same in any
+    output unit and offset (the AR coefficients are unit-free; the bias and the input
+    coefficients are in units of s). When s grows, θ is re-expressed in the new units; the
+    covariance starts again at p0·I while it has had fewer than ``SCALE_SETTLE`` × n
+    updates (the scale is still being found, and a prior carried over from much smaller
+    units would pin the input coefficients), and is re-expressed exactly afterwards (no
+    jump in the learning gain of a model already in use).
     """
 
     name: ClassVar[str] = "dynamic"
@@ -496,6 +514,9 @@ class DynamicUModel(_ModelBase):
         self._tail: list[float] = []  # φ after the lag-1 powers
         self._primed = False  # the output history holds a measured level
         self._y_ref = 0.0  # the first measured level: regressors are taken relative to it
+        self._y_scale = 0.0  # s of the class docstring (0: no deviation seen yet)
+        self._inv_scale = 1.0  # 1/s (1 while s is 0: every deviation is then exactly 0)
+        self._updates = 0  # RLS updates since the covariance last started at p0·I
         self._undo: tuple[list[float], list[list[float]]] | None = None
         self._reset_history()
 
@@ -512,13 +533,18 @@ class DynamicUModel(_ModelBase):
         phi = self._powers(u)
         phi += self._tail
         self._phi = phi
-        return self._y_ref + dot(self._theta, phi)
+        return self._y_ref + dot(self._theta, phi) * self._unit()
+
+    def _unit(self) -> float:
+        """The output units of one normalised unit (s, or 1 before any deviation)."""
+        return self._y_scale if self._y_scale > 0.0 else 1.0
 
     def _coefficients(self, u: float, y_hat: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
         th = self._theta
         m = self.degree
+        unit = self._unit()
         poly = []
-        scale = 1.0
+        scale = unit
         for i in range(m):
             scale *= self.poly_scale
             poly.append(th[i] * scale)
@@ -527,7 +553,11 @@ class DynamicUModel(_ModelBase):
         for a in poly:
             p *= u
             a0 -= a * p
-        return (a0, *poly), tuple(th[m:])
+        ia, ib = self._ia, self._ia + self.na
+        weights = [th[m] * unit]
+        weights += th[ia:ib]
+        weights += [v * unit for v in th[ib:]]
+        return (a0, *poly), tuple(weights)
 
     def _adapt(self, error: float) -> None:
         # Before the first level is known the regressor holds no measured output: the
@@ -536,7 +566,8 @@ class DynamicUModel(_ModelBase):
             # Kept for one sample: the pipeline undoes an update learnt from readings that
             # turn out, on the next sample, to have been served ahead of time.
             self._undo = (list(self._theta), [row[:] for row in self.rls.p])
-            self.rls.update(self._theta, self._phi, error)
+            self.rls.update(self._theta, self._phi, error * self._inv_scale)
+            self._updates += 1
 
     def undo_last_update(self) -> bool:
         undo = self._undo
@@ -545,6 +576,7 @@ class DynamicUModel(_ModelBase):
         self._theta = undo[0]
         self.rls.p = undo[1]
         self._undo = None
+        self._updates = max(self._updates - 1, 0)
         return True
 
     def _params_ok(self) -> bool:
@@ -553,6 +585,27 @@ class DynamicUModel(_ModelBase):
     def _reset_params(self) -> None:
         self._theta = list(self._theta0)
         self.rls.reset()
+        self._updates = 0
+
+    def _rescale(self, deviation: float) -> None:
+        """|y − y_ref| outgrew s: s becomes ``SCALE_MARGIN`` × ``deviation`` and θ (and P)
+        are re-expressed in the new units (see the class docstring)."""
+        new = SCALE_MARGIN * deviation
+        ratio = self._y_scale / new  # 0 before any deviation: θ's output terms are 0 then
+        self._y_scale = new
+        self._inv_scale = 1.0 / new
+        self._undo = None  # an update from before the rescale cannot be undone after it
+        ia, ib = self._ia, self._ia + self.na
+        factors = [1.0 if ia <= i < ib else ratio for i in range(len(self._theta))]
+        self._theta = [v * f for v, f in zip(self._theta, factors, strict=True)]
+        if self._updates < SCALE_SETTLE * self.rls.n:
+            self.rls.reset()
+            self._updates = 0
+            return
+        for i, row in enumerate(self.rls.p):
+            fi = factors[i]
+            for j in range(len(row)):
+                row[j] *= fi * factors[j]
 
     def _lags(self) -> int:
         return max(self.na - 1, self.nb - 1)
@@ -566,13 +619,17 @@ class DynamicUModel(_ModelBase):
             self._levels = [y] * self.na
             self._y_ref = y
             self._primed = True
+        deviation = abs(y - self._y_ref)
+        if deviation > self._y_scale:
+            self._rescale(deviation)
         self._inputs = [u, *self._inputs[:-1]]
         self._rebuild_tail()
 
     def _rebuild_tail(self) -> None:
         tail = [1.0]
         ref = self._y_ref
-        tail += [v - ref for v in self._levels]
+        inv = self._inv_scale
+        tail += [(v - ref) * inv for v in self._levels]
         for past in self._inputs[: self.nb - 1]:
             tail += self._powers(past)
         self._tail = tail
@@ -580,6 +637,8 @@ class DynamicUModel(_ModelBase):
     def _reset_history(self) -> None:
         self._primed = False
         self._y_ref = 0.0
+        self._y_scale = 0.0
+        self._inv_scale = 1.0
         self._levels = [0.0] * self.na
         # u(t−1) … u(t−nb): the regressor uses the first nb − 1 (lags 2..nb of the next
         # sample); the controller's internal model all of them.
@@ -590,16 +649,17 @@ class DynamicUModel(_ModelBase):
         """This instant's multi-step map (see :mod:`.dynamics`)."""
         th = self._theta
         m, na, nb = self.degree, self.na, self.nb
-        lag_polys = [list(th[:m])]
+        unit = self._unit()
+        lag_polys = [[v * unit for v in th[:m]]]
         start = m + 1 + na
         for k in range(nb - 1):
-            lag_polys.append(list(th[start + k * m : start + (k + 1) * m]))
+            lag_polys.append([v * unit for v in th[start + k * m : start + (k + 1) * m]])
         ar = list(th[m + 1 : m + 1 + na])
-        # y − y_ref = c + Σ a_i (y(t−i) − y_ref) + … ⇒ bias = c + y_ref·(1 − Σ a_i).
+        # (y − y_ref)/s = c + Σ a_i (y(t−i) − y_ref)/s + … ⇒ bias = s·c + y_ref·(1 − Σ a_i).
         bias = 1.0
         for a in ar:
             bias -= a
-        bias = th[m] + self._y_ref * bias
+        bias = th[m] * unit + self._y_ref * bias
         return ModelDynamics(
             ar,
             bias,
@@ -623,6 +683,7 @@ class DynamicUModel(_ModelBase):
     def _state(self) -> dict[str, Any]:
         return {
             "theta": list(self._theta),
+            "output_scale": self._y_scale,
             "history": {"outputs": list(self._levels), "inputs": list(self._inputs)},
         }
 

@@ -27,6 +27,14 @@ from the measured outputs. At each segment's end the segment is judged:
   (two segments running);
 * ``oscillation``: the tracking error changed sign (by more than the bound each time) at
   least ``half_cycles`` times over the last three segments while the prediction did not;
+* ``worse than not commanding``: two windows running (each ``compare_factor`` × the
+  segment, at least the horizon), the realised mean |tracking error| exceeded
+  ``1 + compare_margin`` times the mean |error| of the output the neutral input would
+  have given: the measured output minus commanding's effect by the model's account
+  (two frozen copies restarted from the measured history at the window's start, one fed
+  the applied inputs, one an input going to 0 at the rate limit; the measured output
+  carries the disturbance and the noise into both errors), and by more than a tenth of
+  the bound;
 * ``worse than trim``: the output settled (moved less than the bound over the segment) with
   a tracking error larger, by more than the bound, than the model's steady state at the
   neutral input would leave (a plan stalled where holding trim does better).
@@ -178,6 +186,8 @@ class SupervisorSettings:
 
     __slots__ = (
         "bound_factor",
+        "compare_factor",
+        "compare_margin",
         "half_cycles",
         "hold_floor",
         "holdoff_factor",
@@ -197,6 +207,8 @@ class SupervisorSettings:
         max_backoff: int = 6,
         holdoff_factor: int = 4,
         max_trips: int = 3,
+        compare_factor: int = 3,
+        compare_margin: float = 0.1,
     ) -> None:
         if not (bound_factor > 0.0 and hold_floor >= 0.0):
             raise ValueError("bound_factor must be > 0 and hold_floor >= 0")
@@ -212,6 +224,13 @@ class SupervisorSettings:
         self.holdoff_factor = int(holdoff_factor)
         #: Trips after which the channel stays off until control is disabled and enabled.
         self.max_trips = int(max_trips)
+        #: The "worse than not commanding" window, in segments (at least the horizon), and
+        #: the share by which the realised error must exceed the neutral input's predicted
+        #: one to trip (the family target's 1.1 ×).
+        if compare_factor < 1 or not compare_margin >= 0.0:
+            raise ValueError("compare_factor must be >= 1 and compare_margin >= 0")
+        self.compare_factor = int(compare_factor)
+        self.compare_margin = float(compare_margin)
 
 
 class Supervisor:
@@ -245,6 +264,12 @@ class Supervisor:
         self._sign_pred = 0
         self._k = 0
         self._u0 = 0.0
+        self._neutral_error = math.inf
+        self.compare_window = 0
+        self._cmp_n = 0
+        self._cmp_real = 0.0
+        self._cmp_alt = 0.0
+        self._cmp_strikes = 0
 
     @property
     def armed(self) -> bool:
@@ -278,6 +303,9 @@ class Supervisor:
             self.bound = math.inf  # nothing to judge by: only the saturation test acts
         self.good_u = u
         self.reason = ""
+        self.compare_window = max(horizon, s.compare_factor * self.window)
+        self.start_comparison()
+        self._cmp_strikes = 0
         self._armed = True
         self._beyond_strikes = 0
         self._flips.clear()
@@ -369,6 +397,43 @@ class Supervisor:
 
     def segment_done(self) -> bool:
         return self._n >= self.window
+
+    def start_comparison(self) -> None:
+        """A new "worse than not commanding" window (the neutral prediction restarts)."""
+        self._cmp_n = 0
+        self._cmp_real = self._cmp_alt = 0.0
+
+    def comparison_done(self) -> bool:
+        return self._cmp_n >= self.compare_window
+
+    def compare_sample(self, error: float, error_neutral: float) -> str:
+        """One commanded sample: ``error`` = y − r, ``error_neutral`` = the output the
+        neutral input would have given − r. The trip reason at the end of the second
+        window running that did worse ("" when none)."""
+        if not self._armed:
+            return ""
+        if not math.isfinite(error_neutral):
+            error_neutral = math.inf
+        self._cmp_n += 1
+        self._cmp_real += abs(error)
+        self._cmp_alt += abs(error_neutral)
+        if self._cmp_n < self.compare_window:
+            return ""
+        n = self._cmp_n
+        real, alt = self._cmp_real / n, self._cmp_alt / n
+        # Beyond the margin and by more than a tenth of the prediction's bound: below that
+        # the two errors differ at the model's own resolution (a noise-free loop at its
+        # setpoint has errors of 1e-10 on both sides).
+        if real <= (1.0 + self.settings.compare_margin) * alt + 0.1 * self.bound:
+            self._cmp_strikes = 0
+            return ""
+        self._cmp_strikes += 1
+        if self._cmp_strikes < 2:
+            return ""
+        return self._trip(
+            f"worse than not commanding (mean error {real:.3g} over {n} samples, "
+            f"{alt:.3g} at the neutral input by the model's account; two windows running)"
+        )
 
     def _note_flip(self, error: float, error_pred: float) -> None:
         bound = self.bound

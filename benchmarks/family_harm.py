@@ -1,0 +1,211 @@
+"""Which family plants end above 1.1 × reference-only, and why (docs/control.md, "Do no
+harm on the family").
+
+Runs ``experiment --closed-loop --scenario family`` (the same runs, in process) for each
+seed, under both models of what a channel the service does not command gets:
+
+* ``hold``: the vehicle holds its input (neutral after the excitation), as the emulator does;
+* ``vehicle``: the vehicle's own controller takes the channel back (reference-only), from
+  the sample the service stops commanding it; a tripped channel's safe input is "release".
+
+and prints, per semantics, the targets' figures, then the plants above the limit classified
+by what the channel did (never qualified / tripped / commanded throughout), by the phase
+where most of their IAE accrued, and by plant feature, beside the same count for the
+known-model oracle.
+
+    python benchmarks/family_harm.py --seeds 10 11 12 13 14 --plants 50
+    python benchmarks/family_harm.py --seeds 0 1 2 --plants 200 --save a.pkl   # and 3 4: b.pkl
+    python benchmarks/family_harm.py --combine a.pkl b.pkl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from hil_service.experiment.closed_loop import ClosedLoopSettings
+from hil_service.experiment.family_loop import (
+    HARM_LIMIT,
+    PHASES,
+    RELEASED,
+    FamilyRow,
+    run_family_closed_loop,
+)
+
+
+def features(row: FamilyRow) -> list[str]:
+    spec = row.spec
+    share = spec.disturbance_level / spec.authority() if spec.disturbance != "none" else 0.0
+    size = (
+        "none"
+        if share == 0.0
+        else "<0.1 A"
+        if share < 0.1
+        else "0.1-0.3 A"
+        if share < 0.3
+        else ">=0.3 A"
+    )
+    return [
+        f"kind={spec.kind}",
+        f"delay={spec.delay}",
+        f"nmp={spec.zero is not None}",
+        f"integrator={spec.integrator}",
+        f"disturbance={spec.disturbance}",
+        f"disturbance size={size}",
+        f"scale {'<0.05' if spec.scale < 0.05 else '>=0.05'}",
+    ]
+
+
+def kind_of(row: FamilyRow) -> str:
+    if not row.horizon_passed:
+        return "never qualified"
+    if row.trips:
+        return "tripped (then safe input)"
+    if row.commanded == 0:
+        return "qualified, never commanded"
+    return "commanded throughout"
+
+
+def dominant_phase(row: FamilyRow) -> str:
+    return max(PHASES, key=lambda p: row.phases.get(p, 0.0))
+
+
+def _table(title: str, counts: Counter[str], totals: Counter[str]) -> None:
+    print(f"  {title}")
+    for key in sorted(totals):
+        n, total = counts.get(key, 0), totals[key]
+        print(f"    {key:<32} {n:>5} of {total:>5}  ({100.0 * n / total:5.1f} %)")
+
+
+def summarise(name: str, rows: list[FamilyRow]) -> dict[str, object]:
+    ratios = [r.reference_ratio for r in rows if r.reference_ratio is not None]
+    above = [r for r in rows if (r.reference_ratio or 0.0) > HARM_LIMIT]
+    passed = [r.oracle_ratio for r in rows if r.horizon_passed and r.oracle_ratio is not None]
+    oracle_rows = [r for r in rows if r.oracle_iae is not None and r.reference_iae > 0]
+    oracle_above = [r for r in oracle_rows if r.oracle_iae > HARM_LIMIT * r.reference_iae]
+    summary = {
+        "semantics": name,
+        "plants": len(rows),
+        "above_1.1x_reference_only": len(above),
+        "worst_ratio_reference_only": round(max(ratios), 4) if ratios else None,
+        "median_ratio_oracle_where_passed": round(float(np.median(passed)), 4) if passed else None,
+        "rows_where_passed_with_oracle": len(passed),
+        "share_controlled": round(sum(r.commanded > 0 for r in rows) / len(rows), 4),
+        "oracle_above_1.1x_reference_only": f"{len(oracle_above)} of {len(oracle_rows)}",
+        "trips": sum(r.trips for r in rows),
+    }
+    print(f"\n== {name}: " + json.dumps(summary))
+    if above:
+        _table(
+            "what the channel did (above / all plants of that kind)",
+            Counter(kind_of(r) for r in above),
+            Counter(kind_of(r) for r in rows),
+        )
+        _table(
+            "phase holding most of the IAE (of the plants above the limit)",
+            Counter(dominant_phase(r) for r in above),
+            Counter(dict.fromkeys(PHASES, len(above))),
+        )
+        _table(
+            "by feature (above / all)",
+            Counter(f for r in above for f in features(r)),
+            Counter(f for r in rows for f in features(r)),
+        )
+        both = sum(1 for r in above if r in oracle_above)
+        print(
+            f"  of the {len(above)} above the limit, {both} are plants where the oracle is "
+            f"above it too"
+        )
+        worst = sorted(above, key=lambda r: -(r.reference_ratio or 0.0))[:5]
+        for r in worst:
+            phases = ", ".join(f"{p} {r.phases.get(p, 0.0) / r.inverse_iae:.2f}" for p in PHASES)
+            print(
+                f"    {r.reference_ratio:7.2f}x  {kind_of(r):<26} [{phases}]  {r.spec.describe()}"
+            )
+    return summary
+
+
+def run(
+    seeds: Iterable[int],
+    plants: int,
+    samples: int,
+    identify: int,
+    step_every: int,
+    oracle: bool,
+    semantics: Iterable[str],
+    progress: Callable[[str], None] = print,
+) -> dict[str, list[FamilyRow]]:
+    out: dict[str, list[FamilyRow]] = {s: [] for s in semantics}
+    for seed in seeds:
+        settings = ClosedLoopSettings(
+            scenario="family",
+            samples=samples,
+            seed=seed,
+            identify=identify,
+            step_every=step_every,
+            oracle=oracle,
+        )
+        for name in out:
+            t0 = time.perf_counter()
+            result = run_family_closed_loop(settings, plants=plants, released=name)
+            out[name] += result.rows
+            progress(
+                f"seed {seed} {name}: {len(result.rows)} plants in "
+                f"{time.perf_counter() - t0:.0f} s, above {HARM_LIMIT}x: "
+                f"{result.summary()['above_harm_limit']}"
+            )
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13, 14])
+    parser.add_argument("--plants", type=int, default=50)
+    parser.add_argument("--samples", type=int, default=2000)
+    parser.add_argument("--identify", type=int, default=800)
+    parser.add_argument("--step-every", type=int, default=300)
+    parser.add_argument("--no-oracle", action="store_true")
+    parser.add_argument("--semantics", nargs="+", choices=RELEASED, default=list(RELEASED))
+    parser.add_argument("--save", help="also write the rows to this file (pickle)")
+    parser.add_argument(
+        "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
+    )
+    args = parser.parse_args()
+    if args.combine:
+        rows: dict[str, list[FamilyRow]] = {}
+        for path in args.combine:
+            with open(path, "rb") as f:
+                for name, found in pickle.load(f).items():
+                    rows.setdefault(name, []).extend(found)
+        print(f"\ncombined {args.combine}")
+        for name, found in rows.items():
+            summarise(name, found)
+        return
+    rows = run(
+        args.seeds,
+        args.plants,
+        args.samples,
+        args.identify,
+        args.step_every,
+        not args.no_oracle,
+        args.semantics,
+    )
+    print(
+        f"\nseeds {args.seeds}, {args.plants} plants each, {args.samples} samples "
+        f"({args.identify} identifying, a step every {args.step_every})"
+    )
+    for name, found in rows.items():
+        summarise(name, found)
+    if args.save:
+        with open(args.save, "wb") as f:
+            pickle.dump(rows, f)
+
+
+if __name__ == "__main__":
+    main()
