@@ -45,24 +45,40 @@ DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 
+#: ControlSettings field → PredictiveSettings argument: the predictive inverse's constants,
+#: stored flat in a configuration under these names, defaults from PredictiveSettings.
+PREDICTIVE_FIELDS: dict[str, str] = {
+    "min_horizon": "min_horizon",
+    "max_horizon": "max_horizon",
+    "settle_band": "band",
+    "max_blocks": "max_blocks",
+    "move_weight": "move_weight",
+    "disturbance_share": "disturbance_share",
+    "refresh": "refresh",
+    "cost_points": "cost_points",
+}
+_PREDICTIVE = PredictiveSettings()
+
+
 @dataclass(frozen=True)
 class ControlSettings:
     """The actuator's limits and the predictive inverse's scale-free constants.
 
     No horizon here: each channel's horizons come from its identified dynamics (see
-    :mod:`hil_service.umodel.predictive` and docs/control.md).
+    :mod:`hil_service.umodel.predictive` and docs/control.md). The predictive constants are
+    :class:`PredictiveSettings`'s (their meaning and defaults live there), stored flat.
     """
 
     u_limit: float = 2.0  # model units, the actuator's range
     rate_limit: float = 0.5  # model units per step, as the vehicle's actuator
-    min_horizon: int = 5
-    max_horizon: int = 1000
-    settle_band: float = 0.05  # the prediction horizon: settling into this band
-    max_blocks: int = 8  # input blocks over the horizon (geometrically spaced)
-    move_weight: float = 0.03  # input-move penalty, relative to the output cost's scale
-    disturbance_share: float = 0.5  # disturbance estimate's time constant / horizon
-    refresh: int = 50  # samples between two horizon derivations
-    cost_points: int = 120  # strided points of the horizon in the cost (see cost_points)
+    min_horizon: int = _PREDICTIVE.min_horizon
+    max_horizon: int = _PREDICTIVE.max_horizon
+    settle_band: float = _PREDICTIVE.band
+    max_blocks: int = _PREDICTIVE.max_blocks
+    move_weight: float = _PREDICTIVE.move_weight
+    disturbance_share: float = _PREDICTIVE.disturbance_share
+    refresh: int = _PREDICTIVE.refresh
+    cost_points: int = _PREDICTIVE.cost_points
     #: The horizon test's threshold: the model's k-step fit relative to holding the output
     #: (%, ``umodel.supervisor.HorizonTest``) a channel needs before it may command.
     horizon_fit: float = 50.0
@@ -76,14 +92,7 @@ class ControlSettings:
 
     def predictive(self) -> PredictiveSettings:
         return PredictiveSettings(
-            min_horizon=self.min_horizon,
-            max_horizon=self.max_horizon,
-            band=self.settle_band,
-            max_blocks=self.max_blocks,
-            move_weight=self.move_weight,
-            disturbance_share=self.disturbance_share,
-            refresh=self.refresh,
-            cost_points=self.cost_points,
+            **{arg: getattr(self, name) for name, arg in PREDICTIVE_FIELDS.items()}
         )
 
     @classmethod
