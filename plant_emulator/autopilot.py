@@ -16,6 +16,8 @@ commands are obeyed either way, as ArduPilot obeys DO_SET_SERVO disarmed). It st
 Steps are scheduled to absolute deadlines (start + k·period/speed), so timing error does
 not accumulate over long runs. ``run`` is the one loop of both profiles; a subclass changes
 what a step sends (``step_messages``) and which streams it has (``_profile_streams_due``).
+One module over 500 lines: the loop, the command handling and the ground-station streams are
+the base the ArduSub profile overrides piece by piece, so they stay in one class.
 """
 
 from __future__ import annotations

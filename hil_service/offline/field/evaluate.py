@@ -40,6 +40,10 @@ steps: each step excites), and (3) the regressor
 column to unit RMS) is at least 1e-3. A glider that holds its pitch with its own loop moves
 its pitch mass to cancel disturbances: the input moves, but in closed loop the output
 barely answers; (3) and the skill say so.
+
+One module over 500 lines: the runners of every model and the per-dive scoring share the
+segment, array and result types and are read together; the models themselves live in
+``hil_service.umodel``.
 """
 
 from __future__ import annotations
