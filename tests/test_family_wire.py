@@ -94,7 +94,7 @@ def _outcome(channel: str, setpoint: float, telemetry, commands, events, healths
         assert f"model does not predict over the horizon ({channel}" in reason, reason
         return "never commanded: horizon test"
     times = [s["t"] for s in telemetry]
-    first = times.index(commanded[0]["t"]) if commanded[0]["t"] in times else None
+    first = next((i for i, t in enumerate(times) if t >= commanded[0]["t"]), None)
     assert first is not None and first >= TAIL, (channel, first)
     outputs = [s[channel] for s in telemetry]
     before = _mean_error(outputs[first - TAIL : first], setpoint)
@@ -149,9 +149,14 @@ def test_family_vehicles_at_1_10_and_100_hz_do_no_harm_on_the_wire(processes):
             health = probe.latest(f"glider/{sysid}/health", {})
             return health.get("samples", 0) + health.get("malformed", 0)
 
+        def delivered(sysid: int) -> bool:
+            samples = probe.latest(f"glider/{sysid}/health", {}).get("samples", -1)
+            return len(probe.payloads(f"glider/{sysid}/telemetry")) >= samples
+
         assert probe.wait_for(lambda: all(counted(s) >= SAMPLES for s in runs), 15), {
             s: (counted(s), probe.latest(f"glider/{s}/health", {}).get("link")) for s in runs
         }
+        probe.wait_for(lambda: all(delivered(s) for s in runs), 5)  # late telemetry
         results = {}
         for sysid, (index, rate, change, setpoints) in runs.items():
             healths = probe.payloads(f"glider/{sysid}/health")
@@ -159,7 +164,10 @@ def test_family_vehicles_at_1_10_and_100_hz_do_no_harm_on_the_wire(processes):
             telemetry = probe.payloads(f"glider/{sysid}/telemetry")
             commands = probe.payloads(f"glider/{sysid}/command/ballast")
             events = probe.payloads(f"glider/{sysid}/supervisor")
-            assert counted(sysid) == SAMPLES and len(telemetry) == health["samples"]
+            # Telemetry is published with congestion control DROP and arrives apart from the
+            # health that counts it (Zenoh orders per key): all but a few reach the probe.
+            assert counted(sysid) == SAMPLES
+            assert len(telemetry) >= 0.99 * health["samples"], (len(telemetry), health["samples"])
             assert health["samples"] >= 0.95 * SAMPLES, health["counters"]
             results[(index, rate, change)] = {
                 ch: _outcome(ch, setpoints[ch], telemetry, commands, events, healths)
