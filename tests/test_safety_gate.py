@@ -676,7 +676,7 @@ def test_the_identifier_gate_holds_one_channel_not_the_vehicle():
         ), d.payload
     assert after[0].reason.startswith("identifier diverged (depth)")
     assert all(d.reason.startswith("identifier not converged (depth:") for d in after[1:])
-    # Before the change, pitch was commanding too: the gate opened per channel.
+    # The identifier's gate holds depth alone: pitch goes on commanding.
     assert all(d.command is not None for d in decisions[BLOCKED : burst.start])
 
 
