@@ -31,7 +31,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 @pytest.fixture(scope="module")
 def default_runs():
-    """The README's table: every scenario and channel at the default length (5000 samples)."""
+    """docs/identification.md's table: every scenario and channel at the default length (5000 samples)."""
     return {
         (scenario, channel): run_identification(IdentificationSettings(scenario, channel))
         for scenario in SCENARIOS
@@ -55,7 +55,7 @@ def test_dynamic_model_is_no_worse_than_arx_where_the_plant_is_nonlinear(default
 
 
 def test_dynamic_model_holds_over_the_horizon(default_runs):
-    """The free-run targets on seed 0 (README: 100/99.7, 87.7/96.4, 96.0/95.5 %)."""
+    """The free-run targets on seed 0 (docs/identification.md: 100/99.7, 87.7/96.4, 96.0/95.5 %)."""
     for (scenario, channel), result in default_runs.items():
         models = result.models
         fit, arx = models["dynamic"].fit, models["rls-arx"].fit

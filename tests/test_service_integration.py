@@ -17,7 +17,7 @@ SPEED = 25
 BURN_IN = 300
 #: m: |mean of the last 50 depths − setpoint| after ~300 commands of a 2 m step. Measured
 #: 1.18 (the disturbed plant's depth is slow and non-minimum-phase and its identified
-#: long-horizon map poor, see the README); the control work tightens this.
+#: long-horizon map poor, docs/control.md).
 TRACK_BAND = 1.5
 
 
@@ -57,8 +57,8 @@ def test_identify_command_disable_and_stale(rig, processes):
     }
 
     # A-priori predictions over the 400 samples after burn-in: skill versus persistence of
-    # at least 0.5 (measured 0.537 here, 0.436 over the first 200; the README's 0.8 is over
-    # thousands of samples). The data is the emulator's excitation, so this is exact.
+    # at least 0.5 (measured 0.537 here, 0.436 over the first 200; docs/identification.md's
+    # 0.8 is over thousands of samples). The data is the emulator's excitation, so this is exact.
     estimates = probe.payloads("glider/1/umodel/depth")[BURN_IN : BURN_IN + 400]
     model = sum(e["error"] ** 2 for e in estimates)
     persistence = sum((e["y"] - e["baseline_y_hat"]) ** 2 for e in estimates)
@@ -209,7 +209,8 @@ def test_a_short_demo_runs_end_to_end(processes, tmp_path):
     assert result["commands_sent"] - 1 <= acks["accepted"] <= result["commands_sent"]
     assert result["control_reason_at_end"] == ""
     # Better than persistence on both channels (measured 0.56 depth, 0.40 pitch over this
-    # short run, control included; the README's figures are for the 60 s default).
+    # short run, control included; docs/identification.md's figures are for
+    # the 60 s default).
     for channel in ("depth", "pitch"):
         assert result["identification"][channel]["skill"] >= 0.25, result["identification"]
     reader = LogReader(result["log"])
