@@ -31,7 +31,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 @pytest.fixture(scope="module")
 def default_runs():
-    """docs/identification.md's table: every scenario and channel at the default length (5000 samples)."""
+    """docs/identification.md's table: every scenario and channel, default length (5000)."""
     return {
         (scenario, channel): run_identification(IdentificationSettings(scenario, channel))
         for scenario in SCENARIOS

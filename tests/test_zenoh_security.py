@@ -18,7 +18,7 @@ import zenoh
 
 from tests.conftest import ROOT, free_tcp_port, free_udp_port
 from tests.zenoh_peer import ZenohProbe
-from tests.zenoh_router import start_router, stop_router
+from tests.zenoh_router import start_router, stop_router, wait_listening
 
 CONFIGS = ROOT / "config" / "zenoh"
 
@@ -65,8 +65,7 @@ def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_
     router = start_router(endpoint, str(configs["router"]))
     observer = operator = None
     try:
-        time.sleep(1.5)
-        assert router.poll() is None, "the secured router did not start"
+        assert wait_listening(router), "the secured router did not start"
         service = processes.start_service(
             "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-config",
             str(configs["service"]), "--zenoh-connect", endpoint,
@@ -90,7 +89,7 @@ def test_only_the_authenticated_operator_can_command_the_service(processes, tmp_
         # it that anyone listens on the command keys nor accepts its puts there.
         observer.put("glider/1/setpoint/depth", {"value": 18.0})
         observer.put("glider/1/control", {"enabled": True})
-        time.sleep(2.5)
+        time.sleep(2.5)  # a window in which nothing may happen (a negative check)
         health = observer.latest("glider/1/health")
         assert health["control"]["setpoints"]["depth"] is None
         assert health["control"]["enabled"] is False

@@ -2,7 +2,8 @@
 
 Run: python -m tests.zenoh_router ENDPOINT [CONFIG.json5]. It subscribes to ``glider/**``
 and prints one JSON line per 0.2 s with the number of samples received so far; it exits on
-SIGTERM/SIGINT. ``start_router``, ``first_received`` and ``stop_router`` drive it from a test.
+SIGTERM/SIGINT. ``start_router``, ``wait_listening``, ``first_received`` and
+``stop_router`` drive it from a test.
 """
 
 from __future__ import annotations
@@ -32,6 +33,13 @@ def start_router(endpoint: str, config_file: str | None = None) -> subprocess.Po
         cwd=ROOT,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
+
+
+def wait_listening(router: subprocess.Popen[str]) -> bool:
+    """Block until the router prints its first count line (it is listening then); False if
+    it exited first."""
+    assert router.stdout is not None
+    return bool(router.stdout.readline())
 
 
 def first_received(router: subprocess.Popen[str], until: float) -> int:
