@@ -34,96 +34,133 @@ _PRESSURE = PressureDepth()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # One helper per topic, called in the order the flags appear in the usage line.
+    _add_link_arguments(parser)
+    _add_time_arguments(parser)
+    _add_plant_arguments(parser)
+    _add_autopilot_arguments(parser)
+    _add_signing_arguments(parser)
+    _add_event_arguments(parser)
+    _add_units_arguments(parser)
     parser.add_argument(
+        "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
+    )
+    _add_lockstep_arguments(parser)
+    add_fleet_arguments(parser)
+
+
+def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MAVLink link and vehicle")
+    group.add_argument(
         "--connect",
         default="udpout:127.0.0.1:14550",
         help="pymavlink connection string of the link to the service (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--sysid",
         type=int,
         default=_AUTOPILOT.system_id,
         help="MAVLink system id (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--profile",
         default=DEFAULT_PROFILE,
         help="vehicle profile, a built-in name (glider, ardusub) or a TOML file: a lockstep "
         "profile streams as glider-hil's emulator, a periodic one the ArduSub way "
         "(default %(default)s)",
     )
-    parser.add_argument(
+
+
+def _add_time_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("time and telemetry streams")
+    group.add_argument(
         "--period",
         type=float,
         default=None,
         help=f"plant step, simulated s (default {_PLANT.period:g}; a periodic profile: its "
         "sample period)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--uptime",
         type=float,
         default=_STREAMS.uptime,
         help="periodic profiles: simulated s since boot at start (4290: the uint32 µs clock "
         "of SERVO_OUTPUT_RAW wraps 5 s in)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--jitter",
         type=float,
         default=_STREAMS.jitter,
         help="periodic profiles: fraction of each interval (default %(default)s)",
     )
     for name, hz in DEFAULT_RATES_HZ.items():
-        parser.add_argument(
+        group.add_argument(
             f"--rate-{name.lower().replace('_', '-')}",
             type=float,
             default=hz,
             metavar="HZ",
             help=f"periodic profiles: {name} per simulated s (default %(default)s, 0: off)",
         )
-    parser.add_argument(
+    group.add_argument(
         "--speed", type=float, default=_AUTOPILOT.speed, help="times faster than real time"
     )
-    parser.add_argument(
+    group.add_argument(
         "--duration", type=float, default=None, help="simulated seconds to run (default: forever)"
     )
-    parser.add_argument("--scenario", choices=SCENARIOS, default=_PLANT.scenario)
-    parser.add_argument("--excitation", choices=EXCITATIONS, default="steps")
-    parser.add_argument("--seed", type=int, default=_PLANT.seed)
-    parser.add_argument(
+
+
+def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("plant")
+    group.add_argument("--scenario", choices=SCENARIOS, default=_PLANT.scenario)
+    group.add_argument("--excitation", choices=EXCITATIONS, default="steps")
+    group.add_argument("--seed", type=int, default=_PLANT.seed)
+    group.add_argument(
         "--trim-depth", type=float, default=_PLANT.trim_depth, help="m (default %(default)s)"
     )
-    parser.add_argument(
+    group.add_argument(
         "--rate-limit",
         type=float,
         default=_PLANT.rate_limit,
         help="model units per step (default %(default)s)",
     )
-    parser.add_argument(
+
+
+def _add_autopilot_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("autopilot")
+    group.add_argument(
         "--command-timeout",
         type=float,
         default=_AUTOPILOT.command_timeout,
         help="simulated s without a command before falling back (default %(default)s)",
     )
-    parser.add_argument("--fallback", choices=FALLBACKS, default=_AUTOPILOT.fallback)
-    parser.add_argument(
+    group.add_argument("--fallback", choices=FALLBACKS, default=_AUTOPILOT.fallback)
+
+
+def _add_signing_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MAVLink 2 signing")
+    group.add_argument(
         "--signing-key",
         metavar="FILE",
         help="MAVLink 2 signing key file (32 bytes or 64 hex digits, mode 600): sign all "
         "frames, accept only signed ones",
     )
-    parser.add_argument(
+    group.add_argument(
         "--accept-unsigned-non-commands",
         action="store_true",
         help="with --signing-key: also accept unsigned frames that are not commands",
     )
-    parser.add_argument(
+
+
+def _add_event_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("plant changes, family vehicles and reboots")
+    group.add_argument(
         "--change",
         choices=tuple(PLANT_CHANGES),
         default=None,
         help="the plant changes at --change-at: 'flip' the input's sign, 'gain5' a fivefold "
         "gain (on --change-channel)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--family",
         metavar="SEED:INDEX",
         default=None,
@@ -131,7 +168,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "instead of --scenario: its two plants behind the glider's actuator, at its drawn "
         "sample period unless --period gives one",
     )
-    parser.add_argument(
+    group.add_argument(
         "--reboot-at",
         type=int,
         default=None,
@@ -139,43 +176,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="periodic profiles: the vehicle reboots after plant step STEP (its clock starts "
         "again from boot, it forgets the companion's commands and stream rates)",
     )
-    parser.add_argument("--change-channel", choices=CHANNELS, default="pitch")
-    parser.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
-    parser.add_argument(
+    group.add_argument("--change-channel", choices=CHANNELS, default="pitch")
+    group.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
+
+
+def _add_units_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("units")
+    group.add_argument(
         "--full-scale",
         type=float,
         default=_INPUTS.full_scale,
         help="model units at wire 1.0 (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--water-density",
         type=float,
         default=_PRESSURE.water_density,
         help="kg/m³ (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--surface-pressure",
         type=float,
         default=_PRESSURE.surface_hpa,
         help="hPa (default %(default)s)",
     )
-    parser.add_argument(
-        "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
-    )
-    parser.add_argument(
+
+
+def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("lockstep")
+    group.add_argument(
         "--lockstep",
         action="store_true",
         help="step k+1 only once the service has finished with step k (docs/lockstep.md); "
         "as fast as the loop allows, --speed is ignored",
     )
-    parser.add_argument(
+    group.add_argument(
         "--lockstep-timeout",
         type=float,
         default=DEFAULT_TIMEOUT,
         metavar="S",
         help="wall s a step waits for the service before going on, counted (default %(default)s)",
     )
-    add_fleet_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
