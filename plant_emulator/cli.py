@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
@@ -20,7 +21,7 @@ from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
-from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
+from protocols.profiles import DEFAULT_PROFILE, Profile, ProfileError, load_profile
 from protocols.samples import TelemetrySample
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
@@ -219,80 +220,118 @@ def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+@dataclass
+class _Vehicle:
+    """One emulated vehicle as the flags configure it, checked before any link opens."""
+
+    profile: Profile
+    plant: GliderPlant | FamilyPlant
+    config: AutopilotConfig
+    mapping: TelemetryMapping
+    streams: StreamConfig
+
+    @property
+    def periodic(self) -> bool:
+        return self.profile.sampling.mode == "periodic"
+
+
 def run(args: argparse.Namespace) -> int:
     if args.vehicles != 1 or args.fleet_connect:
-        if args.lockstep:
-            print("glider-hil emulate: --lockstep runs one vehicle", file=sys.stderr)
-            return 2
-        if args.profile != DEFAULT_PROFILE:
-            print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
-            return 2
-        if args.family is not None or args.reboot_at is not None:
-            print(
-                "glider-hil emulate: --family and --reboot-at run one vehicle", file=sys.stderr
-            )
-            return 2
-        if args.period is None:
-            args.period = _PLANT.period  # the glider profile's plant step
-        return run_fleet(args)
+        return _run_fleet(args)
     try:
-        profile = load_profile(args.profile)
-        periodic = profile.sampling.mode == "periodic"
-        if args.lockstep and periodic:
-            raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
-        if not (args.lockstep_timeout > 0):
-            raise ValueError("--lockstep-timeout must be positive")
-        if args.reboot_at is not None and not periodic:
-            raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
-        if args.reboot_at is not None and args.reboot_at < 1:
-            raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
-        period = args.period
-        if period is None and args.family is None:  # a family vehicle has its own
-            period = (
-                profile.sampling.period
-                if periodic and profile.sampling.period
-                else _PLANT.period
-            )
-        streams = StreamConfig(
-            uptime=args.uptime,
-            jitter=args.jitter,
-            rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
-            seed=args.seed,
-        )
-        plant: GliderPlant | FamilyPlant
-        if args.family is not None:
-            plant = family_plant(args.family, period, args.sysid)
-        else:
-            plant = GliderPlant(
-                PlantConfig(
-                    scenario=args.scenario,
-                    period=period,
-                    seed=args.seed,
-                    trim_depth=args.trim_depth,
-                    rate_limit=args.rate_limit,
-                ),
-                system_id=args.sysid,
-            )
-        if args.change is not None:
-            actuator = plant.actuators[args.change_channel]
-            changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
-            plant.actuators[args.change_channel] = changing  # type: ignore[assignment]
-        config = AutopilotConfig(
-            system_id=args.sysid,
-            speed=args.speed,
-            duration=args.duration,
-            command_timeout=args.command_timeout,
-            fallback=args.fallback,
-            signing_key=None if args.signing_key is None else load_key(args.signing_key),
-            accept_unsigned_non_commands=args.accept_unsigned_non_commands,
-        )
-        mapping = TelemetryMapping(
-            pressure=PressureDepth(args.water_density, args.surface_pressure),
-            inputs=InputScale(args.full_scale),
-        )
+        vehicle = _vehicle_from_args(args)
     except (ValueError, ProfileError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
         return 2
+    return _emulate(args, vehicle)
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    """``--vehicles N`` or ``--fleet-connect``: refuse what only one vehicle does, then
+    ``run_fleet``."""
+    if args.lockstep:
+        print("glider-hil emulate: --lockstep runs one vehicle", file=sys.stderr)
+        return 2
+    if args.profile != DEFAULT_PROFILE:
+        print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
+        return 2
+    if args.family is not None or args.reboot_at is not None:
+        print("glider-hil emulate: --family and --reboot-at run one vehicle", file=sys.stderr)
+        return 2
+    if args.period is None:
+        args.period = _PLANT.period  # the glider profile's plant step
+    return run_fleet(args)
+
+
+def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
+    """Flags → one vehicle; raises ValueError (or ProfileError) on bad ones."""
+    profile = load_profile(args.profile)
+    periodic = profile.sampling.mode == "periodic"
+    _check_single_vehicle_flags(args, periodic)
+    period = args.period
+    if period is None and args.family is None:  # a family vehicle has its own
+        period = profile.sampling.period if periodic and profile.sampling.period else _PLANT.period
+    streams = StreamConfig(
+        uptime=args.uptime,
+        jitter=args.jitter,
+        rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
+        seed=args.seed,
+    )
+    plant = _plant_from_args(args, period)
+    config = AutopilotConfig(
+        system_id=args.sysid,
+        speed=args.speed,
+        duration=args.duration,
+        command_timeout=args.command_timeout,
+        fallback=args.fallback,
+        signing_key=None if args.signing_key is None else load_key(args.signing_key),
+        accept_unsigned_non_commands=args.accept_unsigned_non_commands,
+    )
+    mapping = TelemetryMapping(
+        pressure=PressureDepth(args.water_density, args.surface_pressure),
+        inputs=InputScale(args.full_scale),
+    )
+    return _Vehicle(profile, plant, config, mapping, streams)
+
+
+def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> None:
+    if args.lockstep and periodic:
+        raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
+    if not (args.lockstep_timeout > 0):
+        raise ValueError("--lockstep-timeout must be positive")
+    if args.reboot_at is not None and not periodic:
+        raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
+    if args.reboot_at is not None and args.reboot_at < 1:
+        raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
+
+
+def _plant_from_args(args: argparse.Namespace, period: float | None) -> GliderPlant | FamilyPlant:
+    """The family's vehicle (``--family``) or the scenario's glider, with ``--change`` on
+    its actuator."""
+    plant: GliderPlant | FamilyPlant
+    if args.family is not None:
+        plant = family_plant(args.family, period, args.sysid)
+    else:
+        plant = GliderPlant(
+            PlantConfig(
+                scenario=args.scenario,
+                period=period,
+                seed=args.seed,
+                trim_depth=args.trim_depth,
+                rate_limit=args.rate_limit,
+            ),
+            system_id=args.sysid,
+        )
+    if args.change is not None:
+        actuator = plant.actuators[args.change_channel]
+        changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
+        plant.actuators[args.change_channel] = changing  # type: ignore[assignment]
+    return plant
+
+
+def _emulate(args: argparse.Namespace, vehicle: _Vehicle) -> int:
+    """Run the vehicle on its link until SIGINT/SIGTERM or ``--duration``; print the
+    summary as JSON."""
     link = Link(args.connect, source_system=args.sysid, source_component=1)
     stop = threading.Event()
 
@@ -301,32 +340,13 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, request_stop)
     signal.signal(signal.SIGTERM, request_stop)
-
-    def print_sample(sample: object) -> None:
-        if args.print_every and autopilot.stats.steps % args.print_every == 0:
-            print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
-
-    excitations = build_channel_excitations(args.excitation, seed=args.seed)
-    on_step: Callable[[TelemetrySample], None] | None = print_sample if args.print_every else None
-    rebooter = None
-    if args.reboot_at is not None:
-        on_step = rebooter = RebootAt(args.reboot_at, on_step)
-    autopilot: Autopilot
-    if periodic:
-        autopilot = ArduSubAutopilot(
-            plant, link, excitations, profile, config, streams, on_step=on_step
-        )
-    else:
-        autopilot = Autopilot(plant, link, excitations, config, mapping, on_step=on_step)
-    if rebooter is not None:
-        assert isinstance(autopilot, ArduSubAutopilot)
-        rebooter.autopilot = autopilot
+    autopilot, rebooter = _autopilot(args, vehicle, link)
     lockstep = LockstepRunner(autopilot, args.lockstep_timeout) if args.lockstep else None
     pace = "in lockstep" if lockstep is not None else f"at {args.speed:g}x"
     what = args.scenario if args.family is None else f"family {args.family}"
     print(
         f"emulating glider sysid {args.sysid} ({what}, {args.excitation}, profile "
-        f"{profile.name}, {plant.config.period:g} s) on {args.connect} {pace}",
+        f"{vehicle.profile.name}, {vehicle.plant.config.period:g} s) on {args.connect} {pace}",
         file=sys.stderr,
         flush=True,
     )
@@ -341,12 +361,48 @@ def run(args: argparse.Namespace) -> int:
         summary["streams_sent"] = dict(autopilot.sent)
     if lockstep is not None:
         summary["lockstep"] = lockstep.stats.as_dict()
-    if isinstance(plant, FamilyPlant):
-        summary["family"] = {ch: spec.as_json() for ch, spec in plant.specs.items()}
+    if isinstance(vehicle.plant, FamilyPlant):
+        summary["family"] = {ch: spec.as_json() for ch, spec in vehicle.plant.specs.items()}
     if rebooter is not None:
         summary["reboot"] = {"at_step": rebooter.step, "clock_back_s": rebooter.went_back}
     print(json.dumps({"emulator": summary}), flush=True)
     return 0
+
+
+def _autopilot(
+    args: argparse.Namespace, vehicle: _Vehicle, link: Link
+) -> tuple[Autopilot, RebootAt | None]:
+    """The profile's autopilot on ``link``, with its step hooks (``--print-every``,
+    ``--reboot-at``: the latter's hook, returned too, for the summary)."""
+
+    def print_sample(sample: object) -> None:
+        if args.print_every and autopilot.stats.steps % args.print_every == 0:
+            print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
+
+    excitations = build_channel_excitations(args.excitation, seed=args.seed)
+    on_step: Callable[[TelemetrySample], None] | None = print_sample if args.print_every else None
+    rebooter = None
+    if args.reboot_at is not None:
+        on_step = rebooter = RebootAt(args.reboot_at, on_step)
+    autopilot: Autopilot
+    if vehicle.periodic:
+        autopilot = ArduSubAutopilot(
+            vehicle.plant,
+            link,
+            excitations,
+            vehicle.profile,
+            vehicle.config,
+            vehicle.streams,
+            on_step=on_step,
+        )
+    else:
+        autopilot = Autopilot(
+            vehicle.plant, link, excitations, vehicle.config, vehicle.mapping, on_step=on_step
+        )
+    if rebooter is not None:
+        assert isinstance(autopilot, ArduSubAutopilot)
+        rebooter.autopilot = autopilot
+    return autopilot, rebooter
 
 
 def family_plant(choice: str, period: float | None, system_id: int) -> FamilyPlant:
