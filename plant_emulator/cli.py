@@ -268,16 +268,13 @@ def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
     profile = load_profile(args.profile)
     periodic = profile.sampling.mode == "periodic"
     _check_single_vehicle_flags(args, periodic)
-    period = args.period
-    if period is None and args.family is None:  # a family vehicle has its own
-        period = profile.sampling.period if periodic and profile.sampling.period else _PLANT.period
     streams = StreamConfig(
         uptime=args.uptime,
         jitter=args.jitter,
         rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
         seed=args.seed,
     )
-    plant = _plant_from_args(args, period)
+    plant = _plant_from_args(args, profile)
     config = AutopilotConfig(
         system_id=args.sysid,
         speed=args.speed,
@@ -305,13 +302,19 @@ def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> Non
         raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
 
 
-def _plant_from_args(args: argparse.Namespace, period: float | None) -> GliderPlant | FamilyPlant:
+def _plant_from_args(args: argparse.Namespace, profile: Profile) -> GliderPlant | FamilyPlant:
     """The family's vehicle (``--family``) or the scenario's glider, with ``--change`` on
     its actuator."""
     plant: GliderPlant | FamilyPlant
-    if args.family is not None:
-        plant = family_plant(args.family, period, args.sysid)
+    if args.family is not None:  # at its own drawn period unless --period gives one
+        plant = family_plant(args.family, args.period, args.sysid)
     else:
+        period = args.period
+        if period is None:
+            periodic = profile.sampling.mode == "periodic"
+            period = _PLANT.period
+            if periodic and profile.sampling.period:
+                period = profile.sampling.period
         plant = GliderPlant(
             PlantConfig(
                 scenario=args.scenario,
