@@ -10,11 +10,11 @@ it serves, from the vehicle's system id and component 191).
 
 One thread runs the whole fleet (``FleetScheduler``): a heap of step and heartbeat deadlines,
 and one ``select`` over the shared sockets between them; a received command is parsed and
-handed to the vehicle it targets at once. One thread per vehicle (as before) put 100+
-threads under one GIL: a command waited for the dispatcher thread, then for its vehicle's
-thread, each behind whichever of the others held the GIL; the median telemetry → command
-latency at 100 vehicles was 1.8-8 ms that way, about 0.5 ms this way (README, fleet section;
-the p99 there is the loaded machine's, either way). Each autopilot
+handed to the vehicle it targets at once. Why not a thread per vehicle: that puts 100+
+threads under one GIL, where a command waits for a dispatcher thread, then for its
+vehicle's thread, each behind whichever of the others holds the GIL; measured at 100
+vehicles, the median telemetry → command latency is 1.8-8 ms that way, about 0.5 ms this
+way. Each autopilot
 measures telemetry → command latency (``TimedAutopilot``: from sending a step's last
 telemetry datagram to the arrival of the datagram holding the command; printed at the end
 with the per-vehicle statistics).
