@@ -179,7 +179,8 @@ class ServiceConfig:
 
     def to_json(self) -> dict[str, Any]:
         """The ``service`` part of the stored configuration (``vehicle_ids`` only when not
-        the default, so that a log of one id space is stored as before)."""
+        the default: a log of one id space stores no ``vehicle_ids``, as the logs of
+        services without that option do)."""
         stored = {
             "system_ids": list(self.system_ids),
             "control_default": self.control_default,

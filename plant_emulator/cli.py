@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
@@ -20,7 +21,7 @@ from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
-from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
+from protocols.profiles import DEFAULT_PROFILE, Profile, ProfileError, load_profile
 from protocols.samples import TelemetrySample
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
@@ -34,96 +35,133 @@ _PRESSURE = PressureDepth()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # One helper per topic, called in the order the flags appear in the usage line.
+    _add_link_arguments(parser)
+    _add_time_arguments(parser)
+    _add_plant_arguments(parser)
+    _add_autopilot_arguments(parser)
+    _add_signing_arguments(parser)
+    _add_event_arguments(parser)
+    _add_units_arguments(parser)
     parser.add_argument(
+        "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
+    )
+    _add_lockstep_arguments(parser)
+    add_fleet_arguments(parser)
+
+
+def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MAVLink link and vehicle")
+    group.add_argument(
         "--connect",
         default="udpout:127.0.0.1:14550",
         help="pymavlink connection string of the link to the service (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--sysid",
         type=int,
         default=_AUTOPILOT.system_id,
         help="MAVLink system id (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--profile",
         default=DEFAULT_PROFILE,
         help="vehicle profile, a built-in name (glider, ardusub) or a TOML file: a lockstep "
         "profile streams as glider-hil's emulator, a periodic one the ArduSub way "
         "(default %(default)s)",
     )
-    parser.add_argument(
+
+
+def _add_time_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("time and telemetry streams")
+    group.add_argument(
         "--period",
         type=float,
         default=None,
         help=f"plant step, simulated s (default {_PLANT.period:g}; a periodic profile: its "
         "sample period)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--uptime",
         type=float,
         default=_STREAMS.uptime,
         help="periodic profiles: simulated s since boot at start (4290: the uint32 µs clock "
         "of SERVO_OUTPUT_RAW wraps 5 s in)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--jitter",
         type=float,
         default=_STREAMS.jitter,
         help="periodic profiles: fraction of each interval (default %(default)s)",
     )
     for name, hz in DEFAULT_RATES_HZ.items():
-        parser.add_argument(
+        group.add_argument(
             f"--rate-{name.lower().replace('_', '-')}",
             type=float,
             default=hz,
             metavar="HZ",
             help=f"periodic profiles: {name} per simulated s (default %(default)s, 0: off)",
         )
-    parser.add_argument(
+    group.add_argument(
         "--speed", type=float, default=_AUTOPILOT.speed, help="times faster than real time"
     )
-    parser.add_argument(
+    group.add_argument(
         "--duration", type=float, default=None, help="simulated seconds to run (default: forever)"
     )
-    parser.add_argument("--scenario", choices=SCENARIOS, default=_PLANT.scenario)
-    parser.add_argument("--excitation", choices=EXCITATIONS, default="steps")
-    parser.add_argument("--seed", type=int, default=_PLANT.seed)
-    parser.add_argument(
+
+
+def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("plant")
+    group.add_argument("--scenario", choices=SCENARIOS, default=_PLANT.scenario)
+    group.add_argument("--excitation", choices=EXCITATIONS, default="steps")
+    group.add_argument("--seed", type=int, default=_PLANT.seed)
+    group.add_argument(
         "--trim-depth", type=float, default=_PLANT.trim_depth, help="m (default %(default)s)"
     )
-    parser.add_argument(
+    group.add_argument(
         "--rate-limit",
         type=float,
         default=_PLANT.rate_limit,
         help="model units per step (default %(default)s)",
     )
-    parser.add_argument(
+
+
+def _add_autopilot_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("autopilot")
+    group.add_argument(
         "--command-timeout",
         type=float,
         default=_AUTOPILOT.command_timeout,
         help="simulated s without a command before falling back (default %(default)s)",
     )
-    parser.add_argument("--fallback", choices=FALLBACKS, default=_AUTOPILOT.fallback)
-    parser.add_argument(
+    group.add_argument("--fallback", choices=FALLBACKS, default=_AUTOPILOT.fallback)
+
+
+def _add_signing_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MAVLink 2 signing")
+    group.add_argument(
         "--signing-key",
         metavar="FILE",
         help="MAVLink 2 signing key file (32 bytes or 64 hex digits, mode 600): sign all "
         "frames, accept only signed ones",
     )
-    parser.add_argument(
+    group.add_argument(
         "--accept-unsigned-non-commands",
         action="store_true",
         help="with --signing-key: also accept unsigned frames that are not commands",
     )
-    parser.add_argument(
+
+
+def _add_event_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("plant changes, family vehicles and reboots")
+    group.add_argument(
         "--change",
         choices=tuple(PLANT_CHANGES),
         default=None,
         help="the plant changes at --change-at: 'flip' the input's sign, 'gain5' a fivefold "
         "gain (on --change-channel)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--family",
         metavar="SEED:INDEX",
         default=None,
@@ -131,7 +169,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "instead of --scenario: its two plants behind the glider's actuator, at its drawn "
         "sample period unless --period gives one",
     )
-    parser.add_argument(
+    group.add_argument(
         "--reboot-at",
         type=int,
         default=None,
@@ -139,119 +177,164 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="periodic profiles: the vehicle reboots after plant step STEP (its clock starts "
         "again from boot, it forgets the companion's commands and stream rates)",
     )
-    parser.add_argument("--change-channel", choices=CHANNELS, default="pitch")
-    parser.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
-    parser.add_argument(
+    group.add_argument("--change-channel", choices=CHANNELS, default="pitch")
+    group.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
+
+
+def _add_units_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("units")
+    group.add_argument(
         "--full-scale",
         type=float,
         default=_INPUTS.full_scale,
         help="model units at wire 1.0 (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--water-density",
         type=float,
         default=_PRESSURE.water_density,
         help="kg/m³ (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--surface-pressure",
         type=float,
         default=_PRESSURE.surface_hpa,
         help="hPa (default %(default)s)",
     )
-    parser.add_argument(
-        "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
-    )
-    parser.add_argument(
+
+
+def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("lockstep")
+    group.add_argument(
         "--lockstep",
         action="store_true",
         help="step k+1 only once the service has finished with step k (docs/lockstep.md); "
         "as fast as the loop allows, --speed is ignored",
     )
-    parser.add_argument(
+    group.add_argument(
         "--lockstep-timeout",
         type=float,
         default=DEFAULT_TIMEOUT,
         metavar="S",
         help="wall s a step waits for the service before going on, counted (default %(default)s)",
     )
-    add_fleet_arguments(parser)
+
+
+@dataclass
+class _Vehicle:
+    """One emulated vehicle as the flags configure it, checked before any link opens."""
+
+    profile: Profile
+    plant: GliderPlant | FamilyPlant
+    config: AutopilotConfig
+    mapping: TelemetryMapping
+    streams: StreamConfig
+
+    @property
+    def periodic(self) -> bool:
+        return self.profile.sampling.mode == "periodic"
 
 
 def run(args: argparse.Namespace) -> int:
     if args.vehicles != 1 or args.fleet_connect:
-        if args.lockstep:
-            print("glider-hil emulate: --lockstep runs one vehicle", file=sys.stderr)
-            return 2
-        if args.profile != DEFAULT_PROFILE:
-            print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
-            return 2
-        if args.family is not None or args.reboot_at is not None:
-            print(
-                "glider-hil emulate: --family and --reboot-at run one vehicle", file=sys.stderr
-            )
-            return 2
-        if args.period is None:
-            args.period = _PLANT.period  # the glider profile's plant step
-        return run_fleet(args)
+        return _run_fleet(args)
     try:
-        profile = load_profile(args.profile)
-        periodic = profile.sampling.mode == "periodic"
-        if args.lockstep and periodic:
-            raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
-        if not (args.lockstep_timeout > 0):
-            raise ValueError("--lockstep-timeout must be positive")
-        if args.reboot_at is not None and not periodic:
-            raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
-        if args.reboot_at is not None and args.reboot_at < 1:
-            raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
-        period = args.period
-        if period is None and args.family is None:  # a family vehicle has its own
-            period = (
-                profile.sampling.period
-                if periodic and profile.sampling.period
-                else _PLANT.period
-            )
-        streams = StreamConfig(
-            uptime=args.uptime,
-            jitter=args.jitter,
-            rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
-            seed=args.seed,
-        )
-        plant: GliderPlant | FamilyPlant
-        if args.family is not None:
-            plant = family_plant(args.family, period, args.sysid)
-        else:
-            plant = GliderPlant(
-                PlantConfig(
-                    scenario=args.scenario,
-                    period=period,
-                    seed=args.seed,
-                    trim_depth=args.trim_depth,
-                    rate_limit=args.rate_limit,
-                ),
-                system_id=args.sysid,
-            )
-        if args.change is not None:
-            actuator = plant.actuators[args.change_channel]
-            changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
-            plant.actuators[args.change_channel] = changing  # type: ignore[assignment]
-        config = AutopilotConfig(
-            system_id=args.sysid,
-            speed=args.speed,
-            duration=args.duration,
-            command_timeout=args.command_timeout,
-            fallback=args.fallback,
-            signing_key=None if args.signing_key is None else load_key(args.signing_key),
-            accept_unsigned_non_commands=args.accept_unsigned_non_commands,
-        )
-        mapping = TelemetryMapping(
-            pressure=PressureDepth(args.water_density, args.surface_pressure),
-            inputs=InputScale(args.full_scale),
-        )
+        vehicle = _vehicle_from_args(args)
     except (ValueError, ProfileError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
         return 2
+    return _emulate(args, vehicle)
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    """``--vehicles N`` or ``--fleet-connect``: refuse what only one vehicle does, then
+    ``run_fleet``."""
+    if args.lockstep:
+        print("glider-hil emulate: --lockstep runs one vehicle", file=sys.stderr)
+        return 2
+    if args.profile != DEFAULT_PROFILE:
+        print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
+        return 2
+    if args.family is not None or args.reboot_at is not None:
+        print("glider-hil emulate: --family and --reboot-at run one vehicle", file=sys.stderr)
+        return 2
+    if args.period is None:
+        args.period = _PLANT.period  # the glider profile's plant step
+    return run_fleet(args)
+
+
+def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
+    """Flags → one vehicle; raises ValueError (or ProfileError) on bad ones."""
+    profile = load_profile(args.profile)
+    periodic = profile.sampling.mode == "periodic"
+    _check_single_vehicle_flags(args, periodic)
+    streams = StreamConfig(
+        uptime=args.uptime,
+        jitter=args.jitter,
+        rates_hz={name: getattr(args, f"rate_{name.lower()}") for name in DEFAULT_RATES_HZ},
+        seed=args.seed,
+    )
+    plant = _plant_from_args(args, profile)
+    config = AutopilotConfig(
+        system_id=args.sysid,
+        speed=args.speed,
+        duration=args.duration,
+        command_timeout=args.command_timeout,
+        fallback=args.fallback,
+        signing_key=None if args.signing_key is None else load_key(args.signing_key),
+        accept_unsigned_non_commands=args.accept_unsigned_non_commands,
+    )
+    mapping = TelemetryMapping(
+        pressure=PressureDepth(args.water_density, args.surface_pressure),
+        inputs=InputScale(args.full_scale),
+    )
+    return _Vehicle(profile, plant, config, mapping, streams)
+
+
+def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> None:
+    if args.lockstep and periodic:
+        raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
+    if not (args.lockstep_timeout > 0):
+        raise ValueError("--lockstep-timeout must be positive")
+    if args.reboot_at is not None and not periodic:
+        raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
+    if args.reboot_at is not None and args.reboot_at < 1:
+        raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
+
+
+def _plant_from_args(args: argparse.Namespace, profile: Profile) -> GliderPlant | FamilyPlant:
+    """The family's vehicle (``--family``) or the scenario's glider, with ``--change`` on
+    its actuator."""
+    plant: GliderPlant | FamilyPlant
+    if args.family is not None:  # at its own drawn period unless --period gives one
+        plant = family_plant(args.family, args.period, args.sysid)
+    else:
+        period = args.period
+        if period is None:
+            periodic = profile.sampling.mode == "periodic"
+            period = _PLANT.period
+            if periodic and profile.sampling.period:
+                period = profile.sampling.period
+        plant = GliderPlant(
+            PlantConfig(
+                scenario=args.scenario,
+                period=period,
+                seed=args.seed,
+                trim_depth=args.trim_depth,
+                rate_limit=args.rate_limit,
+            ),
+            system_id=args.sysid,
+        )
+    if args.change is not None:
+        actuator = plant.actuators[args.change_channel]
+        changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
+        plant.actuators[args.change_channel] = changing  # type: ignore[assignment]
+    return plant
+
+
+def _emulate(args: argparse.Namespace, vehicle: _Vehicle) -> int:
+    """Run the vehicle on its link until SIGINT/SIGTERM or ``--duration``; print the
+    summary as JSON."""
     link = Link(args.connect, source_system=args.sysid, source_component=1)
     stop = threading.Event()
 
@@ -260,32 +343,13 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, request_stop)
     signal.signal(signal.SIGTERM, request_stop)
-
-    def print_sample(sample: object) -> None:
-        if args.print_every and autopilot.stats.steps % args.print_every == 0:
-            print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
-
-    excitations = build_channel_excitations(args.excitation, seed=args.seed)
-    on_step: Callable[[TelemetrySample], None] | None = print_sample if args.print_every else None
-    rebooter = None
-    if args.reboot_at is not None:
-        on_step = rebooter = RebootAt(args.reboot_at, on_step)
-    autopilot: Autopilot
-    if periodic:
-        autopilot = ArduSubAutopilot(
-            plant, link, excitations, profile, config, streams, on_step=on_step
-        )
-    else:
-        autopilot = Autopilot(plant, link, excitations, config, mapping, on_step=on_step)
-    if rebooter is not None:
-        assert isinstance(autopilot, ArduSubAutopilot)
-        rebooter.autopilot = autopilot
+    autopilot, rebooter = _autopilot(args, vehicle, link)
     lockstep = LockstepRunner(autopilot, args.lockstep_timeout) if args.lockstep else None
     pace = "in lockstep" if lockstep is not None else f"at {args.speed:g}x"
     what = args.scenario if args.family is None else f"family {args.family}"
     print(
         f"emulating glider sysid {args.sysid} ({what}, {args.excitation}, profile "
-        f"{profile.name}, {plant.config.period:g} s) on {args.connect} {pace}",
+        f"{vehicle.profile.name}, {vehicle.plant.config.period:g} s) on {args.connect} {pace}",
         file=sys.stderr,
         flush=True,
     )
@@ -300,12 +364,48 @@ def run(args: argparse.Namespace) -> int:
         summary["streams_sent"] = dict(autopilot.sent)
     if lockstep is not None:
         summary["lockstep"] = lockstep.stats.as_dict()
-    if isinstance(plant, FamilyPlant):
-        summary["family"] = {ch: spec.as_json() for ch, spec in plant.specs.items()}
+    if isinstance(vehicle.plant, FamilyPlant):
+        summary["family"] = {ch: spec.as_json() for ch, spec in vehicle.plant.specs.items()}
     if rebooter is not None:
         summary["reboot"] = {"at_step": rebooter.step, "clock_back_s": rebooter.went_back}
     print(json.dumps({"emulator": summary}), flush=True)
     return 0
+
+
+def _autopilot(
+    args: argparse.Namespace, vehicle: _Vehicle, link: Link
+) -> tuple[Autopilot, RebootAt | None]:
+    """The profile's autopilot on ``link``, with its step hooks (``--print-every``,
+    ``--reboot-at``: the latter's hook, returned too, for the summary)."""
+
+    def print_sample(sample: object) -> None:
+        if args.print_every and autopilot.stats.steps % args.print_every == 0:
+            print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
+
+    excitations = build_channel_excitations(args.excitation, seed=args.seed)
+    on_step: Callable[[TelemetrySample], None] | None = print_sample if args.print_every else None
+    rebooter = None
+    if args.reboot_at is not None:
+        on_step = rebooter = RebootAt(args.reboot_at, on_step)
+    autopilot: Autopilot
+    if vehicle.periodic:
+        autopilot = ArduSubAutopilot(
+            vehicle.plant,
+            link,
+            excitations,
+            vehicle.profile,
+            vehicle.config,
+            vehicle.streams,
+            on_step=on_step,
+        )
+    else:
+        autopilot = Autopilot(
+            vehicle.plant, link, excitations, vehicle.config, vehicle.mapping, on_step=on_step
+        )
+    if rebooter is not None:
+        assert isinstance(autopilot, ArduSubAutopilot)
+        rebooter.autopilot = autopilot
+    return autopilot, rebooter
 
 
 def family_plant(choice: str, period: float | None, system_id: int) -> FamilyPlant:

@@ -10,11 +10,11 @@ it serves, from the vehicle's system id and component 191).
 
 One thread runs the whole fleet (``FleetScheduler``): a heap of step and heartbeat deadlines,
 and one ``select`` over the shared sockets between them; a received command is parsed and
-handed to the vehicle it targets at once. One thread per vehicle (as before) put 100+
-threads under one GIL: a command waited for the dispatcher thread, then for its vehicle's
-thread, each behind whichever of the others held the GIL; the median telemetry → command
-latency at 100 vehicles was 1.8-8 ms that way, about 0.5 ms this way (README, fleet section;
-the p99 there is the loaded machine's, either way). Each autopilot
+handed to the vehicle it targets at once. Why not a thread per vehicle: that puts 100+
+threads under one GIL, where a command waits for a dispatcher thread, then for its
+vehicle's thread, each behind whichever of the others holds the GIL; measured at 100
+vehicles, the median telemetry → command latency is 1.8-8 ms that way, about 0.5 ms this
+way. Each autopilot
 measures telemetry → command latency (``TimedAutopilot``: from sending a step's last
 telemetry datagram to the arrival of the datagram holding the command; printed at the end
 with the per-vehicle statistics).
@@ -344,25 +344,10 @@ def run_fleet(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    links: dict[str, SharedLink] = {}
-    autopilots: list[TimedAutopilot] = []
     try:
-        for connection in connections:
-            links[connection] = SharedLink(connection)
-        for index, (link_number, system_id) in enumerate(identities):
-            shared = links[connections[link_number - 1]]
-            autopilot = _autopilot(args, system_id, args.seed + index, shared.port())
-            assert isinstance(autopilot, TimedAutopilot)
-            if per_link:
-                autopilot.vehicle = keys.vehicle_id(link_number, system_id)
-            if system_id in shared.autopilots:
-                raise ValueError(f"system id {system_id} twice on {connections[link_number - 1]}")
-            shared.attach(autopilot)
-            autopilots.append(autopilot)
+        links, autopilots = _open_fleet(args, connections, identities, per_link)
     except (ValueError, OSError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
-        for shared in links.values():
-            shared.link.close()
         return 2
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -383,13 +368,57 @@ def run_fleet(args: argparse.Namespace) -> int:
     finally:
         for shared in links.values():
             shared.close()
+    summary = _fleet_summary(links, connections, autopilots, scheduler, cpu_at_start)
+    if args.latency_trace:
+        write_latency_trace(args.latency_trace, autopilots)
+    print(json.dumps({"emulator": summary}), flush=True)
+    return 0
+
+
+def _open_fleet(
+    args: argparse.Namespace,
+    connections: list[str],
+    identities: list[tuple[int, int]],
+    per_link: bool,
+) -> tuple[dict[str, SharedLink], list[TimedAutopilot]]:
+    """One ``SharedLink`` per connection and every vehicle's autopilot attached to its link;
+    on ValueError or OSError the links opened so far are closed first."""
+    links: dict[str, SharedLink] = {}
+    autopilots: list[TimedAutopilot] = []
+    try:
+        for connection in connections:
+            links[connection] = SharedLink(connection)
+        for index, (link_number, system_id) in enumerate(identities):
+            shared = links[connections[link_number - 1]]
+            autopilot = _autopilot(args, system_id, args.seed + index, shared.port())
+            assert isinstance(autopilot, TimedAutopilot)
+            if per_link:
+                autopilot.vehicle = keys.vehicle_id(link_number, system_id)
+            if system_id in shared.autopilots:
+                raise ValueError(f"system id {system_id} twice on {connections[link_number - 1]}")
+            shared.attach(autopilot)
+            autopilots.append(autopilot)
+    except (ValueError, OSError):
+        for shared in links.values():
+            shared.link.close()
+        raise
+    return links, autopilots
+
+
+def _fleet_summary(
+    links: dict[str, SharedLink],
+    connections: list[str],
+    autopilots: list[TimedAutopilot],
+    scheduler: FleetScheduler,
+    cpu_at_start: float,
+) -> dict[str, Any]:
     per_vehicle: dict[str, Any] = {
         keys.key_id(a.vehicle): a.stats.as_dict(a.codec) for a in autopilots
     }
     steps = sum(v["steps"] for v in per_vehicle.values())
     latency = latency_summary([x for a in autopilots for x in a.latencies])
-    summary = {
-        "vehicles": count,
+    return {
+        "vehicles": len(autopilots),
         "steps": steps,
         "latency": latency,
         "unrouted": sum(shared.unrouted for shared in links.values()),
@@ -404,10 +433,6 @@ def run_fleet(args: argparse.Namespace) -> int:
         },
         "per_vehicle": per_vehicle,
     }
-    if args.latency_trace:
-        write_latency_trace(args.latency_trace, autopilots)
-    print(json.dumps({"emulator": summary}), flush=True)
-    return 0
 
 
 def write_latency_trace(path: str, autopilots: list[TimedAutopilot]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 import time
 
 import pytest
@@ -114,33 +115,60 @@ def _finished(directory) -> bool:
     return read_all(path)[1].report.complete
 
 
+def _chunk_indexes(path) -> list:
+    """The file's chunk indexes (its summary, read by the ``mcap`` library), in file order."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    return sorted(summary.chunk_indexes, key=lambda index: index.chunk_start_offset)
+
+
 def test_reader_reports_truncation_and_corruption_with_offsets(tmp_path):
-    recorder = McapRecorder(tmp_path, flush_interval=0.02).start()
+    # Small chunks sealed by size alone (the timed flush never comes: flush_interval is an
+    # hour) and given log times: the same bytes, and the same chunk boundaries, every run.
+    recorder = McapRecorder(tmp_path, flush_interval=3600.0, chunk_bytes=16_384).start()
     for k, frame in enumerate(frames(3000)):
-        recorder.raw("in", frame)
-        if k % 500 == 0:
-            time.sleep(0.05)  # let the writer finish a chunk: several chunks in the file
+        recorder.raw("in", frame, t_ns=k + 1)
     recorder.close()
     path = next(tmp_path.glob("*.mcap"))
     data = path.read_bytes()
     whole, _ = read_all(path)
+    assert len(whole) == 3000
+    chunks = _chunk_indexes(path)
+    assert len(chunks) >= 5
 
+    def before(chunk) -> list[bytes]:
+        """The messages of the chunks before ``chunk``."""
+        return [m.data for m in whole if m.log_time_ns < chunk.message_start_time]
+
+    # Cut in the middle of the second chunk: the first chunk's messages are recovered.
+    second = chunks[1]
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: len(data) // 3])
+    cut.write_bytes(data[: second.chunk_start_offset + second.chunk_length // 2])
     recovered, reader = read_all(cut)
     assert not reader.report.complete
     assert 0 < len(recovered) < len(whole)
-    assert [m.data for m in recovered] == [m.data for m in whole[: len(recovered)]]
+    assert [m.data for m in recovered] == before(second)
     assert reader.report.error_offset is not None
+    assert reader.report.error_offset <= second.chunk_start_offset
     assert "recovered" in reader.report.describe()
 
+    # One byte flipped inside the middle chunk's compressed records, which end its record
+    # (after their length, a u64): the chunks before it are recovered, none after.
+    middle = chunks[len(chunks) // 2]
+    records = middle.chunk_start_offset + middle.chunk_length - middle.compressed_size
+    assert struct.unpack_from("<Q", data, records - 8)[0] == middle.compressed_size
     damaged = bytearray(data)
-    damaged[len(data) // 2] ^= 0xFF
+    damaged[records + middle.compressed_size // 2] ^= 0xFF
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(damaged))
     recovered, reader = read_all(bad)
-    assert len(recovered) < len(whole)
+    assert 0 < len(recovered) < len(whole)
+    assert [m.data for m in recovered] == before(middle)
     assert reader.report.error and reader.report.error_offset is not None
+    assert reader.report.error_offset <= middle.chunk_start_offset
 
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")

@@ -190,18 +190,7 @@ def run_hil(
 ) -> HilOutcome:
     """The mission in lockstep over loopback; failures are returned, never raised."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    read_fd, write_fd = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the service
-        os.close(read_fd)
-        code = 1
-        try:
-            code = _serve(mission, run_dir, write_fd, log)
-        except BaseException:
-            (run_dir / SERVICE_ERROR).write_text(traceback.format_exc())
-        finally:
-            os._exit(code)
-    os.close(write_fd)
+    pid, read_fd = _fork_service(mission, run_dir, log)
     started = time.monotonic()
     trace = Trace.empty(mission.steps)
     try:
@@ -216,6 +205,84 @@ def run_hil(
             trace, time.monotonic() - started, failure=_service_failure(run_dir, status)
         )
     outcome = HilOutcome(trace, 0.0)
+    autopilot, runner, status = _run_emulator(mission, port, pid, timeout, kill_service_at, outcome)
+    outcome.wall_s = time.monotonic() - started
+    _end_service(outcome, pid, status, run_dir)
+    _collect(outcome, autopilot, runner, run_dir)
+    return outcome
+
+
+def _fork_service(mission: Mission, run_dir: Path, log: bool) -> tuple[int, int]:
+    """Fork the service (``_serve``): its pid, and the pipe end it writes its port to."""
+    read_fd, write_fd = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the service
+        os.close(read_fd)
+        code = 1
+        try:
+            code = _serve(mission, run_dir, write_fd, log)
+        except BaseException:
+            (run_dir / SERVICE_ERROR).write_text(traceback.format_exc())
+        finally:
+            os._exit(code)
+    os.close(write_fd)
+    return pid, read_fd
+
+
+class _StepWatch:
+    """The emulator's step hook: records each sample in the trace, kills the service at step
+    ``kill_at`` (fault injection for tests), and stops the run when a lockstep timeout finds
+    the service dead or it has stopped answering (``MAX_CONSECUTIVE_TIMEOUTS``)."""
+
+    def __init__(
+        self,
+        autopilot: Autopilot,
+        runner: LockstepRunner,
+        pid: int,
+        kill_at: int | None,
+        outcome: HilOutcome,
+        stop: threading.Event,
+    ) -> None:
+        self.autopilot = autopilot
+        self.runner = runner
+        self.pid = pid
+        self.kill_at = kill_at
+        self.outcome = outcome
+        self.stop = stop
+        self.timeouts = 0  # the runner's count when last looked at
+        self.consecutive = 0
+        self.status: int | None = None  # the service's wait status, once seen exited
+
+    def __call__(self, sample: TelemetrySample) -> None:
+        k = self.autopilot.stats.steps - 1
+        self.outcome.trace.record(k, sample)
+        if self.kill_at is not None and k == self.kill_at:
+            os.kill(self.pid, signal.SIGKILL)  # fault injection (tests): the service dies here
+        if self.runner.stats.timeouts > self.timeouts:
+            self.timeouts = self.runner.stats.timeouts
+            self.consecutive += 1
+            status = _exited(self.pid)
+            if status is not None:
+                self.status = status
+                self.outcome.failure = f"service {_describe(status)} at step {k}"
+                self.stop.set()
+            elif self.consecutive >= MAX_CONSECUTIVE_TIMEOUTS:
+                self.outcome.failure = f"service stopped answering at step {k}"
+                self.stop.set()
+        else:
+            self.consecutive = 0
+
+
+def _run_emulator(
+    mission: Mission,
+    port: int,
+    pid: int,
+    timeout: float,
+    kill_service_at: int | None,
+    outcome: HilOutcome,
+) -> tuple[Autopilot, LockstepRunner, int | None]:
+    """The mission's vehicle in lockstep with the service on ``port``, to its last step or
+    until ``_StepWatch`` stops it; the service's wait status if the watch saw it exit."""
     link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
     stop = threading.Event()
     plant = mission.plant()
@@ -226,40 +293,32 @@ def run_hil(
         AutopilotConfig(system_id=1, duration=mission.steps * mission.period),
     )
     runner = LockstepRunner(autopilot, timeout)
-    state = {"timeouts": 0, "consecutive": 0, "status": None}
-
-    def on_step(sample: TelemetrySample) -> None:
-        k = autopilot.stats.steps - 1
-        trace.record(k, sample)
-        if kill_service_at is not None and k == kill_service_at:
-            os.kill(pid, signal.SIGKILL)  # fault injection (tests): the service dies here
-        if runner.stats.timeouts > state["timeouts"]:
-            state["timeouts"] = runner.stats.timeouts
-            state["consecutive"] += 1
-            status = _exited(pid)
-            if status is not None:
-                state["status"] = status
-                outcome.failure = f"service {_describe(status)} at step {k}"
-                stop.set()
-            elif state["consecutive"] >= MAX_CONSECUTIVE_TIMEOUTS:
-                outcome.failure = f"service stopped answering at step {k}"
-                stop.set()
-        else:
-            state["consecutive"] = 0
-
-    autopilot.on_step = on_step
+    watch = _StepWatch(autopilot, runner, pid, kill_service_at, outcome, stop)
+    autopilot.on_step = watch
     try:
         runner.run(stop)
     finally:
         link.close()
-    outcome.wall_s = time.monotonic() - started
-    status = state["status"] if state["status"] is not None else _exited(pid)
+    return autopilot, runner, watch.status
+
+
+def _end_service(outcome: HilOutcome, pid: int, status: int | None, run_dir: Path) -> None:
+    """Reap the service (stopping it if it still runs) and fail the outcome if it ended
+    early or not cleanly."""
+    if status is None:
+        status = _exited(pid)
     if status is None:
         status = _stop_service(pid)
     elif outcome.failure is None:
         outcome.failure = f"service {_describe(status)} before the end"
     if outcome.failure is None and not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0):
         outcome.failure = _service_failure(run_dir, status)
+
+
+def _collect(
+    outcome: HilOutcome, autopilot: Autopilot, runner: LockstepRunner, run_dir: Path
+) -> None:
+    """The emulator's, the runner's and the service's summaries, and the log's path."""
     outcome.emulator = autopilot.stats.as_dict(autopilot.codec)
     outcome.lockstep = runner.stats.as_dict()
     summary_path = run_dir / SERVICE_SUMMARY
@@ -277,7 +336,6 @@ def run_hil(
         outcome.failure += f": the service dropped samples ({named})"
     logs = sorted(run_dir.glob("*.mcap"))
     outcome.log_path = str(logs[-1]) if logs else None
-    return outcome
 
 
 def _service_failure(run_dir: Path, status: int) -> str:

@@ -31,46 +31,58 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run a campaign (default) or compare two campaign directories",
     )
     parser.add_argument("dirs", nargs="*", metavar="DIR", help="compare: DIR_A DIR_B")
-    parser.add_argument(
+    _add_mission_arguments(parser)
+    _add_execution_arguments(parser)
+    _add_output_arguments(parser)
+    parser.add_argument("--json", action="store_true", help="compare: print JSON")
+
+
+def _add_mission_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("missions")
+    group.add_argument(
         "--scenarios",
         default="disturbed,nonlinear,random",
         help=f"comma list of {', '.join(SCENARIOS)} (default %(default)s)",
     )
-    parser.add_argument("--seeds", default="0-49", help="N, N-M or a comma list (default 0-49)")
-    parser.add_argument("--steps", type=int, default=3600, help="plant steps per mission")
-    parser.add_argument(
+    group.add_argument("--seeds", default="0-49", help="N, N-M or a comma list (default 0-49)")
+    group.add_argument("--steps", type=int, default=3600, help="plant steps per mission")
+    group.add_argument(
         "--identify",
         type=int,
         default=None,
         help="steps of open-loop excitation before the setpoints start (default steps/3)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--step-every",
         type=int,
         default=None,
         help="steps between setpoint steps (default steps/6)",
     )
-    parser.add_argument(
+
+
+def _add_execution_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("where the missions run (local processes or a Dask cluster)")
+    group.add_argument(
         "--jobs",
         type=int,
         default=2,
         help="missions at a time (default 2; with --scheduler the cluster's worker threads decide)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--scheduler",
         default=None,
         metavar="ADDRESS",
         help="a Dask scheduler (tcp://HOST:PORT): run each mission as a task on its workers "
         "(docs/cluster.md)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--scheduler-timeout",
         type=float,
         default=60.0,
         metavar="S",
         help="wall s to reach the scheduler and for it to have a worker (default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--logs",
         choices=("auto", "shared", "return"),
         default="auto",
@@ -78,31 +90,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "-o DIR (shared storage); return: it comes back with the result; auto (default): "
         "shared where a worker sees this -o DIR, else return",
     )
-    parser.add_argument("-o", "--out", default=None, help="campaign directory")
-    parser.add_argument("--resume", action="store_true", help="skip missions already recorded")
-    parser.add_argument(
+
+
+def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("the campaign directory and each run")
+    group.add_argument("-o", "--out", default=None, help="campaign directory")
+    group.add_argument("--resume", action="store_true", help="skip missions already recorded")
+    group.add_argument(
         "--oracle",
         action=argparse.BooleanOptionalAction,
         default=True,
         help="run the known-model oracle offline per mission, for its IAE ratio (default on: "
         "about 2.5 CPU s per glider mission of 3,600 steps; --no-oracle skips it)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--lockstep-timeout",
         type=float,
         default=1.0,
         metavar="S",
         help="wall s a step waits for the service (default %(default)s)",
     )
-    parser.add_argument("--no-figures", action="store_true", help="no PNG")
-    parser.add_argument(
+    group.add_argument("--no-figures", action="store_true", help="no PNG")
+    group.add_argument(
         "--kill-service",
         action="append",
         default=[],
         metavar="RUN_ID:STEP",
         help=argparse.SUPPRESS,  # fault injection for tests: SIGKILL that run's service
     )
-    parser.add_argument("--json", action="store_true", help="compare: print JSON")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -45,27 +45,44 @@ from protocols import compiled
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
+    _add_plant_arguments(parser)
+    _add_output_arguments(parser)
+    _add_mode_arguments(parser)
+    _add_closed_loop_arguments(parser)
+    _add_identification_arguments(parser)
+
+
+def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("plant and samples")
+    group.add_argument(
         "--scenario",
         choices=(*SCENARIOS, "random", "family", "all"),
         default="paper",
         help="'random': a seeded family of plants; 'family': the do-no-harm benchmark's "
         "family (plant_emulator/family.py; closed loop only)",
     )
-    parser.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
-    parser.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
+    group.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
+    group.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
+    group.add_argument("--seed", type=int, default=0)
+    group.add_argument(
         "--burn-in", type=int, default=None, help="samples not scored (default: a fifth)"
     )
-    parser.add_argument("--excitation", choices=EXCITATIONS, default="steps")
-    parser.add_argument(
+    group.add_argument("--excitation", choices=EXCITATIONS, default="steps")
+
+
+def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("output")
+    group.add_argument(
         "--json",
         action="store_true",
         help="print JSON: one object, or a list of objects for 'all'",
     )
-    parser.add_argument("--plots", type=Path, metavar="DIR", help="write PNG figures here")
-    mode = parser.add_mutually_exclusive_group()
+    group.add_argument("--plots", type=Path, metavar="DIR", help="write PNG figures here")
+
+
+def _add_mode_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("experiment (default: identification)")
+    mode = group.add_mutually_exclusive_group()
     mode.add_argument(
         "--closed-loop",
         action="store_true",
@@ -74,47 +91,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mode.add_argument(
         "--bench", action="store_true", help="samples/s of identifier + inverse per channel"
     )
-    parser.add_argument(
+
+
+def _add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("closed loop")
+    group.add_argument(
         "--identify",
         type=int,
         default=1500,
         help="closed loop: open-loop samples before control starts (default 1500)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--step-every", type=int, default=800, help="closed loop: samples between setpoint steps"
     )
-    parser.add_argument(
+    group.add_argument(
         "--no-oracle",
         action="store_true",
         help="closed loop: skip the known-model oracle (an LP per sample: slow)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--plants",
         type=int,
         default=DEFAULT_PLANTS,
         help=f"scenarios random and family: plants per run (default {DEFAULT_PLANTS})",
     )
-    parser.add_argument(
+
+
+def _add_identification_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("identification")
+    group.add_argument(
         "--fit-split",
         type=int,
         default=None,
         help="identification: free-run fit and k-step NMSE after this sample (default: half)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--log",
         type=Path,
         metavar="FILE.mcap",
         help="identification on a log's recorded samples (a field import by its dives) "
         "instead of the emulator's plant",
     )
-    parser.add_argument(
+    group.add_argument(
         "--split",
         choices=("first", "alternate", "both"),
         default="first",
         help="--log of a field import: the first half of the dives trains, every other "
         "dive trains, or both (default first)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--horizon",
         type=int,
         default=None,

@@ -44,7 +44,22 @@ DEFAULT_MAVLINK = "udpin:127.0.0.1:14550"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
+    # One helper per topic, called in the order the flags appear in the usage line.
+    _add_link_arguments(parser)
+    _add_profile_arguments(parser)
+    _add_control_arguments(parser)
+    _add_log_arguments(parser)
+    _add_units_arguments(parser)
+    parser.add_argument("--duration", type=float, default=None, help="wall s, then exit")
+    _add_limits_arguments(parser)
+    _add_signing_arguments(parser)
+    add_foxglove_argument(parser)
+    add_zenoh_arguments(parser)
+
+
+def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MAVLink links and vehicles")
+    group.add_argument(
         "--mavlink",
         action="append",
         default=[],
@@ -53,14 +68,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default {DEFAULT_MAVLINK}); repeatable: UDP links 1, 2, … (a gateway each; "
         "docs/fleet.md)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--vehicle-ids",
         choices=VEHICLE_ID_MODES,
         default="sysid",
         help="sysid: a system id is one vehicle on every link (key id 7); link: each link "
         "has its own system ids, a vehicle is (link, system id) (key id 2-7; docs/zenoh.md)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--sysid",
         action="append",
         default=[],
@@ -68,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="vehicle system ids to serve: N, N-M or a comma list (repeatable; default: every "
         "vehicle on the link)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--max-vehicles",
         type=int,
         default=DEFAULT_MAX_VEHICLES,
@@ -77,35 +92,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "255 per link) (default %(default)s; stored in the log's configuration; a --sysid "
         "list is served whole)",
     )
-    parser.add_argument(
+
+
+def _add_profile_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("vehicle profile")
+    group.add_argument(
         "--profile",
         default=DEFAULT_PROFILE,
         help="vehicle profile: a built-in name (glider, ardusub) or a TOML file "
         "(docs/profiles.md; default %(default)s)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--sample-period",
         type=float,
         default=None,
         help="periodic profiles: s between samples on the vehicle's clock (default: the "
         "profile's)",
     )
-    parser.add_argument("--model", choices=U_MODELS, default="dynamic")
-    parser.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
-    control = parser.add_mutually_exclusive_group()
+
+
+def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("control and vehicle health")
+    group.add_argument("--model", choices=U_MODELS, default="dynamic")
+    group.add_argument("--seed", type=int, default=0, help="identifier initialisation seed")
+    control = group.add_mutually_exclusive_group()
     control.add_argument(
         "--control", dest="control", action="store_true", help="control enabled at start"
     )
     control.add_argument("--no-control", dest="control", action="store_false")
     parser.set_defaults(control=False)
-    parser.add_argument(
+    group.add_argument(
         "--lockstep",
         action="store_true",
         help="release every step to the vehicle from the start (docs/lockstep.md; default: "
         "when the vehicle announces lockstep)",
     )
-    parser.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
-    parser.add_argument(
+    group.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
+    group.add_argument(
         "--health-period",
         type=float,
         default=1.0,
@@ -113,40 +136,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="s between two health publications of one vehicle (default 1; a fleet at 1 Hz "
         "publishes as many health payloads as samples: docs/fleet.md)",
     )
-    parser.add_argument("--burn-in", type=int, default=None, help="samples before control")
-    parser.add_argument("--log-dir", default="logs", help="MCAP directory (default logs)")
-    parser.add_argument("--no-log", action="store_true", help="do not record MCAP")
-    parser.add_argument("--log-max-mb", type=float, default=256.0, help="rotate after this size")
-    parser.add_argument("--log-max-s", type=float, default=3600.0, help="rotate after this long")
-    units = parser.add_argument_group("units (default: the profile's)")
-    units.add_argument("--full-scale", type=float, default=None, help="model units at wire 1.0")
-    units.add_argument("--water-density", type=float, default=None, help="kg/m³")
-    units.add_argument("--surface-pressure", type=float, default=None, help="hPa")
-    parser.add_argument("--duration", type=float, default=None, help="wall s, then exit")
-    limits = parser.add_argument_group("limits (setpoints outside them are refused)")
-    limits.add_argument("--min-depth", type=float, default=None, help="shallowest setpoint, m")
-    limits.add_argument("--max-depth", type=float, default=None, help="deepest setpoint, m")
-    limits.add_argument("--max-pitch", type=float, default=None, help="largest |pitch|, rad")
-    limits.add_argument(
+    group.add_argument("--burn-in", type=int, default=None, help="samples before control")
+
+
+def _add_log_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MCAP log")
+    group.add_argument("--log-dir", default="logs", help="MCAP directory (default logs)")
+    group.add_argument("--no-log", action="store_true", help="do not record MCAP")
+    group.add_argument("--log-max-mb", type=float, default=256.0, help="rotate after this size")
+    group.add_argument("--log-max-s", type=float, default=3600.0, help="rotate after this long")
+
+
+def _add_units_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("units (default: the profile's)")
+    group.add_argument("--full-scale", type=float, default=None, help="model units at wire 1.0")
+    group.add_argument("--water-density", type=float, default=None, help="kg/m³")
+    group.add_argument("--surface-pressure", type=float, default=None, help="hPa")
+
+
+def _add_limits_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("limits (setpoints outside them are refused)")
+    group.add_argument("--min-depth", type=float, default=None, help="shallowest setpoint, m")
+    group.add_argument("--max-depth", type=float, default=None, help="deepest setpoint, m")
+    group.add_argument("--max-pitch", type=float, default=None, help="largest |pitch|, rad")
+    group.add_argument(
         "--max-ballast-rate",
         type=float,
         default=None,
         help="largest command change per step, model units (default: the actuator's 0.5)",
     )
-    security = parser.add_argument_group("MAVLink 2 signing")
-    security.add_argument(
+
+
+def _add_signing_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("MAVLink 2 signing")
+    group.add_argument(
         "--signing-key",
         metavar="FILE",
         help="key file (32 bytes or 64 hex digits, mode 600): sign commands, require signed "
         "telemetry",
     )
-    security.add_argument(
+    group.add_argument(
         "--accept-unsigned",
         action="store_true",
         help="with --signing-key: accept unsigned telemetry too (counted in health)",
     )
-    add_foxglove_argument(parser)
-    add_zenoh_arguments(parser)
 
 
 def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:

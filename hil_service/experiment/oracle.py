@@ -250,6 +250,77 @@ class OracleSettings:
             raise ValueError("disturbance_trend must be ≥ 0 (0: no trend)")
 
 
+def _responses(
+    plant: KnownPlant, horizon: int, blocks: tuple[int, ...]
+) -> tuple[Array, Array, Array]:
+    """For the outputs y(k+1+j), j = 0 … H−1: the free response rows C·A^j, the response to
+    a unit input held over each move block, and the blocks' first samples."""
+    p, n = plant, plant.order
+    # The impulse response h_0 = D, h_m = C A^{m−1} B.
+    free = np.empty((horizon, n))
+    impulse = np.empty(horizon)
+    impulse[0] = p.d
+    row = p.c.copy()
+    for j in range(horizon):
+        free[j] = row
+        if j + 1 < horizon:
+            impulse[j + 1] = float(row @ p.b)
+        row = row @ p.a
+    starts = np.cumsum((0, *blocks))[:-1]
+    ends = [*starts[1:], horizon]
+    step = np.cumsum(impulse)  # response to a unit step applied at j = 0
+    forced = np.zeros((horizon, len(starts)))
+    for b, (j0, j1) in enumerate(zip(starts, ends, strict=True)):
+        for j in range(j0, horizon):
+            # Σ_{i=j0}^{min(j, j1−1)} h_{j−i}
+            upper = step[j - j0]
+            lower = step[j - j1] if j >= j1 else 0.0
+            forced[j, b] = upper - lower
+    return free, forced, starts
+
+
+def _cost_rows(settings: OracleSettings, horizon: int) -> tuple[Array, Array]:
+    """The rows (j of y(k+1+j)) whose error is costed, and the samples each stands for.
+
+    y(k+1) is already decided. Every sample up to ``stride_from``, then every
+    ``cost_stride``-th one, each weighted by the samples it stands for.
+    """
+    s = settings
+    dense = np.arange(1, min(max(s.stride_from, 1), horizon))
+    sparse = np.arange(dense[-1] + 1 if dense.size else 1, horizon, s.cost_stride)
+    cost_rows = np.concatenate((dense, sparse))
+    spans = np.concatenate((np.ones(dense.size), np.full(sparse.size, s.cost_stride)))
+    return cost_rows, spans
+
+
+def _constraint_matrix(forced: Array, nb: int, nt: int, moves: bool) -> Array:
+    """A of the LP's A x ≤ b over (V, t[, m]), two rows per bound: |forced·V − gap| ≤ t on
+    the tracking rows, |V_b − V_{b−1}| within the rate limit, and with a move weight
+    |V_b − V_{b−1}| ≤ m_b."""
+    nm = nb if moves else 0
+    eye_t = np.eye(nt)
+    diff = np.eye(nb) - np.eye(nb, k=-1)  # V_b − V_{b−1}; row 0 is V_0 (− v(k) in b_ub)
+    rows = [
+        np.hstack((forced, -eye_t, np.zeros((nt, nm)))),
+        np.hstack((-forced, -eye_t, np.zeros((nt, nm)))),
+        np.hstack((diff, np.zeros((nb, nt + nm)))),
+        np.hstack((-diff, np.zeros((nb, nt + nm)))),
+    ]
+    if moves:
+        rows += [
+            np.hstack((diff, np.zeros((nb, nt)), -np.eye(nb))),
+            np.hstack((-diff, np.zeros((nb, nt)), -np.eye(nb))),
+        ]
+    return np.vstack(rows)
+
+
+def _steepest_pump_slope(plant: KnownPlant) -> float:
+    """Steepest slope of the pump map, so that the rate limit holds in v as well."""
+    grid = np.linspace(-plant.u_limit, plant.u_limit, 401)
+    values = np.array([plant.pump(float(u)) for u in grid])
+    return max(float(np.max(np.diff(values) / np.diff(grid))), 1e-9)
+
+
 @dataclass
 class OracleController:
     """Receding-horizon LP control of one channel of a known plant."""
@@ -263,33 +334,8 @@ class OracleController:
     def __post_init__(self) -> None:
         p, s = self.plant, self.settings
         n, horizon = p.order, s.horizon
-        # Free response rows C·A^j (j = 0 … H−1) and the impulse response h_0 = D,
-        # h_m = C A^{m−1} B, for the outputs y(k+1+j).
-        free = np.empty((horizon, n))
-        impulse = np.empty(horizon)
-        impulse[0] = p.d
-        row = p.c.copy()
-        for j in range(horizon):
-            free[j] = row
-            if j + 1 < horizon:
-                impulse[j + 1] = float(row @ p.b)
-            row = row @ p.a
-        starts = np.cumsum((0, *s.blocks))[:-1]
-        ends = [*starts[1:], horizon]
-        step = np.cumsum(impulse)  # response to a unit step applied at j = 0
-        forced = np.zeros((horizon, len(starts)))
-        for b, (j0, j1) in enumerate(zip(starts, ends, strict=True)):
-            for j in range(j0, horizon):
-                # Σ_{i=j0}^{min(j, j1−1)} h_{j−i}
-                upper = step[j - j0]
-                lower = step[j - j1] if j >= j1 else 0.0
-                forced[j, b] = upper - lower
-        # y(k+1) is already decided. Every sample up to ``stride_from``, then every
-        # ``cost_stride``-th one, each weighted by the samples it stands for.
-        dense = np.arange(1, min(max(s.stride_from, 1), horizon))
-        sparse = np.arange(dense[-1] + 1 if dense.size else 1, horizon, s.cost_stride)
-        cost_rows = np.concatenate((dense, sparse))
-        spans = np.concatenate((np.ones(dense.size), np.full(sparse.size, s.cost_stride)))
+        free, forced, starts = _responses(p, horizon, s.blocks)
+        cost_rows, spans = _cost_rows(s, horizon)
         self._free = free[cost_rows]
         self._ahead = cost_rows + 1.0  # samples from k to each costed output
         self._forced = forced[cost_rows]
@@ -302,20 +348,7 @@ class OracleController:
         nm = nb if self._moves else 0
         weights = spans * np.power(s.discount, cost_rows.astype(float))
         cost = np.concatenate((np.zeros(nb), weights, np.full(nm, s.move_weight)))
-        eye_t = np.eye(nt)
-        diff = np.eye(nb) - np.eye(nb, k=-1)  # V_b − V_{b−1}; row 0 is V_0 (− v(k) in b_ub)
-        rows = [
-            np.hstack((self._forced, -eye_t, np.zeros((nt, nm)))),
-            np.hstack((-self._forced, -eye_t, np.zeros((nt, nm)))),
-            np.hstack((diff, np.zeros((nb, nt + nm)))),
-            np.hstack((-diff, np.zeros((nb, nt + nm)))),
-        ]
-        if self._moves:
-            rows += [
-                np.hstack((diff, np.zeros((nb, nt)), -np.eye(nb))),
-                np.hstack((-diff, np.zeros((nb, nt)), -np.eye(nb))),
-            ]
-        self._a_ub = np.vstack(rows)
+        self._a_ub = _constraint_matrix(self._forced, nb, nt, self._moves)
         self._hold_gain = self._forced.sum(axis=1)  # the outputs' response to a held input
         self._dc_gain = float(p.c @ np.linalg.solve(np.eye(n) - p.a, p.b)) + p.d
         if s.terminal and abs(self._dc_gain) < 1e-12:
@@ -328,10 +361,7 @@ class OracleController:
             np.concatenate((np.full(nb, -INF), np.zeros(nt + nm))),
             np.full(nb + nt + nm, INF),
         )
-        # Steepest slope of the pump map, so that the rate limit holds in v as well.
-        grid = np.linspace(-p.u_limit, p.u_limit, 401)
-        values = np.array([p.pump(float(u)) for u in grid])
-        self._slope = max(float(np.max(np.diff(values) / np.diff(grid))), 1e-9)
+        self._slope = _steepest_pump_slope(p)
         self._reach = p.rate_limit * (starts.astype(float) + 1.0)
         # The right-hand side, refilled per solve; the rows that never change set once.
         self._rate = p.rate_limit * self._slope

@@ -50,7 +50,7 @@ RAW_ENCODING = "mavlink2"
 CONFIG_METADATA = "glider-hil.config"
 PROFILE = "glider-hil"
 POLL_INTERVAL = 0.02  # s between two looks at the sealed chunks by the writer thread
-CHUNK_BYTES = 1 << 20  # a producer seals the open chunk when it grows past this
+CHUNK_BYTES = 1 << 20  # the default chunk_bytes
 
 
 def _now_if_none(t_ns: int | None) -> int:
@@ -97,10 +97,14 @@ class McapRecorder:
         compression: CompressionType = CompressionType.ZSTD,
         retry_interval: float = 2.0,
         clock: Callable[[], float] = time.monotonic,
+        chunk_bytes: int = CHUNK_BYTES,
     ):
         """``retry_interval``: s after disk trouble before a new file is tried. ``clock``
         (monotonic s) times the retry and ``max_seconds`` rotation; tests pass a simulated
-        one. The writer's flush schedule always runs on the real monotonic clock."""
+        one. The writer's flush schedule always runs on the real monotonic clock.
+        ``chunk_bytes``: a producer seals the open chunk once it holds this many bytes (a
+        test sets it small, and ``flush_interval`` long, for a file of many chunks whose
+        boundaries do not depend on timing)."""
         self.log_dir = Path(log_dir)
         self.metadata = metadata or {}
         self.max_bytes = max_bytes
@@ -110,6 +114,7 @@ class McapRecorder:
         self.compression = compression
         self.retry_interval = retry_interval
         self._clock = clock
+        self.chunk_bytes = chunk_bytes
         self.status = RecorderStatus()
         self._lock = threading.Lock()  # guards everything below up to _closed, and status
         self._builder = ChunkBuilder()
@@ -182,7 +187,7 @@ class McapRecorder:
             if channel is None:
                 channel = self._channels[route] = self._register(builder, route)
             builder.add_message(channel, t_ns, data)
-            if builder.size < CHUNK_BYTES:
+            if builder.size < self.chunk_bytes:
                 return
             self._seal_locked()
         self._wake.set()
@@ -192,7 +197,7 @@ class McapRecorder:
         """Records in sealed chunks that the writer thread has not written yet.
 
         The open chunk is not counted: it is sealed on time or when it reaches
-        ``CHUNK_BYTES``, whichever comes first.
+        ``chunk_bytes``, whichever comes first.
         """
         return self._backlog
 

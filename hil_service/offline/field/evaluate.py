@@ -495,56 +495,17 @@ def identify_dives(
     ``extra_models``: more online models scored beside ``model_name`` (name → a factory
     given the channel's seed), as ``glider-hil experiment --log`` adds the paper's preset.
     """
-    segments = [s for s in arrays.segments if s.stop - s.start >= 2]
-    if len({s.dive for s in segments}) < 2:
-        # One file holding several yos (a Slocum segment file): its segments are the dives.
-        segments = [Segment(i, s.start, s.stop) for i, s in enumerate(segments)]
-    dives = sorted({s.dive for s in segments})
-    if len(dives) < 2:
-        raise ValueError(f"at least two dives are needed to hold one out, got {len(dives)}")
-    if split == "first":
-        n_train = min(len(dives) - 1, max(1, math.ceil(train_fraction * len(dives))))
-        train_dives, held_dives = dives[:n_train], dives[n_train:]
-    elif split == "alternate":
-        train_dives, held_dives = dives[0::2], dives[1::2]
-    else:
-        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
-    train = [s for s in segments if s.dive in train_dives]
-    held = [s for s in segments if s.dive in held_dives]
+    train_dives, held_dives, train, held = _split_dives(arrays, train_fraction, split)
     horizon = max(2, round(horizon_s / arrays.period))
     figure = max(held, key=lambda s: s.stop - s.start) if held else None
     results = []
     for i, channel in enumerate(CHANNEL_INPUT):
-        y, u = arrays.output(channel), arrays.input(channel)
         options = (model_options or {}).get(channel, {})
-        built: list[tuple[str, OneStepModel]] = [
-            ("persistence", PersistenceModel()),
-            ("rls-arx", build_model("rls-arx")),
-            (model_name, build_model(model_name, seed=seed * 2 + i, **options)),
-        ]
-        built += [
-            (name, make(seed * 2 + i))
-            for name, make in (extra_models or {}).items()
-            if name not in dict(built)
-        ]
+        built = _online_models(model_name, options, seed * 2 + i, extra_models)
         sync = max(m.history_length for _, m in built) + 1
-        models: list[ModelResult] = []
-        for name, model in built:
-            result = ModelResult(name)
-            _train_online(model, y, u, train)
-            _score(
-                result, _online_runner(model, y, u, sync, horizon), y, held, sync, figure, horizon
-            )
-            models.append(result)
-        physical = PHYSICAL[channel]
-        result = ModelResult(physical)
-        try:
-            make = _glide_runner if channel == "depth" else _static_runner
-            run, result.parameters = make(arrays, train, horizon, sync)
-            _score(result, run, y, held, sync, figure, horizon)
-        except ValueError as error:
-            result.why = str(error)
-        models.append(result)
+        y = arrays.output(channel)
+        models = _score_online(built, y, arrays.input(channel), train, held, horizon, sync, figure)
+        models.append(_physical(channel, arrays, y, train, held, horizon, sync, figure))
         if channel == "depth":
             models.append(_buoyancy_only(arrays, train, held, horizon, sync, figure))
             glide = _glide_u(arrays, train, held, horizon, sync, figure, glide_options or {})
@@ -562,3 +523,87 @@ def identify_dives(
             )
         )
     return results
+
+
+def _split_dives(
+    arrays: Arrays, train_fraction: float, split: str
+) -> tuple[list[int], list[int], list[Segment], list[Segment]]:
+    """The training and held-out dives, and their segments, as ``split`` says."""
+    segments = [s for s in arrays.segments if s.stop - s.start >= 2]
+    if len({s.dive for s in segments}) < 2:
+        # One file holding several yos (a Slocum segment file): its segments are the dives.
+        segments = [Segment(i, s.start, s.stop) for i, s in enumerate(segments)]
+    dives = sorted({s.dive for s in segments})
+    if len(dives) < 2:
+        raise ValueError(f"at least two dives are needed to hold one out, got {len(dives)}")
+    if split == "first":
+        n_train = min(len(dives) - 1, max(1, math.ceil(train_fraction * len(dives))))
+        train_dives, held_dives = dives[:n_train], dives[n_train:]
+    elif split == "alternate":
+        train_dives, held_dives = dives[0::2], dives[1::2]
+    else:
+        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
+    train = [s for s in segments if s.dive in train_dives]
+    held = [s for s in segments if s.dive in held_dives]
+    return train_dives, held_dives, train, held
+
+
+def _online_models(
+    model_name: str,
+    options: dict[str, Any],
+    seed: int,
+    extra_models: dict[str, Callable[[int], OneStepModel]] | None,
+) -> list[tuple[str, OneStepModel]]:
+    """A channel's online models, untrained: persistence, RLS-ARX, ``model_name`` and the
+    extra ones (a name already taken is not built twice)."""
+    built: list[tuple[str, OneStepModel]] = [
+        ("persistence", PersistenceModel()),
+        ("rls-arx", build_model("rls-arx")),
+        (model_name, build_model(model_name, seed=seed, **options)),
+    ]
+    built += [
+        (name, make(seed)) for name, make in (extra_models or {}).items() if name not in dict(built)
+    ]
+    return built
+
+
+def _score_online(
+    built: list[tuple[str, OneStepModel]],
+    y: np.ndarray,
+    u: np.ndarray,
+    train: list[Segment],
+    held: list[Segment],
+    horizon: int,
+    sync: int,
+    figure: Segment | None,
+) -> list[ModelResult]:
+    """Each online model trained on the training dives, then scored on the held-out ones."""
+    models: list[ModelResult] = []
+    for name, model in built:
+        result = ModelResult(name)
+        _train_online(model, y, u, train)
+        _score(result, _online_runner(model, y, u, sync, horizon), y, held, sync, figure, horizon)
+        models.append(result)
+    return models
+
+
+def _physical(
+    channel: str,
+    arrays: Arrays,
+    y: np.ndarray,
+    train: list[Segment],
+    held: list[Segment],
+    horizon: int,
+    sync: int,
+    figure: Segment | None,
+) -> ModelResult:
+    """The channel's first-principles baseline (``PHYSICAL``), fitted and scored; its
+    ``why`` says so when the fit is impossible."""
+    result = ModelResult(PHYSICAL[channel])
+    try:
+        make = _glide_runner if channel == "depth" else _static_runner
+        run, result.parameters = make(arrays, train, horizon, sync)
+        _score(result, run, y, held, sync, figure, horizon)
+    except ValueError as error:
+        result.why = str(error)
+    return result
