@@ -47,10 +47,14 @@ def _legs(log: Path, split: str) -> dict:
     sync = depth.sync
     horizon = depth.horizon
     steady, _ = ev._glide_runner(arrays, train, horizon, sync)
+    choice = glide.parameters["structure_choice"]
     model = GlideUModel(
         u_scale=arrays.full_scale,
-        degree=glide.parameters["structure_choice"]["degree"],
-        drift=glide.parameters["structure_choice"]["drift"],
+        feature=choice["feature"],
+        degree=choice["degree"],
+        drift=choice["drift"],
+        v0=glide.parameters.get("v0", 0.0),
+        c_p=glide.parameters.get("c_p", 0.0),
     )
     runners = {
         "steady-glide": steady,

@@ -49,12 +49,34 @@ def test_glide_u_model_scored_with_the_others_and_beats_the_single_input_one(
     ]
     glide = models["glide-u"]
     assert glide.fit is not None and glide.skill is not None and glide.k_step_nmse is not None
-    assert glide.trace is not None and set(glide.parameters) >= {"beta_0", "gamma", "structure"}
-    # The measured pitch is what the single-input U-model lacks: on both slices the
-    # two-input model's free run is at least 10 points better.
+    assert glide.trace is not None and set(glide.parameters) >= {"beta_1", "structure"}
+    # The parameters are those of the structure chosen: the buoyancy input's β₀ and γ, or
+    # the flight model's v₀ and c_p beneath the steady-glide input's polynomial.
+    feature = glide.parameters["structure_choice"]["feature"]
+    own = {"beta_0", "gamma"} if feature == "buoyancy" else {"v0", "c_p"}
+    assert set(glide.parameters) >= own
+    assert glide.parameters["structure"].startswith(feature)
+    # The measured pitch is what the single-input U-model lacks.
     assert models["dynamic"].fit is not None
-    assert glide.fit > models["dynamic"].fit + 10.0
+    assert glide.fit > models["dynamic"].fit
     assert glide.fit > models["persistence"].fit  # type: ignore[operator]
+
+
+def test_the_steady_glide_input_of_degree_one_free_runs_as_the_flight_model(
+    arrays: Arrays,
+) -> None:
+    # Trained online (RLS) where the flight model is fitted by least squares, on the same
+    # training dives with the flight model's v₀ and c_p: the same free run.
+    options = {"feature": "steady-glide", "degree": 1, "drift": False}
+    depth = identify_dives(arrays, glide_options=options)[0]
+    models = {m.model: m for m in depth.models}
+    glide, flight = models["glide-u"], models["steady-glide"]
+    assert glide.parameters["v0"] == flight.parameters["v0"]
+    assert glide.parameters["c_p"] == flight.parameters["c_p"]
+    assert glide.parameters["beta_1"] == pytest.approx(
+        -flight.parameters["k"] * arrays.period, rel=0.01
+    )
+    assert glide.fit == pytest.approx(flight.fit, abs=0.5)
 
 
 def test_alternate_split_holds_out_every_other_dive(arrays: Arrays) -> None:

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from hil_service.umodel import build_model
-from hil_service.umodel.glide_umodel import GlideUModel
+from hil_service.umodel.glide_umodel import GlideUModel, steady_glide_feature
+from hil_service.umodel.steady_glide import SteadyGlide
 
 DT = 10.0
 
@@ -144,3 +145,47 @@ def test_without_drift_one_parameter_less_and_rebuilt_from_its_config() -> None:
     _train(again, u, pitch, z)
     assert again.parameters == model.parameters
     assert len(GlideUModel(degree=2).parameters) == 5
+
+
+def test_the_steady_glide_input_of_degree_one_is_the_flight_model() -> None:
+    # With the plant's v₀ and c_p, degree 1 without drift learns β₁ = −k·Δt and then
+    # predicts the flight model's depth step for step.
+    u, pitch, z = _glider(8)
+    model = GlideUModel(feature="steady-glide", degree=1, drift=False, v0=0.1, c_p=2e-4)
+    _train(model, u, pitch, z)
+    assert model.parameters == pytest.approx((-0.25 * DT,), rel=1e-3)
+    law = SteadyGlide(k=0.25, v0=0.1, c_p=2e-4, rms=0.0, samples=0)
+    tu, tp, tz = _glider(9, 400)
+    model.observe_only(float(tu[0]), float(tz[0]), float(tp[0]))
+    for t in range(1, tz.size):
+        expected = law.step(float(tz[t - 1]), float(tu[t - 1]), float(tp[t - 1]), DT)
+        assert model.predict(float(tu[t - 1]), float(tp[t - 1])) == pytest.approx(
+            expected, abs=1e-3
+        )
+        model.observe_only(float(tu[t - 1]), float(tz[t]), float(tp[t - 1]))
+
+
+def test_steady_glide_input_alpha_config_and_parameters() -> None:
+    u, pitch, z = _glider(10, 400)
+    model = GlideUModel(feature="steady-glide", degree=3, v0=0.05, c_p=1e-4)
+    assert len(model.parameters) == 3 + 1  # β₁..β₃, c
+    assert len(GlideUModel(feature="steady-glide", degree=3, drift=False).parameters) == 3
+    _train(model, u[:-1], pitch[:-1], z[:-1])
+    estimate = model.step(float(u[-2]), float(z[-1]), float(pitch[-2]))
+    a0, *poly = estimate.alpha
+    g = steady_glide_feature(float(u[-2]), float(pitch[-2]), float(z[-2]), 0.05, 1e-4)
+    assert a0 + sum(a * g ** (m + 1) for m, a in enumerate(poly)) == pytest.approx(
+        estimate.y_hat, rel=1e-12, abs=1e-9
+    )
+    cfg = model.config()
+    assert cfg.pop("name") == "glide-u"
+    assert (cfg["feature"], cfg["v0"], cfg["c_p"]) == ("steady-glide", 0.05, 1e-4)
+    again = GlideUModel(**cfg)
+    _train(again, u[:-1], pitch[:-1], z[:-1])
+    assert again.step(float(u[-2]), float(z[-1]), float(pitch[-2])) == estimate
+
+
+@pytest.mark.parametrize("bad", [{"feature": "pitch"}, {"v0": math.inf}, {"c_p": math.nan}])
+def test_invalid_feature_options_raise(bad: dict) -> None:
+    with pytest.raises(ValueError):
+        GlideUModel(**bad)

@@ -6,23 +6,42 @@ model of :mod:`.steady_glide`, Graver 2005 ch. 3, Merckelbach et al. 2010)
 
     ż = −k · sign(b) · √|b| · |sin θ|^{3/2},   b = u − v₀ − c_p·z.
 
-This model keeps the U-model's structure, a polynomial in the control input u(t−1) whose
-coefficients vary with time, and lets the pitch set them, as the flight model does::
+This model keeps the U-model's structure, a polynomial in its input whose coefficients
+vary with time, and depth integrates with a unit coefficient on y(t−1). Its input is one
+of two (``feature``):
 
-    y(t) = α₀(t) + Σ_{m=1..M} α_m(t) · x(t−1)^m,          x = u / u_scale,
-    α_m(t) = β_m · s(t−1),                                 s = |sin θ|^{3/2},
-    α₀(t) = y(t−1) + c + β₀ · s(t−1) + γ · s(t−1) · ζ(t−1),  ζ = y / y_scale.
+* ``"buoyancy"``: the buoyancy input x = u / u_scale, the pitch setting the coefficients as
+  the flight model does::
 
-(c only with ``drift=True``, the default; the degree M and the drift are the structure,
-chosen per data set on its training dives by ``offline/field/structure.py``.)
+      y(t) = α₀(t) + Σ_{m=1..M} α_m(t) · x(t−1)^m,
+      α_m(t) = β_m · s(t−1),                                 s = |sin θ|^{3/2},
+      α₀(t) = y(t−1) + c + β₀ · s(t−1) + γ · s(t−1) · ζ(t−1),  ζ = y / y_scale.
 
-The polynomial β₀ + Σ β_m x^m stands for sign(b)·√|b| (the neutral volume v₀ in β₀ and the
-lower powers, the sign change and the square root in the odd and even powers), γ·ζ for the
-hull's compression with depth (c_p), c for a steady vertical drift. Depth is the integral of
-the vertical speed, so the output enters as y(t−1) with a unit coefficient (an integrator
-from physics, not a fitted a₁ ≈ 1 whose error would grow over a thousand-metre free run).
-Every term is linear in θ = [β₁..β_M, β₀, (c,) γ]: recursive least squares with forgetting
-(``ListRLS``, plain floats in a fixed order: deterministic, no random initialisation).
+  The polynomial β₀ + Σ β_m x^m stands for sign(b)·√|b| (the neutral volume v₀ in β₀ and the
+  lower powers, the sign change and the square root in the odd and even powers), γ·ζ for
+  the hull's compression with depth (c_p);
+
+* ``"steady-glide"``: the flight model's own regressor g = sign(b)·√|b|·|sin θ|^{3/2},
+  b = u − v₀ − c_p·y, with the neutral volume v₀ (input units) and c_p (per metre) given
+  (the least-squares flight model's, :func:`.steady_glide.fit_steady_glide`, fitted on the
+  same training samples before the model learns)::
+
+      y(t) = α₀(t) + Σ_{m=1..M} α_m(t) · g(t−1)^m,   α_m = β_m,   α₀(t) = y(t−1) + c.
+
+  Of degree 1 without the drift it is the flight model (β₁ = −k·Δt); the higher powers
+  are how far the measured depth rate departs from the square-root law on this glider (a
+  glide angle that is not the pitch, a drag coefficient that varies with speed, a buoyancy
+  that varies with depth otherwise than linearly), learnt as the U-model learns its
+  polynomial.
+
+c, a steady vertical drift, only with ``drift=True`` (the default). The feature, the degree
+M and the drift are the structure, chosen per data set on its training dives by
+``offline/field/structure.py``. Depth is the integral of the vertical speed, so the output
+enters as y(t−1) with a unit coefficient (an integrator from physics, not a fitted a₁ ≈ 1
+whose error would grow over a thousand-metre free run). Every term is linear in the
+parameters θ (``buoyancy``: [β₁..β_M, β₀, (c,) γ]; ``steady-glide``: [β₁..β_M, (c)]):
+recursive least squares with forgetting (``ListRLS``, plain floats in a fixed order:
+deterministic, no random initialisation).
 
 Inputs: ``step(u_prev, y, pitch_prev)`` with u_prev = u(t−1), the buoyancy input applied
 before y(t) was measured, and pitch_prev = θ(t−1) in radians, the pitch measured then
@@ -45,14 +64,23 @@ from .models import Estimate, Status
 from .reproducible import dot
 from .rls import ListRLS
 
-__all__ = ["GlideUModel", "glide_factor", "glide_regressor"]
+__all__ = ["FEATURES", "GlideUModel", "glide_factor", "glide_regressor", "steady_glide_feature"]
 
 _isfinite = math.isfinite
+
+#: The model's input: the buoyancy input scaled by the pitch, or the flight model's regressor.
+FEATURES = ("buoyancy", "steady-glide")
 
 
 def glide_factor(pitch: float) -> float:
     """|sin θ|^{3/2}, the flight model's pitch dependence of the vertical speed."""
     return abs(math.sin(pitch)) ** 1.5
+
+
+def steady_glide_feature(u: float, pitch: float, y: float, v0: float, c_p: float) -> float:
+    """g = sign(b)·√|b|·|sin θ|^{3/2}, b = u − v₀ − c_p·y: the flight model's ż = −k·g."""
+    b = u - v0 - c_p * y
+    return math.copysign(math.sqrt(abs(b)), b) * glide_factor(pitch)
 
 
 def glide_regressor(
@@ -63,8 +91,24 @@ def glide_regressor(
     u_scale: float,
     y_scale: float,
     drift: bool = True,
+    feature: str = "buoyancy",
+    v0: float = 0.0,
+    c_p: float = 0.0,
 ) -> list[float]:
-    """φ(t) of ŷ(t) − y(t−1) = θ·φ(t) from u = u(t−1), pitch = θ(t−1), y = y(t−1)."""
+    """φ(t) of ŷ(t) − y(t−1) = θ·φ(t) from u = u(t−1), pitch = θ(t−1), y = y(t−1).
+
+    ``feature="steady-glide"``: [g, g², …, g^M, (1)] with g = ``steady_glide_feature``
+    (``u_scale`` and ``y_scale`` unused); else the buoyancy input's regressor."""
+    if feature == "steady-glide":
+        g = steady_glide_feature(u, pitch, y, v0, c_p)
+        phi = []
+        p = 1.0
+        for _ in range(degree):
+            p *= g
+            phi.append(p)
+        if drift:
+            phi.append(1.0)
+        return phi
     s = glide_factor(pitch)
     x = u / u_scale
     phi = []
@@ -93,6 +137,9 @@ class GlideUModel:
         lam: float = 0.9999,
         p0: float = 1000.0,
         drift: bool = True,
+        feature: str = "buoyancy",
+        v0: float = 0.0,
+        c_p: float = 0.0,
         guard: GuardConfig | dict[str, Any] | None = None,
     ) -> None:
         if int(degree) != degree or degree < 1:
@@ -100,12 +147,23 @@ class GlideUModel:
         for label, value in (("u_scale", u_scale), ("y_scale", y_scale)):
             if not (isinstance(value, int | float) and _isfinite(value) and value > 0.0):
                 raise ValueError(f"{label} must be finite and > 0, got {value!r}")
+        if feature not in FEATURES:
+            raise ValueError(f"feature must be one of {FEATURES}, got {feature!r}")
+        for label, value in (("v0", v0), ("c_p", c_p)):
+            if not (isinstance(value, int | float) and _isfinite(value)):
+                raise ValueError(f"{label} must be finite, got {value!r}")
         self.guard = GuardConfig.coerce(guard)
         self.degree = int(degree)
         self.u_scale = float(u_scale)
         self.y_scale = float(y_scale)
         self.drift = bool(drift)
-        n = self.degree + (3 if self.drift else 2)
+        self.feature = feature
+        self.v0 = float(v0)
+        self.c_p = float(c_p)
+        if feature == "steady-glide":
+            n = self.degree + (1 if self.drift else 0)
+        else:
+            n = self.degree + (3 if self.drift else 2)
         self.rls = ListRLS(n, lam, p0)
         self._monitor = DivergenceMonitor(self.guard)
         self._theta: list[float] = [0.0] * n
@@ -121,7 +179,16 @@ class GlideUModel:
     # ---- the regressor -----------------------------------------------------------------
     def _regressor(self, u: float, pitch: float) -> list[float]:
         return glide_regressor(
-            u, pitch, self._y_last, self.degree, self.u_scale, self.y_scale, self.drift
+            u,
+            pitch,
+            self._y_last,
+            self.degree,
+            self.u_scale,
+            self.y_scale,
+            self.drift,
+            self.feature,
+            self.v0,
+            self.c_p,
         )
 
     def _valid(self, u: float, pitch: float) -> bool:
@@ -147,7 +214,8 @@ class GlideUModel:
 
     @property
     def parameters(self) -> tuple[float, ...]:
-        """θ = (β₁..β_M, β₀, c, γ), without c when ``drift`` is off."""
+        """θ = (β₁..β_M, β₀, c, γ) (``buoyancy``) or (β₁..β_M, c) (``steady-glide``),
+        without c when ``drift`` is off."""
         return tuple(self._theta)
 
     def predict(self, u_prev: float, pitch_prev: float) -> float:
@@ -231,6 +299,9 @@ class GlideUModel:
             "lam": self.rls.lam,
             "p0": self.rls.p0,
             "drift": self.drift,
+            "feature": self.feature,
+            "v0": self.v0,
+            "c_p": self.c_p,
             "guard": self.guard.to_dict(),
         }
 
@@ -249,13 +320,20 @@ class GlideUModel:
 
     # ---- internals ---------------------------------------------------------------------
     def _alpha(self, u: float, pitch: float, y_hat: float) -> tuple[float, ...]:
-        """(α₀, α₁..α_M) that produced ``y_hat``: y_hat = α₀ + Σ α_m u^m."""
-        s = glide_factor(pitch)
-        poly = [self._theta[m] * s / self.u_scale ** (m + 1) for m in range(self.degree)]
+        """(α₀, α₁..α_M) that produced ``y_hat``: y_hat = α₀ + Σ α_m w^m, w the input u
+        (``buoyancy``) or g = ``steady_glide_feature`` of u, the pitch and y(t−1)
+        (``steady-glide``)."""
+        if self.feature == "steady-glide":
+            w = steady_glide_feature(u, pitch, self._y_last, self.v0, self.c_p)
+            poly = list(self._theta[: self.degree])
+        else:
+            w = u
+            s = glide_factor(pitch)
+            poly = [self._theta[m] * s / self.u_scale ** (m + 1) for m in range(self.degree)]
         a0 = y_hat
         p = 1.0
         for a in poly:
-            p *= u
+            p *= w
             a0 -= a * p
         return (a0, *poly)
 

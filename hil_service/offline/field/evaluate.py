@@ -14,9 +14,11 @@ Models per channel (depth: buoyancy input; pitch: pitch input):
   buoyancy input; |pitch| held at its training mean), which says how much of the physical
   model's lead is the measured pitch;
 * for depth, ``glide-u`` (``hil_service.umodel.glide_umodel``): the U-model given what the
-  flight model is given, the buoyancy input and the measured pitch, its polynomial in the
-  buoyancy input scaled by |sin θ|^{3/2}; trained online on the training dives like the
-  single-input U-model.
+  flight model is given, the buoyancy input and the measured pitch, its polynomial either
+  in the buoyancy input scaled by |sin θ|^{3/2} or in the flight model's regressor
+  sign(b)·√|b|·|sin θ|^{3/2} (v₀ and c_p those of the flight model fitted on the training
+  dives), the input, degree and drift chosen on the training dives (``structure``);
+  trained online on the training dives like the single-input U-model.
 
 The dives are split as ``split`` says (``SPLITS``): the first ``train_fraction`` of them for
 training by default, or every other one.
@@ -59,7 +61,7 @@ from hil_service.offline.field.structure import Piece, choose_structure, label
 from hil_service.umodel import OneStepModel, PersistenceModel, build_model
 from hil_service.umodel.glide_umodel import GlideUModel
 from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
-from hil_service.umodel.steady_glide import fit_static_pitch, fit_steady_glide
+from hil_service.umodel.steady_glide import SteadyGlide, fit_static_pitch, fit_steady_glide
 
 CHANNEL_INPUT = {"depth": "u_depth", "pitch": "u_pitch"}
 EXCITATION_STD = 0.02
@@ -252,16 +254,23 @@ def _online_runner(
     return run
 
 
-def _glide_runner(
-    arrays: Arrays, train: list[Segment], horizon: int, sync: int
-) -> tuple[Runner, dict]:
+def _steady_glide(arrays: Arrays, train: list[Segment]) -> SteadyGlide:
+    """The flight model fitted by least squares on the training segments' depth rate."""
     dt = arrays.period
     z, b, th = arrays.depth, arrays.u_depth, arrays.pitch
     rate = np.concatenate([np.diff(z[s.start : s.stop]) / dt for s in train])
     b_in, th_in, z_in = (
         np.concatenate([a[s.start : s.stop - 1] for s in train]) for a in (b, th, z)
     )
-    model = fit_steady_glide(rate, b_in, th_in, z_in, (-arrays.full_scale, arrays.full_scale))
+    return fit_steady_glide(rate, b_in, th_in, z_in, (-arrays.full_scale, arrays.full_scale))
+
+
+def _glide_runner(
+    arrays: Arrays, train: list[Segment], horizon: int, sync: int
+) -> tuple[Runner, dict]:
+    dt = arrays.period
+    z, b, th = arrays.depth, arrays.u_depth, arrays.pitch
+    model = _steady_glide(arrays, train)
 
     def run(s: Segment) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         zz, bb, tt = z[s.start : s.stop], b[s.start : s.stop], th[s.start : s.stop]
@@ -354,7 +363,7 @@ def _glide_u(
 ) -> ModelResult:
     options = dict(options)
     choice = None
-    if "degree" not in options and "drift" not in options:
+    if not {"feature", "degree", "drift"} & set(options):
         pieces = [
             Piece(
                 s.dive,
@@ -367,14 +376,26 @@ def _glide_u(
         choice = choose_structure(
             pieces, sync, sync + horizon, arrays.full_scale, options.get("y_scale", 100.0)
         )
-        options.update(degree=choice.degree, drift=choice.drift)
-    model = GlideUModel(u_scale=arrays.full_scale, **options)
+        options.update(feature=choice.feature, degree=choice.degree, drift=choice.drift)
     result = ModelResult(GLIDE_U)
+    if options.get("feature") == "steady-glide" and not {"v0", "c_p"} <= set(options):
+        try:
+            flight = _steady_glide(arrays, train)
+        except ValueError as error:
+            result.why = f"no steady-glide input: {error}"
+            return result
+        options.update(v0=flight.v0, c_p=flight.c_p)
+    model = GlideUModel(u_scale=arrays.full_scale, **options)
     run = _glide_u_runner(model, arrays, train, sync, horizon)
-    names = [f"beta_{m + 1}" for m in range(model.degree)] + ["beta_0"]
-    names += ["c", "gamma"] if model.drift else ["gamma"]
+    names = [f"beta_{m + 1}" for m in range(model.degree)]
+    if model.feature == "steady-glide":
+        names += ["c"] if model.drift else []
+    else:
+        names += ["beta_0"] + (["c", "gamma"] if model.drift else ["gamma"])
     result.parameters = dict(zip(names, model.parameters, strict=True))
-    result.parameters["structure"] = label(model.degree, model.drift)
+    if model.feature == "steady-glide":
+        result.parameters.update(v0=model.v0, c_p=model.c_p)
+    result.parameters["structure"] = label(model.feature, model.degree, model.drift)
     if choice is not None:
         result.parameters["structure_choice"] = choice.as_dict()
     _score(result, run, arrays.depth, held, sync, figure, horizon)
@@ -491,7 +512,10 @@ def identify_dives(
 ) -> list[ChannelResult]:
     """Per channel: every model trained on the training dives and scored on the others.
 
-    ``glide_options``: options of ``GlideUModel`` (``u_scale`` is the log's full scale).
+    ``glide_options``: options of ``GlideUModel`` (``u_scale`` is the log's full scale;
+    with none of ``feature``, ``degree``, ``drift`` the structure is chosen on the training
+    dives; ``feature="steady-glide"`` without ``v0`` and ``c_p`` takes the flight model's,
+    fitted on the training dives).
     ``extra_models``: more online models scored beside ``model_name`` (name → a factory
     given the channel's seed), as ``glider-hil experiment --log`` adds the paper's preset.
     """
