@@ -10,6 +10,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from plant_emulator.arguments import autopilot_config, telemetry_mapping
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
@@ -23,7 +24,6 @@ from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, ProfileError, load_profile
 from protocols.samples import TelemetrySample
-from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
 # The one home of each default: the dataclasses the options configure.
@@ -275,19 +275,8 @@ def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
         seed=args.seed,
     )
     plant = _plant_from_args(args, profile)
-    config = AutopilotConfig(
-        system_id=args.sysid,
-        speed=args.speed,
-        duration=args.duration,
-        command_timeout=args.command_timeout,
-        fallback=args.fallback,
-        signing_key=None if args.signing_key is None else load_key(args.signing_key),
-        accept_unsigned_non_commands=args.accept_unsigned_non_commands,
-    )
-    mapping = TelemetryMapping(
-        pressure=PressureDepth(args.water_density, args.surface_pressure),
-        inputs=InputScale(args.full_scale),
-    )
+    config = autopilot_config(args, args.sysid)
+    mapping = telemetry_mapping(args)
     return _Vehicle(profile, plant, config, mapping, streams)
 
 

@@ -41,15 +41,14 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, AutopilotConfig
+from plant_emulator.arguments import autopilot_config, telemetry_mapping
+from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.gcs import count_heartbeat
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols import keys
-from protocols.mapping import TelemetryMapping, command_target_system, is_ballast_command
+from protocols.mapping import command_target_system, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
-from protocols.signing import load_key
-from protocols.units import InputScale, PressureDepth
 
 
 def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
@@ -300,19 +299,8 @@ def _autopilot(args: argparse.Namespace, system_id: int, seed: int, link: Vehicl
         ),
         system_id=system_id,
     )
-    config = AutopilotConfig(
-        system_id=system_id,
-        speed=args.speed,
-        duration=args.duration,
-        command_timeout=args.command_timeout,
-        fallback=args.fallback,
-        signing_key=None if args.signing_key is None else load_key(args.signing_key),
-        accept_unsigned_non_commands=args.accept_unsigned_non_commands,
-    )
-    mapping = TelemetryMapping(
-        pressure=PressureDepth(args.water_density, args.surface_pressure),
-        inputs=InputScale(args.full_scale),
-    )
+    config = autopilot_config(args, system_id)
+    mapping = telemetry_mapping(args)
     return TimedAutopilot(
         plant, link, build_channel_excitations(args.excitation, seed=seed), config, mapping
     )
