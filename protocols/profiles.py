@@ -23,7 +23,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
 
-from protocols.mavlink_io import MavMessage, dialect
+from protocols.mavlink_io import MavMessage, dialect, type_of
 from protocols.units import InputScale, PressureDepth
 
 if sys.version_info >= (3, 11):
@@ -217,7 +217,7 @@ class Profile:
 
     def readings(self, message: MavMessage) -> list[Reading]:
         """Every signal value ``message`` carries under this profile (unit-converted)."""
-        kind = message.get_type()
+        kind = type_of(message)
         found = []
         for name, rank, source in self._sources_by_message.get(kind, ()):
             raw = getattr(message, source.field)

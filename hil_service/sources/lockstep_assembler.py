@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
-from protocols.mavlink_io import MavMessage
+from protocols.mavlink_io import MavMessage, system_of, type_of
 from protocols.profiles import DEFAULT_PROFILE, Profile, clock_of, load_profile
 from protocols.samples import TelemetrySample, is_plausible
 
@@ -118,12 +118,12 @@ class SampleAssembler:
 
     def add(self, message: MavMessage) -> TelemetrySample | None:
         """Take one decoded message; return the sample it completes, if any."""
-        kind = message.get_type()
+        kind = type_of(message)
         clock = self._clocks.get(kind)
         if clock is None:
             return None
         stamp = int(getattr(message, clock[1])) // clock[0]
-        vehicle = self._vehicle(message.get_srcSystem())
+        vehicle = self._vehicle(system_of(message))
         if vehicle is None:
             return None
         if vehicle.last_emitted_ms is not None and stamp <= vehicle.last_emitted_ms:
@@ -155,7 +155,7 @@ class SampleAssembler:
                 vehicle.counters.incomplete += 1
             del vehicle.pending[older]
         vehicle.last_emitted_ms = stamp
-        sample = self._build(message.get_srcSystem(), stamp, pending)
+        sample = self._build(system_of(message), stamp, pending)
         if sample is None:
             vehicle.counters.invalid += 1
             self.refused_ms = stamp
