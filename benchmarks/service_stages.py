@@ -8,7 +8,7 @@ the interpreted path, in which the compiled modules' share is larger than when c
 (``bench_service.py`` prints the compiled rate and its gain). Read the shares, not the
 seconds.
 
-    .venv/bin/python benchmarks/service_stages.py [--samples 5000] [--top 15]
+    .venv/bin/python benchmarks/service_stages.py [--samples 5000] [--top 15] [--control]
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
         "assemble a sample",
         ("hil_service/sources/lockstep_assembler", "hil_service/sources/periodic_assembler",
          "hil_service/sources/sampler", "hil_service/sources/lockstep.py", "protocols/mapping",
-         "protocols/samples", "protocols/units",
+         "protocols/samples", "protocols/units", "protocols/readings",
          "hil_service/link_stats"),
     ),
     ("identify + control (the method)", ("hil_service/umodel", "hil_service/pipeline")),
@@ -85,10 +85,14 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--top", type=int, default=15, help="functions listed by own time")
+    parser.add_argument(
+        "--control", action="store_true",
+        help="control on with setpoints (bench_service.build_service): the controller decides",
+    )  # fmt: skip
     args = parser.parse_args()
     datagrams = bench_service.telemetry_datagrams(args.samples)
     with tempfile.TemporaryDirectory() as log_dir:
-        service, recorder, session = bench_service.build_service(log_dir)
+        service, recorder, session = bench_service.build_service(log_dir, args.control)
         try:
             profiler = cProfile.Profile(time.process_time)
             profiler.enable()
@@ -114,6 +118,7 @@ def main() -> int:
     total = sum(per_stage.values())
     result = {
         "modules": "interpreted (GLIDER_HIL_INTERPRETED=1)",
+        "control": args.control,
         "samples": samples,
         "profiled_cpu_s": round(total, 3),
         "profiled_us_per_sample": round(1e6 * total / max(samples, 1), 1),
