@@ -65,19 +65,32 @@ def rss_mib() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def build_service(log_dir: str) -> tuple[HilService, McapRecorder, object]:
-    """The service as ``serve`` builds it (interpreter tuning included), minus the link."""
-    config = ServiceConfig()
+#: ``--control``: the setpoints the controller is given (as the latency benchmark's).
+SETPOINTS = {"depth": 16.0, "pitch": 0.1}
+
+
+def build_service(log_dir: str, control: bool = False) -> tuple[HilService, McapRecorder, object]:
+    """The service as ``serve`` builds it (interpreter tuning included), minus the link.
+
+    ``control``: control enabled and both setpoints given before the first sample, so the
+    predictive controller decides (and publishes a command) for every sample once the
+    identifier qualifies, as ``serve --control`` with an operator's setpoints.
+    """
+    config = ServiceConfig(control_default=control)
     session = open_session(ZenohOptions())  # no peers: publications go nowhere, as fast as can be
     recorder = open_recorder(config, LogOptions(directory=log_dir), {"bench": "1"})
     assert recorder is not None
     wired = wire(config, session=session, recorder=recorder)
+    if control:
+        for channel, value in SETPOINTS.items():
+            wired.service.inbox.set_setpoint(1, channel, value)
     tune_for_service()
     return wired.service, recorder, session
 
 
-def bench_throughput(n: int, repeats: int) -> dict[str, object]:
-    """Each measurement ``repeats`` times on the same datagrams (a fresh service each time)."""
+def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, object]:
+    """Each measurement ``repeats`` times on the same datagrams (a fresh service each time);
+    ``control``: with the controller on (``build_service``)."""
     datagrams = telemetry_datagrams(n)
     parse_s, path_s, total_s = [], [], []
     samples = 0
@@ -89,7 +102,7 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
             mav.parse_buffer(data)
         parse_s.append(time.perf_counter() - t0)
         with tempfile.TemporaryDirectory() as log_dir:
-            service, recorder, session = build_service(log_dir)
+            service, recorder, session = build_service(log_dir, control)
             t0 = time.perf_counter()
             for data in datagrams:
                 service.process_datagram(data)
@@ -97,11 +110,14 @@ def bench_throughput(n: int, repeats: int) -> dict[str, object]:
             recorder.close(timeout=600)
             total_s.append(time.perf_counter() - t0)
             samples = service.source.assembler.counters.samples
+            commands = sum(v.commands_sent for v in service.vehicles.values())
             service.notifier.stop()
             session.close()
     return {
         "modules": compiled.summary(),
+        "control": control,
         "samples": samples,
+        "commands": commands,
         "repeats": repeats,
         "pymavlink_parse_samples_per_s": rates(n, parse_s),
         "service_path_samples_per_s": rates(samples, path_s),
@@ -228,6 +244,8 @@ def pinned_throughput(args: argparse.Namespace, interpreted: bool = False) -> di
     cpu, pin = one_cpu_child()
     command = [sys.executable, __file__, "--samples", str(args.samples), "--repeats",
                str(args.repeats), "--throughput-only"]  # fmt: skip
+    if args.control:
+        command.append("--control")
     child = subprocess.run(
         command, capture_output=True, text=True, timeout=1800, check=True,
         preexec_fn=pin, env=compiled.child_environment(interpreted),
@@ -253,10 +271,14 @@ def main() -> None:
         "--skip", action="append", default=[],
         choices=("memory", "latency", "unpinned", "interpreted"),
     )
+    parser.add_argument(
+        "--control", action="store_true",
+        help="throughput with control on and setpoints given (the predictive controller decides)",
+    )  # fmt: skip
     parser.add_argument("--throughput-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.throughput_only:
-        print(json.dumps(bench_throughput(args.samples, args.repeats)))
+        print(json.dumps(bench_throughput(args.samples, args.repeats, args.control)))
         return
     results: dict[str, object] = {"throughput_one_core": pinned_throughput(args)}
     print(json.dumps(results, indent=2), flush=True)
@@ -270,7 +292,7 @@ def main() -> None:
                                                   "compiled_gain_one_core")}, indent=2),
               flush=True)  # fmt: skip
     if "unpinned" not in args.skip:
-        results["throughput_unpinned"] = bench_throughput(args.samples, args.repeats)
+        results["throughput_unpinned"] = bench_throughput(args.samples, args.repeats, args.control)
         print(json.dumps({"throughput_unpinned": results["throughput_unpinned"]}, indent=2))
     if "latency" not in args.skip:
         results["latency"] = bench_latency(args.latency_samples, 50.0)

@@ -8,7 +8,16 @@ the interpreted path, in which the compiled modules' share is larger than when c
 (``bench_service.py`` prints the compiled rate and its gain). Read the shares, not the
 seconds.
 
-    .venv/bin/python benchmarks/service_stages.py [--samples 5000] [--top 15]
+``--compiled`` splits the compiled path instead, as it runs in ``serve``: ``perf record``
+(Linux perf, call graphs unwound with DWARF) samples this process while the datagrams go
+through, and each sample counts for the stage of the nearest compiled function on its
+stack (``payload_json``'s for its caller's), so the interpreter's and C libraries' work
+(dict updates, struct packing, orjson, zstd on the log's thread) counts for the compiled
+code that asked for it. Samples are taken at a fixed rate of CPU time: their count per
+sample is the path's CPU time.
+
+    .venv/bin/python benchmarks/service_stages.py [--samples 5000] [--top 15] [--control]
+    .venv/bin/python benchmarks/service_stages.py --compiled [--samples 6000] [--control]
 """
 
 from __future__ import annotations
@@ -18,19 +27,25 @@ import cProfile
 import json
 import os
 import pstats
+import re
+import signal
+import subprocess
 import sys
 import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
 
-os.environ.setdefault("GLIDER_HIL_INTERPRETED", "1")
+if "--compiled" not in sys.argv:
+    os.environ.setdefault("GLIDER_HIL_INTERPRETED", "1")
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_service  # noqa: E402
+
+from protocols import compiled  # noqa: E402
 
 #: (stage, path fragments of the modules whose own time counts for it), first match wins.
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -43,7 +58,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
         "assemble a sample",
         ("hil_service/sources/lockstep_assembler", "hil_service/sources/periodic_assembler",
          "hil_service/sources/sampler", "hil_service/sources/lockstep.py", "protocols/mapping",
-         "protocols/samples", "protocols/units",
+         "protocols/samples", "protocols/units", "protocols/readings",
          "hil_service/link_stats"),
     ),
     ("identify + control (the method)", ("hil_service/umodel", "hil_service/pipeline")),
@@ -64,6 +79,21 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
 
 OTHER = "other (builtins, stdlib)"
 
+#: ``--compiled``: the stage of each compiled module (mypyc names a function
+#: ``CPyDef_{module}___{class}___{method}``); payload_json counts for its caller.
+COMPILED_STAGES: dict[str, tuple[str, ...]] = {
+    "decode (frames, signing)": ("frame_decoder", "mavlink_io", "signing"),
+    "assemble a sample": ("lockstep_assembler", "lockstep", "lockstep_responder", "readings",
+                          "samples", "mapping", "link_stats"),
+    "identify + control (the method)": ("pipeline", "box_qp", "dynamics", "estimate", "guards",
+                                        "horizon", "inverse", "models", "nlms", "predictive",
+                                        "rbf", "reproducible", "rls", "scoring", "supervisor"),
+    "publish (JSON, Zenoh)": ("notifier",),
+    "log (MCAP)": ("recorder", "writer", "mavlink_json"),
+    "service loop and bookkeeping": ("service",),
+}  # fmt: skip
+PERF_HZ = 797
+
 
 def stage_of(filename: str) -> str:
     for stage, fragments in STAGES:
@@ -81,14 +111,103 @@ def _with_callers(per_stage: dict[str, float], by_caller: dict[str, float]) -> d
     return shares
 
 
+def compiled_stage(stack: list[str]) -> str:
+    """The stage of one perf sample: its stack's symbols, innermost first."""
+    for symbol in stack:
+        if not symbol.startswith("CPyDef_"):
+            continue
+        module = symbol[len("CPyDef_") :].split("___")[0]
+        if module == "payload_json":
+            continue
+        for stage, modules in COMPILED_STAGES.items():
+            if module in modules:
+                return stage
+        return f"other compiled ({module})"
+    return "other (outside the compiled path)"
+
+
+def perf_split(script: str) -> dict[str, int]:
+    """Samples per stage in ``perf script`` output."""
+    counts: dict[str, int] = defaultdict(int)
+    stack: list[str] = []
+    for line in [*script.splitlines(), ""]:
+        if not line.strip():
+            if stack:
+                counts[compiled_stage(stack)] += 1
+            stack = []
+        elif line[0] in " \t":
+            match = re.search(r"\s[0-9a-f]+\s+(\S+)", line)
+            if match:
+                stack.append(match.group(1).split("+")[0])
+    return dict(counts)
+
+
+def main_compiled(args: argparse.Namespace) -> int:
+    datagrams = bench_service.telemetry_datagrams(args.samples)
+    warm = 400  # datagrams before perf attaches (first vehicle, first chunk, caches)
+    with tempfile.TemporaryDirectory() as scratch:
+        data_file = str(Path(scratch) / "perf.data")
+        log_dir = str(Path(scratch) / "log")
+        service, recorder, session = bench_service.build_service(log_dir, args.control)
+        try:
+            for data in datagrams[:warm]:
+                service.process_datagram(data)
+            perf = subprocess.Popen(
+                ["perf", "record", "-F", str(PERF_HZ), "--call-graph", "dwarf,16384",
+                 "-o", data_file, "-p", str(os.getpid())],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            )  # fmt: skip
+            time.sleep(0.5)  # perf attached
+            for data in datagrams[warm:]:
+                service.process_datagram(data)
+            recorder.close(timeout=600)  # the log drained: its thread's time is counted
+            perf.send_signal(signal.SIGINT)
+            perf.wait()
+        finally:
+            service.notifier.stop()
+            session.close()
+        script = subprocess.run(
+            ["perf", "script", "-i", data_file], capture_output=True, text=True, check=True
+        ).stdout
+    counts = perf_split(script)
+    total = sum(counts.values())
+    steps = (len(datagrams) - warm) // 4  # the glider's four messages a plant step
+    result = {
+        "modules": compiled.summary(),
+        "control": args.control,
+        "samples": steps,
+        "perf_samples": total,
+        "cpu_us_per_sample": round(1e6 * total / PERF_HZ / steps, 1),
+        "share_by_stage": {
+            stage: round(n / total, 3) for stage, n in sorted(counts.items(), key=lambda i: -i[1])
+        },
+        "us_per_sample_by_stage": {
+            stage: round(1e6 * n / PERF_HZ / steps, 1)
+            for stage, n in sorted(counts.items(), key=lambda i: -i[1])
+        },
+    }
+    print(json.dumps(result, indent=1))
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--top", type=int, default=15, help="functions listed by own time")
+    parser.add_argument(
+        "--control", action="store_true",
+        help="control on with setpoints (bench_service.build_service): the controller decides",
+    )  # fmt: skip
+    parser.add_argument(
+        "--compiled", action="store_true",
+        help="split the compiled path with Linux perf (needs perf) instead of cProfile",
+    )  # fmt: skip
     args = parser.parse_args()
+    if args.compiled:
+        return main_compiled(args)
     datagrams = bench_service.telemetry_datagrams(args.samples)
     with tempfile.TemporaryDirectory() as log_dir:
-        service, recorder, session = bench_service.build_service(log_dir)
+        service, recorder, session = bench_service.build_service(log_dir, args.control)
         try:
             profiler = cProfile.Profile(time.process_time)
             profiler.enable()
@@ -114,6 +233,7 @@ def main() -> int:
     total = sum(per_stage.values())
     result = {
         "modules": "interpreted (GLIDER_HIL_INTERPRETED=1)",
+        "control": args.control,
         "samples": samples,
         "profiled_cpu_s": round(total, 3),
         "profiled_us_per_sample": round(1e6 * total / max(samples, 1), 1),

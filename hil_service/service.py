@@ -28,7 +28,15 @@ from hil_service.sources.companion import ack_is_ours
 from hil_service.vehicle_links import LinkIdentity, LinkSet, identity_for
 from protocols import keys
 from protocols.mapping import MSG_ACK, SERVICE_COMPONENT, ack_accepted
-from protocols.mavlink_io import Address, Link, MavlinkCodec, MavMessage
+from protocols.mavlink_io import (
+    Address,
+    Link,
+    MavlinkCodec,
+    MavMessage,
+    header_of,
+    system_of,
+    type_of,
+)
 from protocols.samples import TelemetrySample
 
 #: The longest a companion's due message (heartbeat, stream request) waits for a tick, s.
@@ -127,7 +135,7 @@ class HilService:
             identity.admit(messages, source)
         if source is not None:
             for message in messages:
-                self._routes[message.get_srcSystem()] = source
+                self._routes[system_of(message)] = source
         for message in messages:
             notifier.mavlink("in", message, None, now_ns)
             samples.extend(self.process_message(message))
@@ -136,10 +144,10 @@ class HilService:
     def process_message(self, message: MavMessage) -> list[TelemetrySample]:
         """One decoded message: the samples it completes (a periodic source may complete
         several after a gap), each identified, decided and commanded."""
-        header = message.get_header()
+        header = header_of(message)
         self.sequence.observe(header.srcSystem, header.srcComponent, header.seq)
         flagged = self.source.take(message)
-        if message.get_type() == MSG_ACK:
+        if type_of(message) == MSG_ACK:
             if self.source.is_command_ack(message):
                 self._on_ack(message)
             return []
@@ -216,7 +224,7 @@ class HilService:
         self.notifier.mavlink("out", message, frame, time.time_ns())
 
     def _on_ack(self, message: MavMessage) -> None:
-        vehicle = self.vehicles.get(message.get_srcSystem())
+        vehicle = self.vehicles.get(system_of(message))
         if vehicle is None:
             return
         if not ack_is_ours(message):  # the vehicle's answer to a ground station

@@ -47,7 +47,10 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.rbf",
     "hil_service.umodel.reproducible",
     "hil_service.umodel.rls",
+    "hil_service.sources.lockstep",
     "hil_service.sources.lockstep_assembler",
+    "hil_service.sources.lockstep_responder",
+    "hil_service.listeners.notifier",
     "hil_service.link_stats",
     "hil_service.mcap.writer",
     "hil_service.mcap.recorder",
@@ -61,6 +64,7 @@ HOT_PATH: tuple[str, ...] = (
     "protocols.mavlink_io",
     "protocols.mavlink_json",
     "protocols.payload_json",
+    "protocols.readings",
     "protocols.samples",
 )
 

@@ -18,7 +18,7 @@ turn then costs one wake-up of the other side instead of one per message.
 
 from __future__ import annotations
 
-from protocols.mavlink_io import Link, MavMessage, dialect
+from protocols.mavlink_io import Link, MavMessage, dialect, type_of
 
 #: The ``HEARTBEAT.base_mode`` bit a lockstep vehicle sets (``MAV_MODE_FLAG_HIL_ENABLED``).
 LOCKSTEP_FLAG = int(dialect.MAV_MODE_FLAG_HIL_ENABLED)
@@ -42,7 +42,7 @@ def lockstep_heartbeat() -> MavMessage:
 def announces_lockstep(message: MavMessage) -> bool:
     """A vehicle heartbeat that announces lockstep."""
     return (
-        message.get_type() == "HEARTBEAT"
+        type_of(message) == "HEARTBEAT"
         and message.type != dialect.MAV_TYPE_GCS
         and message.type != dialect.MAV_TYPE_ONBOARD_CONTROLLER
         and bool(message.base_mode & LOCKSTEP_FLAG)
@@ -56,7 +56,7 @@ def release(time_boot_ms: int) -> MavMessage:
 
 def released_time(message: MavMessage) -> int | None:
     """The step time a release names, or None when ``message`` is no release."""
-    if message.get_type() != RELEASE:
+    if type_of(message) != RELEASE:
         return None
     return int(message.time_boot_ms)
 

@@ -42,6 +42,37 @@ UDP_MAX_DATAGRAM = 65535
 UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
 
 
+# ---- a decoded message's header fields, without pymavlink's accessor methods ----------
+# ``get_type()``, ``get_header()`` and ``get_msgbuf()`` are Python methods that return an
+# attribute: from compiled code each is an interpreted call (a frame), and the per-sample
+# path asks them about thirty times per plant step. pymavlink's ``MAVLink_message.__init__``
+# sets these attributes on every message (FrameDecoder's too); anything else (a test's
+# stand-in) is asked through its methods.
+
+
+def type_of(message: MavMessage) -> str:
+    """``message.get_type()``."""
+    kind = getattr(message, "_type", None)
+    return message.get_type() if kind is None else kind  # type: ignore[no-any-return]
+
+
+def header_of(message: MavMessage) -> Any:
+    """``message.get_header()`` (pymavlink's ``MAVLink_header``)."""
+    header = getattr(message, "_header", None)
+    return message.get_header() if header is None else header
+
+
+def system_of(message: MavMessage) -> int:
+    """``message.get_srcSystem()``."""
+    return header_of(message).srcSystem  # type: ignore[no-any-return]
+
+
+def frame_of(message: MavMessage) -> bytes:
+    """``bytes(message.get_msgbuf())``: the message's frame."""
+    buffer = getattr(message, "_msgbuf", None)
+    return bytes(message.get_msgbuf() if buffer is None else buffer)
+
+
 @dataclass
 class ParseCounters:
     """What the codec saw: frames decoded, and bytes or frames it could not use."""
@@ -181,7 +212,7 @@ class MavlinkCodec:
                     message = decode(bytearray(frame))
                 except Exception:  # CRC or length error: let the general path count it
                     return None
-                if message.get_type().startswith("UNKNOWN_"):
+                if type_of(message).startswith("UNKNOWN_"):
                     return None
             messages.append(message)
         return messages
@@ -191,7 +222,7 @@ class MavlinkCodec:
         good = []
         self.last_rejected = []
         for message in messages:
-            kind = message.get_type()
+            kind = type_of(message)
             if kind == "BAD_DATA":
                 self.counters.bad_frames += 1
                 continue
@@ -201,7 +232,7 @@ class MavlinkCodec:
                 self.counters.unknown_frames += 1
                 continue
             if self.verifier is not None:
-                frame = bytes(message.get_msgbuf())
+                frame = frame_of(message)
                 if not self.verifier.accept(frame):
                     self.last_rejected.append(frame)
                     continue

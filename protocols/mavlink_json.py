@@ -10,7 +10,7 @@ from __future__ import annotations
 from functools import cache
 from typing import Any
 
-from protocols.mavlink_io import MavMessage, dialect
+from protocols.mavlink_io import MavMessage, dialect, header_of, type_of
 
 _INTEGER_TYPES = {"int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32_t",
                   "int64_t", "uint64_t", "uint8_t_mavlink_version"}  # fmt: skip
@@ -36,9 +36,9 @@ def message_to_json(message: MavMessage) -> dict[str, Any]:
     for name in _char_fields(message.__class__):
         if isinstance(payload[name], bytes):
             payload[name] = payload[name].decode("utf-8", "replace")
-    header = message.get_header()
+    header = header_of(message)
     payload["_header"] = {
-        "type": message.get_type(),
+        "type": type_of(message),
         "system_id": header.srcSystem,
         "component_id": header.srcComponent,
         "seq": header.seq,

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, NoReturn
 
 from protocols.mavlink_io import MavMessage, dialect
+from protocols.readings import MessageReader
 from protocols.units import InputScale, PressureDepth
 
 if sys.version_info >= (3, 11):
@@ -208,34 +209,18 @@ class Profile:
 
     # ---- reading messages ------------------------------------------------------------
     @cached_property
-    def _sources_by_message(self) -> dict[str, tuple[tuple[str, int, Source], ...]]:
+    def reader(self) -> MessageReader:
+        """The compiled loop of ``readings`` (``protocols.readings``), built once: what the
+        per-sample path calls, without a ``Reading`` per value."""
         plan: dict[str, list[tuple[str, int, Source]]] = {}
         for name, sources in self.signals.items():
             for rank, source in enumerate(sources):
                 plan.setdefault(source.message, []).append((name, rank, source))
-        return {kind: tuple(entries) for kind, entries in plan.items()}
+        return MessageReader(plan, self.pressure, self.ballast)
 
     def readings(self, message: MavMessage) -> list[Reading]:
         """Every signal value ``message`` carries under this profile (unit-converted)."""
-        kind = message.get_type()
-        found = []
-        for name, rank, source in self._sources_by_message.get(kind, ()):
-            raw = getattr(message, source.field)
-            if source.index is not None:
-                raw = raw[source.index]
-            found.append(Reading(name, rank, self._convert(source, float(raw))))
-        if kind == self.ballast.readback:
-            u_depth, u_pitch = self.ballast.applied(message)
-            found.append(Reading("u_depth", 0, u_depth))
-            found.append(Reading("u_pitch", 0, u_pitch))
-        return found
-
-    def _convert(self, source: Source, raw: float) -> float:
-        if source.convert == "pressure_to_depth":
-            return self.pressure.depth_m(raw)
-        if source.scale == 1.0 and source.offset == 0.0:
-            return raw  # the field as it is (a -0.0 stays -0.0)
-        return raw * source.scale + source.offset
+        return [Reading(*reading) for reading in self.reader.readings(message)]
 
     # ---- commanding ------------------------------------------------------------------
     def command_messages(

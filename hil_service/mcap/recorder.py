@@ -40,7 +40,7 @@ from mcap.writer import CompressionType
 from hil_service.mcap.writer import ChunkBuilder, McapFile, SealedChunk
 from protocols import payload_json
 from protocols.keys import schema_for_key
-from protocols.mavlink_io import DIALECT_NAME, MAVLINK_VERSION, MavMessage
+from protocols.mavlink_io import DIALECT_NAME, MAVLINK_VERSION, MavMessage, frame_of, type_of
 from protocols.mavlink_json import message_schema, message_to_json
 from protocols.schemas import load_schema
 
@@ -149,7 +149,7 @@ class McapRecorder:
                 self.status.last_drop = f"{type(error).__name__}: {error}"
                 self.status.dropped += 1
             return
-        self._record(("json_mav", direction, message.get_type()), data, _now_if_none(t_ns))
+        self._record(("json_mav", direction, type_of(message)), data, _now_if_none(t_ns))
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
         self.zenoh_encoded(key, payload_json.encode(payload), direction, t_ns)
@@ -165,7 +165,7 @@ class McapRecorder:
         """A frame on ``mavlink/raw/{direction}`` (a received one: the message's own bytes)
         and the message, if any, as JSON."""
         if frame is None and message is not None:
-            frame = bytes(message.get_msgbuf())
+            frame = frame_of(message)
         if frame is not None:
             self.raw(direction, frame, t_ns)
         if message is not None:

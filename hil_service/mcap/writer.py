@@ -46,6 +46,10 @@ from mcap.records import (
 from mcap.writer import MCAP0_MAGIC as MAGIC
 from mcap.writer import CompressionType
 
+#: The opcodes packed per record, as plain ints: ``Opcode`` is an IntEnum, and reading a
+#: member from compiled code goes through the enum class's attribute hook every time.
+_MESSAGE_OPCODE = int(Opcode.MESSAGE)
+_MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
 #: opcode, record length, channel id, sequence, log time, publish time (then the data).
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # bytes of the record body before the data
@@ -61,7 +65,7 @@ ZSTD_LEVEL = 1
 def _message_index(channel_id: int, pairs: list[int]) -> bytes:
     """A MessageIndex record (layout of ``mcap.records.MessageIndex``) in two packs."""
     body = struct.pack(f"<{len(pairs)}Q", *pairs)
-    head = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + len(body), channel_id, len(body))
+    head = _INDEX_HEAD.pack(_MESSAGE_INDEX_OPCODE, 6 + len(body), channel_id, len(body))
     return head + body
 
 
@@ -136,7 +140,7 @@ class ChunkBuilder:
             index = self._index[channel_id] = []
         index += (log_time, len(chunk))
         chunk += _MESSAGE_HEAD.pack(
-            Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
+            _MESSAGE_OPCODE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
         )
         chunk += data
         self.messages += 1

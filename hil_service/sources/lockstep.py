@@ -16,7 +16,7 @@ from hil_service.sources.companion import Companion
 from hil_service.sources.lockstep_assembler import SampleAssembler
 from hil_service.sources.lockstep_responder import LockstepResponder
 from protocols.mapping import MSG_ACK
-from protocols.mavlink_io import MavMessage
+from protocols.mavlink_io import MavMessage, system_of, type_of
 from protocols.profiles import Profile
 from protocols.samples import TelemetrySample
 
@@ -33,7 +33,7 @@ class LockstepSource:
         self._send = send
 
     def take(self, message: MavMessage) -> list[tuple[TelemetrySample, bool]]:
-        if message.get_type() == MSG_ACK:
+        if type_of(message) == MSG_ACK:
             return []
         self.lockstep.observe(message)
         sample = self.assembler.add(message)
@@ -44,7 +44,7 @@ class LockstepSource:
             send = self._send
             if send is not None:
                 # Refusing a sample is finishing with it: release its step (docs/lockstep.md).
-                system_id = message.get_srcSystem()
+                system_id = system_of(message)
                 self.lockstep.after_refused(refused, lambda released: send(released, system_id))
         return []
 

@@ -1,10 +1,11 @@
 """MAVLink messages → one ``TelemetrySample`` per plant step and vehicle, as a lockstep
 profile describes (``glider``: docs/mavlink.md).
 
-Message fields are read through the profile only (``Profile.readings``). A step is complete
-when every message it needs (``Profile.step_messages``: for ``glider`` ATTITUDE,
-SCALED_PRESSURE2 and ACTUATOR_OUTPUT_STATUS), all stamped with the same time, has arrived;
-a message without a timestamp (VFR_HUD) takes no part.
+Message fields are read through the profile only (``Profile.reader``, the loop of
+``Profile.readings``). A step is complete when every message it needs
+(``Profile.step_messages``: for ``glider`` ATTITUDE, SCALED_PRESSURE2 and
+ACTUATOR_OUTPUT_STATUS), all stamped with the same time, has arrived; a message without a
+timestamp (VFR_HUD) takes no part.
 A step with a missing piece is counted when a later step supersedes it, never guessed;
 a timestamp at or before the last emitted one is counted as out of order and dropped;
 non-finite or physically absurd values are counted as invalid and dropped. A vehicle whose
@@ -19,8 +20,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
-from protocols.mavlink_io import MavMessage
+from protocols.mavlink_io import MavMessage, system_of, type_of
 from protocols.profiles import DEFAULT_PROFILE, Profile, clock_of, load_profile
+from protocols.readings import MessageReader
 from protocols.samples import TelemetrySample, is_plausible
 
 MAX_PENDING_STEPS = 4
@@ -83,6 +85,7 @@ class SampleAssembler:
             if clock is not None:
                 self._clocks[name] = (1 if clock[0] == "ms32" else 1000, clock[1])
         self._step_messages = self.profile.step_messages()
+        self._reader: MessageReader = self.profile.reader
         self._full_scale = self.profile.ballast.full_scale
         self.allowed = frozenset(system_ids) if system_ids else None
         # An explicit list (serve --sysid 1-50) is served whole; the cap guards open links.
@@ -118,12 +121,12 @@ class SampleAssembler:
 
     def add(self, message: MavMessage) -> TelemetrySample | None:
         """Take one decoded message; return the sample it completes, if any."""
-        kind = message.get_type()
+        kind = type_of(message)
         clock = self._clocks.get(kind)
         if clock is None:
             return None
         stamp = int(getattr(message, clock[1])) // clock[0]
-        vehicle = self._vehicle(message.get_srcSystem())
+        vehicle = self._vehicle(system_of(message))
         if vehicle is None:
             return None
         if vehicle.last_emitted_ms is not None and stamp <= vehicle.last_emitted_ms:
@@ -155,7 +158,7 @@ class SampleAssembler:
                 vehicle.counters.incomplete += 1
             del vehicle.pending[older]
         vehicle.last_emitted_ms = stamp
-        sample = self._build(message.get_srcSystem(), stamp, pending)
+        sample = self._build(system_of(message), stamp, pending)
         if sample is None:
             vehicle.counters.invalid += 1
             self.refused_ms = stamp
@@ -200,7 +203,7 @@ class SampleAssembler:
         values: dict[str, tuple[int, float]] = {}  # signal → (source rank, value)
         try:
             for message in pending.values():
-                for signal, rank, value in self.profile.readings(message):
+                for signal, rank, value in self._reader.readings(message):
                     held = values.get(signal)
                     if held is None or rank < held[0]:
                         values[signal] = (rank, value)
