@@ -25,7 +25,10 @@ Offset-free tracking (internal model control): an internal copy of the model run
 own outputs and the applied inputs; the measured output's departure from it, low-passed
 with a time constant of a share of the horizon (``disturbance_share``), is the output
 disturbance, held constant over the horizon. A slow estimate on purpose: a
-non-minimum-phase plant answers a fast correction with its wrong-way response.
+non-minimum-phase plant answers a fast correction with its wrong-way response. Slower
+still where that departure is noise: of that pace and 2 … 64 times slower, the estimate
+that has predicted the departure best is used (``track``), so a white residual is averaged
+rather than fed back.
 
 Guards: non-finite model coefficients, a degenerate input map or a non-finite plan give
 "hold" (the applied input), never an exception or a non-finite command.
@@ -63,6 +66,10 @@ __all__ = [
 
 #: Power-iteration sweeps of the rank-one factorisation (a 3×3 symmetric matrix).
 _POWER_SWEEPS = 30
+
+#: The disturbance estimate's candidate paces: the horizon's (``disturbance_share``) and
+#: 2, 4, … 2^(n−1) times slower (see ``PredictiveInverse.track``).
+DISTURBANCE_PACES = 7
 
 
 class PredictiveSettings:
@@ -210,6 +217,7 @@ class PredictiveInverse:
         "_age",
         "_columns",
         "_disturbance",
+        "_estimates",
         "_free_ar",
         "_free_impulse",
         "_free_step",
@@ -221,6 +229,7 @@ class PredictiveInverse:
         "_points",
         "_range",
         "_rho",
+        "_scores",
         "_shape",
         "_sim",
         "_starts",
@@ -244,6 +253,10 @@ class PredictiveInverse:
         self._horizon = 0
         self._age = 0
         self._disturbance = 0.0
+        # One estimate per candidate pace and the squared errors with which each, held
+        # from the sample before, predicted the residual since the internal model started.
+        self._estimates = [0.0] * DISTURBANCE_PACES
+        self._scores = [0.0] * DISTURBANCE_PACES
         self._points: list[int] = []  # cost points j (ŷ(k+j))
         self._columns: list[list[float]] = []  # per point: effect of each block's level
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
@@ -271,14 +284,14 @@ class PredictiveInverse:
 
     def reset(self) -> None:
         """Forget the internal model and the disturbance (after a gap in the telemetry)."""
-        self._disturbance = 0.0
+        self._forget_disturbance()
         self._sim = None
         self._plan_state = None
 
     def track(self, dyn: ModelDynamics, y: float) -> None:
         """Advance the internal model by the sample whose output ``y`` the identifier has
         just learnt from (``dyn`` is the model after that step), and the disturbance
-        estimate d ← d + α·(y − y_m − d), α = 1/(1 + disturbance_share·horizon).
+        estimate (``_estimate_disturbance``).
 
         The internal model runs on its own outputs and the applied inputs (internal model
         control): the prediction carries the measured output's departure from it as a
@@ -293,15 +306,46 @@ class PredictiveInverse:
         y_m = dyn.one_step(sim)
         if not math.isfinite(y_m) or not math.isfinite(y - y_m):
             self._sim = list(dyn.outputs[:na])
-            self._disturbance = 0.0
+            self._forget_disturbance()
             return
         if na:
             sim.pop()
             sim.insert(0, y_m)
         self._age += 1
         horizon = self.horizon_for(dyn)
-        alpha = 1.0 / (1.0 + self.settings.disturbance_share * horizon)
-        self._disturbance += alpha * (y - y_m - self._disturbance)
+        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + self.settings.disturbance_share * horizon))
+
+    def _estimate_disturbance(self, residual: float, alpha: float) -> None:
+        """The output disturbance: the residual y − y_m low-passed, d ← d + α·(y − y_m − d),
+        at the pace that has predicted the residual best.
+
+        Candidates: α = 1/(1 + disturbance_share·horizon) and 2, 4, … times slower. Each
+        is scored by the squared error with which its estimate, held from the sample
+        before, predicted this residual (summed since the internal model started); the
+        lowest score wins, the fastest on a tie. The estimate is the residual's predicted
+        level over the horizon, so the pace that predicts it best is the one to plan with:
+        a residual that wanders (a current, a model error at a new level) is followed at
+        the horizon's pace, a white one (noise the model cannot predict) is averaged, and
+        correcting it, which only adds the estimate's own noise to the output's, stops.
+        For a random walk plus white noise every horizon ranks the paces alike (the k-step
+        error is the one-step error plus the walk's k − 1 steps)."""
+        estimates = self._estimates
+        scores = self._scores
+        best = 0
+        for i in range(len(estimates)):
+            error = residual - estimates[i]
+            scores[i] += error * error
+            estimates[i] += alpha * error
+            alpha *= 0.5
+            if scores[i] < scores[best]:
+                best = i
+        self._disturbance = estimates[best]
+
+    def _forget_disturbance(self) -> None:
+        self._disturbance = 0.0
+        for i in range(len(self._estimates)):
+            self._estimates[i] = 0.0
+            self._scores[i] = 0.0
 
     def horizon_for(self, dyn: ModelDynamics) -> int:
         """The prediction horizon of these dynamics (derived now if never derived), e.g.
