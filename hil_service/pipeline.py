@@ -27,7 +27,7 @@ from hil_service.umodel import (
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
-from hil_service.umodel.supervisor import HorizonTest, Supervisor
+from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
 
@@ -280,7 +280,11 @@ class ChannelPipeline:
         self._alt_run: ModelDynamics | None = None
         self._app_run: ModelDynamics | None = None
         self._alt_delta = math.nan  # ŷ(applied) − ŷ(neutral) for this sample
-        self._alt_u = 0.0  # the neutral copy's input
+        self._alt_u = 0.0  # the counterfactual copy's input
+        #: The input the counterfactual goes to: the neutral input, or, for a channel whose
+        #: vehicle takes it back (safe input "release"), the input whose steady state is
+        #: the setpoint by the model (``_counterfactual_input``).
+        self._alt_target = 0.0
         self._sup_pred = math.nan
         self._sup_setpoint = math.nan
         self._last_saturated = False
@@ -387,9 +391,10 @@ class ChannelPipeline:
         if self._sup_run is not None:
             self._sup_pred = self._sup_run.advance(u_prev)
         if self._alt_run is not None and self._app_run is not None:
-            # The neutral input reached from the applied one at the actuator's rate limit.
+            # The counterfactual input reached from the applied one at the rate limit.
             rate = self.settings.control.rate_limit
-            self._alt_u = min(max(0.0, self._alt_u - rate), self._alt_u + rate)
+            target = self._alt_target
+            self._alt_u = min(max(target, self._alt_u - rate), self._alt_u + rate)
             neutral = self._alt_run.advance(self._alt_u)
             self._alt_delta = self._app_run.advance(u_prev) - neutral
         estimate = self.model.step(u_prev, y)
@@ -563,7 +568,7 @@ class ChannelPipeline:
         if self._sup_run is None or not math.isfinite(pred) or setpoint != self._sup_setpoint:
             if setpoint != self._sup_setpoint:
                 self.supervisor.new_reference()
-                self._restart_comparison(u_applied)
+                self._restart_comparison(u_applied, setpoint)
             self._restart_supervised(y, setpoint, u_applied)
             return ""
         reason = self.supervisor.segment_sample(
@@ -572,23 +577,40 @@ class ChannelPipeline:
         if not reason and self._alt_run is not None and math.isfinite(self._alt_delta):
             # What the output would have been at the neutral input: the measured one
             # (disturbance and noise included) without commanding's modelled effect.
-            reason = self.supervisor.compare_sample(error, error - self._alt_delta)
+            reason = self.supervisor.compare_sample(
+                error,
+                error - self._alt_delta,
+                "the vehicle's own control" if self.releases else "the neutral input",
+            )
         if reason:
             self._trip(reason, u_applied)
             return f"supervisor: {reason} ({self.channel})"
         if self.supervisor.segment_done():
             self._restart_supervised(y, setpoint, u_applied)
         if self._alt_run is None or self.supervisor.comparison_done():
-            self._restart_comparison(u_applied)
+            self._restart_comparison(u_applied, setpoint)
         return ""
 
-    def _restart_comparison(self, u_applied: float) -> None:
-        """The neutral input's counterfactual from now: the model from the measured
-        history, its input going from the applied one to 0 at the rate limit."""
+    def _restart_comparison(self, u_applied: float, setpoint: float) -> None:
+        """The safe input's counterfactual from now: the model from the measured history,
+        its input going from the applied one to ``_counterfactual_input`` at the rate
+        limit."""
         self._alt_run = self.model.dynamics()
         self._app_run = self.model.dynamics()
         self._alt_u = u_applied if math.isfinite(u_applied) else 0.0
+        self._alt_target = self._counterfactual_input(self._alt_run, setpoint)
         self.supervisor.start_comparison()
+
+    def _counterfactual_input(self, dyn: ModelDynamics, setpoint: float) -> float:
+        """What the channel would get if it stopped commanding: the neutral input (0), or,
+        when a trip releases it to the vehicle's own controller, the input that controller
+        settles at: the one whose steady state is the setpoint, by the model (0 when the
+        model has none)."""
+        if not self.releases:
+            return 0.0
+        limit = self.settings.control.u_limit
+        u = steady_input(dyn, setpoint, -limit, limit)
+        return u if math.isfinite(u) else 0.0
 
     def _restart_supervised(self, y: float, setpoint: float, u_applied: float) -> None:
         run = self.model.dynamics()
