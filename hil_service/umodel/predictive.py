@@ -436,52 +436,83 @@ class PredictiveInverse:
         u0 = lo_u if u0 < lo_u else hi_u if u0 > hi_u else u0
         if not (math.isfinite(setpoint) and dyn.is_finite()):
             return u0, "hold", False
-        # The factorisation, horizons and plan matrices change as slowly as the model:
-        # derived again every ``refresh`` samples, the same N for the plan and the inverse.
-        shape = self._shape
-        if shape is None or self._horizon == 0 or self._age >= self.settings.refresh:
-            factors = factorise(dyn, lo_u, hi_u)
-            if factors is None:
-                return u0, "hold", False
-            self._derive(dyn, factors[0])
-            shape = self._shape = factors[1]
-            self._range = monotone_range(shape, lo_u, hi_u)
+        shape = self._current_shape(dyn)
+        plan_model = self._plan_model
+        if shape is None or plan_model is None:
+            return u0, "hold", False
         # Plan only where the identified map rises: a polynomial fitted on the inputs seen
         # can turn over beyond them, and there a larger level needs a *smaller* input, so
         # the plan's bounds and the inverse trap the input at a limit (measured on the
         # ArduSub test: pitch held at −2 against a positive gain, 0.5 rad off).
         lo_u, hi_u = self._range
+        w0 = shape.value(u0)
+        f = self._linear_term(dyn, plan_model, u0, w0, setpoint)
+        for value in f:
+            if not math.isfinite(value):
+                return u0, "hold", False
+        lo, hi = self._block_bounds(shape, u0, lo_u, hi_u)
+        plan, self._plan_state = solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
+        target = plan[0]
+        if not math.isfinite(target):
+            return u0, "hold", False
+        return self._inverse_step(shape, target, u0, lo_u, hi_u)
+
+    def _current_shape(self, dyn: ModelDynamics) -> StaticMap | None:
+        """The input map N of the plan, derived again (with the horizons and the plan
+        matrices) every ``refresh`` samples: they change as slowly as the model, and the
+        plan and the inverse use the same N. None when the map is degenerate."""
+        shape = self._shape
+        if shape is None or self._horizon == 0 or self._age >= self.settings.refresh:
+            factors = factorise(dyn, self.u_min, self.u_max)
+            if factors is None:
+                return None
+            self._derive(dyn, factors[0])
+            shape = self._shape = factors[1]
+            self._range = monotone_range(shape, self.u_min, self.u_max)
+        return shape
+
+    def _linear_term(
+        self,
+        dyn: ModelDynamics,
+        plan_model: ModelDynamics,
+        u0: float,
+        w0: float,
+        setpoint: float,
+    ) -> list[float]:
+        """The QP's linear term: the blocks' columns against the predicted error with the
+        input held at ``u0`` (free response + disturbance estimate − setpoint), and the
+        move penalty's pull towards the applied level ``w0``.
+
+        The free response is the model of the last derivation's (its coefficients, today's
+        input history, from the internal model's outputs), as the block columns are: the
+        current model's input forcing run through the AR part of an older one predicts a
+        steady state that drifts as the identifier trades bias, input polynomial and AR
+        coefficients in closed loop (measured: a saw tooth of period ``refresh``, 3.8x the
+        oracle's IAE on a random plant with a dead zone; docs/control.md)."""
         sim = self._sim
         if sim is None or len(sim) != len(dyn.ar):
             sim = list(dyn.outputs[: len(dyn.ar)])
-        # The free response plus the output disturbance estimate. The free response is the
-        # model of the last derivation's (its coefficients, today's input history, from the
-        # internal model's outputs), as the block columns are: the current model's input
-        # forcing run through the AR part of an older one predicts a steady state that
-        # drifts as the identifier trades bias, input polynomial and AR coefficients in
-        # closed loop (measured: a saw tooth of period ``refresh``, 3.8x the oracle's IAE
-        # on a random plant with a dead zone; docs/control.md).
-        plan_model = self._plan_model
-        if plan_model is None:
-            return u0, "hold", False
         plan_model.inputs = dyn.inputs
         plan_model.outputs = dyn.outputs
         free = self._free_response(plan_model, u0, sim)
         disturbance = self._disturbance
-        w0 = shape.value(u0)
         nblocks = len(self._hessian)
         f = [0.0] * nblocks
         columns = self._columns
         onset = self._onset
-        points = self._points
-        for p in range(len(points)):
+        for p in range(len(self._points)):
             resid = free[p] + disturbance - w0 * onset[p] - setpoint
             col = columns[p]
             for b in range(nblocks):
                 f[b] += col[b] * resid
         f[0] -= self._rho * w0
-        # Each block's level within what the actuator can reach by the block's start
-        # (amplitude, and the rate limit from the applied input), in the map's units.
+        return f
+
+    def _block_bounds(
+        self, shape: StaticMap, u0: float, lo_u: float, hi_u: float
+    ) -> tuple[list[float], list[float]]:
+        """Each block's level within what the actuator can reach by the block's start
+        (amplitude, and the rate limit from the applied input), in the map's units."""
         lo: list[float] = []
         hi: list[float] = []
         for start in self._starts:
@@ -490,19 +521,18 @@ class PredictiveInverse:
             b_w = shape.value(b_u)
             lo.append(min(a_w, b_w))
             hi.append(max(a_w, b_w))
+        return lo, hi
+
+    def _inverse_step(
+        self, shape: StaticMap, target: float, u0: float, lo_u: float, hi_u: float
+    ) -> tuple[float, str, bool]:
+        """The input whose static map gives the planned first level ``target``, within a
+        rate step of ``u0``: (input, path, saturated)."""
         first_lo, first_hi = _reachable(u0, self.rate, lo_u, hi_u)
-        for value in f:
-            if not math.isfinite(value):
-                return u0, "hold", False
-        plan, self._plan_state = solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
-        target = plan[0]
-        if not math.isfinite(target):
-            return u0, "hold", False
         if not first_lo < first_hi:
             # Outside the rising range by more than a step: the one reachable input towards
             # it (``_reachable``), nothing to solve.
             return first_lo, "fallback", first_lo <= self.u_min or first_lo >= self.u_max
-        # The inverse step: the input whose static map gives the planned level.
         result = solve_inverse(shape.value, shape.derivative, target, u0, first_lo, first_hi)
         u = result.u
         if not math.isfinite(u):
