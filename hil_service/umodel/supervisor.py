@@ -32,9 +32,10 @@ from the measured outputs. At each segment's end the segment is judged:
   ``1 + compare_margin`` times the mean |error| of the output the neutral input would
   have given: the measured output minus commanding's effect by the model's account
   (two frozen copies restarted from the measured history at the window's start, one fed
-  the applied inputs, one an input going to 0 at the rate limit; the measured output
-  carries the disturbance and the noise into both errors), and by more than a tenth of
-  the bound;
+  the applied inputs, one an input going to 0 at the rate limit, or, where a trip releases
+  the channel to the vehicle's own controller, to ``steady_input`` at the setpoint; the
+  measured output carries the disturbance and the noise into both errors), and by more
+  than a tenth of the bound;
 * ``worse than trim``: the output settled (moved less than the bound over the segment) with
   a tracking error larger, by more than the bound, than the model's steady state at the
   neutral input would leave (a plan stalled where holding trim does better).
