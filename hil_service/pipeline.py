@@ -27,7 +27,7 @@ from hil_service.umodel import (
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
-from hil_service.umodel.supervisor import HorizonTest, Supervisor
+from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
 
@@ -280,7 +280,11 @@ class ChannelPipeline:
         self._alt_run: ModelDynamics | None = None
         self._app_run: ModelDynamics | None = None
         self._alt_delta = math.nan  # ŷ(applied) − ŷ(neutral) for this sample
-        self._alt_u = 0.0  # the neutral copy's input
+        self._alt_u = 0.0  # the counterfactual copy's input
+        #: The input the counterfactual goes to: the neutral input, or, for a channel whose
+        #: vehicle takes it back (safe input "release"), the input whose steady state is
+        #: the setpoint by the model (``_counterfactual_input``).
+        self._alt_target = 0.0
         self._sup_pred = math.nan
         self._sup_setpoint = math.nan
         self._last_saturated = False
@@ -327,27 +331,9 @@ class ChannelPipeline:
         learnt_last = self._learnt_last
         self._learnt_last = False
         if not follows_previous or self.u_prev is None:
-            self.resync = self.model.history_length
-            self.refill = 0
-            self._free_run, self._free_run_left = None, 0
-            self._sup_run = None
-            self._alt_run = None
-            self.controller.reset()
-            self.dynamics = None
+            self._start_resync()
         elif repeat and self.resync == 0:
-            # A reading served twice by an asynchronous sampler (a stream at the sample
-            # rate, with jitter): the previous reading was a step ahead of its tick, so
-            # the plant moved two steps between it and the one before, and none since.
-            # Learning from either pair, or from a history holding the wrong step, teaches
-            # the model a wrong step response (measured on the ArduSub profile: depth
-            # error 0.49 m mean over 6 runs with, 0.12 m without): the update learnt from
-            # the early reading is undone, the repeat dropped and the history refilled
-            # without training. Control is not interrupted. (An exact steady state of a
-            # noise-free output also repeats: it holds no new information either.)
-            self.repeats += 1
-            if learnt_last:
-                self.model.undo_last_update()
-            self.refill = self.model.history_length
+            self._drop_repeat(learnt_last)
             return None
         self._sup_pred = math.nan
         self._alt_delta = math.nan
@@ -355,63 +341,21 @@ class ChannelPipeline:
         if self.tripped:
             self._since_trip += 1
         if self.refill > 0 and self.resync == 0:
-            self._sup_run = None  # the supervisor's prediction restarts after the refill
-            self._alt_run = None
-            assert self.u_prev is not None
-            self.model.observe_only(self.u_prev, y)
-            self.persistence.observe_only(self.u_prev, y)
-            self.horizon_test.record(y, self.u_prev)
-            self.u_prev = u_now
-            self.refill -= 1
-            self.skipped += 1
-            self.dynamics = self.model.dynamics()
-            self.controller.track(self.dynamics, y)
+            self._refill_sample(y, u_now)
             return None
         if self.resync > 0:
-            self._sup_run = None
-            self._alt_run = None
-            self.horizon_test.break_record()  # consecutive samples only
-            u_guess = u_now if self.u_prev is None else self.u_prev
-            self.model.observe_only(u_guess, y)
-            self.persistence.observe_only(u_guess, y)
-            self.u_prev = u_now
-            self.resync -= 1
-            self.skipped += 1
+            self._resync_sample(y, u_now)
             return None
         u_prev = self.u_prev
         assert u_prev is not None  # set by every sample, resynchronising ones included
-        free_run = self._free_run
-        if free_run is not None and math.isfinite(y):
-            y_sim = free_run.advance(u_prev)
-            self.multistep.add(y, y_sim)
-        if self._sup_run is not None:
-            self._sup_pred = self._sup_run.advance(u_prev)
-        if self._alt_run is not None and self._app_run is not None:
-            # The neutral input reached from the applied one at the actuator's rate limit.
-            rate = self.settings.control.rate_limit
-            self._alt_u = min(max(0.0, self._alt_u - rate), self._alt_u + rate)
-            neutral = self._alt_run.advance(self._alt_u)
-            self._alt_delta = self._app_run.advance(u_prev) - neutral
+        self._advance_predictions(y, u_prev)
         estimate = self.model.step(u_prev, y)
         self.horizon_test.record(y, u_prev)
         self._learnt_last = True
         baseline = self.persistence.step(u_prev, y)
         self.u_prev = u_now
         self.last = estimate
-        if estimate.status == "rejected":
-            self.rejected += 1
-        elif estimate.status == "diverged":
-            self.divergences += 1
-            self.converged = False
-            self.disqualify()
-        else:
-            self.stats.add(y, estimate.error, baseline.error)
-            if not self.converged and self.stats.count >= self.settings.burn_in:
-                skill = self.stats.recent_skill()  # only needed until convergence
-                if skill is not None and skill >= self.settings.min_skill:
-                    self.converged = True
-            self.dynamics = self.model.dynamics()
-            self.controller.track(self.dynamics, y)
+        self._account(estimate, y, baseline.error)
         self._free_run_left -= 1
         if self._free_run_left <= 0:
             self._restart_free_run()
@@ -431,6 +375,97 @@ class ChannelPipeline:
             "status": estimate.status,
             "baseline_y_hat": baseline.y_hat,
         }
+
+    def _start_resync(self) -> None:
+        """A gap (or the first sample): the history refills without training, and every
+        prediction that ran on the history before it restarts."""
+        self.resync = self.model.history_length
+        self.refill = 0
+        self._free_run, self._free_run_left = None, 0
+        self._sup_run = None
+        self._alt_run = None
+        self.controller.reset()
+        self.dynamics = None
+
+    def _drop_repeat(self, learnt_last: bool) -> None:
+        """A reading served twice by an asynchronous sampler (a stream at the sample rate,
+        with jitter): the previous reading was a step ahead of its tick, so the plant moved
+        two steps between it and the one before, and none since. Learning from either pair,
+        or from a history holding the wrong step, teaches the model a wrong step response
+        (measured on the ArduSub profile: depth error 0.49 m mean over 6 runs with, 0.12 m
+        without): the update learnt from the early reading is undone, the repeat dropped
+        and the history refilled without training. Control is not interrupted. (An exact
+        steady state of a noise-free output also repeats: it holds no new information
+        either.)"""
+        self.repeats += 1
+        if learnt_last:
+            self.model.undo_last_update()
+        self.refill = self.model.history_length
+
+    def _refill_sample(self, y: float, u_now: float) -> None:
+        """A sample after a repeat or a reused input: into the history, the horizon test's
+        record and the internal model, not into training."""
+        self._sup_run = None  # the supervisor's prediction restarts after the refill
+        self._alt_run = None
+        assert self.u_prev is not None
+        self.model.observe_only(self.u_prev, y)
+        self.persistence.observe_only(self.u_prev, y)
+        self.horizon_test.record(y, self.u_prev)
+        self.u_prev = u_now
+        self.refill -= 1
+        self.skipped += 1
+        self.dynamics = self.model.dynamics()
+        self.controller.track(self.dynamics, y)
+
+    def _resync_sample(self, y: float, u_now: float) -> None:
+        """A sample after a gap: into the history only; the horizon test's record breaks
+        (consecutive samples only)."""
+        self._sup_run = None
+        self._alt_run = None
+        self.horizon_test.break_record()  # consecutive samples only
+        u_guess = u_now if self.u_prev is None else self.u_prev
+        self.model.observe_only(u_guess, y)
+        self.persistence.observe_only(u_guess, y)
+        self.u_prev = u_now
+        self.resync -= 1
+        self.skipped += 1
+
+    def _advance_predictions(self, y: float, u_prev: float) -> None:
+        """The frozen copies one step on the input that produced ``y``: the multi-step
+        accuracy's free run, the supervisor's prediction and the safe input's
+        counterfactual."""
+        free_run = self._free_run
+        if free_run is not None and math.isfinite(y):
+            y_sim = free_run.advance(u_prev)
+            self.multistep.add(y, y_sim)
+        if self._sup_run is not None:
+            self._sup_pred = self._sup_run.advance(u_prev)
+        if self._alt_run is not None and self._app_run is not None:
+            # The counterfactual input reached from the applied one at the rate limit.
+            rate = self.settings.control.rate_limit
+            target = self._alt_target
+            self._alt_u = min(max(target, self._alt_u - rate), self._alt_u + rate)
+            neutral = self._alt_run.advance(self._alt_u)
+            self._alt_delta = self._app_run.advance(u_prev) - neutral
+
+    def _account(self, estimate: Estimate, y: float, baseline_error: float) -> None:
+        """The identifier's step in the health counts and the gates: a rejected sample, a
+        divergence (the channel must qualify again), or a sample that counts towards
+        convergence and advances the internal model."""
+        if estimate.status == "rejected":
+            self.rejected += 1
+        elif estimate.status == "diverged":
+            self.divergences += 1
+            self.converged = False
+            self.disqualify()
+        else:
+            self.stats.add(y, estimate.error, baseline_error)
+            if not self.converged and self.stats.count >= self.settings.burn_in:
+                skill = self.stats.recent_skill()  # only needed until convergence
+                if skill is not None and skill >= self.settings.min_skill:
+                    self.converged = True
+            self.dynamics = self.model.dynamics()
+            self.controller.track(self.dynamics, y)
 
     def _restart_free_run(self) -> None:
         dynamics = self.model.dynamics()  # a copy of its own: it advances its histories
@@ -563,7 +598,7 @@ class ChannelPipeline:
         if self._sup_run is None or not math.isfinite(pred) or setpoint != self._sup_setpoint:
             if setpoint != self._sup_setpoint:
                 self.supervisor.new_reference()
-                self._restart_comparison(u_applied)
+                self._restart_comparison(u_applied, setpoint)
             self._restart_supervised(y, setpoint, u_applied)
             return ""
         reason = self.supervisor.segment_sample(
@@ -572,23 +607,40 @@ class ChannelPipeline:
         if not reason and self._alt_run is not None and math.isfinite(self._alt_delta):
             # What the output would have been at the neutral input: the measured one
             # (disturbance and noise included) without commanding's modelled effect.
-            reason = self.supervisor.compare_sample(error, error - self._alt_delta)
+            reason = self.supervisor.compare_sample(
+                error,
+                error - self._alt_delta,
+                "the vehicle's own control" if self.releases else "the neutral input",
+            )
         if reason:
             self._trip(reason, u_applied)
             return f"supervisor: {reason} ({self.channel})"
         if self.supervisor.segment_done():
             self._restart_supervised(y, setpoint, u_applied)
         if self._alt_run is None or self.supervisor.comparison_done():
-            self._restart_comparison(u_applied)
+            self._restart_comparison(u_applied, setpoint)
         return ""
 
-    def _restart_comparison(self, u_applied: float) -> None:
-        """The neutral input's counterfactual from now: the model from the measured
-        history, its input going from the applied one to 0 at the rate limit."""
+    def _restart_comparison(self, u_applied: float, setpoint: float) -> None:
+        """The safe input's counterfactual from now: the model from the measured history,
+        its input going from the applied one to ``_counterfactual_input`` at the rate
+        limit."""
         self._alt_run = self.model.dynamics()
         self._app_run = self.model.dynamics()
         self._alt_u = u_applied if math.isfinite(u_applied) else 0.0
+        self._alt_target = self._counterfactual_input(self._alt_run, setpoint)
         self.supervisor.start_comparison()
+
+    def _counterfactual_input(self, dyn: ModelDynamics, setpoint: float) -> float:
+        """What the channel would get if it stopped commanding: the neutral input (0), or,
+        when a trip releases it to the vehicle's own controller, the input that controller
+        settles at: the one whose steady state is the setpoint, by the model (0 when the
+        model has none)."""
+        if not self.releases:
+            return 0.0
+        limit = self.settings.control.u_limit
+        u = steady_input(dyn, setpoint, -limit, limit)
+        return u if math.isfinite(u) else 0.0
 
     def _restart_supervised(self, y: float, setpoint: float, u_applied: float) -> None:
         run = self.model.dynamics()

@@ -189,3 +189,24 @@ def test_the_figures_do_not_depend_on_units(output_scale, offset, input_scale):
     assert base < 0.2 * base_ref  # it controls
     scaled, scaled_ref = _iae(output_scale, offset, input_scale)
     assert scaled / scaled_ref == pytest.approx(base / base_ref, rel=0.01)
+
+
+def test_worse_than_not_commanding_compares_with_what_the_safe_input_gives():
+    """The trip's counterfactual is the channel's alternative: the neutral input, or where a
+    trip releases the channel to the vehicle's own controller, the input at which that
+    controller holds the setpoint (by the model: its steady state there is the setpoint)."""
+    for safe in ("neutral", "release"):
+        settings = PipelineSettings()
+        settings = settings.replace(control=dataclasses.replace(settings.control, safe_input=safe))
+        loop = Loop(spec(dc_gain=2.0), spec(), settings)
+        loop.run(800, {"depth": None, "pitch": None}, enabled=False)
+        depth = loop.pipeline.channels["depth"]
+        dyn = depth.model.dynamics()
+        u = depth._counterfactual_input(dyn, 16.0)
+        if safe == "neutral":
+            assert u == 0.0
+            continue
+        gain = 1.0 - sum(dyn.ar)
+        steady = dyn.bias + sum(dyn.lag_value(L, u) for L in range(1, len(dyn.lag_polys) + 1))
+        assert steady / gain == pytest.approx(16.0, abs=1e-6)
+        assert u == pytest.approx(0.5, abs=0.05)  # the plant's: 15 + 2·u = 16

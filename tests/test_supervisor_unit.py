@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hil_service.umodel.dynamics import ModelDynamics
-from hil_service.umodel.supervisor import HorizonTest, Supervisor
+from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 
 
 def _first_order(a: float, b: float, bias: float = 0.0) -> ModelDynamics:
@@ -99,3 +99,14 @@ def test_the_hold_off_doubles_and_three_trips_latch_until_the_operator_resets():
     assert holdoffs == [80, 160, 320] and s.latched
     s.operator_reset()
     assert not s.latched and s.holdoff(20) == 80 and s.trips == 3
+
+
+def test_steady_input_inverts_the_models_steady_state():
+    # y(t) = 0.5 y(t−1) + 1 + u(t−1) + 0.25 u(t−1)³ : steady state 2 + 2u + 0.5u³.
+    dyn = ModelDynamics([0.5], 1.0, [[1.0, 0.0, 0.25]], 1.0, [0.0], [0.0])
+    u = steady_input(dyn, 3.0, -2.0, 2.0)
+    assert 2.0 + 2.0 * u + 0.5 * u**3 == pytest.approx(3.0, abs=1e-9)
+    # Out of reach: the closest input of the range; an integrator: no steady state.
+    assert steady_input(dyn, 100.0, -2.0, 2.0) == 2.0
+    integrator = ModelDynamics([1.0], 0.0, [[1.0]], 1.0, [0.0], [0.0])
+    assert math.isnan(steady_input(integrator, 1.0, -2.0, 2.0))

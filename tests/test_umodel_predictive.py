@@ -165,3 +165,31 @@ def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int
     fast = controller._free_response(dyn, 0.4, sim)
     slow = dyn.simulate_held(0.4, controller.horizon, 0.0, sim)
     assert fast == pytest.approx([slow[j - 1] for j in controller._points], rel=1e-9, abs=1e-9)
+
+
+def _estimate(residuals: list[float], horizon: int = 5) -> list[float]:
+    """The disturbance estimate after each residual, at the pace a ``horizon`` gives."""
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    alpha = 1.0 / (1.0 + controller.settings.disturbance_share * horizon)
+    out = []
+    for r in residuals:
+        controller._estimate_disturbance(r, alpha)
+        out.append(controller.disturbance)
+    return out
+
+
+def test_the_disturbance_estimate_averages_a_white_residual_and_follows_a_wandering_one() -> None:
+    rng = np.random.default_rng(3)
+    white = rng.standard_normal(2000)
+    # At the horizon's pace (α = 1/3.5) the estimate of white noise has a variance of
+    # α/(2 − α) = 0.17: planning on it adds that to the output's. Averaged, far less.
+    late = np.array(_estimate(list(white))[1000:])
+    assert float(np.var(late)) < 0.02
+    # A random walk seen through white noise of a tenth of its step: the estimate keeps up.
+    walk = np.cumsum(rng.standard_normal(2000)) + 0.1 * rng.standard_normal(2000)
+    followed = np.array(_estimate(list(walk)))
+    assert float(np.sqrt(np.mean((followed[1:] - walk[:-1]) ** 2))) < 1.5
+    # A step in a noise-free residual (a model error at a new level) is followed at the
+    # horizon's pace, the fastest candidate.
+    stepped = _estimate([0.0] * 50 + [1.0] * 50)
+    assert stepped[-1] == pytest.approx(1.0 - (1.0 - 1.0 / 3.5) ** 50)

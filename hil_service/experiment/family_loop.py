@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -20,6 +21,8 @@ import numpy as np
 
 from hil_service.experiment.closed_loop import (
     ClosedLoopSettings,
+    InverseRun,
+    RunTrace,
     _drive,
     inverse_run,
     oracle_run,
@@ -212,6 +215,37 @@ def run_vehicle(
         raise ValueError(f"released must be one of {RELEASED}, got {released!r}")
     specs = {"depth": depth, "pitch": pitch}
     schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
+    reference_only = reference_only_controller(specs, schedule)
+    if released == "vehicle":
+        base = pipeline_settings or PipelineSettings(seed=settings.seed)
+        pipeline_settings = base.replace(
+            control=dataclasses.replace(base.control, safe_input="release")
+        )
+    inverse = inverse_run(
+        settings,
+        FamilyVehicle(depth, pitch, settings.seed),
+        schedule,
+        pipeline_settings,
+        reference_only if released == "vehicle" else None,
+    )
+    reference = _drive(
+        settings, FamilyVehicle(depth, pitch, settings.seed), schedule, reference_only
+    )
+    oracle, failures = _oracle(settings, specs) if settings.oracle else (None, 0)
+    for run in (inverse.trace, reference, oracle):
+        if run is not None:
+            score(run, settings, depth.period)
+    rows = [
+        _row(settings, specs[ch], i, inverse, reference, oracle) for i, ch in enumerate(CHANNELS)
+    ]
+    return rows, failures
+
+
+def reference_only_controller(
+    specs: dict[str, FamilyPlantSpec], schedule: dict[str, np.ndarray]
+) -> Callable[[int, TelemetrySample], tuple[float, float]]:
+    """Reference-only: at each sample, the true plant's static inverse of the setpoint
+    (through its Wiener and input maps), no feedback."""
     knowns = {ch: known(specs[ch]) for ch in CHANNELS}
 
     def reference_only(k: int, sample: TelemetrySample) -> tuple[float, float]:
@@ -222,64 +256,56 @@ def run_vehicle(
             out.append(knowns[ch].invert_pump(linear / spec.dc_gain, 0.0))
         return out[0], out[1]
 
-    def vehicle() -> FamilyVehicle:
-        return FamilyVehicle(depth, pitch, settings.seed)
+    return reference_only
 
-    if released == "vehicle":
-        base = pipeline_settings or PipelineSettings(seed=settings.seed)
-        pipeline_settings = base.replace(
-            control=dataclasses.replace(base.control, safe_input="release")
-        )
-    inverse = inverse_run(
+
+def _oracle(
+    settings: ClosedLoopSettings, specs: dict[str, FamilyPlantSpec]
+) -> tuple[RunTrace, int]:
+    """The oracle's run in the plant's own units (scale 1, offset 0: its LP and settings
+    are ``random_loop``'s, made for outputs of order one; the problem is the same in any
+    unit, so its IAE scales with the output and ``_row`` multiplies it back), and its
+    failed LP solves."""
+    plain = {ch: dataclasses.replace(specs[ch], scale=1.0, offset=0.0) for ch in CHANNELS}
+    plain_known = {ch: known(plain[ch]) for ch in CHANNELS}
+    return oracle_run(
         settings,
-        vehicle(),
-        schedule,
-        pipeline_settings,
-        reference_only if released == "vehicle" else None,
+        FamilyVehicle(plain["depth"], plain["pitch"], settings.seed),
+        setpoint_schedule(settings, {ch: levels(plain[ch]) for ch in CHANNELS}),
+        {ch: oracle_settings_for(plain_known[ch]) for ch in CHANNELS},
+        {ch: 0.0 for ch in CHANNELS},
     )
-    reference = _drive(settings, vehicle(), schedule, reference_only)
-    oracle = None
-    failures = 0
-    if settings.oracle:
-        # In the plant's own units (scale 1, offset 0): the oracle's LP and its settings
-        # are those of ``random_loop``, made for outputs of order one. The problem is the
-        # same in any unit, so its IAE scales with the output: multiplied back below.
-        plain = {ch: dataclasses.replace(specs[ch], scale=1.0, offset=0.0) for ch in CHANNELS}
-        plain_known = {ch: known(plain[ch]) for ch in CHANNELS}
-        oracle, failures = oracle_run(
-            settings,
-            FamilyVehicle(plain["depth"], plain["pitch"], settings.seed),
-            setpoint_schedule(settings, {ch: levels(plain[ch]) for ch in CHANNELS}),
-            {ch: oracle_settings_for(plain_known[ch]) for ch in CHANNELS},
-            {ch: 0.0 for ch in CHANNELS},
-        )
-    for run in (inverse.trace, reference, oracle):
-        if run is not None:
-            score(run, settings, depth.period)
-    rows = []
-    for i, ch in enumerate(CHANNELS):
-        supervision = inverse.supervision[ch]
-        trace = inverse.trace
-        oracle_iae = None
-        if oracle is not None and specs[ch].wiener == 0.0:
-            oracle_iae = oracle.metrics[ch].iae * specs[ch].scale
-        rows.append(
-            FamilyRow(
-                spec=specs[ch],
-                inverse_iae=inverse.trace.metrics[ch].iae,
-                reference_iae=reference.metrics[ch].iae,
-                oracle_iae=oracle_iae,
-                trips=supervision["trips"],
-                horizon_passed=supervision["horizon_passed"],
-                commanded=supervision["commanded"],
-                phases=phase_iae(
-                    inverse.modes,
-                    i,
-                    trace.y[ch],
-                    trace.setpoint[ch],
-                    settings.identify,
-                    depth.period,
-                ),
-            )
-        )
-    return rows, failures
+
+
+def _row(
+    settings: ClosedLoopSettings,
+    spec: FamilyPlantSpec,
+    index: int,
+    inverse: InverseRun,
+    reference: RunTrace,
+    oracle: RunTrace | None,
+) -> FamilyRow:
+    """One channel's row (``index`` in the decisions' ``mode``)."""
+    ch = spec.channel
+    supervision = inverse.supervision[ch]
+    trace = inverse.trace
+    oracle_iae = None
+    if oracle is not None and spec.wiener == 0.0:
+        oracle_iae = oracle.metrics[ch].iae * spec.scale
+    return FamilyRow(
+        spec=spec,
+        inverse_iae=trace.metrics[ch].iae,
+        reference_iae=reference.metrics[ch].iae,
+        oracle_iae=oracle_iae,
+        trips=supervision["trips"],
+        horizon_passed=supervision["horizon_passed"],
+        commanded=supervision["commanded"],
+        phases=phase_iae(
+            inverse.modes,
+            index,
+            trace.y[ch],
+            trace.setpoint[ch],
+            settings.identify,
+            spec.period,
+        ),
+    )

@@ -172,64 +172,118 @@ def _fallback(
     grid = _grid(lo, hi, grid_points)
     vals = np.array([f(u) for u in grid.tolist()], dtype=float)
     r = vals - v
-    iters = 0
+    i, best, ri, cells = _scan_grid(grid, r, u0)
+    if cells is not None:
+        u, iters = _root_nearest(f, df, v, grid, r, cells, u0, tol, refine_iter)
+    else:
+        u, iters = _refine_closest(f, df, v, grid, i, best, ri, lo, hi, tol, refine_iter)
+    return _unless_u0_is_as_good(f, v, u, u0, lo, hi, tol, iters)
+
+
+def _scan_grid(
+    grid: np.ndarray, r: np.ndarray, u0: float
+) -> tuple[int, float, float, np.ndarray | None]:
+    """The grid's verdict on f − v (``r``): the cells where it changes sign (a root
+    exists), or else the closest grid point i with |f − v| there (``best``) and its signed
+    value (``ri``; 0 where not finite). Ties go to the point nearest ``u0``, then to the
+    lower u."""
     low, high = float(r.min()), float(r.max())  # NaN anywhere → NaN → the general scan
     if low > 0.0 or high < 0.0:
         # Common case, fast: f − v keeps one sign on the whole grid (no root, nothing NaN).
         i = int(r.argmin()) if low > 0.0 else int(r.argmax())  # lowest u among ties
         best = low if low > 0.0 else -high
-        cells = None
         if np.count_nonzero(r == r[i]) > 1:
             ties = np.flatnonzero(r == r[i])
             i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
-        ri = float(r[i]) if math.isfinite(best) else 0.0
+        return i, best, float(r[i]) if math.isfinite(best) else 0.0, None
+    finite = np.isfinite(r)
+    # 1) A sign change on the grid means an exact solution exists: the one nearest u0.
+    cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
+    if cells.size:
+        return 0, 0.0, 0.0, cells
+    # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u)
+    a = np.where(finite, np.abs(r), np.inf)
+    ties = np.flatnonzero(a == a.min())
+    i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
+    return i, float(a[i]), float(r[i]) if finite[i] else 0.0, None
+
+
+def _root_nearest(
+    f: Callable[[float], float],
+    df: Callable[[float], float],
+    v: float,
+    grid: np.ndarray,
+    r: np.ndarray,
+    cells: np.ndarray,
+    u0: float,
+    tol: float,
+    refine_iter: int,
+) -> tuple[float, int]:
+    """The root inside the sign-change cell nearest ``u0``, and the iterations it took."""
+    if cells.size == 1:
+        i = int(cells[0])
     else:
-        finite = np.isfinite(r)
-        # 1) A sign change on the grid means an exact solution exists: the one nearest u0.
-        cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
-        if not cells.size:
-            # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u)
-            a = np.where(finite, np.abs(r), np.inf)
-            ties = np.flatnonzero(a == a.min())
-            i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
-            best = float(a[i])
-            ri = float(r[i]) if finite[i] else 0.0
-            cells = None
-    if cells is not None:
-        if cells.size == 1:
-            i = int(cells[0])
-        else:
-            mids = 0.5 * (grid[cells] + grid[cells + 1])
-            i = int(cells[int(np.argmin(np.abs(mids - u0)))])
-        u, iters = _bracketed_root(
-            f,
-            df,
-            v,
-            float(grid[i]),
-            float(grid[i + 1]),
-            float(r[i]),
-            float(r[i + 1]),
-            tol,
-            refine_iter,
-        )
-    else:
-        u = float(grid[i])
-        # ... refined inside the neighbouring cells unless a bound is a one-sided minimum.
-        last = grid_points - 1
-        refine = 0 < i < last
-        if i in (0, last) and best > tol:
-            slope = df(u)
-            if math.isfinite(slope):
-                grows_inward = math.copysign(1.0, ri) * slope * (1.0 if i == 0 else -1.0) > 0.0
-                refine = not grows_inward and slope != 0.0
-        if refine and best > tol:
-            ga = float(grid[max(i - 1, 0)])
-            gb = float(grid[min(i + 1, last)])
-            # |f − v| is flat at a stationary point: 1e-7 of the range in u is plenty.
-            uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter)
-            if rc < best:
-                u = uc
-    # u0 itself wins ties: no needless move when f is flat there.
+        mids = 0.5 * (grid[cells] + grid[cells + 1])
+        i = int(cells[int(np.argmin(np.abs(mids - u0)))])
+    return _bracketed_root(
+        f,
+        df,
+        v,
+        float(grid[i]),
+        float(grid[i + 1]),
+        float(r[i]),
+        float(r[i + 1]),
+        tol,
+        refine_iter,
+    )
+
+
+def _refine_closest(
+    f: Callable[[float], float],
+    df: Callable[[float], float],
+    v: float,
+    grid: np.ndarray,
+    i: int,
+    best: float,
+    ri: float,
+    lo: float,
+    hi: float,
+    tol: float,
+    refine_iter: int,
+) -> tuple[float, int]:
+    """No root: grid point i, refined inside the neighbouring cells unless it is a bound
+    that is a one-sided minimum; and the iterations the refinement took."""
+    u = float(grid[i])
+    iters = 0
+    last = grid.size - 1
+    refine = 0 < i < last
+    if i in (0, last) and best > tol:
+        slope = df(u)
+        if math.isfinite(slope):
+            grows_inward = math.copysign(1.0, ri) * slope * (1.0 if i == 0 else -1.0) > 0.0
+            refine = not grows_inward and slope != 0.0
+    if refine and best > tol:
+        ga = float(grid[max(i - 1, 0)])
+        gb = float(grid[min(i + 1, last)])
+        # |f − v| is flat at a stationary point: 1e-7 of the range in u is plenty.
+        uc, rc, iters = _extremum(f, df, v, ga, gb, 1e-7 * (hi - lo), refine_iter)
+        if rc < best:
+            u = uc
+    return u, iters
+
+
+def _unless_u0_is_as_good(
+    f: Callable[[float], float],
+    v: float,
+    u: float,
+    u0: float,
+    lo: float,
+    hi: float,
+    tol: float,
+    iters: int,
+) -> InverseResult:
+    """The fallback's answer ``u``, or ``u0`` itself when it is as close: no needless move
+    when f is flat there."""
     res_u0 = _abs_res(f, u0, v)
     res = f(u) - v
     if not math.isfinite(res):

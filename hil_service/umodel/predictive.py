@@ -25,7 +25,10 @@ Offset-free tracking (internal model control): an internal copy of the model run
 own outputs and the applied inputs; the measured output's departure from it, low-passed
 with a time constant of a share of the horizon (``disturbance_share``), is the output
 disturbance, held constant over the horizon. A slow estimate on purpose: a
-non-minimum-phase plant answers a fast correction with its wrong-way response.
+non-minimum-phase plant answers a fast correction with its wrong-way response. Slower
+still where that departure is noise: of that pace and 2 … 64 times slower, the estimate
+that has predicted the departure best is used (``track``), so a white residual is averaged
+rather than fed back.
 
 Guards: non-finite model coefficients, a degenerate input map or a non-finite plan give
 "hold" (the applied input), never an exception or a non-finite command.
@@ -63,6 +66,10 @@ __all__ = [
 
 #: Power-iteration sweeps of the rank-one factorisation (a 3×3 symmetric matrix).
 _POWER_SWEEPS = 30
+
+#: The disturbance estimate's candidate paces: the horizon's (``disturbance_share``) and
+#: 2, 4, … 2^(n−1) times slower (see ``PredictiveInverse.track``).
+DISTURBANCE_PACES = 7
 
 
 class PredictiveSettings:
@@ -210,6 +217,7 @@ class PredictiveInverse:
         "_age",
         "_columns",
         "_disturbance",
+        "_estimates",
         "_free_ar",
         "_free_impulse",
         "_free_step",
@@ -221,6 +229,7 @@ class PredictiveInverse:
         "_points",
         "_range",
         "_rho",
+        "_scores",
         "_shape",
         "_sim",
         "_starts",
@@ -244,6 +253,10 @@ class PredictiveInverse:
         self._horizon = 0
         self._age = 0
         self._disturbance = 0.0
+        # One estimate per candidate pace and the squared errors with which each, held
+        # from the sample before, predicted the residual since the internal model started.
+        self._estimates = [0.0] * DISTURBANCE_PACES
+        self._scores = [0.0] * DISTURBANCE_PACES
         self._points: list[int] = []  # cost points j (ŷ(k+j))
         self._columns: list[list[float]] = []  # per point: effect of each block's level
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
@@ -271,14 +284,14 @@ class PredictiveInverse:
 
     def reset(self) -> None:
         """Forget the internal model and the disturbance (after a gap in the telemetry)."""
-        self._disturbance = 0.0
+        self._forget_disturbance()
         self._sim = None
         self._plan_state = None
 
     def track(self, dyn: ModelDynamics, y: float) -> None:
         """Advance the internal model by the sample whose output ``y`` the identifier has
         just learnt from (``dyn`` is the model after that step), and the disturbance
-        estimate d ← d + α·(y − y_m − d), α = 1/(1 + disturbance_share·horizon).
+        estimate (``_estimate_disturbance``).
 
         The internal model runs on its own outputs and the applied inputs (internal model
         control): the prediction carries the measured output's departure from it as a
@@ -293,15 +306,46 @@ class PredictiveInverse:
         y_m = dyn.one_step(sim)
         if not math.isfinite(y_m) or not math.isfinite(y - y_m):
             self._sim = list(dyn.outputs[:na])
-            self._disturbance = 0.0
+            self._forget_disturbance()
             return
         if na:
             sim.pop()
             sim.insert(0, y_m)
         self._age += 1
         horizon = self.horizon_for(dyn)
-        alpha = 1.0 / (1.0 + self.settings.disturbance_share * horizon)
-        self._disturbance += alpha * (y - y_m - self._disturbance)
+        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + self.settings.disturbance_share * horizon))
+
+    def _estimate_disturbance(self, residual: float, alpha: float) -> None:
+        """The output disturbance: the residual y − y_m low-passed, d ← d + α·(y − y_m − d),
+        at the pace that has predicted the residual best.
+
+        Candidates: α = 1/(1 + disturbance_share·horizon) and 2, 4, … times slower. Each
+        is scored by the squared error with which its estimate, held from the sample
+        before, predicted this residual (summed since the internal model started); the
+        lowest score wins, the fastest on a tie. The estimate is the residual's predicted
+        level over the horizon, so the pace that predicts it best is the one to plan with:
+        a residual that wanders (a current, a model error at a new level) is followed at
+        the horizon's pace, a white one (noise the model cannot predict) is averaged, and
+        correcting it, which only adds the estimate's own noise to the output's, stops.
+        For a random walk plus white noise every horizon ranks the paces alike (the k-step
+        error is the one-step error plus the walk's k − 1 steps)."""
+        estimates = self._estimates
+        scores = self._scores
+        best = 0
+        for i in range(len(estimates)):
+            error = residual - estimates[i]
+            scores[i] += error * error
+            estimates[i] += alpha * error
+            alpha *= 0.5
+            if scores[i] < scores[best]:
+                best = i
+        self._disturbance = estimates[best]
+
+    def _forget_disturbance(self) -> None:
+        self._disturbance = 0.0
+        for i in range(len(self._estimates)):
+            self._estimates[i] = 0.0
+            self._scores[i] = 0.0
 
     def horizon_for(self, dyn: ModelDynamics) -> int:
         """The prediction horizon of these dynamics (derived now if never derived), e.g.
@@ -392,52 +436,83 @@ class PredictiveInverse:
         u0 = lo_u if u0 < lo_u else hi_u if u0 > hi_u else u0
         if not (math.isfinite(setpoint) and dyn.is_finite()):
             return u0, "hold", False
-        # The factorisation, horizons and plan matrices change as slowly as the model:
-        # derived again every ``refresh`` samples, the same N for the plan and the inverse.
-        shape = self._shape
-        if shape is None or self._horizon == 0 or self._age >= self.settings.refresh:
-            factors = factorise(dyn, lo_u, hi_u)
-            if factors is None:
-                return u0, "hold", False
-            self._derive(dyn, factors[0])
-            shape = self._shape = factors[1]
-            self._range = monotone_range(shape, lo_u, hi_u)
+        shape = self._current_shape(dyn)
+        plan_model = self._plan_model
+        if shape is None or plan_model is None:
+            return u0, "hold", False
         # Plan only where the identified map rises: a polynomial fitted on the inputs seen
         # can turn over beyond them, and there a larger level needs a *smaller* input, so
         # the plan's bounds and the inverse trap the input at a limit (measured on the
         # ArduSub test: pitch held at −2 against a positive gain, 0.5 rad off).
         lo_u, hi_u = self._range
+        w0 = shape.value(u0)
+        f = self._linear_term(dyn, plan_model, u0, w0, setpoint)
+        for value in f:
+            if not math.isfinite(value):
+                return u0, "hold", False
+        lo, hi = self._block_bounds(shape, u0, lo_u, hi_u)
+        plan, self._plan_state = solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
+        target = plan[0]
+        if not math.isfinite(target):
+            return u0, "hold", False
+        return self._inverse_step(shape, target, u0, lo_u, hi_u)
+
+    def _current_shape(self, dyn: ModelDynamics) -> StaticMap | None:
+        """The input map N of the plan, derived again (with the horizons and the plan
+        matrices) every ``refresh`` samples: they change as slowly as the model, and the
+        plan and the inverse use the same N. None when the map is degenerate."""
+        shape = self._shape
+        if shape is None or self._horizon == 0 or self._age >= self.settings.refresh:
+            factors = factorise(dyn, self.u_min, self.u_max)
+            if factors is None:
+                return None
+            self._derive(dyn, factors[0])
+            shape = self._shape = factors[1]
+            self._range = monotone_range(shape, self.u_min, self.u_max)
+        return shape
+
+    def _linear_term(
+        self,
+        dyn: ModelDynamics,
+        plan_model: ModelDynamics,
+        u0: float,
+        w0: float,
+        setpoint: float,
+    ) -> list[float]:
+        """The QP's linear term: the blocks' columns against the predicted error with the
+        input held at ``u0`` (free response + disturbance estimate − setpoint), and the
+        move penalty's pull towards the applied level ``w0``.
+
+        The free response is the model of the last derivation's (its coefficients, today's
+        input history, from the internal model's outputs), as the block columns are: the
+        current model's input forcing run through the AR part of an older one predicts a
+        steady state that drifts as the identifier trades bias, input polynomial and AR
+        coefficients in closed loop (measured: a saw tooth of period ``refresh``, 3.8x the
+        oracle's IAE on a random plant with a dead zone; docs/control.md)."""
         sim = self._sim
         if sim is None or len(sim) != len(dyn.ar):
             sim = list(dyn.outputs[: len(dyn.ar)])
-        # The free response plus the output disturbance estimate. The free response is the
-        # model of the last derivation's (its coefficients, today's input history, from the
-        # internal model's outputs), as the block columns are: the current model's input
-        # forcing run through the AR part of an older one predicts a steady state that
-        # drifts as the identifier trades bias, input polynomial and AR coefficients in
-        # closed loop (measured: a saw tooth of period ``refresh``, 3.8x the oracle's IAE
-        # on a random plant with a dead zone; docs/control.md).
-        plan_model = self._plan_model
-        if plan_model is None:
-            return u0, "hold", False
         plan_model.inputs = dyn.inputs
         plan_model.outputs = dyn.outputs
         free = self._free_response(plan_model, u0, sim)
         disturbance = self._disturbance
-        w0 = shape.value(u0)
         nblocks = len(self._hessian)
         f = [0.0] * nblocks
         columns = self._columns
         onset = self._onset
-        points = self._points
-        for p in range(len(points)):
+        for p in range(len(self._points)):
             resid = free[p] + disturbance - w0 * onset[p] - setpoint
             col = columns[p]
             for b in range(nblocks):
                 f[b] += col[b] * resid
         f[0] -= self._rho * w0
-        # Each block's level within what the actuator can reach by the block's start
-        # (amplitude, and the rate limit from the applied input), in the map's units.
+        return f
+
+    def _block_bounds(
+        self, shape: StaticMap, u0: float, lo_u: float, hi_u: float
+    ) -> tuple[list[float], list[float]]:
+        """Each block's level within what the actuator can reach by the block's start
+        (amplitude, and the rate limit from the applied input), in the map's units."""
         lo: list[float] = []
         hi: list[float] = []
         for start in self._starts:
@@ -446,19 +521,18 @@ class PredictiveInverse:
             b_w = shape.value(b_u)
             lo.append(min(a_w, b_w))
             hi.append(max(a_w, b_w))
+        return lo, hi
+
+    def _inverse_step(
+        self, shape: StaticMap, target: float, u0: float, lo_u: float, hi_u: float
+    ) -> tuple[float, str, bool]:
+        """The input whose static map gives the planned first level ``target``, within a
+        rate step of ``u0``: (input, path, saturated)."""
         first_lo, first_hi = _reachable(u0, self.rate, lo_u, hi_u)
-        for value in f:
-            if not math.isfinite(value):
-                return u0, "hold", False
-        plan, self._plan_state = solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
-        target = plan[0]
-        if not math.isfinite(target):
-            return u0, "hold", False
         if not first_lo < first_hi:
             # Outside the rising range by more than a step: the one reachable input towards
             # it (``_reachable``), nothing to solve.
             return first_lo, "fallback", first_lo <= self.u_min or first_lo >= self.u_max
-        # The inverse step: the input whose static map gives the planned level.
         result = solve_inverse(shape.value, shape.derivative, target, u0, first_lo, first_hi)
         u = result.u
         if not math.isfinite(u):

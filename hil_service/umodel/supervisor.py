@@ -32,9 +32,10 @@ from the measured outputs. At each segment's end the segment is judged:
   ``1 + compare_margin`` times the mean |error| of the output the neutral input would
   have given: the measured output minus commanding's effect by the model's account
   (two frozen copies restarted from the measured history at the window's start, one fed
-  the applied inputs, one an input going to 0 at the rate limit; the measured output
-  carries the disturbance and the noise into both errors), and by more than a tenth of
-  the bound;
+  the applied inputs, one an input going to 0 at the rate limit, or, where a trip releases
+  the channel to the vehicle's own controller, to ``steady_input`` at the setpoint; the
+  measured output carries the disturbance and the noise into both errors), and by more
+  than a tenth of the bound;
 * ``worse than trim``: the output settled (moved less than the bound over the segment) with
   a tracking error larger, by more than the bound, than the model's steady state at the
   neutral input would leave (a plan stalled where holding trim does better).
@@ -50,7 +51,49 @@ from collections import deque
 
 from .dynamics import ModelDynamics
 
-__all__ = ["HorizonTest", "Supervisor", "SupervisorSettings"]
+__all__ = ["HorizonTest", "Supervisor", "SupervisorSettings", "steady_input"]
+
+
+def steady_input(dyn: ModelDynamics, level: float, lo: float, hi: float, points: int = 64) -> float:
+    """The input in [lo, hi] whose steady state, by ``dyn``, is closest to ``level``: every
+    input lag held at u, y = (bias + Σ_L P_L(u)) / (1 − Σ c_i). Scanned at ``points`` + 1
+    inputs, then bisected between the first two neighbours that straddle ``level``; NaN
+    when the model has no finite steady state (an integrator, non-finite coefficients)."""
+    gain = 1.0
+    for a in dyn.ar:
+        gain -= a
+    if not (math.isfinite(gain) and abs(gain) > 1e-9 and math.isfinite(level)):
+        return math.nan
+    nb = len(dyn.lag_polys)
+
+    def miss(u: float) -> float:
+        acc = dyn.bias
+        for lag in range(1, nb + 1):
+            acc += dyn.lag_value(lag, u)
+        return acc / gain - level
+
+    step = (hi - lo) / points
+    best_u, best = lo, abs(miss(lo))
+    u_prev, m_prev = lo, miss(lo)
+    for i in range(1, points + 1):
+        u = lo + i * step
+        m = miss(u)
+        if not math.isfinite(m):
+            return math.nan
+        if abs(m) < best:
+            best_u, best = u, abs(m)
+        if (m_prev <= 0.0 <= m) or (m <= 0.0 <= m_prev):
+            a, b, ma = u_prev, u, m_prev
+            for _ in range(50):
+                mid = 0.5 * (a + b)
+                mm = miss(mid)
+                if (ma <= 0.0) == (mm <= 0.0):
+                    a, ma = mid, mm
+                else:
+                    b = mid
+            return 0.5 * (a + b)
+        u_prev, m_prev = u, m
+    return best_u
 
 
 class HorizonTest:
@@ -406,10 +449,13 @@ class Supervisor:
     def comparison_done(self) -> bool:
         return self._cmp_n >= self.compare_window
 
-    def compare_sample(self, error: float, error_neutral: float) -> str:
+    def compare_sample(
+        self, error: float, error_neutral: float, alternative: str = "the neutral input"
+    ) -> str:
         """One commanded sample: ``error`` = y − r, ``error_neutral`` = the output the
-        neutral input would have given − r. The trip reason at the end of the second
-        window running that did worse ("" when none)."""
+        channel's safe input (``alternative``: the neutral input, or the vehicle's own
+        control) would have given − r. The trip reason at the end of the second window
+        running that did worse ("" when none)."""
         if not self._armed:
             return ""
         if not math.isfinite(error_neutral):
@@ -432,7 +478,7 @@ class Supervisor:
             return ""
         return self._trip(
             f"worse than not commanding (mean error {real:.3g} over {n} samples, "
-            f"{alt:.3g} at the neutral input by the model's account; two windows running)"
+            f"{alt:.3g} with {alternative} by the model's account; two windows running)"
         )
 
     def _note_flip(self, error: float, error_pred: float) -> None:

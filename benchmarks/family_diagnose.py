@@ -1,0 +1,151 @@
+"""Where the family plants above 1.1 × reference-only accrue their excess IAE.
+
+Per plant (hold semantics, as ``experiment --scenario family``): the pipeline's and
+reference-only's IAE per setpoint segment, split into the segment's first half (the
+transient) and its second half (the steady state), and in the second half the mean error
+(a bias) and its spread, beside the plant's disturbance. Prints the excess over
+reference-only summed per group (never qualified / tripped / commanded throughout) and per
+part, and whether the steady-state excess is bias or spread.
+
+    python benchmarks/family_diagnose.py --seeds 10 11 12 13 14 --plants 50 --save d.pkl
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from hil_service.experiment.closed_loop import (
+    ClosedLoopSettings,
+    _drive,
+    inverse_run,
+    setpoint_schedule,
+)
+from hil_service.experiment.family_loop import HARM_LIMIT, known, levels
+from hil_service.pipeline import PipelineSettings
+from plant_emulator.family import FamilyVehicle, draw_family
+from plant_emulator.models import CHANNELS
+
+
+def segments(setpoint: np.ndarray, start: int) -> list[tuple[int, int]]:
+    changes = [k for k in range(start + 1, setpoint.size) if setpoint[k] != setpoint[k - 1]]
+    starts = [start, *changes]
+    return list(zip(starts, [*changes, setpoint.size], strict=True))
+
+
+def plant_parts(y: np.ndarray, r: np.ndarray, start: int) -> dict[str, Any]:
+    transient = steady = 0.0
+    bias = spread = 0.0
+    for k0, k1 in segments(r, start):
+        mid = (k0 + k1) // 2
+        e = y - r
+        transient += float(np.sum(np.abs(e[k0:mid])))
+        steady += float(np.sum(np.abs(e[mid:k1])))
+        bias += abs(float(np.mean(e[mid:k1]))) * (k1 - mid)
+        spread += float(np.std(e[mid:k1])) * (k1 - mid)
+    return {"transient": transient, "steady": steady, "bias": bias, "spread": spread}
+
+
+def run(seeds: list[int], plants: int, pipeline: PipelineSettings | None) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    for seed in seeds:
+        settings = ClosedLoopSettings(
+            scenario="family", samples=2000, seed=seed, identify=800, step_every=300,
+            oracle=False, neutral_after_identify=True,
+        )  # fmt: skip
+        for depth, pitch in draw_family(seed, plants):
+            specs = {"depth": depth, "pitch": pitch}
+            schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
+            knowns = {ch: known(specs[ch]) for ch in CHANNELS}
+
+            def reference_only(
+                k: int,
+                sample: Any,
+                specs: Any = specs,
+                schedule: Any = schedule,
+                knowns: Any = knowns,
+            ) -> tuple[float, float]:
+                out = []
+                for ch in CHANNELS:
+                    spec = specs[ch]
+                    lin = spec.wiener_inverse((float(schedule[ch][k]) - spec.offset) / spec.scale)
+                    out.append(knowns[ch].invert_pump(lin / spec.dc_gain, 0.0))
+                return out[0], out[1]
+
+            inv = inverse_run(settings, FamilyVehicle(depth, pitch, seed), schedule, pipeline)
+            ref = _drive(settings, FamilyVehicle(depth, pitch, seed), schedule, reference_only)
+            for i, ch in enumerate(CHANNELS):
+                spec = specs[ch]
+                start = settings.identify
+                sup = inv.supervision[ch]
+                modes = [m.split("/")[i] if m else "-" for m in inv.modes]
+                first = next((j for j, m in enumerate(modes) if m not in ("-", "safe")), None)
+                trip = next((j for j, m in enumerate(modes) if m == "safe"), None)
+                rows.append({
+                    "seed": seed, "spec": spec,
+                    "group": "never qualified" if not sup["horizon_passed"]
+                    else "tripped" if sup["trips"] else "commanded throughout",
+                    "trips": sup["trips"], "commanded": sup["commanded"],
+                    "first_command": first, "first_trip": trip,
+                    "inv": plant_parts(inv.trace.y[ch], schedule[ch], start),
+                    "ref": plant_parts(ref.y[ch], schedule[ch], start),
+                    "u_inv": inv.trace.u[ch][start:].copy(),
+                    "u_ref": ref.u[ch][start:].copy(),
+                    "e_inv": (inv.trace.y[ch] - schedule[ch])[start:].copy(),
+                    "e_ref": (ref.y[ch] - schedule[ch])[start:].copy(),
+                })  # fmt: skip
+    return rows
+
+
+def total(parts: dict[str, float]) -> float:
+    return parts["transient"] + parts["steady"]
+
+
+def report(rows: list[dict[str, Any]]) -> None:
+    above = [r for r in rows if total(r["inv"]) > HARM_LIMIT * total(r["ref"])]
+    print(f"{len(above)} of {len(rows)} above {HARM_LIMIT}x reference-only")
+    groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in above:
+        groups[r["group"]].append(r)
+
+    def excess(found: list[dict[str, Any]], part: str) -> float:
+        return sum((r["inv"][part] - r["ref"][part]) / total(r["ref"]) for r in found)
+
+    for name, found in groups.items():
+        excess_t, excess_s = excess(found, "transient"), excess(found, "steady")
+        bias, spread = excess(found, "bias"), excess(found, "spread")
+        dist = defaultdict(int)
+        for r in found:
+            dist[r["spec"].disturbance] += 1
+        print(
+            f"  {name}: {len(found)}; excess / ref IAE summed: transient {excess_t:.2f}, "
+            f"steady {excess_s:.2f} (bias {bias:.2f}, spread {spread:.2f}); {dict(dist)}"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13, 14])
+    parser.add_argument("--plants", type=int, default=50)
+    parser.add_argument("--save")
+    parser.add_argument("--load", nargs="+")
+    args = parser.parse_args()
+    if args.load:
+        rows = []
+        for path in args.load:
+            with open(path, "rb") as f:
+                rows += pickle.load(f)
+    else:
+        rows = run(args.seeds, args.plants, None)
+    report(rows)
+    if args.save:
+        with open(args.save, "wb") as f:
+            pickle.dump(rows, f)
+
+
+if __name__ == "__main__":
+    main()
