@@ -23,6 +23,7 @@ from hil_service.umodel import (
     PersistenceModel,
     PredictiveModel,
     build_model,
+    option_names,
 )
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
@@ -131,8 +132,18 @@ class PipelineSettings:
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> PipelineSettings:
+        """A log recorded with a model option this model no longer takes (an identifier
+        that now finds a setting from the data itself) replays without it, as
+        ``ControlSettings.from_json`` drops unknown control fields."""
         data = dict(data)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
+        options = data.get("model_options")
+        if options:
+            taken = option_names(str(data.get("model", "dynamic")))
+            data["model_options"] = {
+                channel: {k: v for k, v in chosen.items() if k in taken}
+                for channel, chosen in options.items()
+            }
         return cls(control=control, **data)
 
 

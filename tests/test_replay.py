@@ -511,3 +511,19 @@ def test_a_periodic_profile_log_replays_with_the_samplers_count(tmp_path):
     result = replay_module.replay(tmp_path / "dive.mcap", replay_module.ReplayOptions())
     assert result.complete
     assert steps - 3 <= result.samples <= steps, result.samples
+
+
+def test_a_log_of_an_older_identifier_replays_without_the_options_it_dropped(capsys):
+    """legacy-paper.mcap stores a model option (``y_scale``) the scale-free identifier no
+    longer takes: it replays with this identifier, and ``--check`` names the first
+    difference instead of failing on the option."""
+    reader = LogReader(DATA / "legacy-paper.mcap")
+    for _ in reader.messages():
+        pass
+    stored = reader.config()
+    options = stored["service"]["pipeline"]["model_options"]
+    assert options["depth"] == {"y_scale": 1.0}
+    assert main(["replay", str(DATA / "legacy-paper.mcap"), "--fast"]) == 0
+    assert "replayed 2000 samples" in capsys.readouterr().out
+    assert main(["replay", str(DATA / "legacy-paper.mcap"), "--fast", "--check"]) == 1
+    assert "first difference on glider/1/umodel/depth" in capsys.readouterr().err

@@ -24,6 +24,7 @@ from .models import (
     Status,
     build_model,
     from_config,
+    option_names,
     paper_preset,
 )
 from .nlms import DEFAULT_EPS, NLMS
@@ -55,6 +56,7 @@ __all__ = [
     "build_model",
     "evenly_spaced_centres",
     "from_config",
+    "option_names",
     "paper_preset",
     "solve_inverse",
 ]

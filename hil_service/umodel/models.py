@@ -59,6 +59,7 @@ __all__ = [
     "Status",
     "build_model",
     "from_config",
+    "option_names",
     "paper_preset",
 ]
 
@@ -810,6 +811,12 @@ def build_model(name: str, **options: Any) -> OneStepModel:
         raise ValueError(f"unknown model {name!r}; expected one of {MODEL_NAMES}") from None
     model: OneStepModel = cls(**options)
     return model
+
+
+def option_names(name: str) -> frozenset[str]:
+    """The options ``build_model(name, ...)`` takes: the keys of its default model's
+    ``config()``, which lists every option (``from_config`` rebuilds from it)."""
+    return frozenset(build_model(name).config()) - {"name"}
 
 
 def from_config(cfg: dict[str, Any]) -> OneStepModel:
