@@ -42,35 +42,30 @@ UDP_MAX_DATAGRAM = 65535
 UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
 
 
-# ---- a decoded message's header fields, without pymavlink's accessor methods ----------
-# ``get_type()``, ``get_header()`` and ``get_msgbuf()`` are Python methods that return an
-# attribute: from compiled code each is an interpreted call (a frame), and the per-sample
-# path asks them about thirty times per plant step. pymavlink's ``MAVLink_message.__init__``
-# sets these attributes on every message (FrameDecoder's too); anything else (a test's
-# stand-in) is asked through its methods.
+# ---- what the per-sample path asks of a decoded message, through pymavlink's accessors ----
+# One place for the four questions (its type, header, sender and frame), asked through the
+# message classes' public methods, so that the rest of the code never touches pymavlink's
+# attributes.
 
 
 def type_of(message: MavMessage) -> str:
     """``message.get_type()``."""
-    kind = getattr(message, "_type", None)
-    return message.get_type() if kind is None else kind  # type: ignore[no-any-return]
+    return message.get_type()  # type: ignore[no-any-return]
 
 
 def header_of(message: MavMessage) -> Any:
     """``message.get_header()`` (pymavlink's ``MAVLink_header``)."""
-    header = getattr(message, "_header", None)
-    return message.get_header() if header is None else header
+    return message.get_header()
 
 
 def system_of(message: MavMessage) -> int:
     """``message.get_srcSystem()``."""
-    return header_of(message).srcSystem  # type: ignore[no-any-return]
+    return message.get_srcSystem()  # type: ignore[no-any-return]
 
 
 def frame_of(message: MavMessage) -> bytes:
     """``bytes(message.get_msgbuf())``: the message's frame."""
-    buffer = getattr(message, "_msgbuf", None)
-    return bytes(message.get_msgbuf() if buffer is None else buffer)
+    return bytes(message.get_msgbuf())
 
 
 @dataclass

@@ -32,6 +32,10 @@ rather than fed back.
 
 Guards: non-finite model coefficients, a degenerate input map or a non-finite plan give
 "hold" (the applied input), never an exception or a non-finite command.
+
+One module over 500 lines: the plan's tracking state, its disturbance estimate and the
+decision read and change the same per-channel state on every sample, and are compiled
+together; the horizon, the box QP and the root solver are modules of their own.
 """
 
 from __future__ import annotations

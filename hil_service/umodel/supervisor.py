@@ -42,6 +42,9 @@ from the measured outputs. At each segment's end the segment is judged:
 
 The bound is ``bound_factor`` × the RMS model error of the horizon test at arming (at
 least ``hold_floor`` × the RMS hold error, so that a noise-free model still has one).
+
+One module over 500 lines: the horizon test's verdict arms the supervisor and sets its
+bounds, and both run the same frozen model over the same record; they are read together.
 """
 
 from __future__ import annotations
