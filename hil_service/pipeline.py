@@ -132,9 +132,9 @@ class PipelineSettings:
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> PipelineSettings:
-        """A log recorded with a model option this model no longer takes (an identifier
-        that now finds a setting from the data itself) replays without it, as
-        ``ControlSettings.from_json`` drops unknown control fields."""
+        """Model options the model does not take (``option_names``: a log recorded by a
+        version whose identifier had them) are left out, as ``ControlSettings.from_json``
+        leaves out unknown control fields, so that such a log replays."""
         data = dict(data)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
         options = data.get("model_options")
@@ -660,9 +660,7 @@ class ChannelPipeline:
         self.supervisor.start_segment(y, y - setpoint, u_applied)
         # The model's steady state at the neutral input (every input lag at 0): what
         # holding trim would give, by the model's own account.
-        gain = 1.0
-        for a in run.ar:
-            gain -= a
+        gain = run.ar_gain()
         if abs(gain) > 1e-9:
             self.supervisor.neutral(run.bias / gain - setpoint)
 

@@ -98,6 +98,14 @@ class ModelDynamics:
         self.rbf = rbf
         self.rbf_weights: list[float] = list(rbf_weights)
 
+    def ar_gain(self) -> float:
+        """1 − Σ c_i: what divides the forcing in the steady state, y = (bias + Σ_L P_L(u)) /
+        (1 − Σ c_i) with every input lag held at u (0: an integrator, no steady state)."""
+        gain = 1.0
+        for a in self.ar:
+            gain -= a
+        return gain
+
     def lag_value(self, lag: int, u: float) -> float:
         """P_L(u) (plus the RBF term on lag 1)."""
         x = u * self.poly_scale

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def _shape(b: np.ndarray, pitch: np.ndarray) -> np.ndarray:
-    """sign(b)·√|b|·|sin θ|^{3/2}: the regressor of k."""
+def glide_regressor_of(b: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """sign(b)·√|b|·|sin θ|^{3/2}: the regressor of k (the flight model's, by columns)."""
     return np.sign(b) * np.sqrt(np.abs(b)) * np.abs(np.sin(pitch)) ** 1.5
 
 
@@ -57,7 +57,7 @@ class SteadyGlide:
         self, buoyancy: np.ndarray | float, pitch: np.ndarray | float, depth: np.ndarray | float
     ) -> np.ndarray:
         b = np.asarray(buoyancy, dtype=float) - self.v0 - self.c_p * np.asarray(depth, float)
-        return -self.k * _shape(b, np.asarray(pitch, dtype=float))
+        return -self.k * glide_regressor_of(b, np.asarray(pitch, dtype=float))
 
     def step(self, depth: float, buoyancy: float, pitch: float, dt: float) -> float:
         """The depth dt s after ``depth`` with the inputs held."""
@@ -104,7 +104,7 @@ def fit_steady_glide(
     z_span = max(float(np.max(np.abs(depth))), 1.0)
 
     def cost(v0: float, c_p: float) -> tuple[float, float]:
-        return _best_k(rate, _shape(buoyancy - v0 - c_p * depth, pitch))
+        return _best_k(rate, glide_regressor_of(buoyancy - v0 - c_p * depth, pitch))
 
     best = (math.inf, 0.0, 0.0)
     for v0 in np.linspace(low, high, 41):

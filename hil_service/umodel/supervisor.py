@@ -62,9 +62,7 @@ def steady_input(dyn: ModelDynamics, level: float, lo: float, hi: float, points:
     input lag held at u, y = (bias + Σ_L P_L(u)) / (1 − Σ c_i). Scanned at ``points`` + 1
     inputs, then bisected between the first two neighbours that straddle ``level``; NaN
     when the model has no finite steady state (an integrator, non-finite coefficients)."""
-    gain = 1.0
-    for a in dyn.ar:
-        gain -= a
+    gain = dyn.ar_gain()
     if not (math.isfinite(gain) and abs(gain) > 1e-9 and math.isfinite(level)):
         return math.nan
     nb = len(dyn.lag_polys)

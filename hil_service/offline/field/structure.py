@@ -39,7 +39,7 @@ import numpy as np
 
 from hil_service.umodel.glide_umodel import glide_regressor
 from hil_service.umodel.scoring import fit_from_nmse, normalised_square_error
-from hil_service.umodel.steady_glide import fit_steady_glide
+from hil_service.umodel.steady_glide import fit_steady_glide, glide_regressor_of
 
 #: (feature, degree, drift) candidates, in order of parameter count (ties go to the first):
 #: degree M of the steady-glide input has M (+ c) linear parameters and v₀, c_p, the
@@ -128,7 +128,7 @@ def _design(piece: Piece, form: _Form) -> tuple[np.ndarray, np.ndarray]:
     if form.feature == "steady-glide":  # the same regressor, by columns
         with np.errstate(invalid="ignore", over="ignore"):
             b = piece.u[:-1] - form.v0 - form.c_p * piece.y[:-1]
-            g = np.sign(b) * np.sqrt(np.abs(b)) * np.abs(np.sin(piece.pitch[:-1])) ** 1.5
+            g = glide_regressor_of(b, piece.pitch[:-1])
             columns = [g**m for m in range(1, form.degree + 1)]
         if form.drift:
             columns.append(np.ones(g.size))
