@@ -16,6 +16,12 @@ known-model oracle.
     python benchmarks/family_harm.py --seeds 10 11 12 13 14 --plants 50
     python benchmarks/family_harm.py --seeds 0 1 2 --plants 200 --save a.pkl   # and 3 4: b.pkl
     python benchmarks/family_harm.py --combine a.pkl b.pkl
+
+What-if runs (docs/control.md, "What is left"): ``--horizon-fit F`` sets the horizon test's
+threshold, ``--nb N`` the identifier's input lags, and ``--nb-from-true-delay E`` gives each
+plant's identifier max(4, delay + E) input lags from the plant's *true* input delay, which
+no deployed identifier knows: an upper bound on what choosing the lags from the data could
+give, not a controller.
 """
 
 from __future__ import annotations
@@ -35,8 +41,10 @@ from hil_service.experiment.family_loop import (
     PHASES,
     RELEASED,
     FamilyRow,
-    run_family_closed_loop,
+    run_vehicle,
 )
+from hil_service.pipeline import ControlSettings, PipelineSettings
+from plant_emulator.family import FamilyPlantSpec, draw_family
 
 
 def features(row: FamilyRow) -> list[str]:
@@ -140,6 +148,9 @@ def run(
     oracle: bool,
     semantics: Iterable[str],
     progress: Callable[[str], None] = print,
+    pipeline: Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None] = (
+        lambda seed, depth, pitch: None
+    ),
 ) -> dict[str, list[FamilyRow]]:
     out: dict[str, list[FamilyRow]] = {s: [] for s in semantics}
     for seed in seeds:
@@ -150,17 +161,42 @@ def run(
             identify=identify,
             step_every=step_every,
             oracle=oracle,
+            neutral_after_identify=True,
         )
         for name in out:
             t0 = time.perf_counter()
-            result = run_family_closed_loop(settings, plants=plants, released=name)
-            out[name] += result.rows
+            found: list[FamilyRow] = []
+            for depth, pitch in draw_family(seed, plants):
+                found += run_vehicle(settings, depth, pitch, pipeline(seed, depth, pitch), name)[0]
+            out[name] += found
+            above = sum((r.reference_ratio or 0.0) > HARM_LIMIT for r in found)
             progress(
-                f"seed {seed} {name}: {len(result.rows)} plants in "
-                f"{time.perf_counter() - t0:.0f} s, above {HARM_LIMIT}x: "
-                f"{result.summary()['above_harm_limit']}"
+                f"seed {seed} {name}: {len(found)} plants in "
+                f"{time.perf_counter() - t0:.0f} s, above {HARM_LIMIT}x: {above}"
             )
     return out
+
+
+def what_if(
+    horizon_fit: float | None, nb: int | None, nb_from_true_delay: int | None
+) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
+    """The pipeline settings of a what-if run (None: the defaults)."""
+    if horizon_fit is None and nb is None and nb_from_true_delay is None:
+        return lambda seed, depth, pitch: None
+
+    def lags(spec: FamilyPlantSpec) -> dict[str, int]:
+        if nb_from_true_delay is not None:
+            return {"nb": max(4, spec.delay + nb_from_true_delay)}
+        return {"nb": nb} if nb is not None else {}
+
+    def settings(seed: int, depth: FamilyPlantSpec, pitch: FamilyPlantSpec) -> PipelineSettings:
+        control = (
+            ControlSettings() if horizon_fit is None else ControlSettings(horizon_fit=horizon_fit)
+        )
+        options = {"depth": lags(depth), "pitch": lags(pitch)}
+        return PipelineSettings(seed=seed, control=control, model_options=options)
+
+    return settings
 
 
 def main() -> None:
@@ -173,6 +209,14 @@ def main() -> None:
     parser.add_argument("--no-oracle", action="store_true")
     parser.add_argument("--semantics", nargs="+", choices=RELEASED, default=list(RELEASED))
     parser.add_argument("--save", help="also write the rows to this file (pickle)")
+    parser.add_argument("--horizon-fit", type=float, help="the horizon test's threshold, %%")
+    parser.add_argument("--nb", type=int, help="the identifier's input lags")
+    parser.add_argument(
+        "--nb-from-true-delay",
+        type=int,
+        metavar="E",
+        help="input lags max(4, the plant's true delay + E): an upper bound, not a controller",
+    )
     parser.add_argument(
         "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
     )
@@ -195,6 +239,7 @@ def main() -> None:
         args.step_every,
         not args.no_oracle,
         args.semantics,
+        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay),
     )
     print(
         f"\nseeds {args.seeds}, {args.plants} plants each, {args.samples} samples "
