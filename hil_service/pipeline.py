@@ -40,6 +40,10 @@ SAFE_INPUTS = ("hold", "neutral", "release")
 
 #: Model options per channel on top of each model's defaults (none: the defaults hold for
 #: both channels, and a new vehicle gets no figure tuned to the emulator's).
+#: The most input lags ``with_input_lags`` takes: 5 s of delay at 10 Hz, and the identifier's
+#: regressor (3 × lags + 5 terms) still small enough for its per-sample RLS update.
+MAX_INPUT_LAGS = 50
+
 DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"depth": {}, "pitch": {}},
     "dynamic": {"depth": {}, "pitch": {}},
@@ -124,6 +128,20 @@ class PipelineSettings:
     def options_for(self, channel: str) -> dict[str, Any]:
         chosen = self.model_options or DEFAULT_MODEL_OPTIONS[self.model]
         return dict(chosen.get(channel, {}))
+
+    def with_input_lags(self, lags: object) -> PipelineSettings:
+        """Every channel's identifier with ``lags`` input lags (``DynamicUModel``'s ``nb``,
+        counted in samples): a vehicle whose input acts after a delay of d samples first
+        responds at lag d + 1, so it needs at least d + 2 (docs/control.md, "What the
+        excess is made of")."""
+        if self.model != "dynamic":
+            raise ValueError(f"input lags are the dynamic model's, not the {self.model} model's")
+        if not (isinstance(lags, int) and not isinstance(lags, bool)):
+            raise ValueError(f"input lags must be an integer 1..{MAX_INPUT_LAGS}, got {lags!r}")
+        if not 1 <= lags <= MAX_INPUT_LAGS:
+            raise ValueError(f"input lags must be an integer 1..{MAX_INPUT_LAGS}, got {lags!r}")
+        options = {ch: {**self.options_for(ch), "nb": lags} for ch in CHANNELS}
+        return self.replace(model_options=options)
 
     def to_json(self) -> dict[str, Any]:
         data = asdict(self)

@@ -132,3 +132,21 @@ def test_white_output_noise_is_averaged_not_chased():
     for row in rows:
         assert row.commanded > 1000 and row.trips == 0
         assert row.inverse_iae <= 1.025 * row.reference_iae, (row.spec.channel, row.reference_ratio)
+
+
+def test_input_lags_that_cover_the_delay_bring_a_delayed_plant_back_to_reference_only():
+    # Seed 11's vehicle 12 pitch: linear, first order (pole 0.506), an input delay of 5
+    # samples, no disturbance. Four input lags (the default) cannot hold the delay: the
+    # loop rings and creeps, 1.12 × reference-only; seven hold it.
+    from hil_service.pipeline import PipelineSettings
+
+    depth, pitch = draw_vehicle(11, 12)
+    assert (pitch.delay, pitch.disturbance, pitch.order) == (5, "none", 1)
+    settings = ClosedLoopSettings(
+        scenario="family", samples=2000, seed=11, identify=800, step_every=300, oracle=False,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    default = run_vehicle(settings, depth, pitch)[0][1]
+    covered = run_vehicle(settings, depth, pitch, PipelineSettings(seed=11).with_input_lags(7))
+    ratio = covered[0][1].reference_ratio
+    assert default.reference_ratio > 1.1 and ratio < 1.0, (default.reference_ratio, ratio)

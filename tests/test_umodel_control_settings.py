@@ -100,3 +100,30 @@ def test_the_control_defaults_are_the_predictive_defaults() -> None:
              "disturbance_share", "refresh", "cost_points")  # fmt: skip
     for name in names:
         assert getattr(ours, name) == getattr(theirs, name), name
+
+
+def test_input_lags_reach_every_channels_identifier_and_the_stored_configuration() -> None:
+    import argparse
+
+    from hil_service.cli.serve import add_arguments, settings_from_args
+    from hil_service.umodel import build_model
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    settings = settings_from_args(parser.parse_args(["--input-lags", "7"]))
+    assert settings.model_options == {"depth": {"nb": 7}, "pitch": {"nb": 7}}
+    again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
+    assert again.options_for("pitch") == {"nb": 7}
+    assert build_model("dynamic", **again.options_for("depth")).config()["nb"] == 7
+    assert settings_from_args(parser.parse_args([])).model_options is None
+
+
+@pytest.mark.parametrize("lags", [0, -1, 2.5, True, 51])
+def test_input_lags_out_of_range_are_refused(lags) -> None:
+    with pytest.raises(ValueError, match="input lags must be an integer"):
+        PipelineSettings().with_input_lags(lags)
+
+
+def test_input_lags_are_the_dynamic_models_only() -> None:
+    with pytest.raises(ValueError, match="not the paper model's"):
+        PipelineSettings(model="paper").with_input_lags(6)

@@ -38,6 +38,7 @@ from hil_service.experiment.random_loop import (
 )
 from hil_service.experiment.speed import measure_all
 from hil_service.offline.plots import prediction_figure, tracking_figure
+from hil_service.pipeline import PipelineSettings
 from plant_emulator.excitation import EXCITATIONS
 from plant_emulator.models import CHANNELS
 from plant_emulator.scenarios import SCENARIOS
@@ -114,6 +115,14 @@ def _add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=DEFAULT_PLANTS,
         help=f"scenarios random and family: plants per run (default {DEFAULT_PLANTS})",
+    )
+    group.add_argument(
+        "--input-lags",
+        type=int,
+        default=None,
+        metavar="N",
+        help="closed loop: the identifier's input lags in samples, as serve --input-lags "
+        "(default 4)",
     )
 
 
@@ -256,6 +265,11 @@ def _identification_plots(result: IdentificationResult, directory: Path) -> None
 def _closed_loop(args: argparse.Namespace) -> int:
     scenarios = _choices(args.scenario, SCENARIOS)
     results: list[ClosedLoopResult | RandomResult | FamilyResult] = []
+    pipeline = (
+        None
+        if args.input_lags is None
+        else PipelineSettings(seed=args.seed).with_input_lags(args.input_lags)
+    )
     for scenario in scenarios:
         settings = ClosedLoopSettings(
             scenario=scenario,
@@ -267,13 +281,13 @@ def _closed_loop(args: argparse.Namespace) -> int:
             oracle=not args.no_oracle,
         )
         if scenario == "random":
-            random_result = run_random_closed_loop(settings, plants=args.plants)
+            random_result = run_random_closed_loop(settings, args.plants, pipeline)
             results.append(random_result)
             continue
         if scenario == "family":
-            results.append(run_family_closed_loop(settings, plants=args.plants))
+            results.append(run_family_closed_loop(settings, args.plants, pipeline))
             continue
-        result = run_closed_loop(settings)
+        result = run_closed_loop(settings, pipeline)
         results.append(result)
         if args.plots:
             _closed_loop_plots(result, args.plots)

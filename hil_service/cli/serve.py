@@ -106,8 +106,7 @@ def _add_profile_arguments(parser: argparse.ArgumentParser) -> None:
         "--sample-period",
         type=float,
         default=None,
-        help="periodic profiles: s between samples on the vehicle's clock (default: the "
-        "profile's)",
+        help="periodic profiles: s between samples on the vehicle's clock (default: the profile's)",
     )
 
 
@@ -137,6 +136,14 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         "publishes as many health payloads as samples: docs/fleet.md)",
     )
     group.add_argument("--burn-in", type=int, default=None, help="samples before control")
+    group.add_argument(
+        "--input-lags",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the identifier's input lags in samples (default 4): at least the vehicle's "
+        "input delay + 2 (docs/control.md)",
+    )
 
 
 def _add_log_arguments(parser: argparse.ArgumentParser) -> None:
@@ -213,6 +220,8 @@ def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
     settings = PipelineSettings(model=args.model, seed=args.seed)
     if args.burn_in is not None:
         settings = settings.replace(burn_in=args.burn_in)
+    if args.input_lags is not None:
+        settings = settings.with_input_lags(args.input_lags)
     if args.max_ballast_rate is not None:
         if not args.max_ballast_rate > 0:
             raise ValueError("--max-ballast-rate must be positive")
