@@ -17,11 +17,12 @@ known-model oracle.
     python benchmarks/family_harm.py --seeds 0 1 2 --plants 200 --save a.pkl   # and 3 4: b.pkl
     python benchmarks/family_harm.py --combine a.pkl b.pkl
 
-What-if runs (docs/control.md, "What is left"): ``--horizon-fit F`` sets the horizon test's
-threshold, ``--nb N`` the identifier's input lags, and ``--nb-from-true-delay E`` gives each
-plant's identifier max(4, delay + E) input lags from the plant's *true* input delay, which
-no deployed identifier knows: an upper bound on what choosing the lags from the data could
-give, not a controller.
+What-if runs (docs/control.md, "What the excess is made of"): ``--horizon-fit F`` sets the
+horizon test's threshold, ``--nb N`` the identifier's input lags, ``--input-lags-auto`` has
+each channel choose them from its record (``serve --input-lags auto``), and
+``--nb-from-true-delay E`` gives each plant's identifier max(4, delay + E) input lags from
+the plant's *true* input delay, which no deployed identifier knows: an upper bound on what
+choosing the lags from the data could give, not a controller.
 """
 
 from __future__ import annotations
@@ -178,10 +179,13 @@ def run(
 
 
 def what_if(
-    horizon_fit: float | None, nb: int | None, nb_from_true_delay: int | None
+    horizon_fit: float | None,
+    nb: int | None,
+    nb_from_true_delay: int | None,
+    choose_lags: bool = False,
 ) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
     """The pipeline settings of a what-if run (None: the defaults)."""
-    if horizon_fit is None and nb is None and nb_from_true_delay is None:
+    if horizon_fit is None and nb is None and nb_from_true_delay is None and not choose_lags:
         return lambda seed, depth, pitch: None
 
     def lags(spec: FamilyPlantSpec) -> dict[str, int]:
@@ -194,7 +198,9 @@ def what_if(
             ControlSettings() if horizon_fit is None else ControlSettings(horizon_fit=horizon_fit)
         )
         options = {"depth": lags(depth), "pitch": lags(pitch)}
-        return PipelineSettings(seed=seed, control=control, model_options=options)
+        return PipelineSettings(
+            seed=seed, control=control, model_options=options, choose_input_lags=choose_lags
+        )
 
     return settings
 
@@ -211,6 +217,11 @@ def main() -> None:
     parser.add_argument("--save", help="also write the rows to this file (pickle)")
     parser.add_argument("--horizon-fit", type=float, help="the horizon test's threshold, %%")
     parser.add_argument("--nb", type=int, help="the identifier's input lags")
+    parser.add_argument(
+        "--input-lags-auto",
+        action="store_true",
+        help="each channel's input lags chosen from its record (serve --input-lags auto)",
+    )
     parser.add_argument(
         "--nb-from-true-delay",
         type=int,
@@ -239,7 +250,7 @@ def main() -> None:
         args.step_every,
         not args.no_oracle,
         args.semantics,
-        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay),
+        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay, args.input_lags_auto),
     )
     print(
         f"\nseeds {args.seeds}, {args.plants} plants each, {args.samples} samples "

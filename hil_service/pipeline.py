@@ -28,6 +28,7 @@ from hil_service.umodel import (
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
+from hil_service.umodel.structure import LagChoice, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
@@ -40,6 +41,12 @@ SAFE_INPUTS = ("hold", "neutral", "release")
 
 #: Model options per channel on top of each model's defaults (none: the defaults hold for
 #: both channels, and a new vehicle gets no figure tuned to the emulator's).
+#: Consecutive samples in the horizon test's record before the input lags are chosen, or
+#: at least ``LAG_CHOICE_MIN`` once the channel is asked to command (``umodel.structure``
+#: needs two thirds of its record to fit and a third to validate on).
+LAG_CHOICE_RECORD = 600
+LAG_CHOICE_MIN = 300
+
 #: The most input lags ``with_input_lags`` takes: 5 s of delay at 10 Hz, and the identifier's
 #: regressor (3 × lags + 5 terms) still small enough for its per-sample RLS update.
 MAX_INPUT_LAGS = 50
@@ -117,10 +124,15 @@ class PipelineSettings:
     min_skill: float = 0.0
     window: int = 500
     control: ControlSettings = field(default_factory=ControlSettings)
+    #: The dynamic model's input lags chosen from each channel's record
+    #: (``umodel.structure``; ``serve --input-lags auto``) unless the model options give them.
+    choose_input_lags: bool = False
 
     def __post_init__(self) -> None:
         if self.model not in U_MODELS:
             raise ValueError(f"model must be one of {U_MODELS}, got {self.model!r}")
+        if self.choose_input_lags and self.model != "dynamic":
+            raise ValueError(f"input lags are the dynamic model's, not the {self.model} model's")
 
     def replace(self, **changes: Any) -> PipelineSettings:
         return replace(self, **changes)
@@ -128,6 +140,24 @@ class PipelineSettings:
     def options_for(self, channel: str) -> dict[str, Any]:
         chosen = self.model_options or DEFAULT_MODEL_OPTIONS[self.model]
         return dict(chosen.get(channel, {}))
+
+    def with_input_lag_choice(self, lags: object) -> PipelineSettings:
+        """``serve --input-lags``: ``"auto"`` chooses them from each channel's record, a
+        number gives them (``with_input_lags``)."""
+        if lags == "auto":
+            if self.model != "dynamic":
+                raise ValueError(
+                    f"input lags are the dynamic model's, not the {self.model} model's"
+                )
+            return self.replace(choose_input_lags=True)
+        if isinstance(lags, str):
+            try:
+                lags = int(lags)
+            except ValueError:
+                raise ValueError(
+                    f"input lags must be auto or an integer 1..{MAX_INPUT_LAGS}, got {lags!r}"
+                ) from None
+        return self.with_input_lags(lags)
 
     def with_input_lags(self, lags: object) -> PipelineSettings:
         """Every channel's identifier with ``lags`` input lags (``DynamicUModel``'s ``nb``,
@@ -254,6 +284,13 @@ class ChannelPipeline:
         model = build_model(settings.model, seed=seed, **options)
         assert isinstance(model, PredictiveModel)  # U_MODELS are the U-models
         self.model: PredictiveModel = model
+        self._seed = seed
+        self._options = options
+        #: With ``choose_input_lags``, the dynamic model's input lags are chosen from the
+        #: first ``LAG_CHOICE_RECORD`` consecutive samples unless the options give them.
+        self._lags_pending = settings.choose_input_lags and "nb" not in options
+        self._lags_tried = False  # the choice was tried on a shorter record at the first ask
+        self.lag_choice: LagChoice | None = None
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
         # Multi-step accuracy: a frozen copy of the model runs free on the applied inputs
@@ -381,6 +418,8 @@ class ChannelPipeline:
         estimate = self.model.step(u_prev, y)
         self.horizon_test.record(y, u_prev)
         self._learnt_last = True
+        if self._lags_pending and self.horizon_test.count >= LAG_CHOICE_RECORD:
+            self._choose_input_lags()
         baseline = self.persistence.step(u_prev, y)
         self.u_prev = u_now
         self.last = estimate
@@ -404,6 +443,39 @@ class ChannelPipeline:
             "status": estimate.status,
             "baseline_y_hat": baseline.y_hat,
         }
+
+    def _choose_input_lags(self) -> None:
+        """Once per channel: the input lags by validation on the record
+        (``umodel.structure``). A choice other than the model's own rebuilds the
+        identifier from the record (each recorded sample trains it, in order) and the
+        channel must pass the horizon test again with it."""
+        outputs, inputs = self.horizon_test.samples()
+        choice = choose_input_lags(
+            outputs,
+            inputs,
+            float(self._options["u_scale"]),
+            qualify=self.settings.control.horizon_fit / 100.0,
+        )
+        if choice is None and len(outputs) < LAG_CHOICE_RECORD:
+            return  # no choice on this short a record: the full record decides
+        self._lags_pending = False
+        self.lag_choice = choice
+        if choice is None or choice.lags == self.model.config().get("nb"):
+            return
+        self._options = {**self._options, "nb": choice.lags}
+        model = build_model("dynamic", seed=self._seed, **self._options)
+        assert isinstance(model, PredictiveModel)
+        for y, u_prev in zip(outputs, inputs, strict=True):
+            model.step(u_prev, y)
+        self.model = model
+        self.dynamics = model.dynamics()
+        self._free_run, self._free_run_left = None, 0
+        self._sup_run = None
+        self._alt_run = None
+        self.controller.reset()
+        if self.active:
+            self.deactivate()
+        self.disqualify()
 
     def _start_resync(self) -> None:
         """A gap (or the first sample): the history refills without training, and every
@@ -535,6 +607,16 @@ class ChannelPipeline:
         until a trip, a vehicle restart or a divergence: while the loop holds the output at
         its setpoint there is no change left for the test to judge by, and the supervisor
         watches the loop instead."""
+        if (
+            self._lags_pending
+            and not self._lags_tried
+            and not self.active
+            and self.horizon_test.count >= LAG_CHOICE_MIN
+        ):
+            # Asked to command: the input lags are chosen now, before the first command,
+            # rather than under way.
+            self._lags_tried = True
+            self._choose_input_lags()
         horizon = self.controller.horizon
         self._asked = True
         if self._slow and self.converged and not self.tripped:
@@ -764,6 +846,8 @@ class ChannelPipeline:
             **self.multistep.summary(self.controller.horizon),
             "horizon_fit": significant(self.horizon_test.fit),
             "horizon_samples": self.horizon_test.count,
+            "input_lags": self.model.config().get("nb"),
+            "input_lag_choice": None if self.lag_choice is None else self.lag_choice.as_json(),
             "horizon_qualified": self.qualified,
             "restarts": self.restarts,
             "supervisor": {

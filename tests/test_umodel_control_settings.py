@@ -127,3 +127,21 @@ def test_input_lags_out_of_range_are_refused(lags) -> None:
 def test_input_lags_are_the_dynamic_models_only() -> None:
     with pytest.raises(ValueError, match="not the paper model's"):
         PipelineSettings(model="paper").with_input_lags(6)
+
+
+def test_input_lags_auto_chooses_them_from_the_record_and_is_stored() -> None:
+    import argparse
+
+    from hil_service.cli.serve import add_arguments, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    settings = settings_from_args(parser.parse_args(["--input-lags", "auto"]))
+    assert settings.choose_input_lags and settings.model_options is None
+    again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
+    assert again.choose_input_lags
+    assert not PipelineSettings.from_json({"model": "dynamic"}).choose_input_lags  # old logs
+    with pytest.raises(ValueError, match="auto or an integer"):
+        PipelineSettings().with_input_lag_choice("some")
+    with pytest.raises(ValueError, match="not the paper model's"):
+        PipelineSettings(model="paper").with_input_lag_choice("auto")

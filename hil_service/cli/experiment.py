@@ -118,11 +118,10 @@ def _add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--input-lags",
-        type=int,
         default=None,
-        metavar="N",
-        help="closed loop: the identifier's input lags in samples, as serve --input-lags "
-        "(default 4)",
+        metavar="N|auto",
+        help="closed loop: the identifier's input lags in samples or auto, as serve "
+        "--input-lags (default 4)",
     )
 
 
@@ -268,7 +267,7 @@ def _closed_loop(args: argparse.Namespace) -> int:
     pipeline = (
         None
         if args.input_lags is None
-        else PipelineSettings(seed=args.seed).with_input_lags(args.input_lags)
+        else PipelineSettings(seed=args.seed).with_input_lag_choice(args.input_lags)
     )
     for scenario in scenarios:
         settings = ClosedLoopSettings(

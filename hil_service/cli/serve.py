@@ -138,11 +138,10 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--burn-in", type=int, default=None, help="samples before control")
     group.add_argument(
         "--input-lags",
-        type=int,
         default=None,
-        metavar="N",
+        metavar="N|auto",
         help="the identifier's input lags in samples (default 4): at least the vehicle's "
-        "input delay + 2 (docs/control.md)",
+        "input delay + 2; auto: chosen from each channel's first samples (docs/control.md)",
     )
 
 
@@ -221,7 +220,7 @@ def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
     if args.burn_in is not None:
         settings = settings.replace(burn_in=args.burn_in)
     if args.input_lags is not None:
-        settings = settings.with_input_lags(args.input_lags)
+        settings = settings.with_input_lag_choice(args.input_lags)
     if args.max_ballast_rate is not None:
         if not args.max_ballast_rate > 0:
             raise ValueError("--max-ballast-rate must be positive")

@@ -162,6 +162,10 @@ class HorizonTest:
     def count(self) -> int:
         return len(self._outputs)
 
+    def samples(self) -> tuple[list[float], list[float]]:
+        """The record, oldest first: the outputs and the input applied one step before each."""
+        return list(self._outputs), list(self._inputs)
+
     def record(self, y: float, u_prev: float) -> None:
         """One consecutive sample: ``y`` and the input applied one step before it."""
         if math.isfinite(y) and math.isfinite(u_prev):

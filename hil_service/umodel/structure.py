@@ -1,0 +1,136 @@
+"""How many input lags the dynamic U-model needs, chosen from the identification record.
+
+A plant whose input acts after a delay of d samples first responds at lag d + 1; the dynamic
+U-model's default four input lags cannot hold a delay of 4 or more, and leave one lag of the
+response after a delay of 3 (docs/control.md, "The input lags, chosen from the record").
+The delay is not known and is hard to estimate on its own from slow excitation
+(neighbouring lags look alike), so the *structure* is chosen the way the horizon test
+judges a model: by how well it predicts over a horizon on data it was not fitted on.
+
+For each candidate number of input lags the same regression as ``DynamicUModel`` (output
+lags, a bias, a polynomial of the scaled input on every input lag) is fitted by least
+squares on the first two thirds of the record, then run free over segments of ``segment``
+samples of the last third, from the measured outputs at each segment's start; its fit is
+``1 − ‖y − ŷ‖ / ‖y − y_hold‖`` as the horizon test's. The fewest lags whose fit is within
+``tie`` of the best win: more lags are more parameters to learn online from the same data.
+When no candidate reaches ``qualify`` (the horizon test's threshold) the first candidate,
+the model's default, stays: among models none of which predicts over the horizon the
+choice would be noise.
+
+Pure (numpy only) and deterministic for a record.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = ["INPUT_LAG_CANDIDATES", "LagChoice", "choose_input_lags"]
+
+#: The input lags tried: the model's default and enough for the delays up to 6 samples.
+INPUT_LAG_CANDIDATES: tuple[int, ...] = (4, 6, 8)
+
+
+class LagChoice:
+    """The chosen number of input lags and each candidate's validation fit (0–1)."""
+
+    __slots__ = ("fits", "lags")
+
+    def __init__(self, lags: int, fits: dict[int, float]) -> None:
+        self.lags = lags
+        self.fits = fits
+
+    def as_json(self) -> dict[str, object]:
+        return {
+            "input_lags": self.lags,
+            "fits": {
+                str(k): round(v, 4) if math.isfinite(v) else None for k, v in self.fits.items()
+            },
+        }
+
+
+def _regressors(
+    y: np.ndarray, u: np.ndarray, t: int, na: int, lags: int, degree: int
+) -> list[float]:
+    row = [1.0]
+    row += [float(y[t - i]) for i in range(1, na + 1)]
+    for lag in range(1, lags + 1):
+        x = float(u[t - lag + 1])
+        p = 1.0
+        for _ in range(degree):
+            p *= x
+            row.append(p)
+    return row
+
+
+def _validation_fit(
+    theta: np.ndarray, y: np.ndarray, u: np.ndarray, start: int, na: int, lags: int,
+    degree: int, segment: int,
+) -> float:  # fmt: skip
+    error = hold = 0.0
+    s = start
+    while s + segment <= y.size:
+        run = [float(v) for v in y[: s + 1]]
+        for t in range(s + 1, s + segment):
+            row = [1.0]
+            row += [run[t - i] for i in range(1, na + 1)]
+            for lag in range(1, lags + 1):
+                x = float(u[t - lag + 1])
+                p = 1.0
+                for _ in range(degree):
+                    p *= x
+                    row.append(p)
+            value = float(np.dot(theta, row))
+            if not (math.isfinite(value) and abs(value) < 1e100):
+                return -math.inf
+            run.append(value)
+            error += (float(y[t]) - value) ** 2
+            hold += (float(y[t]) - float(y[s])) ** 2
+        s += segment
+    if not hold > 0.0:
+        return -math.inf
+    return 1.0 - math.sqrt(error / hold)
+
+
+def choose_input_lags(
+    outputs: Sequence[float],
+    inputs: Sequence[float],
+    u_scale: float,
+    na: int = 4,
+    degree: int = 3,
+    candidates: Sequence[int] = INPUT_LAG_CANDIDATES,
+    segment: int = 50,
+    tie: float = 0.02,
+    qualify: float = 0.5,
+) -> LagChoice | None:
+    """The input lags for a record of consecutive samples: ``outputs[t]`` and ``inputs[t]``,
+    the input applied one step before it (as ``HorizonTest`` records them). None when the
+    record is too short for the largest candidate or a fit is not finite."""
+    y = np.asarray(outputs, dtype=float)
+    u = np.asarray(inputs, dtype=float) / u_scale
+    if y.size != u.size or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+        return None
+    first = max(na, max(candidates) - 1)
+    split = (2 * y.size) // 3
+    most = degree * max(candidates) + 1 + na
+    if split - first < 4 * most or y.size - split < 2 * segment:
+        return None
+    spread = float(np.std(y))
+    if not spread > 0.0:
+        return None
+    y = (y - y[0]) / spread  # the regression is the same in any output unit and offset
+    fits: dict[int, float] = {}
+    for lags in candidates:
+        design = np.array([_regressors(y, u, t, na, lags, degree) for t in range(first, split)])
+        theta, *_ = np.linalg.lstsq(design, y[first:split], rcond=None)
+        if not np.all(np.isfinite(theta)):
+            return None
+        fits[lags] = _validation_fit(theta, y, u, split, na, lags, degree, segment)
+    best = max(fits.values())
+    if not math.isfinite(best):
+        return None
+    if best < qualify:
+        return LagChoice(candidates[0], fits)
+    return LagChoice(min(k for k, v in fits.items() if v >= best - tie), fits)

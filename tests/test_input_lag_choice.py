@@ -1,0 +1,53 @@
+"""``hil_service.umodel.structure``: the dynamic model's input lags chosen from the record by
+validation, and the pipeline that rebuilds its identifier with them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hil_service.umodel.structure import choose_input_lags
+
+
+def _record(delay: int, noise: float = 0.0, n: int = 900, seed: int = 0):
+    """y = 0.6 y(t−1) + 0.5 u(t−1−delay) (+ white noise), the input a random step every 25
+    samples; returned as the horizon test records them (y[t], the input one step before)."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-1.5, 1.5, n // 25 + 1), 25)[:n]
+    x = np.zeros(n)
+    for t in range(1, n):
+        x[t] = 0.6 * x[t - 1] + 0.5 * (u[t - 1 - delay] if t - 1 - delay >= 0 else 0.0)
+    y = x + noise * rng.standard_normal(n)
+    return y[1:], u[:-1]  # y[t] with the input applied at t − 1
+
+
+@pytest.mark.parametrize(("delay", "lags"), [(0, 4), (1, 4), (4, 6), (5, 6), (6, 8)])
+def test_a_delay_the_default_lags_cannot_hold_gets_enough_lags(delay, lags):
+    y, u = _record(delay)
+    choice = choose_input_lags(y, u, u_scale=2.0)
+    assert choice is not None and choice.lags == lags, choice and choice.fits
+
+
+def test_the_choice_is_the_same_in_any_output_unit_and_offset():
+    y, u = _record(5, noise=0.02)
+    base = choose_input_lags(y, u, u_scale=2.0)
+    scaled = choose_input_lags(1000.0 + 1e-3 * y, u, u_scale=2.0)
+    assert base is not None and scaled is not None and base.lags == scaled.lags == 6
+    for lags, fit in base.fits.items():
+        assert scaled.fits[lags] == pytest.approx(fit, abs=1e-6)
+
+
+def test_a_short_or_broken_record_makes_no_choice():
+    y, u = _record(2)
+    assert choose_input_lags(y[:200], u[:200], u_scale=2.0) is None
+    y[500] = np.nan
+    assert choose_input_lags(y, u, u_scale=2.0) is None
+    assert choose_input_lags(np.ones(900), u, u_scale=2.0) is None  # nothing moved
+
+
+def test_no_candidate_that_predicts_keeps_the_default():
+    # Noise as large as the response: no number of lags predicts over the segments, and
+    # the choice keeps the model's own four rather than pick among models that all fail.
+    y, u = _record(5, noise=3.0)
+    choice = choose_input_lags(y, u, u_scale=2.0)
+    assert choice is not None and max(choice.fits.values()) < 0.5 and choice.lags == 4
