@@ -247,10 +247,10 @@ class HilService:
         """Health at ``health_period``; call often (the run loop does every 0.1 s at most)."""
         now = self.clock()
         if self.link is not None and now >= self._next_poll:
-            # Every COMPANION_POLL at most, not after every datagram: polling 50 vehicles'
-            # companions took 8 us (glider profile) to 35 us (a periodic profile, vehicles
-            # heard), four times a sample; what they send is due on a scale of seconds
-            # (heartbeats, stream requests).
+            # Every COMPANION_POLL at most, not after every datagram: what the companions
+            # send is due on a scale of seconds (heartbeats, stream requests). The source
+            # polls only the companions with something due (CompanionSchedule), so a tick
+            # costs what is due, not the fleet's size.
             self._next_poll = now + COMPANION_POLL
             for system_id, message in self.source.due(now):
                 self._send(message, system_id)

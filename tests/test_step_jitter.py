@@ -5,13 +5,18 @@ sample."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
 import numpy as np
 
 from hil_service.pipeline import PipelineSettings, StepContinuity, VehiclePipeline
-from hil_service.sources.lockstep_assembler import SampleAssembler
+from hil_service.sources.lockstep_assembler import (
+    AssemblyCounters,
+    SampleAssembler,
+    VehicleCounters,
+)
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec
@@ -106,3 +111,10 @@ def test_a_persistent_change_of_period_is_learnt() -> None:
     now = times[-1] + 6000
     assert all(steps.follows(now + 1000 * k) for k in range(1, 12))
     assert steps.period_ms == 1000
+
+
+def test_assembly_counters_as_dict_name_every_field():
+    vehicle = VehicleCounters(1, 2, 3, 4, 5)
+    assert vehicle.as_dict() == dataclasses.asdict(vehicle)
+    total = AssemblyCounters(1, 2, 3, 4, 5, 6)
+    assert total.as_dict() == dataclasses.asdict(total)

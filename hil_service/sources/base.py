@@ -74,11 +74,3 @@ def companion_health(companion: Companion | None) -> dict[str, Any]:
     if companion is None:
         return {}
     return {"companion": {**companion.counters.as_dict(), "stream_requests": companion.states}}
-
-
-def due_messages(companions: dict[int, Companion], now: float) -> list[tuple[int, MavMessage]]:
-    return [
-        (system_id, message)
-        for system_id, companion in companions.items()
-        for message in companion.poll(now)
-    ]

@@ -209,6 +209,24 @@ class Companion:
                 out.append(self._interval(pending, now))
         return out
 
+    def next_poll(self, now: float) -> float:
+        """The earliest time ``poll`` may send something, as the companion stands at ``now``
+        (``now`` itself: at once). Before that, ``poll`` sends nothing and changes nothing,
+        unless ``on_message`` changes the companion first."""
+        heartbeat = self._next_heartbeat
+        if heartbeat is None:
+            return now
+        if self._last_heard is None:
+            return heartbeat
+        if any(r.state == "refused" for r in self.requests):
+            return now
+        in_flight = next((r for r in self.requests if r.state == "sent"), None)
+        if in_flight is not None:
+            return min(heartbeat, in_flight.sent_at + self.config.ack_timeout)
+        if any(r.state == "pending" for r in self.requests):
+            return now
+        return heartbeat
+
     def _interval(self, request: _Request, now: float) -> MavMessage:
         request.state = "sent"
         request.sent_at = now

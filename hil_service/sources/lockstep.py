@@ -11,8 +11,9 @@ from __future__ import annotations
 from typing import Any
 
 from hil_service.config import ServiceConfig
-from hil_service.sources.base import Send, companion_health, due_messages
+from hil_service.sources.base import Send, companion_health
 from hil_service.sources.companion import Companion
+from hil_service.sources.companion_schedule import CompanionSchedule
 from hil_service.sources.lockstep_assembler import SampleAssembler
 from hil_service.sources.lockstep_responder import LockstepResponder
 from protocols.mapping import MSG_ACK
@@ -29,7 +30,8 @@ class LockstepSource:
             profile, config.system_ids or None, max_vehicles=config.max_vehicles
         )
         self.lockstep = LockstepResponder(config.lockstep)
-        self.companions: dict[int, Companion] = {}
+        self.schedule = CompanionSchedule()
+        self.companions: dict[int, Companion] = self.schedule.companions
         self._send = send
 
     def take(self, message: MavMessage) -> list[tuple[TelemetrySample, bool]]:
@@ -58,10 +60,10 @@ class LockstepSource:
             self.lockstep.after_sample(sample, commanded, lambda m: send(m, system_id))
 
     def vehicle_seen(self, system_id: int) -> None:
-        self.companions[system_id] = Companion(None, None, system_id)
+        self.schedule.add(system_id, Companion(None, None, system_id))
 
     def due(self, now: float) -> list[tuple[int, MavMessage]]:
-        return due_messages(self.companions, now)
+        return self.schedule.due(now)
 
     @property
     def samples(self) -> int:

@@ -18,7 +18,7 @@ starts afresh rather than dropping it forever. Everything is counted per vehicle
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 from protocols.mavlink_io import MavMessage, system_of, type_of
 from protocols.profiles import DEFAULT_PROFILE, Profile, clock_of, load_profile
@@ -40,7 +40,15 @@ class VehicleCounters:
     restarts: int = 0
 
     def as_dict(self) -> dict[str, int]:
-        return asdict(self)
+        # Spelt out: dataclasses.asdict deep-copies field by field, and a fleet's health
+        # asks for this hundreds of times a second.
+        return {
+            "samples": self.samples,
+            "incomplete": self.incomplete,
+            "out_of_order": self.out_of_order,
+            "invalid": self.invalid,
+            "restarts": self.restarts,
+        }
 
 
 @dataclass
@@ -55,7 +63,14 @@ class AssemblyCounters:
     restarts: int = 0
 
     def as_dict(self) -> dict[str, int]:
-        return asdict(self)
+        return {
+            "samples": self.samples,
+            "incomplete": self.incomplete,
+            "out_of_order": self.out_of_order,
+            "invalid": self.invalid,
+            "unknown_system": self.unknown_system,
+            "restarts": self.restarts,
+        }
 
 
 @dataclass

@@ -11,8 +11,9 @@ from collections.abc import Callable
 from typing import Any
 
 from hil_service.config import ServiceConfig
-from hil_service.sources.base import companion_health, due_messages
+from hil_service.sources.base import companion_health
 from hil_service.sources.companion import Companion
+from hil_service.sources.companion_schedule import CompanionSchedule
 from hil_service.sources.periodic_assembler import ProfileAssembler
 from protocols.mapping import MSG_ACK
 from protocols.mavlink_io import MavMessage, dialect
@@ -33,13 +34,16 @@ class PeriodicSource:
             config.system_ids or None,
             max_vehicles=config.max_vehicles,
         )
-        self.companions: dict[int, Companion] = {}
+        self.schedule = CompanionSchedule()
+        self.companions: dict[int, Companion] = self.schedule.companions
         self._clock = clock
 
     def take(self, message: MavMessage) -> list[tuple[TelemetrySample, bool]]:
-        companion = self.companions.get(message.get_srcSystem())
+        system_id = message.get_srcSystem()
+        companion = self.companions.get(system_id)
         if companion is not None:
             companion.on_message(message, self._clock())
+            self.schedule.heard(system_id)
         if message.get_type() == MSG_ACK:
             return []
         return self.assembler.add_all_flagged(message)
@@ -52,10 +56,10 @@ class PeriodicSource:
 
     def vehicle_seen(self, system_id: int) -> None:
         period = self.assembler.config.period
-        self.companions[system_id] = Companion(self.profile, period, system_id)
+        self.schedule.add(system_id, Companion(self.profile, period, system_id))
 
     def due(self, now: float) -> list[tuple[int, MavMessage]]:
-        return due_messages(self.companions, now)
+        return self.schedule.due(now)
 
     @property
     def samples(self) -> int:
