@@ -366,3 +366,21 @@ def test_rbf_values_list_memo_returns_fresh_equal_lists() -> None:
     assert again == rbf.values(0.3).tolist() or again == pytest.approx(rbf.values(0.3))
     assert len(again) == 17
     assert rbf.values_list(-1.1) == pytest.approx(rbf.values(-1.1), rel=1e-15)
+
+
+def test_an_update_undone_restores_theta_and_the_covariance_exactly_once() -> None:
+    from hil_service.umodel.models import DynamicUModel
+
+    model = DynamicUModel()
+    for k in range(40):
+        model.step(0.5 * ((k // 7) % 3 - 1), 15.0 + 0.01 * k)
+    theta = list(model._theta)
+    covariance = [row[:] for row in model.rls.p]
+    model.step(0.7, 15.5)
+    assert model._theta != theta
+    assert model.undo_last_update()
+    assert model._theta == theta and model.rls.p == covariance
+    assert not model.undo_last_update()  # one sample only
+    model.step(0.7, 15.5)
+    model.step(0.7, 1e6)  # outgrows the output scale: no undo across the rescale
+    assert not model.undo_last_update()

@@ -518,7 +518,13 @@ class DynamicUModel(_ModelBase):
         self._y_scale = 0.0  # s of the class docstring (0: no deviation seen yet)
         self._inv_scale = 1.0  # 1/s (1 while s is 0: every deviation is then exactly 0)
         self._updates = 0  # RLS updates since the covariance last started at p0·I
-        self._undo: tuple[list[float], list[list[float]]] | None = None
+        # θ and P before the last update, for one sample (``undo_last_update``): two spare
+        # buffers copied into and swapped, so that a sample allocates no new lists (with a
+        # fleet of models, per-sample copies keep the garbage collector's young generation
+        # full: docs/benchmarks.md, "A fleet").
+        self._spare_theta: list[float] = [0.0] * n
+        self._spare_p: list[list[float]] = [[0.0] * n for _ in range(n)]
+        self._can_undo = False
         self._reset_history()
 
     def _powers(self, u: float) -> list[float]:
@@ -566,17 +572,20 @@ class DynamicUModel(_ModelBase):
         if self._primed:
             # Kept for one sample: the pipeline undoes an update learnt from readings that
             # turn out, on the next sample, to have been served ahead of time.
-            self._undo = (list(self._theta), [row[:] for row in self.rls.p])
+            self._spare_theta[:] = self._theta
+            spare_p = self._spare_p
+            for i, row in enumerate(self.rls.p):
+                spare_p[i][:] = row
+            self._can_undo = True
             self.rls.update(self._theta, self._phi, error * self._inv_scale)
             self._updates += 1
 
     def undo_last_update(self) -> bool:
-        undo = self._undo
-        if undo is None:
+        if not self._can_undo:
             return False
-        self._theta = undo[0]
-        self.rls.p = undo[1]
-        self._undo = None
+        self._theta, self._spare_theta = self._spare_theta, self._theta
+        self.rls.p, self._spare_p = self._spare_p, self.rls.p
+        self._can_undo = False
         self._updates = max(self._updates - 1, 0)
         return True
 
@@ -595,7 +604,7 @@ class DynamicUModel(_ModelBase):
         ratio = self._y_scale / new  # 0 before any deviation: θ's output terms are 0 then
         self._y_scale = new
         self._inv_scale = 1.0 / new
-        self._undo = None  # an update from before the rescale cannot be undone after it
+        self._can_undo = False  # an update from before the rescale cannot be undone after it
         ia, ib = self._ia, self._ia + self.na
         factors = [1.0 if ia <= i < ib else ratio for i in range(len(self._theta))]
         self._theta = [v * f for v, f in zip(self._theta, factors, strict=True)]
