@@ -290,6 +290,9 @@ class ChannelPipeline:
         #: first ``LAG_CHOICE_RECORD`` consecutive samples unless the options give them.
         self._lags_pending = settings.choose_input_lags and "nb" not in options
         self._lags_tried = False  # the choice was tried on a shorter record at the first ask
+        config = model.config()
+        self._model_name: str = config["name"]  # for health, without a config() each time
+        self._input_lags: int | None = config.get("nb")
         self.lag_choice: LagChoice | None = None
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
@@ -460,7 +463,7 @@ class ChannelPipeline:
             return  # no choice on this short a record: the full record decides
         self._lags_pending = False
         self.lag_choice = choice
-        if choice is None or choice.lags == self.model.config().get("nb"):
+        if choice is None or choice.lags == self._input_lags:
             return
         self._options = {**self._options, "nb": choice.lags}
         model = build_model("dynamic", seed=self._seed, **self._options)
@@ -468,6 +471,7 @@ class ChannelPipeline:
         for y, u_prev in zip(outputs, inputs, strict=True):
             model.step(u_prev, y)
         self.model = model
+        self._input_lags = choice.lags
         self.dynamics = model.dynamics()
         self._free_run, self._free_run_left = None, 0
         self._sup_run = None
@@ -836,7 +840,7 @@ class ChannelPipeline:
 
     def health(self) -> dict[str, Any]:
         return {
-            "model": self.model.config()["name"],
+            "model": self._model_name,
             "status": "none" if self.last is None else self.last.status,
             "converged": self.converged,
             "divergences": self.divergences,
@@ -846,7 +850,7 @@ class ChannelPipeline:
             **self.multistep.summary(self.controller.horizon),
             "horizon_fit": significant(self.horizon_test.fit),
             "horizon_samples": self.horizon_test.count,
-            "input_lags": self.model.config().get("nb"),
+            "input_lags": self._input_lags,
             "input_lag_choice": None if self.lag_choice is None else self.lag_choice.as_json(),
             "horizon_qualified": self.qualified,
             "restarts": self.restarts,
