@@ -52,7 +52,7 @@ class LagChoice:
 
 
 def _regressors(
-    y: np.ndarray, u: np.ndarray, t: int, na: int, lags: int, degree: int
+    y: Sequence[float] | np.ndarray, u: np.ndarray, t: int, na: int, lags: int, degree: int
 ) -> list[float]:
     row = [1.0]
     row += [float(y[t - i]) for i in range(1, na + 1)]
@@ -74,15 +74,7 @@ def _validation_fit(
     while s + segment <= y.size:
         run = [float(v) for v in y[: s + 1]]
         for t in range(s + 1, s + segment):
-            row = [1.0]
-            row += [run[t - i] for i in range(1, na + 1)]
-            for lag in range(1, lags + 1):
-                x = float(u[t - lag + 1])
-                p = 1.0
-                for _ in range(degree):
-                    p *= x
-                    row.append(p)
-            value = float(np.dot(theta, row))
+            value = float(np.dot(theta, _regressors(run, u, t, na, lags, degree)))
             if not (math.isfinite(value) and abs(value) < 1e100):
                 return -math.inf
             run.append(value)
