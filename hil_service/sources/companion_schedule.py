@@ -50,7 +50,7 @@ class CompanionSchedule:
                 ready.add(system_id)
         if not ready:
             return []
-        out = []
+        out: list[tuple[int, MavMessage]] = []
         order = self._order
         for system_id in sorted(ready, key=order.__getitem__):
             companion = self.companions[system_id]
