@@ -40,6 +40,7 @@ from hil_service.builder import wire  # noqa: E402
 from hil_service.cli.processes import start_verb, stop_process, wait_for_line  # noqa: E402
 from hil_service.cli.router import ROUTER_READY  # noqa: E402
 from hil_service.config import ServiceConfig  # noqa: E402
+from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from hil_service.pipeline import PipelineSettings  # noqa: E402
 from hil_service.process_tuning import tune_for_service  # noqa: E402
 from hil_service.vehicle_links import LinkSet  # noqa: E402
@@ -89,6 +90,7 @@ def telemetry(vehicles: int, links: int, steps: int) -> list[tuple[int, int, lis
             heartbeat = codec.pack(mapping.heartbeat(vehicle=True))
             frames = [codec.pack(m) for m in mapping.encode_telemetry(sample)]
             out.append((link, wire_id, [heartbeat, *frames]))
+    shared.close()
     sink.close()
     return out
 
@@ -114,11 +116,8 @@ class Collections:
 
 
 def client(router: str) -> zenoh.Session:
-    config = zenoh.Config()
-    config.insert_json5("mode", '"client"')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("connect/endpoints", json.dumps([router]))
-    return zenoh.open(config)
+    """A client session to the router, as ``serve --zenoh-mode client --zenoh-connect``."""
+    return open_session(ZenohOptions(mode="client", connect=(router,)))
 
 
 def main() -> None:

@@ -39,8 +39,6 @@ from protocols.samples import BallastCommand, TelemetrySample
 #: controller takes the channel back when the service's commands for it stop.
 SAFE_INPUTS = ("hold", "neutral", "release")
 
-#: Model options per channel on top of each model's defaults (none: the defaults hold for
-#: both channels, and a new vehicle gets no figure tuned to the emulator's).
 #: Consecutive samples in the horizon test's record before the input lags are chosen, or
 #: at least ``LAG_CHOICE_MIN`` once the channel is asked to command (``umodel.structure``
 #: needs two thirds of its record to fit and a third to validate on).
@@ -51,6 +49,8 @@ LAG_CHOICE_MIN = 300
 #: regressor (3 × lags + 5 terms) still small enough for its per-sample RLS update.
 MAX_INPUT_LAGS = 50
 
+#: Model options per channel on top of each model's defaults (none: the defaults hold for
+#: both channels, and a new vehicle gets no figure tuned to the emulator's).
 DEFAULT_MODEL_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {"depth": {}, "pitch": {}},
     "dynamic": {"depth": {}, "pitch": {}},
@@ -145,11 +145,7 @@ class PipelineSettings:
         """``serve --input-lags``: ``"auto"`` chooses them from each channel's record, a
         number gives them (``with_input_lags``)."""
         if lags == "auto":
-            if self.model != "dynamic":
-                raise ValueError(
-                    f"input lags are the dynamic model's, not the {self.model} model's"
-                )
-            return self.replace(choose_input_lags=True)
+            return self.replace(choose_input_lags=True)  # __post_init__ checks the model
         if isinstance(lags, str):
             try:
                 lags = int(lags)
@@ -166,9 +162,7 @@ class PipelineSettings:
         excess is made of")."""
         if self.model != "dynamic":
             raise ValueError(f"input lags are the dynamic model's, not the {self.model} model's")
-        if not (isinstance(lags, int) and not isinstance(lags, bool)):
-            raise ValueError(f"input lags must be an integer 1..{MAX_INPUT_LAGS}, got {lags!r}")
-        if not 1 <= lags <= MAX_INPUT_LAGS:
+        if isinstance(lags, bool) or not (isinstance(lags, int) and 1 <= lags <= MAX_INPUT_LAGS):
             raise ValueError(f"input lags must be an integer 1..{MAX_INPUT_LAGS}, got {lags!r}")
         options = {ch: {**self.options_for(ch), "nb": lags} for ch in CHANNELS}
         return self.replace(model_options=options)
