@@ -11,6 +11,7 @@ import pytest
 from hil_service.umodel import build_model
 from hil_service.umodel.box_qp import solve_box_qp
 from hil_service.umodel.dynamics import ModelDynamics
+from hil_service.umodel.horizon import arrival_time
 from hil_service.umodel.predictive import (
     PredictiveInverse,
     factorise,
@@ -32,6 +33,19 @@ def test_settling_horizon_follows_the_pole() -> None:
     assert 140 <= slow <= 150  # 0.98^148 ≈ 0.05
     unstable = settling_horizon(step_response([1.01], [1.0], 400), 0.05, 2, 400)
     assert unstable == 400
+
+
+def test_arrival_time_is_short_where_a_lightly_damped_response_rings() -> None:
+    # Poles 0.95·e^(±0.3i): the response reaches its level in a few samples and rings
+    # about it for ~50; settling counts the ringing, arrival does not.
+    r, w = 0.95, 0.3
+    ringing = step_response([2 * r * math.cos(w), -r * r], [1.0], 400)
+    settled = settling_horizon(ringing, 0.05, 2, 400)
+    arrived = arrival_time(ringing, 0.05, 2, 400)
+    assert arrived <= 20 < 50 <= settled
+    # A monotone response arrives when it settles.
+    smooth = step_response([0.9], [1.0], 400)
+    assert arrival_time(smooth, 0.05, 2, 400) == settling_horizon(smooth, 0.05, 2, 400)
 
 
 def test_factorise_recovers_a_hammerstein_map() -> None:

@@ -12,6 +12,7 @@ import math
 
 __all__ = [
     "add_move_penalty",
+    "arrival_time",
     "block_starts",
     "cost_points",
     "cost_start",
@@ -212,3 +213,23 @@ def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> in
         if abs(response[j] - final) > tol:
             last = j + 1
     return lo if last < lo else hi if last > hi else last
+
+
+def arrival_time(response: list[float], band: float, lo: int, hi: int) -> int:
+    """The first sample at which the step response comes within ``band`` of its last
+    value, clamped to [lo, hi]; ``hi`` when it never does or is not finite.
+
+    Shorter than the settling time on a lightly damped response: the output reaches its
+    new level early and rings about it. The pace at which a level of the residual can be
+    told from the model's own transient is set by this time, not by the ringing's decay.
+    """
+    if not response:
+        return lo
+    final = response[-1]
+    if not math.isfinite(final) or final == 0.0:
+        return hi
+    tol = band * abs(final)
+    for j in range(len(response)):
+        if abs(response[j] - final) <= tol:
+            return lo if j < lo else hi if j > hi else j
+    return hi

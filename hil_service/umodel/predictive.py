@@ -23,8 +23,10 @@ linear in past outputs, a polynomial of each input lag. The controller
 
 Offset-free tracking (internal model control): an internal copy of the model runs on its
 own outputs and the applied inputs; the measured output's departure from it, low-passed
-with a time constant of a share of the horizon (``disturbance_share``), is the output
-disturbance, held constant over the horizon. A slow estimate on purpose: a
+with a time constant of a share of the response time (``disturbance_share``; the
+horizon, or the step response's arrival time when that is shorter: a lightly damped plant
+settles long after it arrives, and the residual's level is known once it has), is the
+output disturbance, held constant over the horizon. A slow estimate on purpose: a
 non-minimum-phase plant answers a fast correction with its wrong-way response. Slower
 still where that departure is noise: of that pace and 2 … 64 times slower, the estimate
 that has predicted the departure best is used (``track``), so a white residual is averaged
@@ -46,6 +48,7 @@ from .box_qp import solve_box_qp
 from .dynamics import ModelDynamics, StaticMap
 from .horizon import (
     add_move_penalty,
+    arrival_time,
     block_starts,
     cost_points,
     cost_start,
@@ -219,6 +222,7 @@ class PredictiveInverse:
 
     __slots__ = (
         "_age",
+        "_arrival",
         "_columns",
         "_disturbance",
         "_estimates",
@@ -255,6 +259,7 @@ class PredictiveInverse:
         self.rate = float(rate)
         self.settings = settings or PredictiveSettings()
         self._horizon = 0
+        self._arrival = 0  # the step response's arrival time (``arrival_time``)
         self._age = 0
         self._disturbance = 0.0
         # One estimate per candidate pace and the squared errors with which each, held
@@ -317,22 +322,23 @@ class PredictiveInverse:
             sim.insert(0, y_m)
         self._age += 1
         horizon = self.horizon_for(dyn)
-        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + self.settings.disturbance_share * horizon))
+        pace = min(horizon, self._arrival) if self._arrival > 0 else horizon
+        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + self.settings.disturbance_share * pace))
 
     def _estimate_disturbance(self, residual: float, alpha: float) -> None:
         """The output disturbance: the residual y − y_m low-passed, d ← d + α·(y − y_m − d),
         at the pace that has predicted the residual best.
 
-        Candidates: α = 1/(1 + disturbance_share·horizon) and 2, 4, … times slower. Each
-        is scored by the squared error with which its estimate, held from the sample
-        before, predicted this residual (summed since the internal model started); the
-        lowest score wins, the fastest on a tie. The estimate is the residual's predicted
-        level over the horizon, so the pace that predicts it best is the one to plan with:
-        a residual that wanders (a current, a model error at a new level) is followed at
-        the horizon's pace, a white one (noise the model cannot predict) is averaged, and
-        correcting it, which only adds the estimate's own noise to the output's, stops.
-        For a random walk plus white noise every horizon ranks the paces alike (the k-step
-        error is the one-step error plus the walk's k − 1 steps)."""
+        Candidates: α = 1/(1 + disturbance_share·min(horizon, arrival time)) and 2, 4, …
+        times slower. Each is scored by the squared error with which its estimate, held from
+        the sample before, predicted this residual (summed since the internal model
+        started); the lowest score wins, the fastest on a tie. The estimate is the
+        residual's predicted level over the horizon, so the pace that predicts it best is
+        the one to plan with: a residual that wanders (a current, a model error at a new
+        level) is followed at the horizon's pace, a white one (noise the model cannot
+        predict) is averaged, and correcting it, which only adds the estimate's own noise to
+        the output's, stops. For a random walk plus white noise every horizon ranks the
+        paces alike (the k-step error is the one-step error plus the walk's k − 1 steps)."""
         estimates = self._estimates
         scores = self._scores
         best = 0
@@ -391,6 +397,7 @@ class PredictiveInverse:
         self._free_ar = list(ar)
         self._free_step, self._free_impulse = free_response_terms(ar, len(gains), n, points)
         self._horizon = n
+        self._arrival = arrival_time(response, s.band, s.min_horizon, s.max_horizon)
         self._points = points
         self._columns = columns
         self._onset = onset
