@@ -33,8 +33,8 @@ $(FOXGLOVE_CLIENT)/node_modules/.installed: $(FOXGLOVE_CLIENT)/package-lock.json
 	else echo "node/npm not found: the Foxglove client test will be skipped"; fi
 
 # Two pytest-xdist workers: most tests wait on real processes over real-time links, so two
-# halve the wall time (846 tests: 8 min against 15-18 on 2 cores); more would contend for the
-# cores the tests' own services and emulators need. TEST_WORKERS=0 runs them in one process.
+# halve the wall time on 2 cores; more would contend for the cores the tests' own services
+# and emulators need. TEST_WORKERS=0 runs them in one process.
 TEST_WORKERS ?= 2
 
 test: build foxglove-client

@@ -12,13 +12,13 @@ call it too, so that they measure the path as those commands run it.
   (decoded messages, payload dicts, log records, the model's multi-step map), and a
   vehicle's replace the previous sample's a vehicle cycle later: with 1,000 gliders at 1 Hz,
   about 60,000 of them are alive at any time, and a young collection traverses all of them
-  whatever its threshold (50-70 ms). At thresholds (10,000, 10, 10) those survivors filled
-  the older generations, whose collections took 160-460 ms every few seconds and found no
-  garbage (the per-sample path makes no reference cycles: 0 collected in every collection
-  measured). So young collections every 20,000 net allocations (every few seconds in such
-  a fleet, rarely for one vehicle), the middle generation every 100 of them and the full
-  one every 10 of those (about an hour in that fleet): reference cycles are still
-  reclaimed, and the long pauses are rare instead of constant
+  whatever its threshold (50-70 ms). With the older generations collected every 10 young
+  collections, those survivors fill them, and their collections take 160-460 ms every few
+  seconds and find no garbage (the per-sample path makes no reference cycles: 0 collected in
+  every collection measured). So young collections every 20,000 net allocations (every few
+  seconds in such a fleet, rarely for one vehicle), the middle generation every 100 of them
+  and the full one every 10 of those (about an hour in that fleet): reference cycles are
+  still reclaimed, and the long pauses are rare instead of constant
   (``benchmarks/fleet_inprocess.py``, docs/benchmarks.md).
 """
 

@@ -2,43 +2,34 @@
 
 from __future__ import annotations
 
-import ctypes
 import os
-import signal
 import socket
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from hil_service.cli.processes import end_group, free_port, start_service, start_verb, stop_process
+from hil_service.cli.processes import (
+    end_group,
+    free_port,
+    set_parent_death_signal,
+    start_service,
+    start_verb,
+    stop_process,
+)
 from protocols.compiled import ENV_INTERPRETED, flag, orphan_binaries, stale_modules
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
-
-
-def die_with_the_test_run() -> None:
-    """In a pytest-xdist worker (``make test`` runs two), have Linux SIGKILL this worker
-    when the pytest process that started it ends, even by SIGKILL: the worker's own children
-    (``serve``, ``emulate``, peers) are started to die with it, so nothing outlives a
-    killed test run. Without it a worker finishes its test first, whatever that takes."""
-    if "PYTEST_XDIST_WORKER" not in os.environ or not sys.platform.startswith("linux"):
-        return
-    parent = os.getppid()
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
-        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
-    if os.getppid() != parent:  # the run ended before the signal was armed
-        os._exit(1)
-
-
 def pytest_configure(config: pytest.Config) -> None:
-    die_with_the_test_run()
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        # A worker (`make test` runs two) dies with the pytest process that started it,
+        # even when that one is SIGKILLed, and its own children (serve, emulate, peers)
+        # die with it: nothing outlives a killed test run. Without it a worker would first
+        # finish its test, whatever that takes.
+        set_parent_death_signal()
     config.addinivalue_line(
         "markers", "wire: runs project processes on real sockets (left out of `make mutate`)"
     )

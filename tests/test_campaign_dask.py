@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import ctypes
 import json
 import os
 import signal
@@ -20,7 +19,7 @@ from pathlib import Path
 import distributed
 import pytest
 
-from hil_service.cli.processes import free_port, last_json
+from hil_service.cli.processes import free_port, last_json, set_parent_death_signal
 
 pytestmark = pytest.mark.wire
 
@@ -28,10 +27,6 @@ DASK = str(Path(sys.executable).with_name("dask"))
 #: Columns that are wall clock or CPU time, or name a log file by the time it was opened.
 TIMING = {"wall_s", "cpu_s", "steps_per_s", "log"}
 SHORT = ("--steps", "500", "--identify", "300", "--step-every", "60")
-
-
-def _die_with_parent() -> None:
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 def _start(*args: str, log: Path) -> subprocess.Popen[bytes]:
@@ -42,7 +37,7 @@ def _start(*args: str, log: Path) -> subprocess.Popen[bytes]:
             stdout=out,
             stderr=subprocess.STDOUT,
             start_new_session=True,
-            preexec_fn=_die_with_parent,
+            preexec_fn=set_parent_death_signal,
         )
 
 
@@ -115,7 +110,7 @@ def start_campaign(*args: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_die_with_parent,
+        preexec_fn=set_parent_death_signal,
     )
 
 

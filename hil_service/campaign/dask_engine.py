@@ -48,21 +48,12 @@ from hil_service.campaign.runner import (
     run_dir,
     write_row,
 )
+from hil_service.cli.processes import set_parent_death_signal
 
 LOG_MODES = ("auto", "shared", "return")
 #: The file in ``-o DIR`` whose token tells a worker that it sees the same directory.
 MARKER = ".glider-hil-campaign-token"
 WORKER_WAIT = 60.0  # wall s for the cluster to have at least one worker
-
-
-def _die_with_parent() -> None:
-    """SIGKILL this process when the thread that forked it (the worker's task) goes."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux
-        pass
 
 
 def _scratch_root() -> str | None:
@@ -99,7 +90,7 @@ def mission_task(spec: CampaignSpec, mission: Mission, token: str, logs: str) ->
         pid = os.fork()
         if pid == 0:
             try:
-                _die_with_parent()
+                set_parent_death_signal()  # SIGKILLed when the worker's task thread goes
                 for number in (signal.SIGTERM, signal.SIGINT):
                     signal.signal(number, signal.SIG_DFL)  # not the worker's own handlers
             finally:

@@ -28,6 +28,7 @@ import numpy as np
 
 from hil_service.builder import open_recorder, wire
 from hil_service.campaign.mission import Mission, Trace
+from hil_service.cli.processes import set_parent_death_signal
 from hil_service.config import LogOptions, ServiceConfig
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.pipeline import PipelineSettings
@@ -81,20 +82,10 @@ def service_config(mission: Mission) -> ServiceConfig:
     )
 
 
-def _die_with_parent() -> None:
-    """Ask Linux for SIGTERM when the worker dies (killed mid-mission): no orphan service."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux: the worker's own cleanup has to do
-        pass
-
-
 def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
-    """The forked service: open, say the port on ``ready_fd``, serve until SIGTERM."""
-    _die_with_parent()
+    """The forked service: open, say the port on ``ready_fd``, serve until SIGTERM (also
+    when the worker that forked it dies mid-mission: no orphan service)."""
+    set_parent_death_signal(signal.SIGTERM)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -40,6 +40,27 @@ def dies_with_parent(argv: Sequence[str]) -> list[str]:
     return [SETPRIV, "--pdeathsig", "KILL", *argv]
 
 
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def set_parent_death_signal(signum: int = signal.SIGKILL) -> bool:
+    """Have Linux send ``signum`` to this process when the thread that started it ends,
+    even when that process is SIGKILLed (``PR_SET_PDEATHSIG``): for a process that was not
+    started through ``dies_with_parent`` (a fork, a pytest-xdist worker, a ``preexec_fn``).
+    When the parent has already gone by the time the signal is armed, the signal is sent
+    now. False where Linux's ``prctl`` is not there (the caller's own cleanup has to do)."""
+    parent = os.getppid()
+    try:
+        import ctypes
+
+        armed = ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signum, 0, 0, 0) == 0
+    except (OSError, AttributeError):  # not Linux
+        return False
+    if armed and os.getppid() != parent:
+        os.kill(os.getpid(), signum)
+    return armed
+
+
 def start_verb(*args: str, own_group: bool = False) -> subprocess.Popen[str]:
     """``glider-hil ARGS…`` with this interpreter, output captured, unbuffered.
 

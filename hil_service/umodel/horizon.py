@@ -193,6 +193,19 @@ def free_response_terms(
     return step, impulses
 
 
+def _final_band(response: list[float], band: float) -> tuple[float, float] | None:
+    """The step response's final value and ``band`` × its size; None when the final value
+    is zero or not finite (there is no level to come within)."""
+    final = response[-1]
+    if not math.isfinite(final) or final == 0.0:
+        return None
+    return final, band * abs(final)
+
+
+def _clamp(j: int, lo: int, hi: int) -> int:
+    return lo if j < lo else hi if j > hi else j
+
+
 def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
     """The first sample after which the step response stays within ``band`` of its last
     value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
@@ -200,19 +213,18 @@ def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> in
     n = len(response)
     if n == 0:
         return lo
-    final = response[-1]
-    if not math.isfinite(final) or final == 0.0:
+    level = _final_band(response, band)
+    if level is None:
         return hi
+    final, tol = level
     # Not settled if it still moves at the end: compare with the value a tenth earlier.
-    check = response[n - 1 - n // 10]
-    tol = band * abs(final)
-    if abs(check - final) > tol:
+    if abs(response[n - 1 - n // 10] - final) > tol:
         return hi
     last = 0
     for j in range(n):
         if abs(response[j] - final) > tol:
             last = j + 1
-    return lo if last < lo else hi if last > hi else last
+    return _clamp(last, lo, hi)
 
 
 def arrival_time(response: list[float], band: float, lo: int, hi: int) -> int:
@@ -225,11 +237,11 @@ def arrival_time(response: list[float], band: float, lo: int, hi: int) -> int:
     """
     if not response:
         return lo
-    final = response[-1]
-    if not math.isfinite(final) or final == 0.0:
+    level = _final_band(response, band)
+    if level is None:
         return hi
-    tol = band * abs(final)
+    final, tol = level
     for j in range(len(response)):
         if abs(response[j] - final) <= tol:
-            return lo if j < lo else hi if j > hi else j
+            return _clamp(j, lo, hi)
     return hi

@@ -222,7 +222,6 @@ class PredictiveInverse:
 
     __slots__ = (
         "_age",
-        "_arrival",
         "_columns",
         "_disturbance",
         "_estimates",
@@ -236,6 +235,7 @@ class PredictiveInverse:
         "_plan_state",
         "_points",
         "_range",
+        "_response_time",
         "_rho",
         "_scores",
         "_shape",
@@ -259,7 +259,9 @@ class PredictiveInverse:
         self.rate = float(rate)
         self.settings = settings or PredictiveSettings()
         self._horizon = 0
-        self._arrival = 0  # the step response's arrival time (``arrival_time``)
+        # The disturbance estimate's time scale: the shorter of the horizon and the step
+        # response's arrival time (``arrival_time``), derived with the horizon.
+        self._response_time = 0
         self._age = 0
         self._disturbance = 0.0
         # One estimate per candidate pace and the squared errors with which each, held
@@ -321,9 +323,9 @@ class PredictiveInverse:
             sim.pop()
             sim.insert(0, y_m)
         self._age += 1
-        horizon = self.horizon_for(dyn)
-        pace = min(horizon, self._arrival) if self._arrival > 0 else horizon
-        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + self.settings.disturbance_share * pace))
+        self.horizon_for(dyn)  # derives the response time again when it is due
+        share = self.settings.disturbance_share
+        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + share * self._response_time))
 
     def _estimate_disturbance(self, residual: float, alpha: float) -> None:
         """The output disturbance: the residual y − y_m low-passed, d ← d + α·(y − y_m − d),
@@ -397,7 +399,7 @@ class PredictiveInverse:
         self._free_ar = list(ar)
         self._free_step, self._free_impulse = free_response_terms(ar, len(gains), n, points)
         self._horizon = n
-        self._arrival = arrival_time(response, s.band, s.min_horizon, s.max_horizon)
+        self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))
         self._points = points
         self._columns = columns
         self._onset = onset
