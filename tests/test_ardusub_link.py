@@ -140,6 +140,10 @@ def test_identifies_and_controls_depth_and_pitch_through_do_set_servo(processes)
         # the predictive inverse since the ArduSub timing fixes (docs/control.md), machine
         # load 3-5: depth 0.000-0.127 m in 12 runs, pitch below 1e-5 rad.
         assert depth_error < 0.4 and pitch_error < 0.01
+        # Stop commanding, then wait for the DO_SET_SERVO already sent to be answered, so
+        # that a loaded machine's emulator is not stopped with several still unread.
+        client.setpoints = {"depth": None, "pitch": None}
+        client.run(30.0, lambda: _servo_acks(client) >= client.commands_sent)
         out, _ = processes.stop(emulator)
         summary = last_json(out, "emulator")
         # The last sample's DO_SET_SERVO, one per channel, may still be in flight when the
@@ -172,3 +176,7 @@ def _gains(client):
             f"{p.controller.horizon} d {p.controller.disturbance:.3g}"
         )
     return out
+
+
+def _servo_acks(client: ArduSubClient) -> int:
+    return sum(1 for ack in client.acks if ack.command == dialect.MAV_CMD_DO_SET_SERVO)
