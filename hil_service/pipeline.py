@@ -396,7 +396,7 @@ class ChannelPipeline:
         if not follows_previous or self.u_prev is None:
             self._start_resync()
         elif repeat and self.resync == 0:
-            self._drop_repeat(learnt_last)
+            self._drop_repeat(learnt_last, y)
             return None
         self._sup_pred = math.nan
         self._alt_delta = math.nan
@@ -444,14 +444,16 @@ class ChannelPipeline:
     def _choose_input_lags(self) -> None:
         """Once per channel: the input lags by validation on the record
         (``umodel.structure``). A choice other than the model's own rebuilds the
-        identifier from the record (each recorded sample trains it, in order) and the
+        identifier from the record (in order, trained where the channel trained) and the
         channel must pass the horizon test again with it."""
         outputs, inputs = self.horizon_test.samples()
+        runs = self.horizon_test.runs()
         choice = choose_input_lags(
             outputs,
             inputs,
             float(self._options["u_scale"]),
             qualify=self.settings.control.horizon_fit / 100.0,
+            runs=runs,
         )
         if choice is None and len(outputs) < LAG_CHOICE_RECORD:
             return  # no choice on this short a record: the full record decides
@@ -462,8 +464,13 @@ class ChannelPipeline:
         self._options = {**self._options, "nb": choice.lags}
         model = build_model("dynamic", seed=self._seed, **self._options)
         assert isinstance(model, PredictiveModel)
-        for y, u_prev in zip(outputs, inputs, strict=True):
-            model.step(u_prev, y)
+        history = model.history_length
+        for i, (y, u_prev, run) in enumerate(zip(outputs, inputs, runs, strict=True)):
+            # As the channel learnt them: after a restart the history refills untrained.
+            if run == i or run > history:
+                model.step(u_prev, y)
+            else:
+                model.observe_only(u_prev, y)
         self.model = model
         self._input_lags = choice.lags
         self.dynamics = model.dynamics()
@@ -486,27 +493,35 @@ class ChannelPipeline:
         self.controller.reset()
         self.dynamics = None
 
-    def _drop_repeat(self, learnt_last: bool) -> None:
+    def _drop_repeat(self, learnt_last: bool, y: float) -> None:
         """A reading served twice by an asynchronous sampler (a stream at the sample rate,
         with jitter): the previous reading was a step ahead of its tick, so the plant moved
         two steps between it and the one before, and none since. Learning from either pair,
         or from a history holding the wrong step, teaches the model a wrong step response
         (measured on the ArduSub profile: depth error 0.49 m mean over 6 runs with, 0.12 m
         without): the update learnt from the early reading is undone, the repeat dropped
-        and the history refilled without training. Control is not interrupted. (An exact
-        steady state of a noise-free output also repeats: it holds no new information
-        either.)"""
+        and the history refilled without training. Control is not interrupted, nor are
+        the frozen runs the supervisor and the multi-step accuracy compare with: the
+        repeat is the reading of its own tick, so they advance a step on it as on any
+        sample (a run that skipped it would lag the plant by a step for each repeat).
+        (An exact steady state of a noise-free output also repeats: it holds no new
+        information either.)"""
         self.repeats += 1
         if learnt_last:
             self.model.undo_last_update()
         self.refill = self.model.history_length
+        self.horizon_test.restart_run()
+        self._sup_pred = math.nan
+        self._alt_delta = math.nan
+        if self.u_prev is not None:
+            self._advance_predictions(y, self.u_prev)
 
     def _refill_sample(self, y: float, u_now: float) -> None:
         """A sample after a repeat or a reused input: into the history, the horizon test's
-        record and the internal model, not into training."""
-        self._sup_run = None  # the supervisor's prediction restarts after the refill
-        self._alt_run = None
+        record and the internal model, not into training. The frozen runs go on: they
+        run on the inputs alone, which the repeat did not disturb."""
         assert self.u_prev is not None
+        self._advance_predictions(y, self.u_prev)
         self.model.observe_only(self.u_prev, y)
         self.persistence.observe_only(self.u_prev, y)
         self.horizon_test.record(y, self.u_prev)

@@ -4,6 +4,7 @@ does not command, the pipeline's commands once it does (``tests/test_do_no_harm.
 from __future__ import annotations
 
 import math
+import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -41,6 +42,9 @@ class Loop:
     scale: float = 1.0  # output units per plant unit (depth)
     offset: float = 15.0  # trim depth
     input_scale: float = 1.0  # vehicle input units per plant unit
+    #: Share of ticks whose reading is served a tick early and then again on the next
+    #: tick, as an asynchronous sampler does (``tests/test_umodel_repeats.py``).
+    repeat_share: float = 0.0
 
     def __post_init__(self) -> None:
         self.vehicle = RandomVehicle(
@@ -48,7 +52,10 @@ class Loop:
         )
         self.pipeline = VehiclePipeline(self.settings)
         self.excite = [RandomSteps(2.0, 5, 30, seed=11), RandomSteps(2.0, 5, 30, seed=12)]
-        self.k = 0
+        self.k = 0  # plant steps
+        self.tick = 0  # samples served
+        self._early: TelemetrySample | None = None
+        self._rng = random.Random(13)
         self.time_offset_ms = 0
         self.restart_mark = False  # the next sample is marked ``restarted``
         self.command = [0.0, 0.0]
@@ -72,7 +79,7 @@ class Loop:
             out[ch] = vehicle.loops[ch].step(effective)
         depth = out["depth"] + (self.disturbance(k) if self.disturbance else 0.0)
         self.k += 1
-        t_ms = round(k * self.depth.period * 1000.0) - self.time_offset_ms
+        t_ms = round(self.tick * self.depth.period * 1000.0) - self.time_offset_ms
         restarted, self.restart_mark = self.restart_mark, False
         return TelemetrySample(
             system_id=1,
@@ -86,9 +93,17 @@ class Loop:
 
     def run(self, steps: int, setpoints: dict[str, float | None], enabled: bool = True) -> None:
         for _ in range(steps):
-            k = self.k
-            sample = self._plant_step()
-            self.pipeline.observe(sample)
+            k = self.tick
+            if self._early is not None:
+                sample, self._early = self._early, None  # the plant has not moved since
+                sample = sample._replace(time_boot_ms=sample.time_boot_ms + self._ms)
+            elif k > 0 and self.repeat_share and self._rng.random() < self.repeat_share:
+                self._plant_step()  # this tick's reading is never served
+                sample = self._early = self._plant_step()
+            else:
+                sample = self._plant_step()
+            self.tick += 1
+            self.pipeline.observe(sample, sampled=self.repeat_share > 0.0)
             decision = self.pipeline.decide(sample, setpoints, enabled)
             self.events += self.pipeline.take_events(sample.time_boot_ms)
             self.y.append(sample.depth)
@@ -104,13 +119,17 @@ class Loop:
                 elif not self._commanded(ch):
                     self.command[i] = self.excite[i].value(k) * self.input_scale
 
+    @property
+    def _ms(self) -> int:
+        return round(self.depth.period * 1000.0)
+
     def _commanded(self, channel: str) -> bool:
         pipeline = self.pipeline.channels[channel]
         return pipeline.active or pipeline.tripped
 
     def restart_clock(self) -> None:
         """The vehicle's clock starts again from zero (a reboot) at the next sample."""
-        self.time_offset_ms = round(self.k * self.depth.period * 1000.0) - 1000
+        self.time_offset_ms = round(self.tick * self.depth.period * 1000.0) - 1000
 
     def reboot_marked(self) -> None:
         """The vehicle reboots before the next sample, as a periodic source reports it: the

@@ -64,6 +64,38 @@ def test_a_plant_change_trips_the_supervisor_and_the_safe_input_holds(change):
     assert end_error <= 1.2 * enabled_error, (end_error, enabled_error)
 
 
+SLOW_CHANGE = 2900  # 400 samples into control on the slow plant below
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        lambda k, u: -u if k >= SLOW_CHANGE else u,
+        lambda k, u: 5.0 * u if k >= SLOW_CHANGE else u,
+    ],
+    ids=["sign-flip", "gain-x5"],
+)
+def test_the_supervisor_trips_when_an_asynchronous_sampler_repeats_readings(change):
+    # A slow plant (supervised windows of 100-175 samples) read by an asynchronous
+    # sampler: 6.5 % of the readings are served a tick early and again on the next tick
+    # (about the ArduSub profile's share), so repeats fall inside every window. The runs
+    # the supervisor judges by go on across them; a loop that restarted its judgement at
+    # each repeat would never finish a window and command into the changed plant.
+    identify = 2500
+    loop = Loop(spec(poles=(0.98, 0.95)), spec(), change=change, repeat_share=0.065)
+    loop.run(identify, {"depth": None, "pitch": None})
+    loop.run(3000, {"depth": SETPOINT, "pitch": None})
+    depth = loop.pipeline.channels["depth"]
+    assert depth.repeats > 100
+    assert all(m.startswith(("newton", "fallback")) for m in loop.modes[identify:SLOW_CHANGE])
+    trip = _first_trip(loop)
+    assert SLOW_CHANGE < trip <= SLOW_CHANGE + 2 * depth.supervisor.window, trip
+    assert loop.reasons[trip].startswith("supervisor: ")
+    enabled_error = abs(loop.y[identify] - SETPOINT)
+    end_error = sum(abs(y - SETPOINT) for y in loop.y[-100:]) / 100
+    assert end_error <= 1.2 * enabled_error, (end_error, enabled_error)
+
+
 def test_trips_and_rearms_are_rate_limited():
     """After a trip the channel re-arms only once its hold-off has passed and its model
     passed the horizon test on data after the trip; the hold-off doubles with each."""

@@ -51,3 +51,36 @@ def test_no_candidate_that_predicts_keeps_the_default():
     y, u = _record(5, noise=3.0)
     choice = choose_input_lags(y, u, u_scale=2.0)
     assert choice is not None and max(choice.fits.values()) < 0.5 and choice.lags == 4
+
+
+def _shift_at(y: np.ndarray, u: np.ndarray, restarts: list[int]):
+    """The record an asynchronous sampler leaves: at each restart the reading is a tick
+    early (the next output in its place) and the repeat that follows is dropped."""
+    keep = np.ones(y.size, dtype=bool)
+    for t in restarts:
+        keep[t] = False
+    ys, us, runs, run = [], [], [], -1
+    for t in range(y.size):
+        if not keep[t]:
+            continue
+        early = t > 0 and not keep[t - 1]
+        run = 0 if early else run + 1
+        ys.append(y[t])
+        us.append(u[t - 1] if early else u[t])  # paired with the input before the early reading
+        runs.append(run)
+    return np.array(ys), np.array(us), runs
+
+
+def test_no_regression_reaches_across_a_reading_served_early():
+    y, u = _record(1)
+    # Sparse restarts: the choice is the one of the clean record.
+    ys, us, runs = _shift_at(y, u, [130, 640, 700, 820])
+    clean = choose_input_lags(y, u, u_scale=2.0)
+    across = choose_input_lags(ys, us, u_scale=2.0, runs=runs)
+    assert clean is not None and across is not None and across.lags == clean.lags == 4
+    assert min(across.fits.values()) > 0.99  # the shifted samples left out, not fitted
+    # A restart every 15 samples leaves no 50-sample segment to validate on: no choice
+    # (the pipeline keeps its four lags) rather than one fitted to misaligned samples.
+    dense = list(range(15, y.size, 15))
+    ys, us, runs = _shift_at(y, u, dense)
+    assert choose_input_lags(ys, us, u_scale=2.0, runs=runs) is None

@@ -67,11 +67,16 @@ def _regressors(
 
 def _validation_fit(
     theta: np.ndarray, y: np.ndarray, u: np.ndarray, start: int, na: int, lags: int,
-    degree: int, segment: int,
+    degree: int, segment: int, runs: np.ndarray, first: int,
 ) -> float:  # fmt: skip
+    """Free runs of ``segment`` samples from ``start`` on, each from measured history and
+    within one run of consecutive samples (``runs``)."""
     error = hold = 0.0
     s = start
     while s + segment <= y.size:
+        if runs[s + segment - 1] < segment - 1 + first:
+            s += 1  # the segment or its history reaches across a restart
+            continue
         run = [float(v) for v in y[: s + 1]]
         for t in range(s + 1, s + segment):
             value = float(np.dot(theta, _regressors(run, u, t, na, lags, degree)))
@@ -96,18 +101,25 @@ def choose_input_lags(
     segment: int = 50,
     tie: float = 0.02,
     qualify: float = 0.5,
+    runs: Sequence[int] | None = None,
 ) -> LagChoice | None:
     """The input lags for a record of consecutive samples: ``outputs[t]`` and ``inputs[t]``,
-    the input applied one step before it (as ``HorizonTest`` records them). None when the
-    record is too short for the largest candidate or a fit is not finite."""
+    the input applied one step before it (as ``HorizonTest`` records them). ``runs[t]``,
+    when given, counts the samples before t that follow on (``HorizonTest.runs``): no
+    regression row or validation segment reaches across a restart. None when the record
+    is too short for the largest candidate or a fit is not finite."""
     y = np.asarray(outputs, dtype=float)
     u = np.asarray(inputs, dtype=float) / u_scale
     if y.size != u.size or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
         return None
+    run = np.arange(y.size) if runs is None else np.asarray(runs, dtype=int)
+    if run.size != y.size:
+        return None
     first = max(na, max(candidates) - 1)
     split = (2 * y.size) // 3
+    rows = [t for t in range(first, split) if run[t] >= first]
     most = degree * max(candidates) + 1 + na
-    if split - first < 4 * most or y.size - split < 2 * segment:
+    if len(rows) < 4 * most or y.size - split < 2 * segment:
         return None
     spread = float(np.std(y))
     if not spread > 0.0:
@@ -115,11 +127,11 @@ def choose_input_lags(
     y = (y - y[0]) / spread  # the regression is the same in any output unit and offset
     fits: dict[int, float] = {}
     for lags in candidates:
-        design = np.array([_regressors(y, u, t, na, lags, degree) for t in range(first, split)])
-        theta, *_ = np.linalg.lstsq(design, y[first:split], rcond=None)
+        design = np.array([_regressors(y, u, t, na, lags, degree) for t in rows])
+        theta, *_ = np.linalg.lstsq(design, y[rows], rcond=None)
         if not np.all(np.isfinite(theta)):
             return None
-        fits[lags] = _validation_fit(theta, y, u, split, na, lags, degree, segment)
+        fits[lags] = _validation_fit(theta, y, u, split, na, lags, degree, segment, run, first)
     best = max(fits.values())
     if not math.isfinite(best):
         return None

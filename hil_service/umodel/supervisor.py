@@ -110,6 +110,7 @@ class HorizonTest:
     __slots__ = (
         "_inputs",
         "_outputs",
+        "_runs",
         "fit",
         "full",
         "hold_rms",
@@ -133,6 +134,9 @@ class HorizonTest:
         size = max(capacity, window) + 16
         self._outputs: deque[float] = deque(maxlen=size)
         self._inputs: deque[float] = deque(maxlen=size)  # the input that produced each output
+        #: Per sample, how many samples before it follow on without a restart
+        #: (``restart_run``): a regressor may reach back that far.
+        self._runs: deque[int] = deque(maxlen=size)
         #: The fewest prediction steps a verdict rests on while the record is shorter
         #: than the horizon (the pipeline's burn-in).
         self.minimum = max(int(minimum), 2)
@@ -153,6 +157,7 @@ class HorizonTest:
         """Forget every sample: the next verdict is on data recorded after this call."""
         self._outputs.clear()
         self._inputs.clear()
+        self._runs.clear()
         self.fit = None
         self.steps = 0
         self.full = False
@@ -166,13 +171,26 @@ class HorizonTest:
         """The record, oldest first: the outputs and the input applied one step before each."""
         return list(self._outputs), list(self._inputs)
 
+    def runs(self) -> list[int]:
+        """Per recorded sample, oldest first: how many samples before it follow on (its
+        index, unless ``restart_run`` was called since the record began)."""
+        return list(self._runs)
+
     def record(self, y: float, u_prev: float) -> None:
         """One consecutive sample: ``y`` and the input applied one step before it."""
         if math.isfinite(y) and math.isfinite(u_prev):
+            self._runs.append(self._runs[-1] + 1 if self._runs else 0)
             self._outputs.append(y)
             self._inputs.append(u_prev)
         else:
             self.break_record()  # consecutive samples only
+
+    def restart_run(self) -> None:
+        """The newest sample does not follow the one before it (a reading served a tick
+        early): the samples from it on start a new run, which the input lags' choice
+        and its rebuilt identifier do not regress across."""
+        if self._runs:
+            self._runs[-1] = 0
 
     def evaluate(self, dyn: ModelDynamics, horizon: int) -> bool:
         """Score ``dyn`` over the record; True when it passes.
