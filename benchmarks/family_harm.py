@@ -18,8 +18,8 @@ known-model oracle.
     python benchmarks/family_harm.py --combine a.pkl b.pkl
 
 What-if runs (docs/control.md, "What the excess is made of"): ``--horizon-fit F`` sets the
-horizon test's threshold, ``--nb N`` the identifier's input lags, ``--input-lags-auto`` has
-each channel choose them from its record (``serve --input-lags auto``), and
+horizon test's threshold, ``--nb N`` the identifier's input lags (by default each channel
+chooses them from its record, as ``serve`` does; ``--nb 4`` is the model's own four), and
 ``--nb-from-true-delay E`` gives each plant's identifier max(4, delay + E) input lags from
 the plant's *true* input delay, which no deployed identifier knows: an upper bound on what
 choosing the lags from the data could give, not a controller.
@@ -182,10 +182,9 @@ def what_if(
     horizon_fit: float | None,
     nb: int | None,
     nb_from_true_delay: int | None,
-    choose_lags: bool = False,
 ) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
     """The pipeline settings of a what-if run (None: the defaults)."""
-    if horizon_fit is None and nb is None and nb_from_true_delay is None and not choose_lags:
+    if horizon_fit is None and nb is None and nb_from_true_delay is None:
         return lambda seed, depth, pitch: None
 
     def lags(spec: FamilyPlantSpec) -> dict[str, int]:
@@ -198,9 +197,7 @@ def what_if(
             ControlSettings() if horizon_fit is None else ControlSettings(horizon_fit=horizon_fit)
         )
         options = {"depth": lags(depth), "pitch": lags(pitch)}
-        return PipelineSettings(
-            seed=seed, control=control, model_options=options, choose_input_lags=choose_lags
-        )
+        return PipelineSettings(seed=seed, control=control, model_options=options)
 
     return settings
 
@@ -217,11 +214,6 @@ def main() -> None:
     parser.add_argument("--save", help="also write the rows to this file (pickle)")
     parser.add_argument("--horizon-fit", type=float, help="the horizon test's threshold, %%")
     parser.add_argument("--nb", type=int, help="the identifier's input lags")
-    parser.add_argument(
-        "--input-lags-auto",
-        action="store_true",
-        help="each channel's input lags chosen from its record (serve --input-lags auto)",
-    )
     parser.add_argument(
         "--nb-from-true-delay",
         type=int,
@@ -250,7 +242,7 @@ def main() -> None:
         args.step_every,
         not args.no_oracle,
         args.semantics,
-        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay, args.input_lags_auto),
+        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay),
     )
     print(
         f"\nseeds {args.seeds}, {args.plants} plants each, {args.samples} samples "

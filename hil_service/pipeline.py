@@ -125,13 +125,16 @@ class PipelineSettings:
     window: int = 500
     control: ControlSettings = field(default_factory=ControlSettings)
     #: The dynamic model's input lags chosen from each channel's record
-    #: (``umodel.structure``; ``serve --input-lags auto``) unless the model options give them.
-    choose_input_lags: bool = False
+    #: (``umodel.structure``; ``serve --input-lags auto``) unless the model options give them
+    #: (``serve --input-lags N``). Unset: chosen for the dynamic model, the only one with lags.
+    choose_input_lags: bool | None = None
 
     def __post_init__(self) -> None:
         if self.model not in U_MODELS:
             raise ValueError(f"model must be one of {U_MODELS}, got {self.model!r}")
-        if self.choose_input_lags and self.model != "dynamic":
+        if self.choose_input_lags is None:
+            object.__setattr__(self, "choose_input_lags", self.model == "dynamic")
+        elif self.choose_input_lags and self.model != "dynamic":
             raise ValueError(f"input lags are the dynamic model's, not the {self.model} model's")
 
     def replace(self, **changes: Any) -> PipelineSettings:
@@ -178,6 +181,8 @@ class PipelineSettings:
         version whose identifier had them) are left out, as ``ControlSettings.from_json``
         leaves out unknown control fields, so that such a log replays."""
         data = dict(data)
+        # A log recorded before the lags were chosen by default had them fixed.
+        data.setdefault("choose_input_lags", False)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
         options = data.get("model_options")
         if options:
@@ -282,7 +287,7 @@ class ChannelPipeline:
         self._options = options
         #: With ``choose_input_lags``, the dynamic model's input lags are chosen from the
         #: first ``LAG_CHOICE_RECORD`` consecutive samples unless the options give them.
-        self._lags_pending = settings.choose_input_lags and "nb" not in options
+        self._lags_pending = bool(settings.choose_input_lags) and "nb" not in options
         self._lags_tried = False  # the choice was tried on a shorter record at the first ask
         config = model.config()
         self._model_name: str = config["name"]  # for health, without a config() each time

@@ -137,9 +137,9 @@ def test_white_output_noise_is_averaged_not_chased():
 def test_input_lags_that_cover_the_delay_bring_a_delayed_plant_back_to_reference_only():
     # Seed 11's vehicle 12 pitch: linear, first order (pole 0.506), an input delay of 5
     # samples, no disturbance. Four input lags cannot hold the delay: the loop rings and
-    # creeps, 1.12 × reference-only. With ``--input-lags auto`` the pipeline chooses more
-    # from its record (and reports the choice in health); a user who knows the delay gives
-    # them.
+    # creeps, 1.12 × reference-only. By default (``--input-lags auto``) the pipeline chooses
+    # more from its record (and reports the choice in health); a user who knows the delay
+    # gives them.
     from hil_service.experiment.closed_loop import inverse_run, setpoint_schedule
     from hil_service.pipeline import PipelineSettings
     from plant_emulator.models import CHANNELS
@@ -150,9 +150,10 @@ def test_input_lags_that_cover_the_delay_bring_a_delayed_plant_back_to_reference
         scenario="family", samples=2000, seed=11, identify=800, step_every=300, oracle=False,
         neutral_after_identify=True,
     )  # fmt: skip
-    auto = PipelineSettings(seed=11, choose_input_lags=True)
-    four = run_vehicle(settings, depth, pitch)[0][1].reference_ratio
-    chosen = run_vehicle(settings, depth, pitch, auto)[0][1].reference_ratio
+    auto = PipelineSettings(seed=11)
+    four_lags = PipelineSettings(seed=11).with_input_lags(4)
+    four = run_vehicle(settings, depth, pitch, four_lags)[0][1].reference_ratio
+    chosen = run_vehicle(settings, depth, pitch)[0][1].reference_ratio
     given = run_vehicle(settings, depth, pitch, PipelineSettings(seed=11).with_input_lags(7))
     assert four > 1.1 and chosen < 1.0 and given[0][1].reference_ratio < 1.0, (four, chosen)
 

@@ -141,6 +141,11 @@ def test_input_lags_auto_chooses_them_from_the_record_and_is_stored() -> None:
     again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
     assert again.choose_input_lags
     assert not PipelineSettings.from_json({"model": "dynamic"}).choose_input_lags  # old logs
+    # The default for the dynamic model, the only one with input lags; given lags win.
+    assert settings_from_args(parser.parse_args([])).choose_input_lags
+    assert not PipelineSettings(model="paper").choose_input_lags
+    given = settings_from_args(parser.parse_args(["--input-lags", "4"]))
+    assert given.options_for("depth")["nb"] == 4
     with pytest.raises(ValueError, match="auto or an integer"):
         PipelineSettings().with_input_lag_choice("some")
     with pytest.raises(ValueError, match="not the paper model's"):

@@ -121,7 +121,7 @@ def _add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N|auto",
         help="closed loop: the identifier's input lags in samples or auto, as serve "
-        "--input-lags (default 4)",
+        "--input-lags (default auto)",
     )
 
 

@@ -140,8 +140,9 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         "--input-lags",
         default=None,
         metavar="N|auto",
-        help="the identifier's input lags in samples (default 4): at least the vehicle's "
-        "input delay + 2; auto: chosen from each channel's first samples (docs/control.md)",
+        help="the dynamic identifier's input lags: auto (default) chooses 4, 6 or 8 from each "
+        "channel's first samples; N gives them, at least the vehicle's input delay + 2 "
+        "(docs/control.md)",
     )
 
 

@@ -208,7 +208,10 @@ class _Replay:
                 raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
             config = ServiceConfig()
         if self.options.model is not None:
-            config = replace(config, pipeline=config.pipeline.replace(model=self.options.model))
+            model = self.options.model
+            chosen = bool(config.pipeline.choose_input_lags) and model == "dynamic"
+            pipeline = config.pipeline.replace(model=model, choose_input_lags=chosen)
+            config = replace(config, pipeline=pipeline)
         profile = self._profile(stored)
         if profile is not None:
             recorded = (stored.get("service") or {}).get("profile") or {}
