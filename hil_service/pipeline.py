@@ -382,6 +382,7 @@ class ChannelPipeline:
         if input_reused and self.resync == 0:
             self.input_reuses += 1
             self.refill = max(self.refill, self.model.history_length)
+            self.horizon_test.restart_run()
         return estimate
 
     def _observe(

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from hil_service.umodel.structure import choose_input_lags
+from hil_service.umodel.supervisor import HorizonTest
 
 
 def _record(delay: int, noise: float = 0.0, n: int = 900, seed: int = 0):
@@ -54,21 +55,36 @@ def test_no_candidate_that_predicts_keeps_the_default():
 
 
 def _shift_at(y: np.ndarray, u: np.ndarray, restarts: list[int]):
-    """The record an asynchronous sampler leaves: at each restart the reading is a tick
-    early (the next output in its place) and the repeat that follows is dropped."""
+    """The record an asynchronous sampler leaves, as ``HorizonTest`` keeps it: at each
+    restart the reading is a tick early (the next output in its place) and the repeat
+    that follows is dropped."""
+    record = HorizonTest()
     keep = np.ones(y.size, dtype=bool)
     for t in restarts:
         keep[t] = False
-    ys, us, runs, run = [], [], [], -1
     for t in range(y.size):
         if not keep[t]:
             continue
         early = t > 0 and not keep[t - 1]
-        run = 0 if early else run + 1
-        ys.append(y[t])
-        us.append(u[t - 1] if early else u[t])  # paired with the input before the early reading
-        runs.append(run)
-    return np.array(ys), np.array(us), runs
+        # Paired with the input before the early reading.
+        record.record(float(y[t]), float(u[t - 1] if early else u[t]))
+        if early:
+            record.restart_run()
+    ys, us = record.samples()
+    return np.array(ys), np.array(us), record.runs()
+
+
+def test_the_record_restarts_its_runs_and_a_gap_clears_them():
+    record = HorizonTest()
+    for k in range(5):
+        record.record(float(k), 0.0)
+    record.restart_run()  # the newest is out of step; the next starts a run
+    record.record(5.0, 0.0)
+    record.record(6.0, 0.0)
+    assert record.runs() == [0, 1, 2, 3, 0, 0, 1]
+    record.break_record()
+    record.record(7.0, 0.0)
+    assert record.runs() == [0] and record.samples() == ([7.0], [0.0])
 
 
 def test_no_regression_reaches_across_a_reading_served_early():

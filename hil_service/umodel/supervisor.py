@@ -110,6 +110,7 @@ class HorizonTest:
     __slots__ = (
         "_inputs",
         "_outputs",
+        "_restart",
         "_runs",
         "fit",
         "full",
@@ -137,6 +138,7 @@ class HorizonTest:
         #: Per sample, how many samples before it follow on without a restart
         #: (``restart_run``): a regressor may reach back that far.
         self._runs: deque[int] = deque(maxlen=size)
+        self._restart = False  # the next sample starts a run
         #: The fewest prediction steps a verdict rests on while the record is shorter
         #: than the horizon (the pipeline's burn-in).
         self.minimum = max(int(minimum), 2)
@@ -152,12 +154,15 @@ class HorizonTest:
         verdict stands."""
         self._outputs.clear()
         self._inputs.clear()
+        self._runs.clear()
+        self._restart = False
 
     def reset(self) -> None:
         """Forget every sample: the next verdict is on data recorded after this call."""
         self._outputs.clear()
         self._inputs.clear()
         self._runs.clear()
+        self._restart = False
         self.fit = None
         self.steps = 0
         self.full = False
@@ -179,18 +184,21 @@ class HorizonTest:
     def record(self, y: float, u_prev: float) -> None:
         """One consecutive sample: ``y`` and the input applied one step before it."""
         if math.isfinite(y) and math.isfinite(u_prev):
-            self._runs.append(self._runs[-1] + 1 if self._runs else 0)
+            self._runs.append(self._runs[-1] + 1 if self._runs and not self._restart else 0)
+            self._restart = False
             self._outputs.append(y)
             self._inputs.append(u_prev)
         else:
             self.break_record()  # consecutive samples only
 
     def restart_run(self) -> None:
-        """The newest sample does not follow the one before it (a reading served a tick
-        early): the samples from it on start a new run, which the input lags' choice
-        and its rebuilt identifier do not regress across."""
+        """The newest sample is out of step (a reading served a tick early, or one whose
+        input reading the next sample reuses): it starts no run of its own that a fit
+        may train on (run 0), and the next sample starts a new run, so that the input
+        lags' choice and its rebuilt identifier regress across neither."""
         if self._runs:
             self._runs[-1] = 0
+        self._restart = True
 
     def evaluate(self, dyn: ModelDynamics, horizon: int) -> bool:
         """Score ``dyn`` over the record; True when it passes.
