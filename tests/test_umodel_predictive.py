@@ -177,7 +177,7 @@ def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int
     controller._derive(dyn, [1.0] * nb)
     sim = rng.normal(size=na).tolist()
     fast = controller._free_response(dyn, 0.4, sim)
-    slow = dyn.simulate_held(0.4, controller.horizon, 0.0, sim)
+    slow = dyn.simulate_held(0.4, max(controller._points), 0.0, sim)  # the cost's span
     assert fast == pytest.approx([slow[j - 1] for j in controller._points], rel=1e-9, abs=1e-9)
 
 
@@ -207,3 +207,25 @@ def test_the_disturbance_estimate_averages_a_white_residual_and_follows_a_wander
     # horizon's pace, the fastest candidate.
     stepped = _estimate([0.0] * 50 + [1.0] * 50)
     assert stepped[-1] == pytest.approx(1.0 - (1.0 - 1.0 / 3.5) ** 50)
+
+
+def test_a_non_minimum_phase_plant_settles_on_the_setpoints_side() -> None:
+    # The random family's seed 29 depth plant (lockstep campaigns): poles 0.757 and 0.631,
+    # a zero at 1.09, DC gain 0.71, a 2 s period. Its step response starts at −0.71 per
+    # unit and ends at +0.71, and settles within the 20-sample horizon. A cost that ended
+    # at the horizon saw the last blocks' wrong-way start only: the plan used them to move
+    # the output and held a first block whose steady state lay on the far side of the
+    # setpoint (0.83 m off a 0.8 m step, tripped three times, 14 × reference-only).
+    from plant_emulator.random_plants import draw_family
+    from tests.harm_rig import Loop, spec
+
+    depth, _ = draw_family(29, 1)[0]
+    assert depth.zero is not None and depth.zero > 1.0
+    loop = Loop(depth, spec(period=depth.period))
+    loop.run(1200, {"depth": None, "pitch": None})
+    for setpoint in (15.8, 14.5, 15.4):
+        start = len(loop.y)
+        loop.run(600, {"depth": setpoint, "pitch": None})
+        mean_error = sum(abs(y - setpoint) for y in loop.y[start:]) / 600
+        assert mean_error < 0.1 and abs(loop.y[-1] - setpoint) < 0.01, (setpoint, mean_error)
+    assert loop.pipeline.channels["depth"].supervisor.trips == 0

@@ -16,8 +16,12 @@ linear in past outputs, a polynomial of each input lag. The controller
    effect through G's step response, and minimises Σ (ŷ − r)² + ρ Σ Δw² over the block
    levels inside the actuator's range (the first block also inside its rate limit): a
    box-constrained QP, solved exactly by a primal active-set method. The cost starts
-   where the response to a move peaks the wrong way (``cost_start``) and sees every
-   sample of the blocks shorter than its stride (``cost_points``);
+   where the response to a move peaks the wrong way (``cost_start``), sees every
+   sample of the blocks shorter than its stride (``cost_points``), and runs to twice the
+   horizon, so that it sees the last block's response settle too: a cost that ended
+   with the blocks saw only the wrong-way start of a non-minimum-phase plant's last
+   blocks, and the plan used them to move the output while its first block settled on
+   the far side of the setpoint;
 4. root-solves N(u) = w for the first block (the U-model inverse step, with the solver's
    fallback where there is no real root).
 
@@ -392,12 +396,13 @@ class PredictiveInverse:
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
         starts = block_starts(n, s.max_blocks)
-        stride = max(1, -(-n // s.cost_points))
-        points, weights = cost_points(n, stride, starts, cost_start(response, n))
+        span = min(2 * n, s.max_horizon)
+        stride = max(1, -(-span // s.cost_points))
+        points, weights = cost_points(span, stride, starts, cost_start(response, n))
         columns, onset, hessian = plan_matrices(response, starts, points, weights)
         rho = add_move_penalty(hessian, s.move_weight)
         self._free_ar = list(ar)
-        self._free_step, self._free_impulse = free_response_terms(ar, len(gains), n, points)
+        self._free_step, self._free_impulse = free_response_terms(ar, len(gains), span, points)
         self._horizon = n
         self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))
         self._points = points
