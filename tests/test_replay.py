@@ -527,3 +527,15 @@ def test_a_log_of_an_older_identifier_replays_without_the_options_it_dropped(cap
     assert "replayed 2000 samples" in capsys.readouterr().out
     assert main(["replay", str(DATA / "legacy-paper.mcap"), "--fast", "--check"]) == 1
     assert "first difference on glider/1/umodel/depth" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model", ["paper", "dynamic"])
+def test_a_log_replays_with_another_model(replay_log, model):
+    # The fixtures were recorded with the input lags chosen from the record, which only the
+    # dynamic model has: another model replays without them, the dynamic one keeps them.
+    result = replay_log(DATA / "paper.mcap", model=model)
+    assert result.complete is True and result.samples == 2000
+    identifier = result.summary["vehicles"]["1"]["identifier"]
+    for channel in ("depth", "pitch"):
+        assert identifier[channel]["model"] == model
+        assert (identifier[channel]["input_lag_choice"] is not None) == (model == "dynamic")
