@@ -399,13 +399,13 @@ class ChannelPipeline:
         self._y_seen = y
         learnt_last = self._learnt_last
         self._learnt_last = False
+        self._sup_pred = math.nan
+        self._alt_delta = math.nan
         if not follows_previous or self.u_prev is None:
             self._start_resync()
         elif repeat and self.resync == 0:
             self._drop_repeat(learnt_last, y)
             return None
-        self._sup_pred = math.nan
-        self._alt_delta = math.nan
         self._until_evaluation -= 1
         if self.tripped:
             self._since_trip += 1
@@ -472,7 +472,8 @@ class ChannelPipeline:
         assert isinstance(model, PredictiveModel)
         history = model.history_length
         for i, (y, u_prev, run) in enumerate(zip(outputs, inputs, runs, strict=True)):
-            # As the channel learnt them: after a restart the history refills untrained.
+            # As the channel learnt them: every sample while no restart has come since the
+            # record began (run == i), then only once a restart's history has refilled.
             if run == i or run > history:
                 model.step(u_prev, y)
             else:
@@ -517,10 +518,8 @@ class ChannelPipeline:
             self.model.undo_last_update()
         self.refill = self.model.history_length
         self.horizon_test.restart_run()
-        self._sup_pred = math.nan
-        self._alt_delta = math.nan
-        if self.u_prev is not None:
-            self._advance_predictions(y, self.u_prev)
+        assert self.u_prev is not None  # a repeat follows a sample
+        self._advance_predictions(y, self.u_prev)
 
     def _refill_sample(self, y: float, u_now: float) -> None:
         """A sample after a repeat or a reused input: into the history, the horizon test's

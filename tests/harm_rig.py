@@ -96,7 +96,8 @@ class Loop:
             k = self.tick
             if self._early is not None:
                 sample, self._early = self._early, None  # the plant has not moved since
-                sample = sample._replace(time_boot_ms=sample.time_boot_ms + self._ms)
+                period_ms = round(self.depth.period * 1000.0)
+                sample = sample._replace(time_boot_ms=sample.time_boot_ms + period_ms)
             elif k > 0 and self.repeat_share and self._rng.random() < self.repeat_share:
                 self._plant_step()  # this tick's reading is never served
                 sample = self._early = self._plant_step()
@@ -118,10 +119,6 @@ class Loop:
                     self.command[i] = value
                 elif not self._commanded(ch):
                     self.command[i] = self.excite[i].value(k) * self.input_scale
-
-    @property
-    def _ms(self) -> int:
-        return round(self.depth.period * 1000.0)
 
     def _commanded(self, channel: str) -> bool:
         pipeline = self.pipeline.channels[channel]

@@ -212,10 +212,10 @@ def test_the_disturbance_estimate_averages_a_white_residual_and_follows_a_wander
 def test_a_non_minimum_phase_plant_settles_on_the_setpoints_side() -> None:
     # The random family's seed 29 depth plant (lockstep campaigns): poles 0.757 and 0.631,
     # a zero at 1.09, DC gain 0.71, a 2 s period. Its step response starts at −0.71 per
-    # unit and ends at +0.71, and settles within the 20-sample horizon. A cost that ended
-    # at the horizon saw the last blocks' wrong-way start only: the plan used them to move
-    # the output and held a first block whose steady state lay on the far side of the
-    # setpoint (0.83 m off a 0.8 m step, tripped three times, 14 × reference-only).
+    # unit and ends at +0.71, and settles within the 20-sample horizon. A cost ending at
+    # the horizon sees only the last blocks' wrong-way start: the plan moves the output
+    # through them and holds a first block whose steady state lies on the far side of the
+    # setpoint (0.83 m off a 0.8 m step, three trips, 14 × reference-only).
     from plant_emulator.random_plants import draw_family
     from tests.harm_rig import Loop, spec
 

@@ -18,10 +18,10 @@ linear in past outputs, a polynomial of each input lag. The controller
    box-constrained QP, solved exactly by a primal active-set method. The cost starts
    where the response to a move peaks the wrong way (``cost_start``), sees every
    sample of the blocks shorter than its stride (``cost_points``), and runs to twice the
-   horizon, so that it sees the last block's response settle too: a cost that ended
-   with the blocks saw only the wrong-way start of a non-minimum-phase plant's last
-   blocks, and the plan used them to move the output while its first block settled on
-   the far side of the setpoint;
+   horizon, so that it sees the last block's response settle too (a cost ending with
+   the blocks would see only the wrong-way start of a non-minimum-phase plant's last
+   blocks, and the plan could use them to move the output while its first block settles
+   on the far side of the setpoint);
 4. root-solves N(u) = w for the first block (the U-model inverse step, with the solver's
    fallback where there is no real root).
 

@@ -159,10 +159,7 @@ class HorizonTest:
 
     def reset(self) -> None:
         """Forget every sample: the next verdict is on data recorded after this call."""
-        self._outputs.clear()
-        self._inputs.clear()
-        self._runs.clear()
-        self._restart = False
+        self.break_record()
         self.fit = None
         self.steps = 0
         self.full = False
