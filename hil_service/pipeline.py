@@ -128,8 +128,15 @@ class PipelineSettings:
     #: (``umodel.structure``; ``serve --input-lags auto``) unless the model options give them
     #: (``serve --input-lags N``). Unset: chosen for the dynamic model, the only one with lags.
     choose_input_lags: bool | None = None
+    #: The longest telemetry gap (samples lost in a row) bridged rather than resynchronised
+    #: (``ChannelPipeline._bridge``, docs/control.md, "Short gaps bridged"); 0 bridges none.
+    bridge_gap: int = 5
 
     def __post_init__(self) -> None:
+        if isinstance(self.bridge_gap, bool) or not (
+            isinstance(self.bridge_gap, int) and self.bridge_gap >= 0
+        ):
+            raise ValueError(f"bridge_gap must be an integer >= 0, got {self.bridge_gap!r}")
         if self.model not in U_MODELS:
             raise ValueError(f"model must be one of {U_MODELS}, got {self.model!r}")
         if self.choose_input_lags is None:
@@ -183,6 +190,8 @@ class PipelineSettings:
         data = dict(data)
         # A log recorded before the lags were chosen by default had them fixed.
         data.setdefault("choose_input_lags", False)
+        # A log recorded before short gaps were bridged resynchronised after every gap.
+        data.setdefault("bridge_gap", 0)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
         options = data.get("model_options")
         if options:
@@ -223,6 +232,9 @@ class StepContinuity:
     #: Steps back in time: the vehicle's clock restarted (counted among the gaps too).
     restarts: int = 0
     restarted: bool = False  # the last sample followed a restart
+    #: Samples missing just before the last one, by the learnt period (0: it followed on,
+    #: or the count is unknown: the first sample, a restart, a step back or no period yet).
+    missing: int = 0
     period_changes: int = 0
     recent: list[int] = field(default_factory=list)  # the last steps that followed on
     too_long: list[int] = field(default_factory=list)  # the gap steps since the last one
@@ -230,6 +242,7 @@ class StepContinuity:
     def follows(self, time_ms: int) -> bool:
         last, self.last_ms = self.last_ms, time_ms
         self.restarted = False
+        self.missing = 0
         if last is None:
             return False
         step = time_ms - last
@@ -254,6 +267,7 @@ class StepContinuity:
                 self.period_changes += 1
                 return True
         self.gaps += 1
+        self.missing = max(round(step / self.period_ms) - 1, 1)
         return False
 
     def _learn(self, step: int | None) -> None:
@@ -320,6 +334,9 @@ class ChannelPipeline:
         self.repeats = 0
         self.refill = 0  # samples still to refill the history after a repeat (not blocking)
         self.input_reuses = 0  # samples whose input reading was the previous sample's
+        self.bridged = 0  # lost samples carried across (``_bridge``)
+        #: What the last decision sent on this channel (NaN: nothing), for ``_bridge``.
+        self.last_command = math.nan
         self._y_seen = math.nan
         self._learnt_last = False  # the previous sample trained the model
         # Do no harm (docs/control.md): the horizon test qualifies the model to command;
@@ -370,14 +387,21 @@ class ChannelPipeline:
         follows_previous: bool = True,
         input_reused: bool = False,
         sampled: bool = False,
+        missing: int = 0,
     ) -> dict[str, Any] | None:
-        """See ``_observe``. ``input_reused``: the sampler served this sample's input from
-        the reading it served the previous sample (no newer one stamped by the tick), so
-        ``u_now`` may be the previous step's input: the next samples pair outputs with it
-        and hold it in the history. They refill the history without training instead.
+        """See ``_observe``. ``missing``: after a gap (``follows_previous`` False), how many
+        samples were lost just before this one when the sample times tell (0 otherwise);
+        a short gap is bridged (``_bridge``). ``input_reused``: the sampler served this
+        sample's input from the reading it served the previous sample (no newer one stamped
+        by the tick), so ``u_now`` may be the previous step's input: the next samples pair
+        outputs with it and hold it in the history. They refill the history without
+        training instead.
         ``sampled``: the sample comes from an asynchronous sampler (a periodic profile), the
         only source whose outputs can be a reading served twice; a lockstep sample is fresh
         by construction, and its repeated output a real one."""
+        if not follows_previous and self._bridge(missing, u_now):
+            follows_previous = True
+            sampled = False  # the output two ticks apart from the last one is not a repeat
         estimate = self._observe(t, y, u_now, follows_previous, sampled)
         if input_reused and self.resync == 0:
             self.input_reuses += 1
@@ -489,6 +513,58 @@ class ChannelPipeline:
             self.deactivate()
         self.disqualify()
 
+    def _bridge(self, missing: int, u_now: float) -> bool:
+        """Carry the channel across ``missing`` lost samples, when at most ``bridge_gap``
+        and the inputs that produced them are known; False to resynchronise instead.
+
+        The first lost output came from ``u_prev``, the input read before the gap; the
+        others, and this sample's, from inputs never read. They are taken to be ``u_now``,
+        the input read now, when that is either the input read before the gap (nothing
+        changed it) or the command this channel last sent (the change is its own, which
+        the vehicle applies before its next step as it does every command). Any other
+        change happened at an unknown step in the gap: no bridge.
+
+        Each lost step advances every frozen run (the supervisor's, the counterfactual's,
+        the multi-step free run) and the controller's internal model on its input, without
+        a measurement; the identifier's history and the horizon test's record take the
+        model's own prediction in place of the lost output, marked as not measured. So the
+        supervisor's windows, the record and the disturbance estimate go on across the gap,
+        and the samples whose regressors reach back to an imputed output refill the
+        history without training (``refill``), as after a repeat."""
+        u_before = self.u_prev
+        if (
+            not 0 < missing <= self.settings.bridge_gap
+            or u_before is None
+            or not math.isfinite(u_before)
+            or self.resync > 0
+            or self.last is None
+            or not math.isfinite(u_now)
+        ):
+            return False
+        if not (self._same_input(u_now, u_before) or self._same_input(u_now, self.last_command)):
+            return False
+        u = u_before
+        for _ in range(missing):
+            y_hat = self.model.predict(u)
+            self._advance_predictions(math.nan, u, lost=True)
+            self.model.observe_only(u, y_hat)
+            self.persistence.observe_only(u, y_hat)
+            self.horizon_test.record_missing(y_hat, u)
+            self.dynamics = self.model.dynamics()
+            self.controller.coast(self.dynamics)
+            u = u_now
+        self.u_prev = u_now  # the input that produced this sample's output
+        self.refill = max(self.refill, self.model.history_length)
+        self.bridged += missing
+        return True
+
+    def _same_input(self, a: float, b: float) -> bool:
+        """Two input readings equal to within the wire's resolution, 0.002 of the
+        actuator's limit: a command read back from a servo's microseconds (1,100-1,900 µs,
+        400 µs a side) is off by up to half of one, 0.00125 of the limit; a float32 by
+        far less."""
+        return abs(a - b) <= 2e-3 * self.settings.control.u_limit
+
     def _start_resync(self) -> None:
         """A gap (or the first sample): the history refills without training, and every
         prediction that ran on the history before it restarts."""
@@ -549,14 +625,15 @@ class ChannelPipeline:
         self.resync -= 1
         self.skipped += 1
 
-    def _advance_predictions(self, y: float, u_prev: float) -> None:
+    def _advance_predictions(self, y: float, u_prev: float, lost: bool = False) -> None:
         """The frozen copies one step on the input that produced ``y``: the multi-step
         accuracy's free run, the supervisor's prediction and the safe input's
-        counterfactual."""
+        counterfactual. ``lost``: a bridged step whose output was never read."""
         free_run = self._free_run
-        if free_run is not None and math.isfinite(y):
+        if free_run is not None and (lost or math.isfinite(y)):
             y_sim = free_run.advance(u_prev)
-            self.multistep.add(y, y_sim)
+            if not lost:
+                self.multistep.add(y, y_sim)
         if self._sup_run is not None:
             self._sup_pred = self._sup_run.advance(u_prev)
         if self._alt_run is not None and self._app_run is not None:
@@ -860,6 +937,7 @@ class ChannelPipeline:
             "divergences": self.divergences,
             "rejected": self.rejected,
             "skipped": self.skipped,
+            "bridged": self.bridged,
             **self.stats.summary(),
             **self.multistep.summary(self.controller.horizon),
             "horizon_fit": significant(self.horizon_test.fit),
@@ -895,14 +973,22 @@ class VehiclePipeline:
         ``inputs_reused``: the sample's input readings are the previous sample's (an
         asynchronous sampler knows; see ``ChannelPipeline.observe``)."""
         follows = self.gaps.follows(sample.time_boot_ms)
+        missing = self.gaps.missing  # lost just before this sample: a gap to bridge
         if self.gaps.restarted or sample.restarted:  # a periodic source marks a reboot
             follows = False
+            missing = 0
             for pipeline in self.channels.values():
                 pipeline.on_restart()
         estimates = {}
         for ch, pipeline in self.channels.items():
             estimate = pipeline.observe(
-                sample.t, sample.output(ch), sample.input(ch), follows, inputs_reused, sampled
+                sample.t,
+                sample.output(ch),
+                sample.input(ch),
+                follows,
+                inputs_reused,
+                sampled,
+                missing,
             )
             if estimate is not None:
                 estimates[ch] = estimate
@@ -912,6 +998,18 @@ class VehiclePipeline:
         self, sample: TelemetrySample, setpoints: dict[str, float | None], enabled: bool
     ) -> Decision:
         """The command for this sample, or why there is none."""
+        decision = self._decide(sample, setpoints, enabled)
+        command = decision.command
+        for ch, pipeline in self.channels.items():
+            if command is None:
+                pipeline.last_command = math.nan
+            else:
+                pipeline.last_command = command.u_depth if ch == "depth" else command.u_pitch
+        return decision
+
+    def _decide(
+        self, sample: TelemetrySample, setpoints: dict[str, float | None], enabled: bool
+    ) -> Decision:
         active = {ch: v for ch, v in setpoints.items() if v is not None and math.isfinite(v)}
         if not enabled:
             reason = "control disabled"

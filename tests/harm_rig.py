@@ -45,6 +45,9 @@ class Loop:
     #: Share of ticks whose reading is served a tick early and then again on the next
     #: tick, as an asynchronous sampler does (``tests/test_umodel_repeats.py``).
     repeat_share: float = 0.0
+    #: Share of ticks whose reading is lost on the link (independently): the vehicle goes
+    #: on with its input, the pipeline hears nothing; recorded as NaN / "lost".
+    loss_share: float = 0.0
 
     def __post_init__(self) -> None:
         self.vehicle = RandomVehicle(
@@ -56,6 +59,7 @@ class Loop:
         self.tick = 0  # samples served
         self._early: TelemetrySample | None = None
         self._rng = random.Random(13)
+        self._loss_rng = random.Random(17)
         self.time_offset_ms = 0
         self.restart_mark = False  # the next sample is marked ``restarted``
         self.command = [0.0, 0.0]
@@ -94,6 +98,9 @@ class Loop:
     def run(self, steps: int, setpoints: dict[str, float | None], enabled: bool = True) -> None:
         for _ in range(steps):
             k = self.tick
+            if k > 0 and self.loss_share and self._loss_rng.random() < self.loss_share:
+                self._lose_tick(k)
+                continue
             if self._early is not None:
                 sample, self._early = self._early, None  # the plant has not moved since
                 period_ms = round(self.depth.period * 1000.0)
@@ -119,6 +126,19 @@ class Loop:
                     self.command[i] = value
                 elif not self._commanded(ch):
                     self.command[i] = self.excite[i].value(k) * self.input_scale
+
+    def _lose_tick(self, k: int) -> None:
+        """A tick whose reading never arrives: the plant steps, the vehicle keeps its input
+        (or goes on with its own excitation), nothing is decided."""
+        self._plant_step()
+        self.tick += 1
+        self.y.append(math.nan)
+        self.u.append(math.nan)
+        self.reasons.append("lost")
+        self.modes.append("lost")
+        for i, ch in enumerate(("depth", "pitch")):
+            if not self._commanded(ch):
+                self.command[i] = self.excite[i].value(k) * self.input_scale
 
     def _commanded(self, channel: str) -> bool:
         pipeline = self.pipeline.channels[channel]

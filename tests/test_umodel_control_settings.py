@@ -150,3 +150,22 @@ def test_input_lags_auto_chooses_them_from_the_record_and_is_stored() -> None:
         PipelineSettings().with_input_lag_choice("some")
     with pytest.raises(ValueError, match="not the paper model's"):
         PipelineSettings(model="paper").with_input_lag_choice("auto")
+
+
+def test_bridge_gap_is_stored_and_old_logs_replay_without_it() -> None:
+    import argparse
+
+    from hil_service.cli.serve import add_arguments, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert settings_from_args(parser.parse_args([])).bridge_gap == 5
+    settings = settings_from_args(parser.parse_args(["--bridge-gap", "0"]))
+    again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
+    assert again.bridge_gap == 0
+    # A log recorded before gaps were bridged resynchronised after every one.
+    assert PipelineSettings.from_json({"model": "dynamic"}).bridge_gap == 0
+    with pytest.raises(ValueError, match="bridge_gap must be an integer"):
+        PipelineSettings(bridge_gap=-1)
+    with pytest.raises((TypeError, ValueError)):  # the compiled class checks the type first
+        PipelineSettings(bridge_gap=2.5)  # type: ignore[arg-type]

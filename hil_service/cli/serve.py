@@ -144,6 +144,15 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         "channel's first samples; N gives them, at least the vehicle's input delay + 2 "
         "(docs/control.md)",
     )
+    group.add_argument(
+        "--bridge-gap",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the most samples lost in a row that are carried across when the inputs over "
+        "them are known (default 5; 0: every gap resynchronises the identifier and restarts "
+        "the horizon test's record; docs/control.md)",
+    )
 
 
 def _add_log_arguments(parser: argparse.ArgumentParser) -> None:
@@ -222,6 +231,8 @@ def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
         settings = settings.replace(burn_in=args.burn_in)
     if args.input_lags is not None:
         settings = settings.with_input_lag_choice(args.input_lags)
+    if args.bridge_gap is not None:
+        settings = settings.replace(bridge_gap=args.bridge_gap)
     if args.max_ballast_rate is not None:
         if not args.max_ballast_rate > 0:
             raise ValueError("--max-ballast-rate must be positive")

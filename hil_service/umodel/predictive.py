@@ -331,6 +331,23 @@ class PredictiveInverse:
         share = self.settings.disturbance_share
         self._estimate_disturbance(y - y_m, 1.0 / (1.0 + share * self._response_time))
 
+    def coast(self, dyn: ModelDynamics) -> None:
+        """Advance the internal model by a sample whose output was lost (``dyn`` holds the
+        input that produced it): on its own outputs, as ever; the disturbance estimate,
+        with nothing measured, holds."""
+        na = len(dyn.ar)
+        sim = self._sim
+        if sim is None or len(sim) != na:
+            return  # the next ``track`` starts it from the history
+        y_m = dyn.one_step(sim)
+        if not math.isfinite(y_m):
+            self._sim = None
+            return
+        if na:
+            sim.pop()
+            sim.insert(0, y_m)
+        self._age += 1
+
     def _estimate_disturbance(self, residual: float, alpha: float) -> None:
         """The output disturbance: the residual y − y_m low-passed, d ← d + α·(y − y_m − d),
         at the pace that has predicted the residual best.

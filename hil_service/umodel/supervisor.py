@@ -12,8 +12,9 @@ segment's start, held. Over the last ``max(window, k)`` samples
     horizon fit = 100 · (1 − ‖y − ŷ_model‖ / ‖y − y_hold‖)   (%)
 
 The model qualifies when at least k consecutive samples recorded since the last
-disqualifying event (a trip, a vehicle restart, a divergence, a telemetry gap) give a fit
-of at least ``threshold``.
+disqualifying event (a trip, a vehicle restart, a divergence, a telemetry gap not bridged)
+give a fit of at least ``threshold``. A bridged gap's samples are in the record as not
+measured (``record_missing``): the model runs across them, no prediction is scored there.
 
 **Supervisor.** While a channel commands, a second frozen copy of the model runs free on
 the applied inputs over segments of ``window`` samples (the horizon, clamped), restarted
@@ -109,6 +110,7 @@ class HorizonTest:
 
     __slots__ = (
         "_inputs",
+        "_measured",
         "_outputs",
         "_restart",
         "_runs",
@@ -135,6 +137,8 @@ class HorizonTest:
         size = max(capacity, window) + 16
         self._outputs: deque[float] = deque(maxlen=size)
         self._inputs: deque[float] = deque(maxlen=size)  # the input that produced each output
+        #: Per sample: read (True), or lost and bridged with the model's prediction.
+        self._measured: deque[bool] = deque(maxlen=size)
         #: Per sample, how many samples before it follow on without a restart
         #: (``restart_run``): a regressor may reach back that far.
         self._runs: deque[int] = deque(maxlen=size)
@@ -154,6 +158,7 @@ class HorizonTest:
         verdict stands."""
         self._outputs.clear()
         self._inputs.clear()
+        self._measured.clear()
         self._runs.clear()
         self._restart = False
 
@@ -170,7 +175,9 @@ class HorizonTest:
         return len(self._outputs)
 
     def samples(self) -> tuple[list[float], list[float]]:
-        """The record, oldest first: the outputs and the input applied one step before each."""
+        """The record, oldest first: the outputs and the input applied one step before each.
+        A lost output (``record_missing``) is there as the model's prediction; its run is
+        0 and the next sample starts a run, so no regression reaches across it."""
         return list(self._outputs), list(self._inputs)
 
     def runs(self) -> list[int]:
@@ -185,8 +192,24 @@ class HorizonTest:
             self._restart = False
             self._outputs.append(y)
             self._inputs.append(u_prev)
+            self._measured.append(True)
         else:
             self.break_record()  # consecutive samples only
+
+    def record_missing(self, y_model: float, u_prev: float) -> None:
+        """A lost sample bridged (``ChannelPipeline._bridge``): its input is known, its
+        output is the model's prediction ``y_model``. The evaluation runs the model across
+        it but scores no prediction there and starts no segment from it."""
+        if not self._outputs:
+            return  # nothing before it to bridge from
+        if not (math.isfinite(y_model) and math.isfinite(u_prev)):
+            self.break_record()
+            return
+        self._runs.append(0)
+        self._restart = True
+        self._outputs.append(y_model)
+        self._inputs.append(u_prev)
+        self._measured.append(False)
 
     def restart_run(self) -> None:
         """The newest sample is out of step (a reading served a tick early, or one whose
@@ -209,20 +232,27 @@ class HorizonTest:
         n = len(self._outputs)
         span = max(self.window, horizon)
         first = max(history - 1, n - 1 - span)
+        # ``model_rms`` and ``hold_rms`` stay those of the last evaluation that scored
+        # (``reset`` clears them): a verdict that stands across a record too short to judge
+        # (a telemetry gap) still arms the supervisor with the bounds it rests on.
         self.fit = None
-        self.model_rms = self.hold_rms = 0.0
         self.steps = max(0, min(horizon, n - 1 - first))
         self.full = self.steps >= horizon
         if self.steps < min(horizon, self.minimum):
             return False
         horizon = self.steps
-        ys, us = self._outputs, self._inputs
+        ys, us, measured = self._outputs, self._inputs, self._measured
         na, nb = len(dyn.ar), len(dyn.lag_polys)
         sum_m = sum_h = 0.0
         count = 0
         end = n - 1
         while end - horizon >= first:
             s = end - horizon
+            # A segment starts from measured outputs only: back over bridged samples.
+            while s >= first and not all(measured[s - i] for i in range(max(na, 1))):
+                s -= 1
+            if s < first:
+                break
             run = ModelDynamics(
                 dyn.ar,
                 dyn.bias,
@@ -235,8 +265,11 @@ class HorizonTest:
             )
             y0 = ys[s]
             for j in range(s + 1, end + 1):
+                y_model = run.advance(us[j])
+                if not measured[j]:
+                    continue
                 y = ys[j]
-                e = y - run.advance(us[j])
+                e = y - y_model
                 if not (math.isfinite(e) and abs(e) < 1e100):
                     e = 1e100
                 h = y - y0
