@@ -181,6 +181,32 @@ def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int
     assert fast == pytest.approx([slow[j - 1] for j in controller._points], rel=1e-9, abs=1e-9)
 
 
+@pytest.mark.parametrize(("na", "nb"), [(1, 1), (2, 4), (4, 4), (4, 2)])
+def test_the_linear_term_is_the_columns_against_the_predicted_error(na: int, nb: int) -> None:
+    # The QP's linear term from parts projected once per derivation equals the sum over
+    # the cost points of each point's column times its predicted error (free response +
+    # disturbance − the applied level's onset − setpoint), with the move penalty's pull.
+    rng = np.random.default_rng(na * 10 + nb + 1)
+    ar = (0.9 * rng.uniform(-1, 1, na) / na).tolist()
+    polys = rng.normal(size=(nb, 3)).tolist()
+    dyn = ModelDynamics(ar, 0.7, polys, 0.5, rng.normal(size=na).tolist(),
+                        rng.uniform(-2, 2, nb).tolist())  # fmt: skip
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    controller._derive(dyn, [1.0] * nb)
+    controller._sim = rng.normal(size=na).tolist()
+    controller._disturbance = 0.3
+    plan = ModelDynamics(ar, 0.7, polys, 0.5, [], [])
+    f = controller._linear_term(dyn, plan, 0.4, 0.25, 1.7)
+    free = controller._free_response(plan, 0.4, controller._sim)
+    expected = [0.0] * len(f)
+    for p, col in enumerate(controller._columns):
+        error = free[p] + 0.3 - 0.25 * controller._onset[p] - 1.7
+        for b in range(len(f)):
+            expected[b] += col[b] * error
+    expected[0] -= controller._rho * 0.25
+    assert f == pytest.approx(expected, rel=1e-9, abs=1e-9 * max(map(abs, expected)))
+
+
 def _estimate(residuals: list[float], horizon: int = 5) -> list[float]:
     """The disturbance estimate after each residual, at the pace a ``horizon`` gives."""
     controller = PredictiveInverse(-2.0, 2.0, 0.5)

@@ -11,13 +11,16 @@ from __future__ import annotations
 import math
 
 __all__ = [
+    "LinearTerm",
     "add_move_penalty",
     "arrival_time",
     "block_starts",
     "cost_points",
     "cost_start",
     "free_response_terms",
+    "lead_of",
     "plan_matrices",
+    "project",
     "settling_horizon",
     "step_response",
 ]
@@ -187,10 +190,42 @@ def free_response_terms(
     for m in range(n):
         running.append(running[-1] + impulse[m])
     step = [running[j] for j in points]
-    impulses = [
-        [impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points
-    ]
+    impulses = [[impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points]
     return step, impulses
+
+
+def lead_of(impulses: list[list[float]]) -> int:
+    """L, the free response's number of departures (``free_response_terms``)."""
+    return len(impulses[0]) if impulses else 0
+
+
+def project(columns: list[list[float]], values: list[float]) -> list[float]:
+    """Σ_p columns[p][b]·values[p] per block b: a per-point vector seen by the blocks."""
+    nblocks = len(columns[0]) if columns else 0
+    out = [0.0] * nblocks
+    for p in range(len(columns)):
+        value = values[p]
+        col = columns[p]
+        for b in range(nblocks):
+            out[b] += col[b] * value
+    return out
+
+
+class LinearTerm:
+    """The QP's linear term, in parts fixed between two derivations of the plan: the
+    block columns projected on S_A(j), on each h_A(j − l), on 1 and on the onset
+    (``PredictiveInverse._linear_term`` weighs them with the sample's E, d(l), disturbance
+    − setpoint and applied level)."""
+
+    __slots__ = ("impulses", "ones", "onset", "step")
+
+    def __init__(
+        self, step: list[float], impulses: list[list[float]], ones: list[float], onset: list[float]
+    ) -> None:
+        self.step = step
+        self.impulses = impulses
+        self.ones = ones
+        self.onset = onset
 
 
 def _final_band(response: list[float], band: float) -> tuple[float, float] | None:

@@ -51,13 +51,16 @@ import math
 from .box_qp import solve_box_qp
 from .dynamics import ModelDynamics, StaticMap
 from .horizon import (
+    LinearTerm,
     add_move_penalty,
     arrival_time,
     block_starts,
     cost_points,
     cost_start,
     free_response_terms,
+    lead_of,
     plan_matrices,
+    project,
     settling_horizon,
     step_response,
 )
@@ -234,6 +237,7 @@ class PredictiveInverse:
         "_free_step",
         "_hessian",
         "_horizon",
+        "_linear",
         "_onset",
         "_plan_model",
         "_plan_state",
@@ -281,6 +285,9 @@ class PredictiveInverse:
         self._free_ar: list[float] = []
         self._free_step: list[float] = []
         self._free_impulse: list[list[float]] = []
+        # The linear term's parts, the columns projected once per derivation: Σ_p col_p
+        # times S_A(j_p), times each h_A(j_p − l), times 1 and times the onset.
+        self._linear = LinearTerm([], [], [], [])
         self._rho = 0.0
         self._shape: StaticMap | None = None  # the input map N the plan was derived with
         self._range = (self.u_min, self.u_max)  # where N rises (see ``monotone_range``)
@@ -420,6 +427,15 @@ class PredictiveInverse:
         rho = add_move_penalty(hessian, s.move_weight)
         self._free_ar = list(ar)
         self._free_step, self._free_impulse = free_response_terms(ar, len(gains), span, points)
+        self._linear = LinearTerm(
+            project(columns, self._free_step),
+            [
+                project(columns, [row[d] for row in self._free_impulse])
+                for d in range(lead_of(self._free_impulse))
+            ],
+            project(columns, [1.0] * len(points)),
+            project(columns, onset),
+        )
         self._horizon = n
         self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))
         self._points = points
@@ -430,18 +446,16 @@ class PredictiveInverse:
         self._starts = starts
         self._age = 0
 
-    def _free_response(self, dyn: ModelDynamics, u_now: float, outputs: list[float]) -> list[float]:
-        """ŷ(k+j) at the cost points j with the input held at ``u_now``, from ``outputs``
-        (newest first), in closed form: y(k+j) = E·S_A(j) + Σ_{l=1..L} h_A(j − l)·d(l),
-        where E is the constant forcing once every input lag sees the held input and d(l)
-        the departure from it at the first L samples: the forcing's own (older inputs)
-        plus the past outputs' share Σ_{i≥l} c_i·y(k+l−i). The same numbers as running
-        the recursion over the horizon (``ModelDynamics.simulate_held``; tested), in
-        points × (L + 1) operations instead of horizon × (na + 1)."""
+    def _forcing(
+        self, dyn: ModelDynamics, u_now: float, outputs: list[float]
+    ) -> tuple[float, list[float]]:
+        """The free response's inputs (see ``_free_response``): E, the constant forcing once
+        every input lag sees the held input ``u_now``, and d(l), the departure from it at
+        the first L samples, the forcing's own (older inputs) plus the past outputs' share
+        Σ_{i≥l} c_i·y(k+l−i), from ``outputs`` (newest first)."""
         ar = self._free_ar
         na = len(ar)
-        impulses = self._free_impulse
-        lead = len(impulses[0]) if impulses else 0
+        lead = lead_of(self._free_impulse)
         terms, constant = dyn.input_forcing(u_now, lead)
         departures = [terms[d] - constant for d in range(lead)]
         for step in range(1, min(lead, na) + 1):
@@ -451,12 +465,22 @@ class PredictiveInverse:
                 if index < len(outputs):
                     acc += ar[i - 1] * outputs[index]
             departures[step - 1] += acc
+        return constant, departures
+
+    def _free_response(self, dyn: ModelDynamics, u_now: float, outputs: list[float]) -> list[float]:
+        """ŷ(k+j) at the cost points j with the input held at ``u_now``, from ``outputs``
+        (newest first), in closed form: y(k+j) = E·S_A(j) + Σ_{l=1..L} h_A(j − l)·d(l)
+        (``_forcing``). The same numbers as running the recursion over the horizon
+        (``ModelDynamics.simulate_held``; tested), in points × (L + 1) operations instead of
+        horizon × (na + 1)."""
+        constant, departures = self._forcing(dyn, u_now, outputs)
+        impulses = self._free_impulse
         free: list[float] = []
         steps = self._free_step
         for p in range(len(impulses)):
             acc = constant * steps[p]
             row = impulses[p]
-            for d in range(lead):
+            for d in range(len(departures)):
                 acc += row[d] * departures[d]
             free.append(acc)
         return free
@@ -529,17 +553,20 @@ class PredictiveInverse:
             sim = list(dyn.outputs[: len(dyn.ar)])
         plan_model.inputs = dyn.inputs
         plan_model.outputs = dyn.outputs
-        free = self._free_response(plan_model, u0, sim)
-        disturbance = self._disturbance
-        nblocks = len(self._hessian)
-        f = [0.0] * nblocks
-        columns = self._columns
-        onset = self._onset
-        for p in range(len(self._points)):
-            resid = free[p] + disturbance - w0 * onset[p] - setpoint
-            col = columns[p]
-            for b in range(nblocks):
-                f[b] += col[b] * resid
+        # Σ_p col_p·(free_p + disturbance − w0·onset_p − setpoint), with the free response
+        # E·S_A(j) + Σ_l h_A(j − l)·d(l) (``_free_response``): each part's projection on the
+        # columns is fixed between derivations (``LinearTerm``), so a sample costs blocks ×
+        # (L + 3) operations, not points × (L + blocks).
+        constant, departures = self._forcing(plan_model, u0, sim)
+        linear = self._linear
+        level = self._disturbance - setpoint
+        step, ones, onset = linear.step, linear.ones, linear.onset
+        f = [constant * step[b] + level * ones[b] - w0 * onset[b] for b in range(len(step))]
+        for d in range(len(departures)):
+            row = linear.impulses[d]
+            departure = departures[d]
+            for b in range(len(f)):
+                f[b] += row[b] * departure
         f[0] -= self._rho * w0
         return f
 
