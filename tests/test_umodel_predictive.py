@@ -166,15 +166,24 @@ def test_tracks_a_plant_it_was_not_tuned_on() -> None:
         assert max(errors[start + 250 : start + 300]) < 0.02 * 2.5
 
 
-@pytest.mark.parametrize(("na", "nb"), [(1, 1), (2, 4), (4, 4), (4, 2)])
-def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int) -> None:
-    rng = np.random.default_rng(na * 10 + nb)
+def _derived(
+    na: int, nb: int, seed: int
+) -> tuple[np.random.Generator, ModelDynamics, PredictiveInverse]:
+    """A random stable model with ``na`` output and ``nb`` input lags, and a controller
+    whose plan is derived for it."""
+    rng = np.random.default_rng(seed)
     ar = (0.9 * rng.uniform(-1, 1, na) / na).tolist()
     polys = rng.normal(size=(nb, 3)).tolist()
     dyn = ModelDynamics(ar, 0.7, polys, 0.5, rng.normal(size=na).tolist(),
                         rng.uniform(-2, 2, nb).tolist())  # fmt: skip
     controller = PredictiveInverse(-2.0, 2.0, 0.5)
     controller._derive(dyn, [1.0] * nb)
+    return rng, dyn, controller
+
+
+@pytest.mark.parametrize(("na", "nb"), [(1, 1), (2, 4), (4, 4), (4, 2)])
+def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int) -> None:
+    rng, dyn, controller = _derived(na, nb, na * 10 + nb)
     sim = rng.normal(size=na).tolist()
     fast = controller._free_response(dyn, 0.4, sim)
     slow = dyn.simulate_held(0.4, max(controller._points), 0.0, sim)  # the cost's span
@@ -186,16 +195,10 @@ def test_the_linear_term_is_the_columns_against_the_predicted_error(na: int, nb:
     # The QP's linear term from parts projected once per derivation equals the sum over
     # the cost points of each point's column times its predicted error (free response +
     # disturbance − the applied level's onset − setpoint), with the move penalty's pull.
-    rng = np.random.default_rng(na * 10 + nb + 1)
-    ar = (0.9 * rng.uniform(-1, 1, na) / na).tolist()
-    polys = rng.normal(size=(nb, 3)).tolist()
-    dyn = ModelDynamics(ar, 0.7, polys, 0.5, rng.normal(size=na).tolist(),
-                        rng.uniform(-2, 2, nb).tolist())  # fmt: skip
-    controller = PredictiveInverse(-2.0, 2.0, 0.5)
-    controller._derive(dyn, [1.0] * nb)
+    rng, dyn, controller = _derived(na, nb, na * 10 + nb + 1)
     controller._sim = rng.normal(size=na).tolist()
     controller._disturbance = 0.3
-    plan = ModelDynamics(ar, 0.7, polys, 0.5, [], [])
+    plan = ModelDynamics(dyn.ar, dyn.bias, dyn.lag_polys, dyn.poly_scale, [], [])
     f = controller._linear_term(dyn, plan, 0.4, 0.25, 1.7)
     free = controller._free_response(plan, 0.4, controller._sim)
     expected = [0.0] * len(f)
