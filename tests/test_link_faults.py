@@ -116,7 +116,7 @@ def _truth(emulator_stdout: str) -> dict[float, dict]:
 
 
 @pytest.mark.timeout(90)
-def test_loss_duplicates_and_reordering_are_counted_exactly(processes, tmp_path):
+def test_loss_duplicates_and_reordering_are_counted_exactly(processes, tmp_path, replay_log):
     service, relay = _start_rig(
         processes, tmp_path, {"drop": 0.04, "duplicate": 0.03, "reorder": 0.03, "seed": 7}
     )
@@ -162,6 +162,10 @@ def test_loss_duplicates_and_reordering_are_counted_exactly(processes, tmp_path)
     # resynchronise (docs/control.md, "Short gaps bridged").
     bridged = summary["vehicles"]["1"]["identifier"]["depth"]["bridged"]
     assert 0 < bridged < log.dropped
+    # The log replays through the same path: the same gaps bridged, the same estimates.
+    replayed = replay_log(path, check=True)
+    assert replayed.mismatch is None, replayed.mismatch.describe()
+    assert replayed.compared >= len(estimates)
 
 
 @pytest.mark.timeout(150)
