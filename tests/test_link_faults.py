@@ -99,15 +99,17 @@ def test_assembler_follows_a_vehicle_reboot_but_not_a_single_late_step():
 
 
 # ---- emulator → relay → service --------------------------------------------------------------
-def _start_rig(processes, tmp_path, relay_kwargs, *emulator_extra):
+def _start_rig(processes, tmp_path, relay_kwargs, burn_in=50):
+    """A service behind a faulty relay: (service, relay, the service's Zenoh endpoint)."""
     udp, zport = free_udp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
     service = processes.start_service(
-        "--mavlink", f"udpin:127.0.0.1:{udp}",
-        "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--log-dir", str(tmp_path / "logs"),
-        "--stale-timeout", "1.0", "--burn-in", "50",
+        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
+        "--log-dir", str(tmp_path / "logs"), "--stale-timeout", "1.0",
+        "--burn-in", str(burn_in),
     )  # fmt: skip
     relay = FaultyRelay(("127.0.0.1", udp), **relay_kwargs).start()
-    return service, relay
+    return service, relay, endpoint
 
 
 def _truth(emulator_stdout: str) -> dict[float, dict]:
@@ -117,7 +119,7 @@ def _truth(emulator_stdout: str) -> dict[float, dict]:
 
 @pytest.mark.timeout(90)
 def test_loss_duplicates_and_reordering_are_counted_exactly(processes, tmp_path, replay_log):
-    service, relay = _start_rig(
+    service, relay, _ = _start_rig(
         processes, tmp_path, {"drop": 0.04, "duplicate": 0.03, "reorder": 0.03, "seed": 7}
     )
     try:
@@ -173,13 +175,7 @@ def test_control_goes_on_across_samples_the_link_loses(processes, tmp_path):
     # 1 % of the datagrams dropped (about 4 % of the samples lose a piece): the gaps over
     # pitch's own last command and over depth's held input are bridged, so pitch commands on
     # nearly every sample read instead of holding while each gap's history refills.
-    udp, zport = free_udp_port(), free_tcp_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    processes.start_service(
-        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", endpoint,
-        "--log-dir", str(tmp_path / "logs"), "--burn-in", "300", "--stale-timeout", "1.0",
-    )  # fmt: skip
-    relay = FaultyRelay(("127.0.0.1", udp), drop=0.01, seed=3).start()
+    _, relay, endpoint = _start_rig(processes, tmp_path, {"drop": 0.01, "seed": 3}, 300)
     probe = ZenohProbe(endpoint)
     try:
         processes.start(
