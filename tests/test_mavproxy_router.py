@@ -197,12 +197,11 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
     # 0.002-0.074 m in 8 runs, pitch below 1e-5 rad.
     depth_trips = [e for e in events if e["channel"] == "depth" and e["event"] == "trip"]
     if depth_trips:
-        # Seen once in about fifteen runs: the PRBS's last samples before control broke the
-        # record (four gaps whose input changed), depth commanded on the standing verdict
-        # (96.6 % against holding the PRBS's swings; the multi-step fit against the mean was
-        # -6 %), settled 2 m short and then drove the wrong way until the supervisor tripped
-        # 100 samples in. Then what holds is the safe input's guarantee: at the end no worse
-        # than 1.2 times the error at enable (docs/control.md, "Do no harm").
+        # A model whose steady state is wrong can pass the horizon test against holding
+        # the PRBS's swings and drive depth the wrong way until the supervisor trips
+        # (docs/control.md, "The horizon test", its limit on the wire). Then what holds is
+        # the safe input's guarantee: at the end no worse than 1.2 times the error at
+        # enable (docs/control.md, "Do no harm").
         enabled_error = abs(telemetry[start]["depth"] - 16.0)
         assert depth_error <= 1.2 * enabled_error, (depth_error, enabled_error, depth_trips)
         assert pitch_error < PITCH_BAND

@@ -166,6 +166,18 @@ def test_tracks_a_plant_it_was_not_tuned_on() -> None:
         assert max(errors[start + 250 : start + 300]) < 0.02 * 2.5
 
 
+def _free_response(
+    controller: PredictiveInverse, dyn: ModelDynamics, u_now: float, outputs: list[float]
+) -> list[float]:
+    """ŷ(k+j) at the controller's cost points with the input held at ``u_now``, from its
+    closed form E·S_A(j) + Σ_l h_A(j − l)·d(l) (``PredictiveInverse._forcing``)."""
+    constant, departures = controller._forcing(dyn, u_now, outputs)
+    return [
+        constant * step + sum(row[d] * departures[d] for d in range(len(departures)))
+        for step, row in zip(controller._free_step, controller._free_impulse, strict=True)
+    ]
+
+
 def _derived(
     na: int, nb: int, seed: int
 ) -> tuple[np.random.Generator, ModelDynamics, PredictiveInverse]:
@@ -185,7 +197,7 @@ def _derived(
 def test_closed_form_free_response_equals_running_the_recursion(na: int, nb: int) -> None:
     rng, dyn, controller = _derived(na, nb, na * 10 + nb)
     sim = rng.normal(size=na).tolist()
-    fast = controller._free_response(dyn, 0.4, sim)
+    fast = _free_response(controller, dyn, 0.4, sim)
     slow = dyn.simulate_held(0.4, max(controller._points), 0.0, sim)  # the cost's span
     assert fast == pytest.approx([slow[j - 1] for j in controller._points], rel=1e-9, abs=1e-9)
 
@@ -200,7 +212,7 @@ def test_the_linear_term_is_the_columns_against_the_predicted_error(na: int, nb:
     controller._disturbance = 0.3
     plan = ModelDynamics(dyn.ar, dyn.bias, dyn.lag_polys, dyn.poly_scale, [], [])
     f = controller._linear_term(dyn, plan, 0.4, 0.25, 1.7)
-    free = controller._free_response(plan, 0.4, controller._sim)
+    free = _free_response(controller, plan, 0.4, controller._sim)
     expected = [0.0] * len(f)
     for p, col in enumerate(controller._columns):
         error = free[p] + 0.3 - 0.25 * controller._onset[p] - 1.7

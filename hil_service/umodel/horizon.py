@@ -175,7 +175,7 @@ def free_response_terms(
     ar: list[float], lags: int, n: int, points: list[int]
 ) -> tuple[list[float], list[list[float]]]:
     """1/A(q) at the cost points, for the free response in closed form
-    (``PredictiveInverse._free_response``): S_A(j), the running sum of the impulse response
+    (``PredictiveInverse._forcing``): S_A(j), the running sum of the impulse response
     h_A, and h_A(j − l) for l = 1 … L, L = max(na, lags − 1, 1)."""
     na = len(ar)
     lead = max(na, lags - 1, 1)

@@ -280,7 +280,7 @@ class PredictiveInverse:
         self._columns: list[list[float]] = []  # per point: effect of each block's level
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
         self._hessian: list[list[float]] = []
-        # The free response in closed form at the cost points (see ``_free_response``):
+        # The free response in closed form at the cost points (see ``_forcing``):
         # the AR part it was derived for, S_A(j) and h_A(j − l) for l = 1 … L.
         self._free_ar: list[float] = []
         self._free_step: list[float] = []
@@ -449,10 +449,13 @@ class PredictiveInverse:
     def _forcing(
         self, dyn: ModelDynamics, u_now: float, outputs: list[float]
     ) -> tuple[float, list[float]]:
-        """The free response's inputs (see ``_free_response``): E, the constant forcing once
-        every input lag sees the held input ``u_now``, and d(l), the departure from it at
-        the first L samples, the forcing's own (older inputs) plus the past outputs' share
-        Σ_{i≥l} c_i·y(k+l−i), from ``outputs`` (newest first)."""
+        """The free response's inputs. With the input held at ``u_now``, ŷ(k+j) at the cost
+        points is, in closed form, E·S_A(j) + Σ_{l=1..L} h_A(j − l)·d(l): E, the constant
+        forcing once every input lag sees the held input, and d(l), the departure from it
+        at the first L samples, the forcing's own (older inputs) plus the past outputs'
+        share Σ_{i≥l} c_i·y(k+l−i), from ``outputs`` (newest first). The same numbers as
+        running the recursion over the horizon (``ModelDynamics.simulate_held``; tested),
+        in points × (L + 1) operations instead of horizon × (na + 1)."""
         ar = self._free_ar
         na = len(ar)
         lead = lead_of(self._free_impulse)
@@ -466,24 +469,6 @@ class PredictiveInverse:
                     acc += ar[i - 1] * outputs[index]
             departures[step - 1] += acc
         return constant, departures
-
-    def _free_response(self, dyn: ModelDynamics, u_now: float, outputs: list[float]) -> list[float]:
-        """ŷ(k+j) at the cost points j with the input held at ``u_now``, from ``outputs``
-        (newest first), in closed form: y(k+j) = E·S_A(j) + Σ_{l=1..L} h_A(j − l)·d(l)
-        (``_forcing``). The same numbers as running the recursion over the horizon
-        (``ModelDynamics.simulate_held``; tested), in points × (L + 1) operations instead of
-        horizon × (na + 1)."""
-        constant, departures = self._forcing(dyn, u_now, outputs)
-        impulses = self._free_impulse
-        free: list[float] = []
-        steps = self._free_step
-        for p in range(len(impulses)):
-            acc = constant * steps[p]
-            row = impulses[p]
-            for d in range(len(departures)):
-                acc += row[d] * departures[d]
-            free.append(acc)
-        return free
 
     def decide(
         self, dyn: ModelDynamics, u_applied: float, setpoint: float
@@ -554,7 +539,7 @@ class PredictiveInverse:
         plan_model.inputs = dyn.inputs
         plan_model.outputs = dyn.outputs
         # Σ_p col_p·(free_p + disturbance − w0·onset_p − setpoint), with the free response
-        # E·S_A(j) + Σ_l h_A(j − l)·d(l) (``_free_response``): each part's projection on the
+        # E·S_A(j) + Σ_l h_A(j − l)·d(l) (``_forcing``): each part's projection on the
         # columns is fixed between derivations (``LinearTerm``), so a sample costs blocks ×
         # (L + 3) operations, not points × (L + blocks).
         constant, departures = self._forcing(plan_model, u0, sim)
