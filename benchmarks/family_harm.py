@@ -17,8 +17,9 @@ known-model oracle.
     python benchmarks/family_harm.py --seeds 0 1 2 --plants 200 --save a.pkl   # and 3 4: b.pkl
     python benchmarks/family_harm.py --combine a.pkl b.pkl
 
-What-if runs (docs/control.md, "What the excess is made of"): ``--horizon-fit F`` sets the
-horizon test's threshold, ``--nb N`` the identifier's input lags (by default each channel
+What-if runs (docs/control.md, "What the excess is made of"): ``--horizon-fit F`` and
+``--mean-fit M`` set the horizon test's thresholds against holding and against the mean
+(``--mean-fit -1``: none), ``--nb N`` the identifier's input lags (by default each channel
 chooses them from its record, as ``serve`` does; ``--nb 4`` is the model's own four), and
 ``--nb-from-true-delay E`` gives each plant's identifier max(4, delay + E) input lags from
 the plant's *true* input delay, which no deployed identifier knows: an upper bound on what
@@ -28,6 +29,7 @@ choosing the lags from the data could give, not a controller.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pickle
 import time
@@ -182,9 +184,11 @@ def what_if(
     horizon_fit: float | None,
     nb: int | None,
     nb_from_true_delay: int | None,
+    mean_fit: float | None = None,
 ) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
-    """The pipeline settings of a what-if run (None: the defaults)."""
-    if horizon_fit is None and nb is None and nb_from_true_delay is None:
+    """The pipeline settings of a what-if run (None: the defaults; a negative ``mean_fit``
+    asks for no test against the mean)."""
+    if all(v is None for v in (horizon_fit, nb, nb_from_true_delay, mean_fit)):
         return lambda seed, depth, pitch: None
 
     def lags(spec: FamilyPlantSpec) -> dict[str, int]:
@@ -193,9 +197,11 @@ def what_if(
         return {"nb": nb} if nb is not None else {}
 
     def settings(seed: int, depth: FamilyPlantSpec, pitch: FamilyPlantSpec) -> PipelineSettings:
-        control = (
-            ControlSettings() if horizon_fit is None else ControlSettings(horizon_fit=horizon_fit)
-        )
+        control = ControlSettings()
+        if horizon_fit is not None:
+            control = dataclasses.replace(control, horizon_fit=horizon_fit)
+        if mean_fit is not None:
+            control = dataclasses.replace(control, mean_fit=None if mean_fit < 0 else mean_fit)
         options = {"depth": lags(depth), "pitch": lags(pitch)}
         return PipelineSettings(seed=seed, control=control, model_options=options)
 
@@ -213,6 +219,11 @@ def main() -> None:
     parser.add_argument("--semantics", nargs="+", choices=RELEASED, default=list(RELEASED))
     parser.add_argument("--save", help="also write the rows to this file (pickle)")
     parser.add_argument("--horizon-fit", type=float, help="the horizon test's threshold, %%")
+    parser.add_argument(
+        "--mean-fit",
+        type=float,
+        help="the horizon test's threshold against the mean, %% (negative: none)",
+    )
     parser.add_argument("--nb", type=int, help="the identifier's input lags")
     parser.add_argument(
         "--nb-from-true-delay",
@@ -242,7 +253,7 @@ def main() -> None:
         args.step_every,
         not args.no_oracle,
         args.semantics,
-        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay),
+        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay, args.mean_fit),
     )
     print(
         f"\nseeds {args.seeds}, {args.plants} plants each, {args.samples} samples "

@@ -91,14 +91,17 @@ class ControlSettings:
     disturbance_share: float = _PREDICTIVE.disturbance_share
     refresh: int = _PREDICTIVE.refresh
     cost_points: int = _PREDICTIVE.cost_points
-    #: The horizon test's threshold: the model's k-step fit relative to holding the output
-    #: (%, ``umodel.supervisor.HorizonTest``) a channel needs before it may command.
-    horizon_fit: float = 50.0
+    #: The horizon test's thresholds (``umodel.supervisor.HorizonTest``, docs/control.md):
+    #: the model's k-step fit relative to holding the output, and relative to the mean of
+    #: the outputs scored (%), both of which a channel needs before it may command (None:
+    #: the mean's is not asked).
+    horizon_fit: float = 20.0
+    mean_fit: float | None = 20.0
     safe_input: str = "neutral"  # SAFE_INPUTS: where a tripped channel's input goes
 
     def __post_init__(self) -> None:
         self.predictive()  # validates the constants
-        HorizonTest(self.horizon_fit)  # validates the threshold
+        HorizonTest(self.horizon_fit, mean_threshold=self.mean_fit)  # validates both
         if self.safe_input not in SAFE_INPUTS:
             raise ValueError(f"safe_input must be one of {SAFE_INPUTS}, got {self.safe_input!r}")
 
@@ -112,6 +115,10 @@ class ControlSettings:
         """Known fields only: a log recorded by an older controller (horizon, trajectory,
         filters) replays with this one's defaults for the rest."""
         known = {f.name for f in fields(cls)}
+        data = dict(data)
+        if "horizon_fit" in data:
+            # Recorded with a horizon test that judged against holding alone.
+            data.setdefault("mean_fit", None)
         return cls(**{k: v for k, v in data.items() if k in known})
 
 
@@ -342,7 +349,11 @@ class ChannelPipeline:
         # Do no harm (docs/control.md): the horizon test qualifies the model to command;
         # the supervisor watches the loop while it does.
         self.horizon_test = HorizonTest(
-            control.horizon_fit, settings.window, control.max_horizon + 100, settings.burn_in
+            control.horizon_fit,
+            settings.window,
+            control.max_horizon + 100,
+            settings.burn_in,
+            control.mean_fit,
         )
         self._until_evaluation = 0  # samples to the horizon test's next evaluation
         #: ``decide`` asked this channel to command (control on, a setpoint) since the last
@@ -482,7 +493,6 @@ class ChannelPipeline:
             outputs,
             inputs,
             float(self._options["u_scale"]),
-            qualify=self.settings.control.horizon_fit / 100.0,
             runs=runs,
         )
         if choice is None and len(outputs) < LAG_CHOICE_RECORD:
@@ -738,16 +748,26 @@ class ChannelPipeline:
             # first), the test is re-run every ``refresh`` samples, commanding or not.
             if not self._horizon_passes(horizon):
                 self.qualified = False
-                fit = self.horizon_test.fit
-                shown = "n/a" if fit is None else f"{fit:.1f} %"
-                return (
-                    f"model does not predict over the horizon ({self.channel}: "
-                    f"{self.horizon_test.steps}-step fit {shown} of a "
-                    f"{self.horizon_test.horizon}-step "
-                    f"horizon, needs {self.horizon_test.threshold:g} %)"
-                )
+                return f"model does not predict over the horizon ({self._horizon_verdict()})"
             self.qualified = self.ever_qualified = True
         return ""
+
+    def _horizon_verdict(self) -> str:
+        """The horizon test's last figures against what it needs, for ``health``."""
+        test = self.horizon_test
+
+        def shown(fit: float | None) -> str:
+            return "n/a" if fit is None else f"{fit:.1f} %"
+
+        against_mean = ""
+        if test.mean_threshold is not None:
+            against_mean = (
+                f", {shown(test.mean_fit)} against the mean, needs {test.mean_threshold:g} %"
+            )
+        return (
+            f"{self.channel}: {test.steps}-step fit {shown(test.fit)} of a {test.horizon}-step "
+            f"horizon, needs {test.threshold:g} %{against_mean}"
+        )
 
     def _evaluate_horizon(self) -> None:
         """The horizon test on the current model, every ``refresh`` samples (it runs the
@@ -894,6 +914,7 @@ class ChannelPipeline:
             "trips": self.supervisor.trips,
             "rearms": self.supervisor.rearms,
             "horizon_fit": significant(self.horizon_test.fit),
+            "horizon_mean_fit": significant(self.horizon_test.mean_fit),
             "window": self.supervisor.window,
             "horizon": self.controller.horizon,
             "holdoff": holdoff,  # a re-arm: the samples it waited for at least
@@ -941,6 +962,7 @@ class ChannelPipeline:
             **self.stats.summary(),
             **self.multistep.summary(self.controller.horizon),
             "horizon_fit": significant(self.horizon_test.fit),
+            "horizon_mean_fit": significant(self.horizon_test.mean_fit),
             "horizon_samples": self.horizon_test.count,
             "input_lags": self._input_lags,
             "input_lag_choice": None if self.lag_choice is None else self.lag_choice.as_json(),

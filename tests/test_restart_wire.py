@@ -85,7 +85,12 @@ def test_a_reboot_on_the_periodic_profile_stops_commanding_until_a_new_horizon_p
         before = [c["t"] for c in commanded if c["t"] <= reboot_t]
         after = [c["t"] for c in commanded if c["t"] > reboot_t]
         assert before, f"{channel} never commanded before the reboot"
-        assert after, f"{channel} never commanded again after the reboot"
+        assert after, (
+            f"{channel} never commanded again after the reboot",
+            health["control"],
+            health["identifier"][channel],
+            sampling,
+        )
         horizon = health["identifier"][channel]["multistep_horizon"]
         # Not before the horizon test has a verdict on post-reboot data: at least the
         # horizon (or the burn-in, the least a verdict rests on) of samples after it.

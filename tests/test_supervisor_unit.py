@@ -26,6 +26,40 @@ def test_a_model_that_predicts_the_mean_of_white_noise_scores_29_percent_and_fai
     assert test.fit == pytest.approx(100.0 * (1.0 - 1.0 / math.sqrt(2.0)), abs=1.5)
 
 
+def test_predicting_the_mean_passes_against_holding_at_20_percent_but_not_against_the_mean():
+    """On a white-noise output "predicting nothing" (the mean) scores 29 % against holding,
+    above the 20 % that admits noisy plants' models; against the mean it scores 0 %."""
+    rng = np.random.default_rng(0)
+    test = HorizonTest(threshold=20.0, window=4000, capacity=4000, mean_threshold=20.0)
+    for y in rng.standard_normal(4000):
+        test.record(float(y), 0.0)
+    assert not test.evaluate(_first_order(0.0, 0.0), 20)
+    assert test.fit > 25.0
+    assert test.mean_fit == pytest.approx(0.0, abs=1.0)
+    without = HorizonTest(threshold=20.0, window=4000, capacity=4000)
+    for y in test.samples()[0]:
+        without.record(y, 0.0)
+    assert without.evaluate(_first_order(0.0, 0.0), 20)  # what the mean's test is for
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_true_model_of_a_noisy_fast_plant_passes_both_tests(seed: int):
+    """A fast first-order plant under a step excitation with white output noise 0.8 of
+    the input's amplitude: over a 5-step horizon the true model's error is mostly the
+    noise, 40 % against holding (so 50 % would keep it out) and about 30 % against the
+    mean; the model that predicts nothing fails."""
+    rng = np.random.default_rng(seed)
+    test = HorizonTest(threshold=20.0, window=500, mean_threshold=20.0)
+    x, u = 0.0, 0.0
+    for k in range(600):
+        u_prev, u = u, float(rng.choice([-1.0, 1.0])) if k % 10 == 0 else u
+        x = 0.5 * x + 0.5 * u_prev
+        test.record(x + 0.8 * float(rng.standard_normal()), u_prev)
+    assert test.evaluate(_first_order(0.5, 0.5), 5)
+    assert 20.0 < test.fit < 50.0 and test.mean_fit > 20.0
+    assert not test.evaluate(_first_order(0.0, 0.0), 5) and test.mean_fit < 0.0
+
+
 def test_the_true_model_passes_and_a_wrong_sign_fails():
     rng = np.random.default_rng(1)
     test = HorizonTest(threshold=50.0, window=500)

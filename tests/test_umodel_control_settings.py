@@ -52,6 +52,7 @@ STORED_CONTROL = {
     "refresh": 25,
     "cost_points": 90,
     "horizon_fit": 60.0,
+    "mean_fit": 30.0,
     "safe_input": "hold",
 }
 
@@ -68,7 +69,7 @@ def test_a_stored_configuration_with_every_control_key_loads_and_is_written_back
         90,
     )
     assert (control.u_limit, control.rate_limit) == (1.5, 0.25)
-    assert (control.horizon_fit, control.safe_input) == (60.0, "hold")
+    assert (control.horizon_fit, control.mean_fit, control.safe_input) == (60.0, 30.0, "hold")
     # The same flat keys, the same values, in what is stored again.
     assert settings.to_json()["control"] == STORED_CONTROL
 
@@ -169,3 +170,12 @@ def test_bridge_gap_is_stored_and_old_logs_replay_without_it() -> None:
         PipelineSettings(bridge_gap=-1)
     with pytest.raises((TypeError, ValueError)):  # the compiled class checks the type first
         PipelineSettings(bridge_gap=2.5)  # type: ignore[arg-type]
+
+
+def test_a_control_block_stored_without_the_mean_threshold_judges_against_holding_alone():
+    """A log recorded before the horizon test asked for a fit against the mean replays
+    with the test it was recorded under."""
+    stored = {k: v for k, v in STORED_CONTROL.items() if k != "mean_fit"}
+    control = PipelineSettings.from_json({"control": stored}).control
+    assert control.mean_fit is None and control.horizon_fit == 60.0
+    assert ControlSettings().mean_fit is not None

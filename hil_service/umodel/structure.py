@@ -13,9 +13,11 @@ squares on the first two thirds of the record, then run free over segments of ``
 samples of the last third, from the measured outputs at each segment's start; its fit is
 ``1 − ‖y − ŷ‖ / ‖y − y_hold‖`` as the horizon test's. The fewest lags whose fit is within
 ``tie`` of the best win: more lags are more parameters to learn online from the same data.
-When no candidate reaches ``qualify`` (the horizon test's threshold) the first candidate,
-the model's default, stays: among models none of which predicts over the horizon the
-choice would be noise.
+When no candidate reaches ``qualify`` (50 %: each candidate's error over the segments at
+most half the change it predicts) the first candidate, the model's default, stays: among
+models none of which predicts over the segments the choice would be noise. It is this
+choice's own threshold, not the horizon test's, which judges a different question (may
+this model command) on the controller's horizon.
 
 Pure (numpy only) and deterministic for a record.
 """

@@ -11,9 +11,15 @@ segment's start, held. Over the last ``max(window, k)`` samples
 
     horizon fit = 100 · (1 − ‖y − ŷ_model‖ / ‖y − y_hold‖)   (%)
 
+and against the mean ȳ of the outputs scored (the prediction "nothing but the level")
+
+    mean fit = 100 · (1 − ‖y − ŷ_model‖ / ‖y − ȳ‖)   (%)
+
 The model qualifies when at least k consecutive samples recorded since the last
 disqualifying event (a trip, a vehicle restart, a divergence, a telemetry gap not bridged)
-give a fit of at least ``threshold``. A bridged gap's samples are in the record as not
+give a fit of at least ``threshold`` and, when a ``mean_threshold`` is set, a mean fit of
+at least that: on a white-noise output, predicting the mean scores 29 % against holding
+and 0 % against the mean. A bridged gap's samples are in the record as not
 measured (``record_missing``): the model runs across them, no prediction is scored there.
 
 **Supervisor.** While a channel commands, a second frozen copy of the model runs free on
@@ -118,6 +124,8 @@ class HorizonTest:
         "full",
         "hold_rms",
         "horizon",
+        "mean_fit",
+        "mean_threshold",
         "minimum",
         "model_rms",
         "steps",
@@ -126,10 +134,20 @@ class HorizonTest:
     )
 
     def __init__(
-        self, threshold: float = 50.0, window: int = 500, capacity: int = 1100, minimum: int = 2
+        self,
+        threshold: float = 50.0,
+        window: int = 500,
+        capacity: int = 1100,
+        minimum: int = 2,
+        mean_threshold: float | None = None,
     ) -> None:
         if not (math.isfinite(threshold) and threshold < 100.0):
             raise ValueError("horizon threshold must be finite and below 100 %")
+        if mean_threshold is not None and not (
+            math.isfinite(mean_threshold) and mean_threshold < 100.0
+        ):
+            raise ValueError("the horizon test's mean threshold must be finite and below 100 %")
+        self.mean_threshold = None if mean_threshold is None else float(mean_threshold)
         if window < 2:
             raise ValueError("horizon window must be >= 2")
         self.threshold = float(threshold)
@@ -147,6 +165,7 @@ class HorizonTest:
         #: than the horizon (the pipeline's burn-in).
         self.minimum = max(int(minimum), 2)
         self.fit: float | None = None
+        self.mean_fit: float | None = None
         self.steps = 0  # the prediction steps of the last evaluation's segments
         self.full = False  # they covered the whole horizon
         self.horizon = 0  # the horizon of the last evaluation
@@ -165,7 +184,7 @@ class HorizonTest:
     def reset(self) -> None:
         """Forget every sample: the next verdict is on data recorded after this call."""
         self.break_record()
-        self.fit = None
+        self.fit = self.mean_fit = None
         self.steps = 0
         self.full = False
         self.model_rms = self.hold_rms = 0.0
@@ -235,7 +254,7 @@ class HorizonTest:
         # ``model_rms`` and ``hold_rms`` stay those of the last evaluation that scored
         # (``reset`` clears them): a verdict that stands across a record too short to judge
         # (a telemetry gap) still arms the supervisor with the bounds it rests on.
-        self.fit = None
+        self.fit = self.mean_fit = None
         self.steps = max(0, min(horizon, n - 1 - first))
         self.full = self.steps >= horizon
         if self.steps < min(horizon, self.minimum):
@@ -243,7 +262,8 @@ class HorizonTest:
         horizon = self.steps
         ys, us, measured = self._outputs, self._inputs, self._measured
         na, nb = len(dyn.ar), len(dyn.lag_polys)
-        sum_m = sum_h = 0.0
+        sum_m = sum_h = sum_y = sum_y2 = 0.0
+        reference = ys[n - 1]
         count = 0
         end = n - 1
         while end - horizon >= first:
@@ -275,6 +295,9 @@ class HorizonTest:
                 h = y - y0
                 sum_m += e * e
                 sum_h += h * h
+                d = y - reference  # about the newest output: the sums stay well scaled
+                sum_y += d
+                sum_y2 += d * d
                 count += 1
             end = s
         if count == 0 or not sum_h > 0.0 or not math.isfinite(sum_m / sum_h):
@@ -282,6 +305,13 @@ class HorizonTest:
         self.fit = 100.0 * (1.0 - math.sqrt(sum_m / sum_h))
         self.model_rms = math.sqrt(sum_m / count)
         self.hold_rms = math.sqrt(sum_h / count)
+        spread = sum_y2 - sum_y * sum_y / count
+        if spread > 0.0 and math.isfinite(spread):
+            self.mean_fit = 100.0 * (1.0 - math.sqrt(sum_m / spread))
+        if self.mean_threshold is not None and not (
+            self.mean_fit is not None and self.mean_fit >= self.mean_threshold
+        ):
+            return False
         return self.fit >= self.threshold
 
 
