@@ -294,7 +294,7 @@ class Decision:
 
 
 class ChannelPipeline:
-    def __init__(self, channel: str, settings: PipelineSettings, seed: int):
+    def __init__(self, channel: str, settings: PipelineSettings, seed: int, phase: int = 0):
         self.channel = channel
         self.settings = settings
         options = settings.options_for(channel)
@@ -324,7 +324,7 @@ class ChannelPipeline:
         self._free_run_left = 0
         control = settings.control
         self.controller = PredictiveInverse(
-            -control.u_limit, control.u_limit, control.rate_limit, control.predictive()
+            -control.u_limit, control.u_limit, control.rate_limit, control.predictive(), phase
         )
         self.shaper = CommandShaper(-control.u_limit, control.u_limit, control.rate_limit)
         self.u_prev: float | None = None
@@ -980,10 +980,12 @@ class ChannelPipeline:
 
 
 class VehiclePipeline:
-    def __init__(self, settings: PipelineSettings | None = None):
+    def __init__(self, settings: PipelineSettings | None = None, phase: int = 0):
+        """``phase``: on which samples the controllers re-derive their plans
+        (``PredictiveInverse``); a service gives each vehicle its own."""
         self.settings = settings or PipelineSettings()
         self.channels = {
-            ch: ChannelPipeline(ch, self.settings, self.settings.seed * 2 + i)
+            ch: ChannelPipeline(ch, self.settings, self.settings.seed * 2 + i, phase)
             for i, ch in enumerate(CHANNELS)
         }
         self.gaps = StepContinuity()

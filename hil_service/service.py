@@ -235,7 +235,9 @@ class HilService:
     def _vehicle(self, system_id: int) -> VehicleRuntime:
         vehicle = self.vehicles.get(system_id)
         if vehicle is None:
-            pipeline = VehiclePipeline(self.config.pipeline)
+            # Vehicles in the order they appear take turns for the controllers' periodic
+            # work, so that a fleet that started together does not do it on one sample.
+            pipeline = VehiclePipeline(self.config.pipeline, phase=len(self.vehicles))
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle
             self.source.vehicle_seen(system_id)

@@ -270,3 +270,22 @@ def test_a_non_minimum_phase_plant_settles_on_the_setpoints_side() -> None:
         mean_error = sum(abs(y - setpoint) for y in loop.y[start:]) / 600
         assert mean_error < 0.1 and abs(loop.y[-1] - setpoint) < 0.01, (setpoint, mean_error)
     assert loop.pipeline.channels["depth"].supervisor.trips == 0
+
+
+@pytest.mark.parametrize("phase", [0, 20, 70])
+def test_the_phase_brings_the_second_derivation_forward(phase: int) -> None:
+    """A service's vehicles that started together re-derive their plans on different
+    samples: the first derivation counts as ``phase`` samples old (modulo the refresh)."""
+    slow = _dynamics([0.9], [[1.0], [0.5]], 0.0)
+    fast = _dynamics([0.5], [[1.0], [0.5]], 0.0)
+    controller = PredictiveInverse(-2.0, 2.0, 0.5, phase=phase)
+    refresh = controller.settings.refresh
+    controller.track(slow, 0.0)  # starts the internal model
+    controller.track(slow, 0.0)  # the first derivation, on the slow model
+    first = controller.horizon
+    samples = 0
+    while controller.horizon == first and samples <= refresh:
+        controller.track(fast, 0.0)
+        samples += 1
+    assert controller.horizon < first
+    assert samples == refresh - phase % refresh

@@ -52,17 +52,34 @@ class ZenohPublisher(Listener):
     def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
         publisher = self._publishers.get(key)
         if publisher is None:
-            congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-            publisher = self.session.declare_publisher(
-                key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
-            )
-            self._publishers[key] = publisher
+            publisher = self._declare(key, reliable)
         publisher.put(data)
 
+    def _declare(self, key: str, reliable: bool) -> zenoh.Publisher:
+        congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+        publisher = self.session.declare_publisher(
+            key, congestion_control=congestion, encoding=zenoh.Encoding.APPLICATION_JSON
+        )
+        self._publishers[key] = publisher
+        return publisher
+
     def on_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
-        """Liveliness token and state queryable for a newly seen vehicle."""
+        """Liveliness token and state queryable for a newly seen vehicle, and the
+        publishers of its keys: declaring one costs in proportion to the keys already
+        declared (about 1 ms each with 1,000 vehicles), so a fleet pays it when its
+        vehicles appear, not on the sample its control starts."""
         if system_id in self._declared:
             return
+        topics = keys.VehicleKeys.of(system_id)
+        for key, reliable in (
+            (topics.telemetry, False),
+            *((key, False) for key in topics.umodel.values()),
+            (topics.health, False),
+            (topics.command_ballast, True),
+            (topics.supervisor, True),
+        ):
+            if key not in self._publishers:
+                self._declare(key, reliable)
 
         def answer(query: zenoh.Query) -> None:
             query.reply(keys.state(system_id), payload_json.encode(state()))

@@ -239,6 +239,7 @@ class PredictiveInverse:
         "_horizon",
         "_linear",
         "_onset",
+        "_phase",
         "_plan_model",
         "_plan_state",
         "_points",
@@ -256,8 +257,16 @@ class PredictiveInverse:
     )
 
     def __init__(
-        self, u_min: float, u_max: float, rate: float, settings: PredictiveSettings | None = None
+        self,
+        u_min: float,
+        u_max: float,
+        rate: float,
+        settings: PredictiveSettings | None = None,
+        phase: int = 0,
     ) -> None:
+        """``phase``: the first derivation counts as ``phase`` samples old, so that the
+        next comes that much sooner; a service gives its vehicles different phases, so
+        that a fleet that started together does not derive all its plans on one sample."""
         if not (math.isfinite(u_min) and math.isfinite(u_max) and u_min < u_max):
             raise ValueError("need finite u_min < u_max")
         if not (math.isfinite(rate) and rate > 0.0):
@@ -271,6 +280,7 @@ class PredictiveInverse:
         # response's arrival time (``arrival_time``), derived with the horizon.
         self._response_time = 0
         self._age = 0
+        self._phase = max(int(phase), 0)  # taken by the first derivation only
         self._disturbance = 0.0
         # One estimate per candidate pace and the squared errors with which each, held
         # from the sample before, predicted the residual since the internal model started.
@@ -444,7 +454,8 @@ class PredictiveInverse:
         self._hessian = hessian
         self._rho = rho
         self._starts = starts
-        self._age = 0
+        self._age = self._phase % max(s.refresh, 1)
+        self._phase = 0
 
     def _forcing(
         self, dyn: ModelDynamics, u_now: float, outputs: list[float]
