@@ -39,8 +39,14 @@ from protocols.mavlink_io import (
 )
 from protocols.samples import TelemetrySample
 
+#: Whether commands and supervisor events go with congestion control BLOCK
+#: (``keys.RELIABLE_KINDS``).
+COMMANDS_RELIABLE = keys.COMMAND_BALLAST in keys.RELIABLE_KINDS
+EVENTS_RELIABLE = keys.SUPERVISOR in keys.RELIABLE_KINDS
+
 #: The longest a companion's due message (heartbeat, stream request) waits for a tick, s.
 COMPANION_POLL = 0.01
+
 
 @dataclass
 class VehicleRuntime:
@@ -202,12 +208,14 @@ class HilService:
                     command.u_depth, command.u_pitch, system_id
                 ):
                     self._send(message, system_id)
-            self.notifier.publish(topics.command_ballast, decision.payload, reliable=True)
+            self.notifier.publish(
+                topics.command_ballast, decision.payload, reliable=COMMANDS_RELIABLE
+            )
             vehicle.commands_sent += 1
         for event in vehicle.pipeline.take_events(sample.time_boot_ms):
             # A supervisor's trip or re-arm (docs/control.md): on Zenoh and in the log through
             # the listeners; counted in health's identifier.{channel}.supervisor.
-            self.notifier.publish(topics.supervisor, event, reliable=True)
+            self.notifier.publish(topics.supervisor, event, reliable=EVENTS_RELIABLE)
         self.source.after_sample(sample, commanded)  # after the command
 
     def _send(self, message: MavMessage, system_id: int) -> None:

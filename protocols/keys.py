@@ -221,6 +221,11 @@ def parse(key: str) -> ParsedKey | None:
     return None
 
 
+#: The key kinds published with congestion control BLOCK (docs/zenoh.md): a command or a
+#: supervisor's event is never dropped for a slow subscriber; the rest is.
+RELIABLE_KINDS = frozenset({COMMAND_BALLAST, SUPERVISOR})
+
+
 @dataclass(frozen=True)
 class VehicleKeys:
     """One vehicle's output keys, formatted once: the per-sample path publishes on them."""
@@ -241,6 +246,17 @@ class VehicleKeys:
             health=health(system_id),
             decision_inputs=decision_inputs(system_id),
             supervisor=supervisor(system_id),
+        )
+
+    def publications(self) -> tuple[tuple[str, bool], ...]:
+        """The keys published on Zenoh, each with whether it is reliable (``RELIABLE_KINDS``);
+        ``decision_inputs`` is recorded in the log only."""
+        return (
+            (self.telemetry, TELEMETRY in RELIABLE_KINDS),
+            *((key, UMODEL in RELIABLE_KINDS) for key in self.umodel.values()),
+            (self.command_ballast, COMMAND_BALLAST in RELIABLE_KINDS),
+            (self.health, HEALTH in RELIABLE_KINDS),
+            (self.supervisor, SUPERVISOR in RELIABLE_KINDS),
         )
 
 

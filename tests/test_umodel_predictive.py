@@ -11,7 +11,7 @@ import pytest
 from hil_service.umodel import build_model
 from hil_service.umodel.box_qp import solve_box_qp
 from hil_service.umodel.dynamics import ModelDynamics
-from hil_service.umodel.horizon import arrival_time
+from hil_service.umodel.horizon import arrival_time, free_response_terms
 from hil_service.umodel.predictive import (
     PredictiveInverse,
     factorise,
@@ -172,9 +172,13 @@ def _free_response(
     """ŷ(k+j) at the controller's cost points with the input held at ``u_now``, from its
     closed form E·S_A(j) + Σ_l h_A(j − l)·d(l) (``PredictiveInverse._forcing``)."""
     constant, departures = controller._forcing(dyn, u_now, outputs)
+    points = controller._points
+    steps, impulses = free_response_terms(
+        controller._free_ar, len(dyn.lag_polys), max(points) + 1, points
+    )
     return [
         constant * step + sum(row[d] * departures[d] for d in range(len(departures)))
-        for step, row in zip(controller._free_step, controller._free_impulse, strict=True)
+        for step, row in zip(steps, impulses, strict=True)
     ]
 
 

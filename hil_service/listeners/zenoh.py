@@ -70,14 +70,7 @@ class ZenohPublisher(Listener):
         vehicles appear, not on the sample its control starts."""
         if system_id in self._declared:
             return
-        topics = keys.VehicleKeys.of(system_id)
-        for key, reliable in (
-            (topics.telemetry, False),
-            *((key, False) for key in topics.umodel.values()),
-            (topics.health, False),
-            (topics.command_ballast, True),
-            (topics.supervisor, True),
-        ):
+        for key, reliable in keys.VehicleKeys.of(system_id).publications():
             if key not in self._publishers:
                 self._declare(key, reliable)
 

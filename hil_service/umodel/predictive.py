@@ -233,10 +233,9 @@ class PredictiveInverse:
         "_disturbance",
         "_estimates",
         "_free_ar",
-        "_free_impulse",
-        "_free_step",
         "_hessian",
         "_horizon",
+        "_lead",
         "_linear",
         "_onset",
         "_phase",
@@ -290,11 +289,10 @@ class PredictiveInverse:
         self._columns: list[list[float]] = []  # per point: effect of each block's level
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
         self._hessian: list[list[float]] = []
-        # The free response in closed form at the cost points (see ``_forcing``):
-        # the AR part it was derived for, S_A(j) and h_A(j − l) for l = 1 … L.
+        # The free response in closed form at the cost points (see ``_forcing``): the AR
+        # part it was derived for; S_A(j) and h_A(j − l) enter only through ``_linear``.
         self._free_ar: list[float] = []
-        self._free_step: list[float] = []
-        self._free_impulse: list[list[float]] = []
+        self._lead = 0  # L, the number of departures d(l)
         # The linear term's parts, the columns projected once per derivation: Σ_p col_p
         # times S_A(j_p), times each h_A(j_p − l), times 1 and times the onset.
         self._linear = LinearTerm([], [], [], [])
@@ -436,13 +434,11 @@ class PredictiveInverse:
         columns, onset, hessian = plan_matrices(response, starts, points, weights)
         rho = add_move_penalty(hessian, s.move_weight)
         self._free_ar = list(ar)
-        self._free_step, self._free_impulse = free_response_terms(ar, len(gains), span, points)
+        free_step, free_impulse = free_response_terms(ar, len(gains), span, points)
+        self._lead = lead_of(free_impulse)
         self._linear = LinearTerm(
-            project(columns, self._free_step),
-            [
-                project(columns, [row[d] for row in self._free_impulse])
-                for d in range(lead_of(self._free_impulse))
-            ],
+            project(columns, free_step),
+            [project(columns, [row[d] for row in free_impulse]) for d in range(self._lead)],
             project(columns, [1.0] * len(points)),
             project(columns, onset),
         )
@@ -469,7 +465,7 @@ class PredictiveInverse:
         in points × (L + 1) operations instead of horizon × (na + 1)."""
         ar = self._free_ar
         na = len(ar)
-        lead = lead_of(self._free_impulse)
+        lead = self._lead
         terms, constant = dyn.input_forcing(u_now, lead)
         departures = [terms[d] - constant for d in range(lead)]
         for step in range(1, min(lead, na) + 1):

@@ -104,6 +104,13 @@ def steady_input(dyn: ModelDynamics, level: float, lo: float, hi: float, points:
     return best_u
 
 
+def _percent(value: float, name: str) -> float:
+    """A fit threshold: finite and below 100 % (a fit of 100 % is a perfect prediction)."""
+    if not (math.isfinite(value) and value < 100.0):
+        raise ValueError(f"{name} must be finite and below 100 %")
+    return float(value)
+
+
 class HorizonTest:
     """The current model against holding the output, over the controller's horizon, on
     the recent samples (see the module docstring).
@@ -141,16 +148,12 @@ class HorizonTest:
         minimum: int = 2,
         mean_threshold: float | None = None,
     ) -> None:
-        if not (math.isfinite(threshold) and threshold < 100.0):
-            raise ValueError("horizon threshold must be finite and below 100 %")
-        if mean_threshold is not None and not (
-            math.isfinite(mean_threshold) and mean_threshold < 100.0
-        ):
-            raise ValueError("the horizon test's mean threshold must be finite and below 100 %")
-        self.mean_threshold = None if mean_threshold is None else float(mean_threshold)
+        self.threshold = _percent(threshold, "horizon threshold")
+        self.mean_threshold = (
+            None if mean_threshold is None else _percent(mean_threshold, "mean threshold")
+        )
         if window < 2:
             raise ValueError("horizon window must be >= 2")
-        self.threshold = float(threshold)
         self.window = int(window)
         size = max(capacity, window) + 16
         self._outputs: deque[float] = deque(maxlen=size)
