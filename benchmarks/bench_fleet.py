@@ -209,8 +209,11 @@ def tail_attribution(
 
     every = [(t, i) for t, i, _ in trace]
     slots: dict[int, set[int]] = {}
+    counts: dict[int, int] = {}
     for t, i in slow:
         slots.setdefault(int(t / 0.1), set()).add(holder[i])
+        counts[int(t / 0.1)] = counts.get(int(t / 0.1), 0) + 1
+    start = min(t for t, _ in every)
     own = lambda t, i: within(t, windows[holder[i]])  # noqa: E731
     other = lambda t, i: any(within(t, w) for s, w in windows.items() if s != holder[i])  # noqa: E731
     fleet = lambda t, i: listing[0] <= t <= listing[1]  # noqa: E731
@@ -235,6 +238,13 @@ def tail_attribution(
         # A slot whose slow latencies are on vehicles of both services: a stall of the
         # emulator (or the whole machine), not of one service.
         "slots_with_both_services": sum(1 for held in slots.values() if len(held) > 1),
+        # When the slow slots were (s since the first telemetry sent) and how many slow
+        # latencies each holds: a stall on a schedule (a periodic collection, the listing)
+        # shows as its period.
+        "slow_slots_s": [
+            [round(slot * 0.1 - start, 1), counts[slot]] for slot in sorted(counts)
+        ],
+        "fleet_listing_s": [round(listing[0] - start, 1), round(listing[1] - start, 1)],
     }  # fmt: skip
 
 

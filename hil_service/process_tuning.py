@@ -8,18 +8,18 @@ call it too, so that they measure the path as those commands run it.
 * ``gc.freeze()`` after start-up: the modules and objects that exist then (numpy, scipy,
   Zenoh, pymavlink's dialect: hundreds of thousands of objects) live as long as the process,
   and without the freeze every full collection traverses them again.
-* Thresholds for a fleet's state. Each sample allocates a few hundred container objects
-  (decoded messages, payload dicts, log records, the model's multi-step map), and a
-  vehicle's replace the previous sample's a vehicle cycle later: with 1,000 gliders at 1 Hz,
-  about 60,000 of them are alive at any time, and a young collection traverses all of them
-  whatever its threshold (50-70 ms). With the older generations collected every 10 young
-  collections, those survivors fill them, and their collections take 160-460 ms every few
-  seconds and find no garbage (the per-sample path makes no reference cycles: 0 collected in
-  every collection measured). So young collections every 20,000 net allocations (every few
-  seconds in such a fleet, rarely for one vehicle), the middle generation every 100 of them
-  and the full one every 10 of those (about an hour in that fleet): reference cycles are
-  still reclaimed, and the long pauses are rare instead of constant
-  (``benchmarks/fleet_inprocess.py``, docs/benchmarks.md).
+* A full collection every hour, on the clock, and no automatic collections. Each sample
+  allocates a few hundred container objects (decoded messages, payload dicts, log records,
+  the model's multi-step map), and a vehicle's replace the previous sample's a vehicle
+  cycle later: with 1,000 gliders at 1 Hz about 60,000 of them are alive at any time, and
+  counted allocations set off a young collection every few seconds that traverses them all
+  whatever its threshold (50-100 ms), and, the first time, every vehicle's long-lived
+  identifiers and controllers too (0.44 s). Each is a stall of every vehicle's sample. The
+  per-sample path makes no reference cycles (no collection measured found garbage; and
+  ``benchmarks/fleet_inprocess.py`` prints what one collection finds after a run with
+  collections off), so objects are freed by their reference counts as they are replaced,
+  and the hourly collection (0.4-1.8 s with 1,000 vehicles as their records fill,
+  docs/fleet.md) reclaims any reference cycle within the hour.
 """
 
 from __future__ import annotations
@@ -27,17 +27,46 @@ from __future__ import annotations
 import gc
 import os
 import sys
+import threading
 from collections.abc import Callable
 
 SWITCH_INTERVAL_S = 0.0005
-GC_THRESHOLDS = (20_000, 100, 10)
+COLLECTION_PERIOD_S = 3600.0
+
+_collector: Collector | None = None
+
+
+class Collector:
+    """A daemon thread that runs a full garbage collection every ``period`` seconds."""
+
+    def __init__(self, period: float) -> None:
+        if not period > 0:
+            raise ValueError(f"collection period must be positive, not {period}")
+        self.period = period
+        self.collections = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="gc-collector", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            gc.collect()
+            self.collections += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 def tune_for_service() -> None:
+    """Idempotent: a second call freezes what exists then and keeps the one collector."""
+    global _collector
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     gc.collect()
     gc.freeze()
-    gc.set_threshold(*GC_THRESHOLDS)
+    gc.disable()
+    if _collector is None:
+        _collector = Collector(COLLECTION_PERIOD_S)
 
 
 def one_cpu_child() -> tuple[int, Callable[[], None]]:

@@ -1,0 +1,63 @@
+"""The long-running processes' interpreter settings: garbage collection on a schedule."""
+
+from __future__ import annotations
+
+import gc
+import subprocess
+import sys
+import threading
+import weakref
+from pathlib import Path
+
+import pytest
+
+from hil_service.process_tuning import Collector
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class Node:
+    def __init__(self) -> None:
+        self.other: Node | None = None
+
+
+def test_a_reference_cycle_is_reclaimed_with_automatic_collection_off() -> None:
+    reclaimed = threading.Event()
+    was_enabled = gc.isenabled()
+    gc.disable()
+    collector = None
+    try:
+        first, second = Node(), Node()
+        first.other, second.other = second, first
+        weakref.finalize(first, reclaimed.set)
+        del first, second
+        assert not reclaimed.is_set()  # only a collection can free a cycle
+        collector = Collector(0.02)
+        assert reclaimed.wait(10), "the collector never reclaimed the cycle"
+        assert collector.collections >= 1
+    finally:
+        if collector is not None:
+            collector.stop()
+        if was_enabled:
+            gc.enable()
+
+
+@pytest.mark.parametrize("period", [0.0, -1.0, float("nan")])
+def test_a_period_that_cannot_run_is_refused(period: float) -> None:
+    with pytest.raises(ValueError, match="positive"):
+        Collector(period)
+
+
+def test_a_tuned_process_freezes_its_start_up_and_collects_only_on_the_schedule() -> None:
+    probe = (
+        "import gc, threading\n"
+        "from hil_service.process_tuning import tune_for_service\n"
+        "tune_for_service(); tune_for_service()\n"
+        "names = [t.name for t in threading.enumerate()]\n"
+        "print(gc.isenabled(), gc.get_freeze_count() > 1000, names.count('gc-collector'))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["False", "True", "1"]
