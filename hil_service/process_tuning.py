@@ -18,7 +18,7 @@ call it too, so that they measure the path as those commands run it.
   per-sample path makes no reference cycles (no collection measured found garbage; and
   ``benchmarks/fleet_inprocess.py`` prints what one collection finds after a run with
   collections off), so objects are freed by their reference counts as they are replaced,
-  and the hourly collection (0.4-1.8 s with 1,000 vehicles as their records fill,
+  and the hourly collection (0.4-0.9 s with 1,000 vehicles as their windows fill,
   docs/fleet.md) reclaims any reference cycle within the hour.
 """
 

@@ -26,20 +26,23 @@ class ErrorStats:
     _sum_p2: float = 0.0
     _sum_y: float = 0.0
     _sum_y2: float = 0.0
-    _recent: deque[tuple[float, float]] = field(default_factory=deque)
+    # The window's squares in two deques of floats, not one of pairs: floats are not
+    # objects the garbage collector traverses, and a fleet keeps two of these a vehicle.
+    _recent_errors: deque[float] = field(default_factory=deque)
+    _recent_persistence: deque[float] = field(default_factory=deque)
     _recent_e2: float = 0.0
     _recent_p2: float = 0.0
 
     def add(self, y: float, error: float, persistence_error: float) -> None:
         self.count += 1
         e2, p2 = error * error, persistence_error * persistence_error
-        self._recent.append((e2, p2))
+        self._recent_errors.append(e2)
+        self._recent_persistence.append(p2)
         self._recent_e2 += e2
         self._recent_p2 += p2
-        if len(self._recent) > self.window:
-            old_e2, old_p2 = self._recent.popleft()
-            self._recent_e2 -= old_e2
-            self._recent_p2 -= old_p2
+        if len(self._recent_errors) > self.window:
+            self._recent_e2 -= self._recent_errors.popleft()
+            self._recent_p2 -= self._recent_persistence.popleft()
         if self.count <= self.burn_in:
             return
         self._n += 1
@@ -68,7 +71,7 @@ class ErrorStats:
         return 1.0 - self._sum_e2 / self._sum_p2
 
     def recent_skill(self) -> float | None:
-        if len(self._recent) < 2 or self._recent_p2 <= 0:
+        if len(self._recent_errors) < 2 or self._recent_p2 <= 0:
             return None
         return 1.0 - max(self._recent_e2, 0.0) / self._recent_p2
 
@@ -135,7 +138,7 @@ class MultiStepStats:
     free run that blew up must not leave its rounding in the figures after it has left
     the window."""
 
-    __slots__ = ("_recent", "window")
+    __slots__ = ("_errors", "_outputs", "window")
 
     #: A free-run error beyond this (or not finite) counts as this: the fit is then very
     #: negative, and the squares stay finite.
@@ -143,7 +146,9 @@ class MultiStepStats:
 
     def __init__(self, window: int = 500) -> None:
         self.window = window
-        self._recent: deque[tuple[float, float]] = deque(maxlen=window)
+        # Two deques of floats, not one of (y, e) pairs, as in ErrorStats.
+        self._outputs: deque[float] = deque(maxlen=window)
+        self._errors: deque[float] = deque(maxlen=window)
 
     def add(self, y: float, y_sim: float) -> None:
         if not math.isfinite(y):
@@ -151,12 +156,11 @@ class MultiStepStats:
         e = y - y_sim
         if not (math.isfinite(e) and abs(e) < self.ERROR_CAP):
             e = self.ERROR_CAP
-        self._recent.append((y, e))
+        self._outputs.append(y)
+        self._errors.append(e)
 
     def nmse(self) -> float | None:
-        return normalised_square_error(
-            [pair[0] for pair in self._recent], [pair[1] for pair in self._recent]
-        )
+        return normalised_square_error(list(self._outputs), list(self._errors))
 
     def fit(self) -> float | None:
         return fit_from_nmse(self.nmse())

@@ -9,6 +9,7 @@ compare recomputed estimates and commands with these logs bit for bit.
 
 from __future__ import annotations
 
+import argparse
 import shutil
 import subprocess
 import sys
@@ -20,7 +21,12 @@ SCENARIOS = ("paper", "disturbed", "nonlinear")
 
 
 def main() -> int:
-    for scenario in SCENARIOS:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS),
+        help="the fixtures to write (all by default)",
+    )  # fmt: skip
+    for scenario in parser.parse_args().scenarios:
         with tempfile.TemporaryDirectory() as log_dir:
             subprocess.run(
                 [sys.executable, "-m", "hil_service.cli", "demo", "--scenario", scenario,
