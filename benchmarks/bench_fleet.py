@@ -208,11 +208,9 @@ def tail_attribution(
         return round(sum(1 for t, i in rows if test(t, i)) / max(len(rows), 1), 3)
 
     every = [(t, i) for t, i, _ in trace]
-    slots: dict[int, set[int]] = {}
-    counts: dict[int, int] = {}
+    slots: dict[int, list[int]] = {}  # 100 ms slot -> the service of each slow latency in it
     for t, i in slow:
-        slots.setdefault(int(t / 0.1), set()).add(holder[i])
-        counts[int(t / 0.1)] = counts.get(int(t / 0.1), 0) + 1
+        slots.setdefault(int(t / 0.1), []).append(holder[i])
     start = min(t for t, _ in every)
     own = lambda t, i: within(t, windows[holder[i]])  # noqa: E731
     other = lambda t, i: any(within(t, w) for s, w in windows.items() if s != holder[i])  # noqa: E731
@@ -237,12 +235,12 @@ def tail_attribution(
         "slots_100ms_holding_slow": len(slots),
         # A slot whose slow latencies are on vehicles of both services: a stall of the
         # emulator (or the whole machine), not of one service.
-        "slots_with_both_services": sum(1 for held in slots.values() if len(held) > 1),
+        "slots_with_both_services": sum(1 for held in slots.values() if len(set(held)) > 1),
         # When the slow slots were (s since the first telemetry sent) and how many slow
         # latencies each holds: a stall on a schedule (a periodic collection, the listing)
         # shows as its period.
         "slow_slots_s": [
-            [round(slot * 0.1 - start, 1), counts[slot]] for slot in sorted(counts)
+            [round(slot * 0.1 - start, 1), len(slots[slot])] for slot in sorted(slots)
         ],
         "fleet_listing_s": [round(listing[0] - start, 1), round(listing[1] - start, 1)],
     }  # fmt: skip

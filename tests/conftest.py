@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import socket
 import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -92,6 +94,19 @@ class ProcessGroup:
                 self.stop(process)
             else:
                 end_group(process)  # what it started and left behind
+
+
+@pytest.fixture(autouse=True)
+def interpreter_as_found() -> Iterator[None]:
+    """A command run in the test's process (``main(["replay", …])``) tunes the interpreter
+    as that command's own process would (``process_tuning``: automatic garbage collection
+    off, a short switch interval); the next test gets the pytest worker back as it was."""
+    collecting = gc.isenabled()
+    interval = sys.getswitchinterval()
+    yield
+    if collecting:
+        gc.enable()
+    sys.setswitchinterval(interval)
 
 
 @pytest.fixture
