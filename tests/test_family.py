@@ -163,3 +163,30 @@ def test_input_lags_that_cover_the_delay_bring_a_delayed_plant_back_to_reference
     assert health["pitch"]["input_lags"] in (6, 8), health["pitch"]["input_lag_choice"]
     fits = health["pitch"]["input_lag_choice"]["fits"]
     assert fits["4"] < fits[str(health["pitch"]["input_lags"])]
+
+
+def test_a_channel_never_commanded_sits_at_neutral_after_the_excitation():
+    """The family's "hold" semantics: the excitation ends at the neutral input, reached
+    through the actuator's rate limit by the first controlled sample, so a channel the
+    service never commands stays at neutral, not wherever the excitation had got to."""
+    from hil_service.experiment.closed_loop import _drive, setpoint_schedule
+    from plant_emulator.excitation import build_channel_excitations
+    from plant_emulator.family import RATE_LIMIT
+    from plant_emulator.models import CHANNELS
+
+    depth, pitch = draw_vehicle(0, 0)
+    specs = {"depth": depth, "pitch": pitch}
+    settings = ClosedLoopSettings(
+        scenario="family", samples=700, identify=400, step_every=250,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    excitation = build_channel_excitations(settings.excitation, settings.seed)
+    last = [abs(excitation[ch].value(settings.identify - 1)) for ch in CHANNELS]
+    assert max(last) > RATE_LIMIT, "the excitation ends within one step of neutral"
+    schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
+    trace = _drive(
+        settings, FamilyVehicle(depth, pitch), schedule, lambda k, s: (math.nan, math.nan)
+    )
+    for ch in CHANNELS:
+        assert np.all(trace.u[ch][settings.identify :] == 0.0), ch
+        assert np.any(trace.u[ch][: settings.identify] != 0.0), ch

@@ -67,8 +67,9 @@ class ClosedLoopSettings:
     # Also run the known-model yardstick (an LP per sample: slow). The CLI turns it on;
     # off by default here so that library callers and tests pay for it only when asked.
     oracle: bool = False
-    #: The excitation ends at the neutral input (0) on its last sample: a controller that
-    #: does not command leaves the vehicle at neutral, not wherever the excitation was.
+    #: The excitation ends at the neutral input (0), reached through the actuators' rate
+    #: limits by the first controlled sample: a controller that does not command leaves
+    #: the vehicle at neutral, not wherever the excitation was.
     neutral_after_identify: bool = False
 
     def __post_init__(self) -> None:
@@ -282,6 +283,10 @@ def _drive(
         u={ch: np.empty(n) for ch in CHANNELS},
     )
     excitation = build_channel_excitations(settings.excitation, settings.seed)
+    # Commands sent from here on take the actuators from anywhere in their range to 0.
+    to_neutral = settings.identify - (
+        _steps_to_neutral(plant) if settings.neutral_after_identify else 0
+    )
     command = (0.0, 0.0)
     for k in range(n):
         sample = plant.step(*command)
@@ -291,7 +296,7 @@ def _drive(
         requested = controller(k, sample)
         if k < settings.identify:
             command = (excitation["depth"].value(k), excitation["pitch"].value(k))
-            if settings.neutral_after_identify and k == settings.identify - 1:
+            if k >= to_neutral:
                 command = (0.0, 0.0)
         elif requested is not None:
             for ch, value in zip(CHANNELS, requested, strict=True):
@@ -299,6 +304,13 @@ def _drive(
                     trace.non_finite_commands[ch] += 1
             command = requested
     return trace
+
+
+def _steps_to_neutral(plant: SteppedPlant) -> int:
+    """Steps in which every actuator reaches 0 from its limit at its rate limit."""
+    return max(
+        math.ceil(actuator.limit / actuator.rate_limit) for actuator in plant.actuators.values()
+    )
 
 
 def known_plant(plant: SteppedPlant, channel: str, trim: float) -> KnownPlant:
