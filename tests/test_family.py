@@ -72,6 +72,7 @@ def test_a_vehicle_of_the_family_runs_the_three_loops():
     )  # fmt: skip
     rows, failures = run_vehicle(settings, depth, pitch)
     assert [r.spec.channel for r in rows] == ["depth", "pitch"] and failures == 0
+    assert [r.name() for r in rows] == ["seed 0 vehicle 0 depth", "seed 0 vehicle 0 pitch"]
     for row in rows:
         assert math.isfinite(row.inverse_iae) and row.reference_iae > 0
         assert row.oracle_iae is None or row.oracle_iae > 0

@@ -79,6 +79,12 @@ class FamilyRow:
     commanded: int
     #: The pipeline's IAE split by what the channel did (``phase_iae``).
     phases: dict[str, float] = field(default_factory=dict)
+    #: The family's seed (with ``spec.vehicle`` and ``spec.channel``: which plant it is).
+    seed: int | None = None
+
+    def name(self) -> str:
+        """Where to find the plant again: ``seed S vehicle V channel``."""
+        return f"seed {self.seed} vehicle {self.spec.vehicle} {self.spec.channel}"
 
     @property
     def reference_ratio(self) -> float | None:
@@ -308,4 +314,5 @@ def _row(
             settings.identify,
             spec.period,
         ),
+        seed=settings.seed,
     )
