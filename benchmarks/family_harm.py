@@ -136,7 +136,7 @@ def summarise(name: str, rows: list[FamilyRow]) -> dict[str, object]:
         worst = sorted(above, key=lambda r: -(r.reference_ratio or 0.0))[:5]
         for r in worst:
             phases = ", ".join(f"{p} {r.phases.get(p, 0.0) / r.inverse_iae:.2f}" for p in PHASES)
-            # Rows saved before they carried their seed name no plant.
+            # Rows loaded from a file written without seeds name no plant.
             where = r.name() if getattr(r, "seed", None) is not None else "?"
             print(
                 f"    {r.reference_ratio:7.2f}x  {where}  {kind_of(r):<26} [{phases}]  "
