@@ -573,11 +573,12 @@ class DynamicUModel(_ModelBase):
             # Kept for one sample: the pipeline undoes an update learnt from readings that
             # turn out, on the next sample, to have been served ahead of time.
             self._spare_theta[:] = self._theta
-            spare_p = self._spare_p
-            for i, row in enumerate(self.rls.p):
-                spare_p[i][:] = row
+            before = self.rls.p
             self._can_undo = True
-            self.rls.update(self._theta, self._phi, error * self._inv_scale)
+            # The new P goes into the spare lists; the one before the update becomes the
+            # spare (no copy of P a sample).
+            self.rls.update(self._theta, self._phi, error * self._inv_scale, self._spare_p)
+            self._spare_p = before
             self._updates += 1
 
     def undo_last_update(self) -> bool:

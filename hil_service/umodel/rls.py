@@ -106,11 +106,20 @@ class ListRLS:
         n = self.n
         self.p = [[self.p0 if i == j else 0.0 for j in range(n)] for i in range(n)]
 
-    def update(self, theta: list[float], phi: list[float], error: float) -> bool:
+    def update(
+        self,
+        theta: list[float],
+        phi: list[float],
+        error: float,
+        into: list[list[float]] | None = None,
+    ) -> bool:
         """θ += k·e in place, P ← (P − k·(Pφ)ᵀ)/λ_eff; False (and P reset) when the
-        update is not finite."""
+        update is not finite. With ``into`` (an n × n list of lists, not ``p``) the new P
+        is written there and becomes ``p``, and the old one is left as it was: a caller
+        that may undo the update keeps it without copying it."""
         n = self.n
         p = self.p
+        out = p if into is None else into
         pphi = [0.0] * n
         for i in range(n):
             row = p[i]
@@ -134,11 +143,13 @@ class ListRLS:
         scale = 1.0 / self.lam if trace <= self.trace_max else 1.0
         for i in range(n):
             row = p[i]
+            new_row = out[i]
             ki = k[i]
             for j in range(i, n):
                 v = (row[j] - ki * pphi[j]) * scale
-                row[j] = v
-                p[j][i] = v
+                new_row[j] = v
+                out[j][i] = v
+        self.p = out
         if not math.isfinite(trace):
             self.reset()
             return False
