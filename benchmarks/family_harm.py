@@ -136,10 +136,8 @@ def summarise(name: str, rows: list[FamilyRow]) -> dict[str, object]:
         worst = sorted(above, key=lambda r: -(r.reference_ratio or 0.0))[:5]
         for r in worst:
             phases = ", ".join(f"{p} {r.phases.get(p, 0.0) / r.inverse_iae:.2f}" for p in PHASES)
-            # Rows loaded from a file written without seeds name no plant.
-            where = r.name() if getattr(r, "seed", None) is not None else "?"
             print(
-                f"    {r.reference_ratio:7.2f}x  {where}  {kind_of(r):<26} [{phases}]  "
+                f"    {r.reference_ratio:7.2f}x  {r.name()}  {kind_of(r):<26} [{phases}]  "
                 f"{r.spec.describe()}"
             )
     return summary

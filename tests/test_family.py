@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -73,6 +74,7 @@ def test_a_vehicle_of_the_family_runs_the_three_loops():
     rows, failures = run_vehicle(settings, depth, pitch)
     assert [r.spec.channel for r in rows] == ["depth", "pitch"] and failures == 0
     assert [r.name() for r in rows] == ["seed 0 vehicle 0 depth", "seed 0 vehicle 0 pitch"]
+    assert dataclasses.replace(rows[0], seed=None).name() == "seed ? vehicle 0 depth"
     for row in rows:
         assert math.isfinite(row.inverse_iae) and row.reference_iae > 0
         assert row.oracle_iae is None or row.oracle_iae > 0
@@ -114,7 +116,6 @@ def test_white_output_noise_is_averaged_not_chased():
     only adds the estimate's noise to the output's (E|c + d| ≥ E|d|). The pipeline's IAE
     stays within 2.5 % of reference-only's (the true plant's static inverse, no feedback);
     a disturbance estimate at the horizon's pace alone gave 1.07 and 1.04 here."""
-    import dataclasses
 
     depth, pitch = draw_vehicle(0, 0)
     plain = {

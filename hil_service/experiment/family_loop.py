@@ -83,8 +83,10 @@ class FamilyRow:
     seed: int | None = None
 
     def name(self) -> str:
-        """Where to find the plant again: ``seed S vehicle V channel``."""
-        return f"seed {self.seed} vehicle {self.spec.vehicle} {self.spec.channel}"
+        """Where to find the plant again: ``seed S vehicle V channel`` (``seed ?`` for a
+        row without its seed)."""
+        seed = "?" if self.seed is None else self.seed
+        return f"seed {seed} vehicle {self.spec.vehicle} {self.spec.channel}"
 
     @property
     def reference_ratio(self) -> float | None:
