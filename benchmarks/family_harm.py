@@ -23,7 +23,9 @@ What-if runs (docs/control.md, "What the excess is made of"): ``--horizon-fit F`
 chooses them from its record, as ``serve`` does; ``--nb 4`` is the model's own four), and
 ``--nb-from-true-delay E`` gives each plant's identifier max(4, delay + E) input lags from
 the plant's *true* input delay, which no deployed identifier knows: an upper bound on what
-choosing the lags from the data could give, not a controller.
+choosing the lags from the data could give, not a controller. ``--lag-smoothing-gain K``
+sets the smoothness prior on the input lags (0: none; docs/control.md, "A smoothness prior
+on the input lags").
 """
 
 from __future__ import annotations
@@ -186,10 +188,12 @@ def what_if(
     nb: int | None,
     nb_from_true_delay: int | None,
     mean_fit: float | None = None,
+    lag_smoothing_gain: float | None = None,
 ) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
     """The pipeline settings of a what-if run (None: the defaults; a negative ``mean_fit``
     asks for no test against the mean)."""
-    if all(v is None for v in (horizon_fit, nb, nb_from_true_delay, mean_fit)):
+    chosen = (horizon_fit, nb, nb_from_true_delay, mean_fit, lag_smoothing_gain)
+    if all(v is None for v in chosen):
         return lambda seed, depth, pitch: None
 
     def lags(spec: FamilyPlantSpec) -> dict[str, int]:
@@ -204,7 +208,10 @@ def what_if(
         if mean_fit is not None:
             control = dataclasses.replace(control, mean_fit=None if mean_fit < 0 else mean_fit)
         options = {"depth": lags(depth), "pitch": lags(pitch)}
-        return PipelineSettings(seed=seed, control=control, model_options=options)
+        settings = PipelineSettings(seed=seed, control=control, model_options=options)
+        if lag_smoothing_gain is not None:
+            settings = settings.replace(lag_smoothing_gain=lag_smoothing_gain)
+        return settings
 
     return settings
 
@@ -233,6 +240,12 @@ def main() -> None:
         help="input lags max(4, the plant's true delay + E): an upper bound, not a controller",
     )
     parser.add_argument(
+        "--lag-smoothing-gain",
+        type=float,
+        metavar="K",
+        help="the smoothness prior's gain on the input lags (0: none), as serve's flag",
+    )
+    parser.add_argument(
         "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
     )
     args = parser.parse_args()
@@ -254,7 +267,13 @@ def main() -> None:
         args.step_every,
         not args.no_oracle,
         args.semantics,
-        pipeline=what_if(args.horizon_fit, args.nb, args.nb_from_true_delay, args.mean_fit),
+        pipeline=what_if(
+            args.horizon_fit,
+            args.nb,
+            args.nb_from_true_delay,
+            args.mean_fit,
+            args.lag_smoothing_gain,
+        ),
     )
     print(
         f"\nseeds {args.seeds}, {args.plants} plants each, {args.samples} samples "

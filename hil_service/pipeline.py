@@ -26,6 +26,7 @@ from hil_service.umodel import (
     option_names,
 )
 from hil_service.umodel.dynamics import ModelDynamics
+from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
 from hil_service.umodel.structure import LagChoice, choose_input_lags
@@ -138,8 +139,17 @@ class PipelineSettings:
     #: The longest telemetry gap (samples lost in a row) bridged rather than resynchronised
     #: (``ChannelPipeline._bridge``, docs/control.md, "Short gaps bridged"); 0 bridges none.
     bridge_gap: int = 5
+    #: The smoothness prior on the dynamic model's input lags, given with the input lags'
+    #: choice: its weight is this times the record's one-step residual share
+    #: (``umodel.lag_prior``, docs/control.md); 0 gives none.
+    lag_smoothing_gain: float = LAG_SMOOTHING_GAIN
 
     def __post_init__(self) -> None:
+        gain = self.lag_smoothing_gain
+        if isinstance(gain, bool) or not (
+            isinstance(gain, (int, float)) and math.isfinite(gain) and gain >= 0.0
+        ):
+            raise ValueError(f"lag_smoothing_gain must be a number >= 0, got {gain!r}")
         if isinstance(self.bridge_gap, bool) or not (
             isinstance(self.bridge_gap, int) and self.bridge_gap >= 0
         ):
@@ -199,6 +209,8 @@ class PipelineSettings:
         data.setdefault("choose_input_lags", False)
         # A log recorded before short gaps were bridged resynchronised after every gap.
         data.setdefault("bridge_gap", 0)
+        # A log recorded before the input lags' choice gave a smoothness prior.
+        data.setdefault("lag_smoothing_gain", 0.0)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
         options = data.get("model_options")
         if options:
@@ -484,9 +496,11 @@ class ChannelPipeline:
 
     def _choose_input_lags(self) -> None:
         """Once per channel: the input lags by validation on the record
-        (``umodel.structure``). A choice other than the model's own rebuilds the
-        identifier from the record (in order, trained where the channel trained) and the
-        channel must pass the horizon test again with it."""
+        (``umodel.structure``), and the smoothness prior the record's noise gives them
+        (``umodel.lag_prior``). A choice other than the model's own rebuilds the identifier
+        from the record (in order, trained where the channel trained), and the channel must
+        pass the horizon test again with it. A smoothed identifier whose output lags carry
+        a slower mode than the plain one's is not taken (``adds_a_slower_mode``)."""
         outputs, inputs = self.horizon_test.samples()
         runs = self.horizon_test.runs()
         choice = choose_input_lags(
@@ -494,24 +508,31 @@ class ChannelPipeline:
             inputs,
             float(self._options["u_scale"]),
             runs=runs,
+            smoothing_gain=float(self.settings.lag_smoothing_gain),
         )
         if choice is None and len(outputs) < LAG_CHOICE_RECORD:
             return  # no choice on this short a record: the full record decides
         self._lags_pending = False
         self.lag_choice = choice
-        if choice is None or choice.lags == self._input_lags:
+        if choice is None:
             return
-        self._options = {**self._options, "nb": choice.lags}
-        model = build_model("dynamic", seed=self._seed, **self._options)
-        assert isinstance(model, PredictiveModel)
-        history = model.history_length
-        for i, (y, u_prev, run) in enumerate(zip(outputs, inputs, runs, strict=True)):
-            # As the channel learnt them: every sample while no restart has come since the
-            # record began (run == i), then only once a restart's history has refilled.
-            if run == i or run > history:
-                model.step(u_prev, y)
+        plain = {**self._options, "nb": choice.lags, "lag_smoothing": 0.0}
+        unchanged = choice.lags == self._input_lags and not self._options.get("lag_smoothing")
+        model = None
+        if choice.smoothing > 0.0:
+            smooth = self._rebuilt({**plain, "lag_smoothing": choice.smoothing})
+            reference = self.model if unchanged else self._rebuilt(plain)
+            if adds_a_slower_mode(reference.dynamics().ar, smooth.dynamics().ar):
+                choice.reject_smoothing()
+                model = None if unchanged else reference
             else:
-                model.observe_only(u_prev, y)
+                model = smooth
+                plain["lag_smoothing"] = choice.smoothing
+        elif not unchanged:
+            model = self._rebuilt(plain)
+        if model is None:
+            return
+        self._options = plain
         self.model = model
         self._input_lags = choice.lags
         self.dynamics = model.dynamics()
@@ -521,7 +542,28 @@ class ChannelPipeline:
         self.controller.reset()
         if self.active:
             self.deactivate()
-        self.disqualify()
+        # Judged again, on the record it was rebuilt from (as the channel's own model is
+        # judged on the record it learnt from), before it may command.
+        self.qualified = False
+        self._horizon_ok = False
+        self._until_evaluation = 0
+
+    def _rebuilt(self, options: dict[str, Any]) -> PredictiveModel:
+        """A dynamic identifier with ``options`` trained on the horizon test's record in
+        order, where the channel trained (a restart's history refilled first)."""
+        outputs, inputs = self.horizon_test.samples()
+        runs = self.horizon_test.runs()
+        model = build_model("dynamic", seed=self._seed, **options)
+        assert isinstance(model, PredictiveModel)
+        history = model.history_length
+        for i, (y, u_prev, run) in enumerate(zip(outputs, inputs, runs, strict=True)):
+            # As the channel learnt them: every sample while no restart has come since the
+            # record began (run == i), then only once a restart's history has refilled.
+            if run == i or run > history:
+                model.step(u_prev, y)
+            else:
+                model.observe_only(u_prev, y)
+        return model
 
     def _bridge(self, missing: int, u_now: float) -> bool:
         """Carry the channel across ``missing`` lost samples, when at most ``bridge_gap``

@@ -132,13 +132,15 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
         m.json()["_header"]["system_id"] == 1 and m.json()["_header"]["component_id"] == 191
         for m in out_frames
     )
-    # Ballast commands went out as DO_SET_SERVO, servo 9 (depth) and 10 (pitch), one per
-    # channel each time, from the same identity; the only other commands are stream requests.
+    # Ballast commands went out as DO_SET_SERVO, servo 9 (depth) and 10 (pitch), one for
+    # each channel that commands, from the same identity; the only other commands are stream
+    # requests. Each channel qualifies on its own, so the counts need not be equal (a run
+    # beside a second test worker: depth 1,294, pitch 1,502; alone they were equal).
     commands = [m.json() for m in reader.messages({"mavlink/json/out/COMMAND_LONG"})]
     servos = Counter(
         int(c["param1"]) for c in commands if c["command"] == dialect.MAV_CMD_DO_SET_SERVO
     )
-    assert servos[9] == servos[10] > 1000 and set(servos) == {9, 10}, servos
+    assert servos[9] > 1000 and servos[10] > 1000 and set(servos) == {9, 10}, servos
     pwm = [c["param2"] for c in commands if c["command"] == dialect.MAV_CMD_DO_SET_SERVO]
     assert all(1100 <= us <= 1900 for us in pwm) and len(set(pwm)) > 10  # µs, and varied
     assert {c["command"] for c in commands} == {

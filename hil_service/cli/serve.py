@@ -153,6 +153,15 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         "them are known (default 5; 0: every gap resynchronises the identifier and restarts "
         "the horizon test's record; docs/control.md)",
     )
+    group.add_argument(
+        "--lag-smoothing-gain",
+        type=float,
+        default=None,
+        metavar="K",
+        help="with --input-lags auto, the smoothness prior on neighbouring input lags: its "
+        "weight is K times the record's one-step residual share (default 100; 0: none; "
+        "docs/control.md)",
+    )
 
 
 def _add_log_arguments(parser: argparse.ArgumentParser) -> None:
@@ -233,6 +242,8 @@ def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
         settings = settings.with_input_lag_choice(args.input_lags)
     if args.bridge_gap is not None:
         settings = settings.replace(bridge_gap=args.bridge_gap)
+    if args.lag_smoothing_gain is not None:
+        settings = settings.replace(lag_smoothing_gain=args.lag_smoothing_gain)
     if args.max_ballast_rate is not None:
         if not args.max_ballast_rate > 0:
             raise ValueError("--max-ballast-rate must be positive")

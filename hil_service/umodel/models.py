@@ -41,6 +41,7 @@ from .dynamics import ModelDynamics
 from .estimate import STATUSES, Estimate, Status
 from .guards import DivergenceMonitor, GuardConfig
 from .interface import OneStepModel
+from .lag_prior import smooth_lag_prior
 from .nlms import DEFAULT_EPS, NLMS
 from .rbf import GaussianRBF, evenly_spaced_centres
 from .reproducible import dot
@@ -482,10 +483,13 @@ class DynamicUModel(_ModelBase):
         u_scale: float = 2.0,
         lam: float = 0.9999,
         p0: float = 1000.0,
+        lag_smoothing: float = 0.0,
         seed: int = 0,
         guard: GuardConfig | dict[str, Any] | None = None,
     ) -> None:
         super().__init__(guard)
+        if not (math.isfinite(lag_smoothing) and lag_smoothing >= 0.0):
+            raise ValueError("lag_smoothing must be finite and >= 0")
         if int(na) != na or na < 1:
             raise ValueError("na must be an integer >= 1")
         if int(nb) != nb or nb < 1:
@@ -503,7 +507,12 @@ class DynamicUModel(_ModelBase):
         self.poly_scale = 1.0 / self.u_scale
         self.seed = int(seed)  # no random initialisation; kept for a uniform config
         n = self.degree * self.nb + 1 + self.na
-        self.rls = ListRLS(n, lam, p0)
+        #: The smoothness prior's weight on neighbouring input lags (``lag_prior``; 0: none).
+        self.lag_smoothing = float(lag_smoothing)
+        prior = None
+        if self.lag_smoothing > 0.0 and self.nb > 1:
+            prior = smooth_lag_prior(n, float(p0), self.lag_smoothing, self._lag_chains())
+        self.rls = ListRLS(n, lam, p0, prior=prior)
         self._ia = self.degree + 1  # index of a_1 (after the lag-1 powers and the bias)
         self._theta0: tuple[float, ...] = tuple(
             1.0 if i == self._ia else 0.0 for i in range(n)
@@ -526,6 +535,14 @@ class DynamicUModel(_ModelBase):
         self._spare_p: list[list[float]] = [[0.0] * n for _ in range(n)]
         self._can_undo = False
         self._reset_history()
+
+    def _lag_chains(self) -> list[list[int]]:
+        """θ's indices of each power's input lags 1 … nb, in lag order."""
+        m = self.degree
+        start = m + 1 + self.na
+        return [
+            [power] + [start + k * m + power for k in range(self.nb - 1)] for power in range(m)
+        ]
 
     def _powers(self, u: float) -> list[float]:
         x = u * self.poly_scale
@@ -688,6 +705,7 @@ class DynamicUModel(_ModelBase):
             "u_scale": self.u_scale,
             "lam": self.rls.lam,
             "p0": self.rls.p0,
+            "lag_smoothing": self.lag_smoothing,
             "seed": self.seed,
         }
 

@@ -88,22 +88,36 @@ class ListRLS:
     mirror, so P stays exactly symmetric. ``update`` returns the gain Pφ/(λ + φᵀPφ) applied.
     """
 
-    __slots__ = ("lam", "n", "p", "p0", "trace_max")
+    __slots__ = ("lam", "n", "p", "p0", "prior", "trace_max")
 
     def __init__(
-        self, n: int, lam: float = LAMBDA, p0: float = P0, trace_max: float | None = None
+        self,
+        n: int,
+        lam: float = LAMBDA,
+        p0: float = P0,
+        trace_max: float | None = None,
+        prior: list[list[float]] | None = None,
     ) -> None:
         tmax = _checked(n, lam, p0, trace_max)
         self.n = n
         self.lam = float(lam)
         self.p0 = float(p0)
         self.trace_max = tmax
+        #: The covariance P starts from and returns to on a reset (None: p0·I).
+        self.prior: list[list[float]] | None = None
+        if prior is not None:
+            if len(prior) != n or any(len(row) != n for row in prior):
+                raise ValueError(f"the prior covariance must be {n} x {n}")
+            self.prior = [[float(v) for v in row] for row in prior]
         self.p: list[list[float]] = []
         self.reset()
 
     def reset(self) -> None:
-        """Back to P = p0·I (after a divergence)."""
+        """Back to the prior covariance, p0·I unless given (after a divergence)."""
         n = self.n
+        if self.prior is not None:
+            self.p = [list(row) for row in self.prior]
+            return
         self.p = [[self.p0 if i == j else 0.0 for j in range(n)] for i in range(n)]
 
     def update(

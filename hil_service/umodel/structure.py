@@ -29,6 +29,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .lag_prior import NOISE_FLOOR
+
 __all__ = ["INPUT_LAG_CANDIDATES", "LagChoice", "choose_input_lags"]
 
 #: The input lags tried: the model's default and enough for the delays up to 6 samples.
@@ -36,13 +38,26 @@ INPUT_LAG_CANDIDATES: tuple[int, ...] = (4, 6, 8)
 
 
 class LagChoice:
-    """The chosen number of input lags and each candidate's validation fit (0–1)."""
+    """The chosen number of input lags, each candidate's validation fit (0–1) and the
+    smoothness prior's weight given with them."""
 
-    __slots__ = ("fits", "lags")
+    __slots__ = ("fits", "lags", "residual", "smoothing", "smoothing_rejected")
 
-    def __init__(self, lags: int, fits: dict[int, float]) -> None:
+    def __init__(
+        self, lags: int, fits: dict[int, float], smoothing: float = 0.0, residual: float = 0.0
+    ) -> None:
         self.lags = lags
         self.fits = fits
+        #: The smoothness prior's weight (``lag_prior``): the gain times ``residual``.
+        self.smoothing = smoothing
+        #: The chosen candidate's one-step residual share on the record (0–1).
+        self.residual = residual
+        self.smoothing_rejected = False
+
+    def reject_smoothing(self) -> None:
+        """The identifier keeps no smoothness prior (``lag_prior.adds_a_slower_mode``)."""
+        self.smoothing = 0.0
+        self.smoothing_rejected = True
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -50,6 +65,9 @@ class LagChoice:
             "fits": {
                 str(k): round(v, 4) if math.isfinite(v) else None for k, v in self.fits.items()
             },
+            "residual": round(self.residual, 6),
+            "lag_smoothing": round(self.smoothing, 6),
+            "lag_smoothing_rejected": self.smoothing_rejected,
         }
 
 
@@ -104,6 +122,7 @@ def choose_input_lags(
     tie: float = 0.02,
     qualify: float = 0.5,
     runs: Sequence[int] | None = None,
+    smoothing_gain: float = 0.0,
 ) -> LagChoice | None:
     """The input lags for a record of consecutive samples: ``outputs[t]`` and ``inputs[t]``,
     the input applied one step before it (as ``HorizonTest`` records them). ``runs[t]``,
@@ -128,15 +147,21 @@ def choose_input_lags(
         return None
     y = (y - y[0]) / spread  # the regression is the same in any output unit and offset
     fits: dict[int, float] = {}
+    residuals: dict[int, float] = {}
     for lags in candidates:
         design = np.array([_regressors(y, u, t, na, lags, degree) for t in rows])
-        theta, *_ = np.linalg.lstsq(design, y[rows], rcond=None)
+        target = y[rows]
+        theta, *_ = np.linalg.lstsq(design, target, rcond=None)
         if not np.all(np.isfinite(theta)):
             return None
         fits[lags] = _validation_fit(theta, y, u, split, na, lags, degree, segment, run, first)
+        spread_rows = float(np.var(target))
+        residual = float(np.mean((target - design @ theta) ** 2))
+        residuals[lags] = residual / spread_rows if spread_rows > 0.0 else 0.0
     best = max(fits.values())
     if not math.isfinite(best):
         return None
-    if best < qualify:
-        return LagChoice(candidates[0], fits)
-    return LagChoice(min(k for k, v in fits.items() if v >= best - tie), fits)
+    lags = candidates[0] if best < qualify else min(k for k, v in fits.items() if v >= best - tie)
+    residual = residuals[lags]
+    weight = smoothing_gain * residual if residual >= NOISE_FLOOR else 0.0
+    return LagChoice(lags, fits, weight, residual)

@@ -1,0 +1,140 @@
+"""The smoothness prior on the dynamic U-model's input lags (``umodel.lag_prior``): what it
+does to a noisy record's lags, why a record without noise does not get it, and the
+pipeline's choice of it (docs/control.md, "A smoothness prior on the input lags")."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hil_service.experiment.closed_loop import ClosedLoopSettings
+from hil_service.experiment.family_loop import run_vehicle
+from hil_service.pipeline import PipelineSettings
+from hil_service.umodel import DynamicUModel
+from hil_service.umodel.lag_prior import (
+    LAG_SMOOTHING_GAIN,
+    adds_a_slower_mode,
+    chain_covariance,
+    slowest_mode,
+)
+from hil_service.umodel.structure import choose_input_lags
+from plant_emulator.family import draw_vehicle
+
+
+def _record(noise: float, n: int = 900, seed: int = 0, pole: float = 0.8, delay: int = 1):
+    """y = pole·y(t−1) + 0.4·u(t−1−delay) + white noise, the input a random step every 25
+    samples: (y[t], the input applied at t − 1), as the horizon test records them."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-1.5, 1.5, n // 25 + 1), 25)[:n]
+    x = np.zeros(n)
+    for t in range(1 + delay, n):
+        x[t] = pole * x[t - 1] + 0.4 * u[t - 1 - delay]
+    y = x + noise * rng.standard_normal(n)
+    return y[1:], u[:-1]
+
+
+def _identified_lags(y, u, smoothing: float) -> np.ndarray:
+    model = DynamicUModel(nb=6, lag_smoothing=smoothing, u_scale=2.0)
+    for yt, ut in zip(y, u, strict=True):
+        model.step(float(ut), float(yt))
+    return np.array([poly[0] for poly in model.dynamics().lag_polys])
+
+
+def test_the_chain_covariance_is_the_inverse_of_the_prior_information():
+    length, p0, weight = 6, 1000.0, 3.0
+    d = np.diff(np.eye(length), axis=0)
+    information = np.eye(length) / p0 + weight * d.T @ d
+    covariance = np.array(chain_covariance(length, p0, weight))
+    assert np.allclose(covariance @ information, np.eye(length), atol=1e-9)
+    assert np.array_equal(covariance, covariance.T)
+    with pytest.raises(ValueError):
+        chain_covariance(0, p0, weight)
+    with pytest.raises(ValueError):
+        DynamicUModel(lag_smoothing=-1.0)
+
+
+def test_on_a_noisy_record_the_prior_stops_the_input_lags_alternating():
+    y, u = _record(noise=0.3)
+    plain = _identified_lags(y, u, 0.0)
+    smooth = _identified_lags(y, u, 3.0)
+    # Neighbouring lags' differences: the record hardly fixes them, the prior ties them.
+    assert np.abs(np.diff(smooth)).sum() < 0.5 * np.abs(np.diff(plain)).sum(), (plain, smooth)
+    # Their sum (the steady-state gain over the lags) is what the record does fix.
+    assert smooth.sum() == pytest.approx(plain.sum(), rel=0.25)
+
+
+def test_on_a_record_without_noise_the_prior_buys_smooth_lags_with_a_slower_mode():
+    # A first-order plant without delay: its four input lags and four output lags can
+    # carry a common factor at no cost, and the prior picks the one with smooth lags.
+    y, u = _record(noise=0.0, pole=0.5, delay=0)
+    fitted = {}
+    for weight in (0.0, 3.0):
+        model = DynamicUModel(nb=4, lag_smoothing=weight, u_scale=2.0)
+        for yt, ut in zip(y, u, strict=True):
+            model.step(float(ut), float(yt))
+        fitted[weight] = model.dynamics().ar
+    assert slowest_mode(fitted[0.0]) == pytest.approx(0.5, abs=1e-3)
+    assert slowest_mode(fitted[3.0]) > 0.95
+    assert adds_a_slower_mode(fitted[0.0], fitted[3.0]), fitted
+
+
+def test_the_choice_weighs_the_prior_by_the_record_s_noise_in_any_unit():
+    quiet = choose_input_lags(*_record(noise=0.0), u_scale=2.0, smoothing_gain=100.0)
+    assert quiet is not None and quiet.smoothing == pytest.approx(0.0, abs=1e-6)
+    y, u = _record(noise=0.3)
+    noisy = choose_input_lags(y, u, u_scale=2.0, smoothing_gain=100.0)
+    assert noisy is not None and noisy.smoothing > 0.1
+    scaled = choose_input_lags(1000.0 + 1e-3 * y, u, u_scale=2.0, smoothing_gain=100.0)
+    assert scaled is not None and scaled.smoothing == pytest.approx(noisy.smoothing, rel=1e-6)
+    off = choose_input_lags(y, u, u_scale=2.0)
+    assert off is not None and off.smoothing == 0.0 and off.lags == noisy.lags
+
+
+def test_the_gain_is_a_serve_flag_stored_and_a_log_from_before_replays_without_it():
+    import argparse
+
+    from hil_service.cli.serve import add_arguments, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert settings_from_args(parser.parse_args([])).lag_smoothing_gain == LAG_SMOOTHING_GAIN
+    off = settings_from_args(parser.parse_args(["--lag-smoothing-gain", "0"]))
+    assert off.lag_smoothing_gain == 0.0
+    data = json.loads(json.dumps(off.to_json()))
+    assert PipelineSettings.from_json(data).lag_smoothing_gain == 0.0
+    data = PipelineSettings().to_json()
+    assert PipelineSettings.from_json(data).lag_smoothing_gain == LAG_SMOOTHING_GAIN
+    del data["lag_smoothing_gain"]
+    assert PipelineSettings.from_json(data).lag_smoothing_gain == 0.0
+    with pytest.raises(ValueError, match="lag_smoothing_gain"):
+        PipelineSettings(lag_smoothing_gain=-1.0)
+
+
+def _family_row(seed: int, vehicle: int, channel: str, settings: PipelineSettings):
+    loop = ClosedLoopSettings(
+        seed=seed, samples=2000, identify=800, step_every=300, scenario="family", oracle=False,
+        neutral_after_identify=True,
+    )
+    rows, _ = run_vehicle(loop, *draw_vehicle(seed, vehicle), settings)
+    return next(r for r in rows if r.spec.channel == channel)
+
+
+def test_a_noisy_family_plant_whose_lags_alternated_tracks_as_reference_only():
+    # Seed 12's vehicle 1 depth (a tuning plant): white noise, delay 3; without the prior
+    # its identified lags alternate in sign and the plan chatters.
+    plain = _family_row(12, 1, "depth", PipelineSettings(seed=12, lag_smoothing_gain=0.0))
+    smooth = _family_row(12, 1, "depth", PipelineSettings(seed=12))
+    assert plain.reference_ratio > 2.0
+    assert smooth.reference_ratio < 1.1
+    assert smooth.trips == 0 and smooth.commanded > 1000
+
+
+def test_a_plant_without_noise_keeps_its_plain_identifier_and_commands():
+    # Seed 13's vehicle 8 depth (a tuning plant): first order, delay 3, a dead zone, no
+    # disturbance. Even the tiny weight its residual gives buys smooth lags with an
+    # unstable common factor; the channel rejects that fit and commands with the plain one.
+    settings = PipelineSettings(seed=13)
+    row = _family_row(13, 8, "depth", settings)
+    assert row.horizon_passed and row.commanded > 1000 and row.reference_ratio < 1.0
