@@ -459,7 +459,9 @@ class DynamicUModel(_ModelBase):
       acts on every lag, and the controller reads the lag polynomials as one static map
       times a linear filter (see :mod:`.predictive`).
 
-    θ starts at persistence (a₁ = 1), so the first predictions are sane.
+    θ starts at persistence (a₁ = 1), so the first predictions are sane. ``lag_smoothing``
+    > 0 starts P from a smoothness prior on neighbouring input lags (``lag_prior``; the
+    pipeline gives it with the input lags' choice).
 
     **Output scale.** The regression runs on normalised outputs (y − y_ref)/s, with y_ref
     the first measured level and s = ``SCALE_MARGIN`` × the largest |y − y_ref| seen when it

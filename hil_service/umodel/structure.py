@@ -19,6 +19,10 @@ models none of which predicts over the segments the choice would be noise. It is
 choice's own threshold, not the horizon test's, which judges a different question (may
 this model command) on the controller's horizon.
 
+With the lags comes the weight of the smoothness prior on them (``lag_prior``): the gain
+given times the chosen candidate's one-step residual share on its training rows (the
+residual's variance over the output's), none below ``lag_prior.NOISE_FLOOR``.
+
 Pure (numpy only) and deterministic for a record.
 """
 
