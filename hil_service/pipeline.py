@@ -143,6 +143,9 @@ class PipelineSettings:
     #: choice: its weight is this times the record's one-step residual share
     #: (``umodel.lag_prior``, docs/control.md); 0 gives none.
     lag_smoothing_gain: float = LAG_SMOOTHING_GAIN
+    #: A rebuilt identifier (other input lags, or the prior) is judged on the record it was
+    #: rebuilt from; False: on a record started afresh at the rebuild.
+    rebuild_keeps_record: bool = True
 
     def __post_init__(self) -> None:
         gain = self.lag_smoothing_gain
@@ -211,6 +214,8 @@ class PipelineSettings:
         data.setdefault("bridge_gap", 0)
         # A log recorded before the input lags' choice gave a smoothness prior.
         data.setdefault("lag_smoothing_gain", 0.0)
+        # ... and before a rebuilt identifier was judged on its record.
+        data.setdefault("rebuild_keeps_record", False)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
         options = data.get("model_options")
         if options:
@@ -542,6 +547,9 @@ class ChannelPipeline:
         self.controller.reset()
         if self.active:
             self.deactivate()
+        if not self.settings.rebuild_keeps_record:
+            self.disqualify()
+            return
         # Judged again, on the record it was rebuilt from (as the channel's own model is
         # judged on the record it learnt from), before it may command.
         self.qualified = False

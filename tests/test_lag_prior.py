@@ -106,8 +106,10 @@ def test_the_gain_is_a_serve_flag_stored_and_a_log_from_before_replays_without_i
     assert PipelineSettings.from_json(data).lag_smoothing_gain == 0.0
     data = PipelineSettings().to_json()
     assert PipelineSettings.from_json(data).lag_smoothing_gain == LAG_SMOOTHING_GAIN
-    del data["lag_smoothing_gain"]
-    assert PipelineSettings.from_json(data).lag_smoothing_gain == 0.0
+    assert PipelineSettings.from_json(data).rebuild_keeps_record
+    del data["lag_smoothing_gain"], data["rebuild_keeps_record"]
+    old = PipelineSettings.from_json(data)
+    assert old.lag_smoothing_gain == 0.0 and not old.rebuild_keeps_record
     with pytest.raises(ValueError, match="lag_smoothing_gain"):
         PipelineSettings(lag_smoothing_gain=-1.0)
 
@@ -138,3 +140,21 @@ def test_a_plant_without_noise_keeps_its_plain_identifier_and_commands():
     settings = PipelineSettings(seed=13)
     row = _family_row(13, 8, "depth", settings)
     assert row.horizon_passed and row.commanded > 1000 and row.reference_ratio < 1.0
+
+
+def test_an_identifier_rebuilt_with_other_lags_is_judged_on_its_record():
+    # Seed 11's vehicle 12 pitch (first order, delay 5, no noise), asked to command after
+    # 400 samples, chooses more input lags then; the rebuilt identifier passes the horizon
+    # test on the record it was rebuilt from and commands from the first controlled sample,
+    # where a record started afresh (as a log from before replays) must refill first, at
+    # neutral meanwhile.
+    loop = ClosedLoopSettings(
+        seed=11, samples=2000, identify=400, step_every=300, scenario="family", oracle=False,
+        neutral_after_identify=True,
+    )
+    rows = {}
+    for kept in (True, False):
+        settings = PipelineSettings(seed=11, rebuild_keeps_record=kept)
+        rows[kept] = run_vehicle(loop, *draw_vehicle(11, 12), settings)[0][1]
+    assert rows[True].commanded == 1600 and rows[True].reference_ratio < 1.0
+    assert rows[False].commanded < 1600 and rows[False].reference_ratio > 1.1
