@@ -11,10 +11,11 @@ import pytest
 
 from hil_service.experiment.closed_loop import ClosedLoopSettings
 from hil_service.experiment.family_loop import run_vehicle
-from hil_service.pipeline import PipelineSettings
+from hil_service.pipeline import ChannelPipeline, PipelineSettings
 from hil_service.umodel import DynamicUModel
 from hil_service.umodel.lag_prior import (
     LAG_SMOOTHING_GAIN,
+    NOISE_FLOOR,
     adds_a_slower_mode,
     chain_covariance,
     slowest_mode,
@@ -82,7 +83,10 @@ def test_on_a_record_without_noise_the_prior_buys_smooth_lags_with_a_slower_mode
 
 def test_the_choice_weighs_the_prior_by_the_record_s_noise_in_any_unit():
     quiet = choose_input_lags(*_record(noise=0.0), u_scale=2.0, smoothing_gain=100.0)
-    assert quiet is not None and quiet.smoothing == pytest.approx(0.0, abs=1e-6)
+    assert quiet is not None and quiet.smoothing == 0.0
+    # Noise whose residual share is below the floor (as the glider's records): none.
+    faint = choose_input_lags(*_record(noise=0.02), u_scale=2.0, smoothing_gain=100.0)
+    assert faint is not None and 0.0 < faint.residual < NOISE_FLOOR and faint.smoothing == 0.0
     y, u = _record(noise=0.3)
     noisy = choose_input_lags(y, u, u_scale=2.0, smoothing_gain=100.0)
     assert noisy is not None and noisy.smoothing > 0.1
@@ -135,8 +139,9 @@ def test_a_noisy_family_plant_whose_lags_alternated_tracks_as_reference_only():
 
 def test_a_plant_without_noise_keeps_its_plain_identifier_and_commands():
     # Seed 13's vehicle 8 depth (a tuning plant): first order, delay 3, a dead zone, no
-    # disturbance. Even the tiny weight its residual gives buys smooth lags with an
-    # unstable common factor; the channel rejects that fit and commands with the plain one.
+    # disturbance. Even the tiny weight its residual share (8·10⁻⁶) would give buys smooth
+    # lags with an unstable common factor (a mode of 4.4, never qualified); below the noise
+    # floor it gets none and commands with the plain identifier.
     settings = PipelineSettings(seed=13)
     row = _family_row(13, 8, "depth", settings)
     assert row.horizon_passed and row.commanded > 1000 and row.reference_ratio < 1.0
@@ -158,3 +163,32 @@ def test_an_identifier_rebuilt_with_other_lags_is_judged_on_its_record():
         rows[kept] = run_vehicle(loop, *draw_vehicle(11, 12), settings)[0][1]
     assert rows[True].commanded == 1600 and rows[True].reference_ratio < 1.0
     assert rows[False].commanded < 1600 and rows[False].reference_ratio > 1.1
+
+
+def _observed_channel(gain: float) -> ChannelPipeline:
+    """A channel fed 900 samples of y = 0.5·y(t−1) + 0.4·u(t−1) + white noise (0.03) under
+    a step every 25 samples: its input lags are chosen at 600."""
+    rng = np.random.default_rng(0)
+    steps = rng.uniform(-1.5, 1.5, 40)
+    channel = ChannelPipeline("depth", PipelineSettings(lag_smoothing_gain=gain), 0)
+    x = 0.0
+    for k in range(900):
+        u = float(steps[k // 25])
+        channel.observe(float(k), x + 0.03 * float(rng.standard_normal()), u)
+        x = 0.5 * x + 0.4 * u
+    return channel
+
+
+def test_the_channel_refuses_a_smoothed_identifier_with_a_slower_mode():
+    # The record's noise is just above the floor (residual share 0.0014). At a gain of 30
+    # the smoothed fit keeps the plant's mode and is taken; at the default 100 and above
+    # its smooth lags come with a slower mode, and the channel keeps the plain identifier.
+    taken = _observed_channel(30.0)
+    assert taken.lag_choice is not None and not taken.lag_choice.smoothing_rejected
+    assert taken.lag_choice.smoothing > 0.0
+    assert taken.model.config()["lag_smoothing"] == taken.lag_choice.smoothing
+    refused = _observed_channel(300.0)
+    assert refused.lag_choice is not None and refused.lag_choice.smoothing_rejected
+    assert refused.lag_choice.as_json()["lag_smoothing"] == 0.0
+    assert refused.model.config()["lag_smoothing"] == 0.0
+    assert slowest_mode(refused.model.dynamics().ar) < 0.5
