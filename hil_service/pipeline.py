@@ -523,21 +523,23 @@ class ChannelPipeline:
             return
         plain = {**self._options, "nb": choice.lags, "lag_smoothing": 0.0}
         unchanged = choice.lags == self._input_lags and not self._options.get("lag_smoothing")
-        model = None
+        record = (outputs, inputs, runs)
+        options, model = plain, None
         if choice.smoothing > 0.0:
-            smooth = self._rebuilt({**plain, "lag_smoothing": choice.smoothing})
-            reference = self.model if unchanged else self._rebuilt(plain)
-            if adds_a_slower_mode(reference.dynamics().ar, smooth.dynamics().ar):
-                choice.reject_smoothing()
-                model = None if unchanged else reference
+            smoothed = {**plain, "lag_smoothing": choice.smoothing}
+            smooth = self._rebuilt(smoothed, *record)
+            reference = self.model if unchanged else self._rebuilt(plain, *record)
+            if not adds_a_slower_mode(reference.dynamics().ar, smooth.dynamics().ar):
+                options, model = smoothed, smooth
             else:
-                model = smooth
-                plain["lag_smoothing"] = choice.smoothing
+                choice.reject_smoothing()
+                if not unchanged:
+                    model = reference
         elif not unchanged:
-            model = self._rebuilt(plain)
+            model = self._rebuilt(plain, *record)
         if model is None:
             return
-        self._options = plain
+        self._options = options
         self.model = model
         self._input_lags = choice.lags
         self.dynamics = model.dynamics()
@@ -547,20 +549,19 @@ class ChannelPipeline:
         self.controller.reset()
         if self.active:
             self.deactivate()
-        if not self.settings.rebuild_keeps_record:
-            self.disqualify()
-            return
-        # Judged again, on the record it was rebuilt from (as the channel's own model is
-        # judged on the record it learnt from), before it may command.
-        self.qualified = False
-        self._horizon_ok = False
-        self._until_evaluation = 0
+        # Judged again before it may command: on the record it was rebuilt from, as the
+        # channel's own model is judged on the record it learnt from.
+        self.disqualify(keep_record=self.settings.rebuild_keeps_record)
 
-    def _rebuilt(self, options: dict[str, Any]) -> PredictiveModel:
+    def _rebuilt(
+        self,
+        options: dict[str, Any],
+        outputs: list[float],
+        inputs: list[float],
+        runs: list[int],
+    ) -> PredictiveModel:
         """A dynamic identifier with ``options`` trained on the horizon test's record in
         order, where the channel trained (a restart's history refilled first)."""
-        outputs, inputs = self.horizon_test.samples()
-        runs = self.horizon_test.runs()
         model = build_model("dynamic", seed=self._seed, **options)
         assert isinstance(model, PredictiveModel)
         history = model.history_length
@@ -850,10 +851,12 @@ class ChannelPipeline:
     def _horizon_passes(self, horizon: int) -> bool:
         return self._horizon_ok
 
-    def disqualify(self) -> None:
-        """The model must pass the horizon test again, on data taken from now on."""
+    def disqualify(self, keep_record: bool = False) -> None:
+        """The model must pass the horizon test again: on data taken from now on, or with
+        ``keep_record`` on the record as it is (at the next sample)."""
         self.qualified = False
-        self.horizon_test.reset()
+        if not keep_record:
+            self.horizon_test.reset()
         self._horizon_ok = False
         self._until_evaluation = 0
 

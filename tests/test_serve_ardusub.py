@@ -134,8 +134,7 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
     )
     # Ballast commands went out as DO_SET_SERVO, servo 9 (depth) and 10 (pitch), one for
     # each channel that commands, from the same identity; the only other commands are stream
-    # requests. Each channel qualifies on its own, so the counts need not be equal (a run
-    # beside a second test worker: depth 1,294, pitch 1,502; alone they were equal).
+    # requests. Each channel qualifies on its own, so the two counts need not be equal.
     commands = [m.json() for m in reader.messages({"mavlink/json/out/COMMAND_LONG"})]
     servos = Counter(
         int(c["param1"]) for c in commands if c["command"] == dialect.MAV_CMD_DO_SET_SERVO

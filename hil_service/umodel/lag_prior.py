@@ -11,15 +11,18 @@ the same power are alike: the information the covariance P starts from is
 
 D the first-difference matrix and w the weight, in the regression's normalised units
 (inputs over their scale, outputs over the output scale), so that it means the same on
-every vehicle. With forgetting this slow (λ = 0.9999) the prior is the penalty
-w·Σ(b_k − b_{k+1})² of a batch least-squares fit, which is how ``structure`` judges it.
+every vehicle. With forgetting this slow (λ = 0.9999) the prior acts as the penalty
+w·Σ(b_k − b_{k+1})² of a batch least-squares fit.
 
 It is not the identifier's default: on a record without noise the regression's output and
 input lags can trade a common factor at no cost, and the prior then prefers smooth input
-lags bought with a wild (even unstable) common factor. The channel takes it only where it
-predicts better on data it was not fitted on (``structure``).
+lags bought with a wild (even unstable) common factor. So w follows the record's noise
+(``LAG_SMOOTHING_GAIN`` times its one-step residual share, none below ``NOISE_FLOOR``:
+``structure``), and the channel keeps a smoothed identifier only when
+``adds_a_slower_mode`` says it did not buy its lags that way (``hil_service.pipeline``).
 
-Pure: plain float lists, fixed-order sums, no I/O.
+Pure, no I/O: the prior in plain float lists and fixed-order sums (it starts the RLS, whose
+figures replay bit for bit); the modes by ``numpy.roots``, a yes/no verdict.
 """
 
 from __future__ import annotations
@@ -96,7 +99,6 @@ def smooth_lag_prior(
             for bj, j in enumerate(chain):
                 p[i][j] = block[bi][bj]
     return p
-
 
 
 def slowest_mode(ar: list[float]) -> float:
