@@ -14,10 +14,14 @@ when no companion commands it; disarmed, it holds neutral ballast instead (a com
 commands are obeyed either way, as ArduPilot obeys DO_SET_SERVO disarmed). It starts armed.
 
 Steps are scheduled to absolute deadlines (start + k·period/speed), so timing error does
-not accumulate over long runs. ``run`` is the one loop of both profiles; a subclass changes
-what a step sends (``step_messages``) and which streams it has (``_profile_streams_due``).
-One module over 500 lines: the loop, the command handling and the ground-station streams are
-the base the ArduSub profile overrides piece by piece, so they stay in one class.
+not accumulate over long runs. An emulator more than ``max_lag_steps`` behind its schedule (a
+stalled or loaded host) does not catch up in a burst, which would run the plant on commands the
+link has not yet had the time to carry: its schedule slips instead, as if the vehicle's time
+had paused with the host, and ``slips``/``slipped_s`` count it. ``run`` is the one loop of
+both profiles; a subclass changes what a step sends (``step_messages``) and which streams it
+has (``_profile_streams_due``). One module over 500 lines: the loop, the command handling and
+the ground-station streams are the base the ArduSub profile overrides piece by piece, so they
+stay in one class.
 """
 
 from __future__ import annotations
@@ -88,10 +92,15 @@ class AutopilotConfig:
     #: With a key: still accept unsigned frames that are not commands (a GCS heartbeat).
     accept_unsigned_non_commands: bool = False
     navigation: NavigationConfig = field(default_factory=NavigationConfig)
+    #: Plant steps the emulator may fall behind its schedule and still catch up; beyond
+    #: them the schedule slips.
+    max_lag_steps: int = 3
 
     def __post_init__(self) -> None:
         if not (self.speed > 0 and math.isfinite(self.speed)):
             raise ValueError(f"speed must be positive, got {self.speed}")
+        if self.max_lag_steps < 1:
+            raise ValueError(f"max_lag_steps must be at least 1, got {self.max_lag_steps}")
         if self.fallback not in FALLBACKS:
             raise ValueError(f"fallback must be one of {FALLBACKS}, got {self.fallback!r}")
         if not 1 <= self.system_id <= 255:
@@ -113,12 +122,15 @@ class AutopilotStats:
     arms: int = 0
     disarms: int = 0
     arms_refused: int = 0
+    slips: int = 0  # times the schedule slipped rather than catch up in a burst
+    slipped_s: float = 0.0  # simulated seconds the slips paused the vehicle for
     last_sample: TelemetrySample | None = field(default=None, repr=False)
 
     def as_dict(self, codec: MavlinkCodec) -> dict[str, object]:
         summary: dict[str, object] = {
             key: value for key, value in self.__dict__.items() if key != "last_sample"
         }
+        summary["slipped_s"] = round(self.slipped_s, 3)
         summary.update({f"rx_{k}": v for k, v in codec.counters.as_dict().items()})
         if codec.verifier is not None:
             summary.update({f"rx_{k}": v for k, v in codec.verifier.counters.as_dict().items()})
@@ -540,6 +552,12 @@ class Autopilot:
             now = self.clock()
             self.heartbeat_if_due(now)
             deadline = start + self.stats.steps * wall_period
+            behind = now - deadline
+            if behind > self.config.max_lag_steps * wall_period:
+                start = self._start = start + behind
+                deadline = now
+                self.stats.slips += 1
+                self.stats.slipped_s += behind * speed
             if now >= deadline:
                 # What fell due before this step reports the state before it: a message is
                 # never stamped earlier than the reading it carries.
