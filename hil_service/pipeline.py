@@ -505,7 +505,9 @@ class ChannelPipeline:
         (``umodel.lag_prior``). A choice other than the model's own rebuilds the identifier
         from the record (in order, trained where the channel trained), and the channel must
         pass the horizon test again with it. A smoothed identifier whose output lags carry
-        a slower mode than the plain one's is not taken (``adds_a_slower_mode``)."""
+        a slower mode than the plain one's is not taken (``adds_a_slower_mode``), nor a
+        prior alone while the channel commands (the choice then came under way: its record
+        reached ``LAG_CHOICE_RECORD`` samples after the first command)."""
         outputs, inputs = self.horizon_test.samples()
         runs = self.horizon_test.runs()
         choice = choose_input_lags(
@@ -523,6 +525,11 @@ class ChannelPipeline:
             return
         plain = {**self._options, "nb": choice.lags, "lag_smoothing": 0.0}
         unchanged = choice.lags == self._input_lags and not self._options.get("lag_smoothing")
+        if unchanged and self.active and choice.smoothing > 0.0:
+            # Commanding on a standing verdict, with the lags chosen: the prior alone does
+            # not stop it. A rebuilt identifier would be judged on a record the loop has
+            # held near its setpoint, where no model's prediction has a change to show.
+            choice.withhold_smoothing()
         record = (outputs, inputs, runs)
         options, model = plain, None
         if choice.smoothing > 0.0:

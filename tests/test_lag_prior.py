@@ -5,6 +5,7 @@ pipeline's choice of it (docs/control.md, "A smoothness prior on the input lags"
 from __future__ import annotations
 
 import json
+import random
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from hil_service.umodel.lag_prior import (
 )
 from hil_service.umodel.structure import choose_input_lags
 from plant_emulator.family import FamilyVehicle, draw_vehicle
+from tests.harm_rig import Loop, spec
 
 
 def _record(noise: float, n: int = 900, seed: int = 0, pole: float = 0.8, delay: int = 1):
@@ -208,3 +210,30 @@ def test_the_channel_refuses_a_smoothed_identifier_with_a_slower_mode():
     assert refused.lag_choice.as_json()["lag_smoothing"] == 0.0
     assert refused.model.config()["lag_smoothing"] == 0.0
     assert slowest_mode(refused.model.dynamics().ar) < 0.5
+
+
+def test_a_channel_commanding_when_its_lags_are_chosen_keeps_its_identifier():
+    # A noisy plant whose record restarts (a reboot) while the channel commands: it
+    # qualifies again and commands before its record is long enough to choose the lags,
+    # so the choice comes under way. Rebuilding the identifier for the prior alone would
+    # stop the channel for a verdict on a record the loop has held near its setpoint; the
+    # prior is withheld and the channel commands on.
+    rng = random.Random(5)
+    loop = Loop(spec(), spec(), disturbance=lambda k: 0.1 * rng.gauss(0.0, 1.0))
+    loop.run(60, {"depth": None, "pitch": None}, enabled=False)
+    loop.run(150, {"depth": 15.5, "pitch": None})
+    loop.restart_clock()
+    loop.run(1200, {"depth": 15.5, "pitch": None})
+    channel = loop.pipeline.channels["depth"]
+    choice = channel.lag_choice
+    assert choice is not None and choice.residual >= NOISE_FLOOR
+    assert choice.smoothing_withheld and choice.smoothing == 0.0
+    assert channel.config()["lag_smoothing"] == 0.0
+    modes = [mode.split("/")[0] for mode in loop.modes]
+    commanded = [k for k, mode in enumerate(modes) if mode not in ("", "-", "safe")]
+    idle = [k for k in range(commanded[0], len(modes)) if modes[k] in ("", "-", "safe")]
+    # The one stretch without commands is the early trip's hold-off, before the choice.
+    trips = [e for e in loop.events if e["channel"] == "depth" and e["event"] == "trip"]
+    assert len(trips) == 1
+    assert idle == list(range(idle[0], idle[0] + len(idle))), idle
+    assert len(commanded) > 1000

@@ -45,7 +45,9 @@ class LagChoice:
     """The chosen number of input lags, each candidate's validation fit (0–1) and the
     smoothness prior's weight given with them."""
 
-    __slots__ = ("fits", "lags", "residual", "smoothing", "smoothing_rejected")
+    __slots__ = (
+        "fits", "lags", "residual", "smoothing", "smoothing_rejected", "smoothing_withheld",
+    )  # fmt: skip
 
     def __init__(
         self, lags: int, fits: dict[int, float], smoothing: float = 0.0, residual: float = 0.0
@@ -57,11 +59,19 @@ class LagChoice:
         #: The chosen candidate's one-step residual share on the record (0–1).
         self.residual = residual
         self.smoothing_rejected = False
+        #: The prior was not given: the choice came while the channel commanded and kept
+        #: its lags (the pipeline's ``_choose_input_lags``).
+        self.smoothing_withheld = False
 
     def reject_smoothing(self) -> None:
         """The identifier keeps no smoothness prior (``lag_prior.adds_a_slower_mode``)."""
         self.smoothing = 0.0
         self.smoothing_rejected = True
+
+    def withhold_smoothing(self) -> None:
+        """The identifier keeps no smoothness prior: it commands with these lags already."""
+        self.smoothing = 0.0
+        self.smoothing_withheld = True
 
     def as_json(self) -> dict[str, object]:
         return {
@@ -72,6 +82,7 @@ class LagChoice:
             "residual": round(self.residual, 6),
             "lag_smoothing": round(self.smoothing, 6),
             "lag_smoothing_rejected": self.smoothing_rejected,
+            "lag_smoothing_withheld": self.smoothing_withheld,
         }
 
 
