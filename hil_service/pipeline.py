@@ -531,19 +531,16 @@ class ChannelPipeline:
             # held near its setpoint, where no model's prediction has a change to show.
             choice.withhold_smoothing()
         record = (outputs, inputs, runs)
-        options, model = plain, None
+        options = plain
+        model = None if unchanged else self._rebuilt(plain, *record)
         if choice.smoothing > 0.0:
             smoothed = {**plain, "lag_smoothing": choice.smoothing}
             smooth = self._rebuilt(smoothed, *record)
-            reference = self.model if unchanged else self._rebuilt(plain, *record)
-            if not adds_a_slower_mode(reference.dynamics().ar, smooth.dynamics().ar):
-                options, model = smoothed, smooth
-            else:
+            reference = self.model if model is None else model
+            if adds_a_slower_mode(reference.dynamics().ar, smooth.dynamics().ar):
                 choice.reject_smoothing()
-                if not unchanged:
-                    model = reference
-        elif not unchanged:
-            model = self._rebuilt(plain, *record)
+            else:
+                options, model = smoothed, smooth
         if model is None:
             return
         self._options = options

@@ -161,16 +161,16 @@ def choose_input_lags(
     if not spread > 0.0:
         return None
     y = (y - y[0]) / spread  # the regression is the same in any output unit and offset
+    target = y[rows]
+    spread_rows = float(np.var(target))
     fits: dict[int, float] = {}
     residuals: dict[int, float] = {}
     for lags in candidates:
         design = np.array([_regressors(y, u, t, na, lags, degree) for t in rows])
-        target = y[rows]
         theta, *_ = np.linalg.lstsq(design, target, rcond=None)
         if not np.all(np.isfinite(theta)):
             return None
         fits[lags] = _validation_fit(theta, y, u, split, na, lags, degree, segment, run, first)
-        spread_rows = float(np.var(target))
         residual = float(np.mean((target - design @ theta) ** 2))
         residuals[lags] = residual / spread_rows if spread_rows > 0.0 else 0.0
     best = max(fits.values())
