@@ -26,10 +26,10 @@ from hil_service.umodel import (
     option_names,
 )
 from hil_service.umodel.dynamics import ModelDynamics
-from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode
+from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
-from hil_service.umodel.structure import LagChoice, choose_input_lags
+from hil_service.umodel.structure import VALIDATION_SEGMENT, LagChoice, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 from protocols.keys import CHANNELS
 from protocols.samples import BallastCommand, TelemetrySample
@@ -45,6 +45,10 @@ SAFE_INPUTS = ("hold", "neutral", "release")
 #: needs two thirds of its record to fit and a third to validate on).
 LAG_CHOICE_RECORD = 600
 LAG_CHOICE_MIN = 300
+#: An identifier's AR mode of modulus r is unstable for the lags' choice when rᵏ ≥ 2 over
+#: k = ``VALIDATION_SEGMENT`` samples: it doubles within a segment the choice validates on.
+#: A slower one (a fitted integrator, r within 1.4 % of 1) looks like an integrator there.
+UNSTABLE_MODE = 2.0 ** (1.0 / VALIDATION_SEGMENT)
 
 #: The most input lags ``with_input_lags`` takes: 5 s of delay at 10 Hz, and the identifier's
 #: regressor (3 × lags + 5 terms) still small enough for its per-sample RLS update.
@@ -326,6 +330,9 @@ class ChannelPipeline:
         #: With ``choose_input_lags``, the dynamic model's input lags are chosen from the
         #: first ``LAG_CHOICE_RECORD`` consecutive samples unless the options give them.
         self._lags_pending = bool(settings.choose_input_lags) and "nb" not in options
+        #: With the input lags chosen, fewer output lags may be too (``_fewer_output_lags``)
+        #: unless the options give them.
+        self._output_lags_given = "na" in options
         self._lags_tried = False  # the choice was tried on a shorter record at the first ask
         config = model.config()
         self._model_name: str = config["name"]  # for health, without a config() each time
@@ -531,8 +538,13 @@ class ChannelPipeline:
             # held near its setpoint, where no model's prediction has a change to show.
             choice.withhold_smoothing()
         record = (outputs, inputs, runs)
-        options = plain
         model = None if unchanged else self._rebuilt(plain, *record)
+        fewer = self._fewer_output_lags(plain, self.model if model is None else model, record)
+        if fewer is not None:
+            plain = {**plain, "na": fewer[0]}
+            model = fewer[1]
+            choice.take_output_lags(fewer[0])
+        options = plain
         if choice.smoothing > 0.0:
             smoothed = {**plain, "lag_smoothing": choice.smoothing}
             smooth = self._rebuilt(smoothed, *record)
@@ -556,6 +568,32 @@ class ChannelPipeline:
         # Judged again before it may command: on the record it was rebuilt from, as the
         # channel's own model is judged on the record it learnt from.
         self.disqualify(keep_record=self.settings.rebuild_keeps_record)
+
+    def _fewer_output_lags(
+        self,
+        options: dict[str, Any],
+        model: PredictiveModel,
+        record: tuple[list[float], list[float], list[int]],
+    ) -> tuple[int, PredictiveModel] | None:
+        """The identifier's AR part has an unstable mode (``UNSTABLE_MODE``): the largest
+        number of output lags below its own whose identifier, rebuilt from the record, has
+        none, and that identifier; None when the AR part has none (or nothing smaller is
+        without one).
+
+        An unstable AR part predicts growth with the input held, so its steps never settle,
+        the horizon runs to its cap and the horizon test is never passed. On a stable
+        plant's noise-free record it is the over-parameterised fit's doing: more output and
+        input lags than the plant has can write the same one-step behaviour with a common
+        factor in both, and a structural error (a dead zone the cubic map does not hold)
+        picks one with an unstable root (docs/control.md, "Fewer output lags where the
+        identifier is unstable"). Fewer output lags leave no room for it."""
+        if self._output_lags_given or slowest_mode(model.dynamics().ar) < UNSTABLE_MODE:
+            return None
+        for na in range(len(model.dynamics().ar) - 1, 0, -1):
+            candidate = self._rebuilt({**options, "na": na}, *record)
+            if slowest_mode(candidate.dynamics().ar) < UNSTABLE_MODE:
+                return na, candidate
+        return None
 
     def _rebuilt(
         self,

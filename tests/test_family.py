@@ -167,6 +167,41 @@ def test_input_lags_that_cover_the_delay_bring_a_delayed_plant_back_to_reference
     assert fits["4"] < fits[str(health["pitch"]["input_lags"])]
 
 
+def test_an_identifier_with_an_unstable_ar_part_is_rebuilt_with_fewer_output_lags():
+    # Seed 13's vehicle 9 depth: Hammerstein, second order (poles 0.41 ± 0.23j), a delay of
+    # one sample, a dead zone of 0.14, no disturbance. With its four output lags the
+    # identifier's AR part carries a root of modulus 4.1 (a common factor of an
+    # over-parameterised fit that the dead zone tips): its steps never settle, the horizon
+    # test is never passed and the channel sits at neutral, 26 × reference-only. The
+    # choice of the lags rebuilds it with fewer output lags, stable, and it commands.
+    from hil_service.experiment.closed_loop import inverse_run, setpoint_schedule
+    from hil_service.pipeline import PipelineSettings
+    from plant_emulator.models import CHANNELS
+
+    depth, pitch = draw_vehicle(13, 9)
+    assert (depth.kind, depth.order, depth.delay, depth.disturbance) == (
+        "hammerstein", 2, 1, "none",
+    )  # fmt: skip
+    settings = ClosedLoopSettings(
+        scenario="family", samples=2000, seed=13, identify=800, step_every=300, oracle=False,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    four = PipelineSettings(seed=13, model_options={"depth": {"na": 4}, "pitch": {}})
+    given = run_vehicle(settings, depth, pitch, four)[0][0]
+    assert not given.horizon_passed and given.reference_ratio > 5.0  # the options are kept
+
+    specs = {"depth": depth, "pitch": pitch}
+    schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
+    run = inverse_run(settings, FamilyVehicle(depth, pitch, 13), schedule, None)
+    choice = run.identifier["depth"]["input_lag_choice"]
+    assert choice["output_lags"] is not None and choice["output_lags"] < 4, choice
+    assert run.supervision["depth"]["horizon_passed"]
+    assert run.supervision["depth"]["commanded"] > 1000
+    assert run.identifier["pitch"]["input_lag_choice"]["output_lags"] is None  # stable: kept
+    rows = run_vehicle(settings, depth, pitch)[0]
+    assert rows[0].reference_ratio < 1.2, rows[0].reference_ratio
+
+
 def test_a_channel_never_commanded_sits_at_neutral_after_the_excitation():
     """The family's "hold" semantics: the excitation ends at the neutral input, reached
     through the actuator's rate limit by the first controlled sample, so a channel the

@@ -35,10 +35,12 @@ import numpy as np
 
 from .lag_prior import NOISE_FLOOR
 
-__all__ = ["INPUT_LAG_CANDIDATES", "LagChoice", "choose_input_lags"]
+__all__ = ["INPUT_LAG_CANDIDATES", "VALIDATION_SEGMENT", "LagChoice", "choose_input_lags"]
 
 #: The input lags tried: the model's default and enough for the delays up to 6 samples.
 INPUT_LAG_CANDIDATES: tuple[int, ...] = (4, 6, 8)
+#: Samples of each free run that a candidate's validation fit is scored over.
+VALIDATION_SEGMENT = 50
 
 
 class LagChoice:
@@ -46,7 +48,8 @@ class LagChoice:
     smoothness prior's weight given with them."""
 
     __slots__ = (
-        "fits", "lags", "residual", "smoothing", "smoothing_rejected", "smoothing_withheld",
+        "fits", "lags", "output_lags", "residual", "smoothing", "smoothing_rejected",
+        "smoothing_withheld",
     )  # fmt: skip
 
     def __init__(
@@ -62,6 +65,13 @@ class LagChoice:
         #: The prior was not given: the choice came while the channel commanded and kept
         #: its lags (the pipeline's ``_choose_input_lags``).
         self.smoothing_withheld = False
+        #: Fewer output lags than the model's own, taken because its AR part was unstable
+        #: (the pipeline's ``_fewer_output_lags``); None: the model's own.
+        self.output_lags: int | None = None
+
+    def take_output_lags(self, na: int) -> None:
+        """The identifier is rebuilt with ``na`` output lags."""
+        self.output_lags = na
 
     def reject_smoothing(self) -> None:
         """The identifier keeps no smoothness prior (``lag_prior.adds_a_slower_mode``)."""
@@ -76,6 +86,7 @@ class LagChoice:
     def as_json(self) -> dict[str, object]:
         return {
             "input_lags": self.lags,
+            "output_lags": self.output_lags,
             "fits": {
                 str(k): round(v, 4) if math.isfinite(v) else None for k, v in self.fits.items()
             },
@@ -133,7 +144,7 @@ def choose_input_lags(
     na: int = 4,
     degree: int = 3,
     candidates: Sequence[int] = INPUT_LAG_CANDIDATES,
-    segment: int = 50,
+    segment: int = VALIDATION_SEGMENT,
     tie: float = 0.02,
     qualify: float = 0.5,
     runs: Sequence[int] | None = None,
