@@ -511,10 +511,11 @@ class ChannelPipeline:
         (``umodel.structure``), and the smoothness prior the record's noise gives them
         (``umodel.lag_prior``). A choice other than the model's own rebuilds the identifier
         from the record (in order, trained where the channel trained), and the channel must
-        pass the horizon test again with it. A smoothed identifier whose output lags carry
-        a slower mode than the plain one's is not taken (``adds_a_slower_mode``), nor a
-        prior alone while the channel commands (the choice then came under way: its record
-        reached ``LAG_CHOICE_RECORD`` samples after the first command)."""
+        pass the horizon test again with it; so must one whose AR part is unstable, rebuilt
+        with fewer output lags (``_fewer_output_lags``). A smoothed identifier whose output
+        lags carry a slower mode than the plain one's is not taken (``adds_a_slower_mode``),
+        nor a prior alone while the channel commands (the choice then came under way: its
+        record reached ``LAG_CHOICE_RECORD`` samples after the first command)."""
         outputs, inputs = self.horizon_test.samples()
         runs = self.horizon_test.runs()
         choice = choose_input_lags(
@@ -543,7 +544,7 @@ class ChannelPipeline:
         if fewer is not None:
             plain = {**plain, "na": fewer[0]}
             model = fewer[1]
-            choice.take_output_lags(fewer[0])
+            choice.output_lags = fewer[0]
         options = plain
         if choice.smoothing > 0.0:
             smoothed = {**plain, "lag_smoothing": choice.smoothing}
@@ -587,9 +588,12 @@ class ChannelPipeline:
         factor in both, and a structural error (a dead zone the cubic map does not hold)
         picks one with an unstable root (docs/control.md, "Fewer output lags where the
         identifier is unstable"). Fewer output lags leave no room for it."""
-        if self._output_lags_given or slowest_mode(model.dynamics().ar) < UNSTABLE_MODE:
+        if self._output_lags_given:
             return None
-        for na in range(len(model.dynamics().ar) - 1, 0, -1):
+        ar = model.dynamics().ar
+        if slowest_mode(ar) < UNSTABLE_MODE:
+            return None
+        for na in range(len(ar) - 1, 0, -1):
             candidate = self._rebuilt({**options, "na": na}, *record)
             if slowest_mode(candidate.dynamics().ar) < UNSTABLE_MODE:
                 return na, candidate

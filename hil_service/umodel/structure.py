@@ -69,10 +69,6 @@ class LagChoice:
         #: (the pipeline's ``_fewer_output_lags``); None: the model's own.
         self.output_lags: int | None = None
 
-    def take_output_lags(self, na: int) -> None:
-        """The identifier is rebuilt with ``na`` output lags."""
-        self.output_lags = na
-
     def reject_smoothing(self) -> None:
         """The identifier keeps no smoothness prior (``lag_prior.adds_a_slower_mode``)."""
         self.smoothing = 0.0
