@@ -62,6 +62,22 @@ def test_factorise_recovers_a_hammerstein_map() -> None:
     assert (n.value(2.0) - n.value(-2.0)) / 4.0 == pytest.approx(1.0)
 
 
+def test_factorise_keeps_the_models_steady_state_where_the_lags_differ_in_shape() -> None:
+    # Lags of different shapes (a Wiener plant's U-model): the fast lag bends one way, the
+    # slow lags the other. Σ_L P_L(u) = 0.6u + 0.075u³ rises everywhere; the best rank-one
+    # fit of the coefficients (the dominant singular pair) gives a map that falls towards
+    # both limits and a steady state 0.5 off there.
+    polys = [[-1.0, 0.0, 0.6], [0.9, 0.0, -0.3], [0.7, 0.0, -0.15]]
+    dyn = ModelDynamics([0.5], 0.0, polys, 0.5, [0.0], [0.0, 0.0])
+    factors = factorise(dyn, -2.0, 2.0)
+    assert factors is not None
+    g, n = factors
+    for u in (-2.0, -1.1, -0.3, 0.0, 0.4, 1.3, 2.0):
+        steady = sum(dyn.lag_value(lag, u) for lag in range(1, 4))
+        assert sum(g) * n.value(u) == pytest.approx(steady, abs=1e-12)
+        assert n.derivative(u) > 0.0  # rising where the model's steady state rises
+
+
 def test_factorise_refuses_a_model_without_input_effect() -> None:
     dyn = ModelDynamics([0.9], 0.0, [[0.0, 0.0], [0.0, 0.0]], 1.0, [1.0], [0.0])
     assert factorise(dyn, -2.0, 2.0) is None

@@ -3,9 +3,10 @@
 At every sample the identified U-model gives its multi-step map (:class:`.ModelDynamics`):
 linear in past outputs, a polynomial of each input lag. The controller
 
-1. reads the lag polynomials as one static input map times a linear filter (a rank-one
-   factorisation of the lag × power coefficient matrix: w = N(u), y = G(q)·w; exact for a
-   Hammerstein plant, the best rank-one fit otherwise);
+1. reads the lag polynomials as one static input map times a linear filter (w = N(u),
+   y = G(q)·w: a rank-one factorisation of the lag × power coefficient matrix, exact for
+   a Hammerstein plant; the model's steady-state map where that one rises over more of
+   the range, ``factorise``);
 2. derives its horizons from the identified linear part: the prediction horizon is the
    settling time of G's step response (clamped to ``[min_horizon, max_horizon]``), and
    the input is planned in blocks that start at 1, 2, 4, … samples (geometric up to the
@@ -137,17 +138,24 @@ class PredictiveSettings:
         self.cost_points = int(cost_points)
 
 
-def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float], StaticMap] | None:
-    """Lag gains g_L and the static map N with P_L(u) ≈ g_L·N(u); N scaled to a mean slope
-    of one over [u_lo, u_hi]. None when the map is degenerate (no input effect yet)."""
-    polys = dyn.lag_polys
-    m = 0
-    for poly in polys:
-        m = max(m, len(poly))
-    if m == 0:
+def _steady_state_direction(rows: list[list[float]], m: int) -> list[float] | None:
+    """The unit direction of Σ_L P_L's coefficients; None when the lags cancel there (its
+    norm below 10⁻⁶ of the lags' own)."""
+    total = [0.0] * m
+    size = 0.0
+    for row in rows:
+        for i in range(m):
+            total[i] += row[i]
+            size += row[i] * row[i]
+    norm = math.sqrt(sum(x * x for x in total))
+    if not (math.isfinite(norm) and norm > 1e-6 * math.sqrt(size)):
         return None
-    rows = [poly + [0.0] * (m - len(poly)) for poly in polys]
-    # Θᵀ Θ (m × m), then its dominant eigenvector by power iteration from e_1.
+    return [x / norm for x in total]
+
+
+def _dominant_direction(rows: list[list[float]], m: int) -> list[float] | None:
+    """The dominant right singular vector of the lag × power matrix: ΘᵀΘ (m × m), then its
+    dominant eigenvector by power iteration from e_1."""
     gram = [[0.0] * m for _ in range(m)]
     for row in rows:
         for i in range(m):
@@ -175,6 +183,64 @@ def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float]
         v = w
         if moved < 1e-14:
             break
+    return v
+
+
+def _rising_share(v: list[float], poly_scale: float, u_lo: float, u_hi: float) -> float:
+    """The share of 64 equal steps across [u_lo, u_hi] over which the polynomial of
+    coefficients ``v`` (x = u·poly_scale, powers 1 … M) moves the way of its mean slope."""
+
+    def value(u: float) -> float:
+        x = u * poly_scale
+        acc = 0.0
+        power = x
+        for c in v:
+            acc += c * power
+            power *= x
+        return acc
+
+    step = (u_hi - u_lo) / 64
+    sign = 1.0 if value(u_hi) >= value(u_lo) else -1.0
+    rising = 0
+    before = value(u_lo)
+    for i in range(1, 65):
+        after = value(u_lo + i * step)
+        if sign * (after - before) > 0.0:
+            rising += 1
+        before = after
+    return rising / 64
+
+
+def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float], StaticMap] | None:
+    """Lag gains g_L and the static map N with P_L(u) ≈ g_L·N(u); N scaled to a mean slope
+    of one over [u_lo, u_hi]. None when the map is degenerate (no input effect yet).
+
+    N is the dominant singular pair of the lag × power matrix (the best rank-one fit of
+    the coefficients), g_L each lag's projection on it: exact for a Hammerstein model.
+    A model whose lags differ in shape (a Wiener plant's) can have a best rank-one map
+    that falls where the model's own steady-state map, Σ_L P_L, rises: the plan then
+    needs a smaller input for a larger level and drives the input to a limit. N is then
+    the direction of Σ_L P_L instead (with it Σ_L g_L·N = Σ_L P_L: the factorised model
+    settles where the model does), when that map rises over more of the range. Not
+    always: where the AR part is near an integrator the lags nearly cancel at steady
+    state, and Σ_L P_L is left with their noise in the higher powers (docs/control.md,
+    "The input map N")."""
+    polys = dyn.lag_polys
+    m = 0
+    for poly in polys:
+        m = max(m, len(poly))
+    if m == 0:
+        return None
+    rows = [poly + [0.0] * (m - len(poly)) for poly in polys]
+    v = _dominant_direction(rows, m)
+    if v is None:
+        return None
+    if dyn.rbf is None and len(rows) > 1:
+        steady = _steady_state_direction(rows, m)
+        if steady is not None and _rising_share(steady, dyn.poly_scale, u_lo, u_hi) > (
+            _rising_share(v, dyn.poly_scale, u_lo, u_hi)
+        ):
+            v = steady
     gains = []
     for row in rows:
         acc = 0.0
