@@ -147,7 +147,10 @@ def _steady_state_direction(rows: list[list[float]], m: int) -> list[float] | No
         for i in range(m):
             total[i] += row[i]
             size += row[i] * row[i]
-    norm = math.sqrt(sum(x * x for x in total))
+    norm = 0.0
+    for x in total:
+        norm += x * x
+    norm = math.sqrt(norm)
     if not (math.isfinite(norm) and norm > 1e-6 * math.sqrt(size)):
         return None
     return [x / norm for x in total]
