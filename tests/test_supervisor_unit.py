@@ -107,6 +107,27 @@ def test_saturation_without_progress_trips_at_the_segment_end():
     assert reasons[:9] == [""] * 9 and reasons[9].startswith("saturation held")
 
 
+def test_saturation_after_a_ramp_or_under_a_periodic_disturbance_trips():
+    # The command ramps into saturation (one sample of ten short of the limit) while the
+    # error grows: the segment is not saturated throughout, and still trips.
+    ramp = _armed()
+    reasons = [ramp.segment_sample(0.0, 0.0, -1.0 - 0.1 * k, -1.0, k > 0) for k in range(10)]
+    assert reasons[:9] == [""] * 9 and reasons[9].startswith("saturation held"), reasons
+    # Saturated while the error, a little above its start of 1, swings with a periodic
+    # disturbance and ends on a favourable phase: the end point alone would pass, the
+    # segment's mean does not.
+    s = _armed()
+    errors = [-1.1 - 0.5 * math.sin(2 * math.pi * k / 10) for k in range(1, 11)]
+    errors[-1] = -0.9
+    reasons = [s.segment_sample(0.0, 0.0, e, -1.0, k > 0) for k, e in enumerate(errors)]
+    assert reasons[:9] == [""] * 9 and reasons[9].startswith("saturation held"), reasons
+    # A saturated segment whose error falls, on average and at its end, does not trip.
+    falling = _armed()
+    assert all(
+        falling.segment_sample(0.0, 0.0, -1.0 + 0.08 * k, -1.0, k > 0) == "" for k in range(10)
+    )
+
+
 def test_settling_worse_than_trim_trips_and_a_good_loop_does_not():
     s = _armed()
     s.neutral(0.2)  # the model's steady state at neutral is 0.2 from the setpoint

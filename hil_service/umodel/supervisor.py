@@ -29,7 +29,8 @@ from the measured outputs. At each segment's end the segment is judged:
 * ``against``: the output moved one way and the model predicted the other, both by more
   than the prediction's bound;
 * ``saturated``: the command saturated the whole segment and the tracking error did not
-  fall;
+  fall, or saturated at least 90 % of it and the mean |tracking error| over it was not
+  below the error at its start;
 * ``beyond``: the prediction error's RMS exceeded its bound and the tracking error grew
   (two segments running);
 * ``oscillation``: the tracking error changed sign (by more than the bound each time) at
@@ -394,6 +395,7 @@ class Supervisor:
         self._e0 = 0.0
         self._sq = 0.0
         self._sat = 0
+        self._abs = 0.0
         self._beyond_strikes = 0
         self._flips: deque[int] = deque()
         self._flips_pred: deque[int] = deque()
@@ -467,6 +469,7 @@ class Supervisor:
         self._e0 = abs(error)
         self._sq = 0.0
         self._sat = 0
+        self._abs = 0.0
         self._u0 = u
         self._neutral_error = math.inf
 
@@ -487,6 +490,7 @@ class Supervisor:
         self._sq += residual * residual
         if saturated:
             self._sat += 1
+        self._abs += abs(error)
         self._note_flip(error, error_pred)
         reason = self._oscillation()
         if reason:
@@ -509,10 +513,15 @@ class Supervisor:
             return ""
         rms = math.sqrt(self._sq / n)
         growing = abs(error) > self._e0
-        if self._sat >= n and abs(error) >= self._e0:
+        # Saturated against the predicted response: the error at the segment's end not
+        # below its start, or, over a segment saturated for at least 90 % of its samples
+        # (the rate limit's ramp into saturation takes a few), its mean not below the
+        # start (an end point alone can fall on a periodic disturbance's favourable phase).
+        held = self._sat >= n and abs(error) >= self._e0
+        if held or (10 * self._sat >= 9 * n and self._abs >= n * self._e0):
             return self._trip(
                 f"saturation held against the predicted response ({n} samples, "
-                f"error {self._e0:.3g} -> {abs(error):.3g})"
+                f"error {self._e0:.3g} -> {abs(error):.3g}, mean {self._abs / n:.3g})"
             )
         settled = abs(moved) < self.bound and abs(predicted) < self.bound
         if settled and abs(error) > self._neutral_error + self.bound:
