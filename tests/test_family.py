@@ -211,14 +211,14 @@ def test_the_input_map_is_the_models_steady_state_only_where_that_rises_over_mor
     seed: int, vehicle: int, channel: str, kind: str
 ) -> None:
     # Seed 3's vehicle 26 depth: a Wiener plant (first order, pole 0.84, delay 3, no
-    # disturbance). Its U-model's lags differ in shape; the best rank-one fit of their
-    # coefficients gave an input map falling over (−1, 1), the plan drove the input to +2
-    # at the first setpoint, the supervisor tripped on the held saturation and the plant
-    # ended at 4.5 × reference-only. The model's steady-state map rises over more of the
-    # range and is taken. Seed 3's vehicle 14 pitch: a linear plant (poles 0.31, 0.32)
-    # under a periodic disturbance, whose model's AR part is near an integrator: its lags
-    # nearly cancel at steady state, and planned on their sum (their noise) throughout it
-    # ended at 5.8 × reference-only; the rule keeps the rank-one map there.
+    # disturbance). Its U-model's lags differ in shape, and the best rank-one fit of their
+    # coefficients falls over (−1, 1): planned on it, the input goes to +2 at the first
+    # setpoint, the supervisor trips on the held saturation and the plant ends at 4.5 ×
+    # reference-only. The model's steady-state map rises over more of the range and is
+    # taken. Seed 3's vehicle 14 pitch: a linear plant (poles 0.31, 0.32) under a periodic
+    # disturbance, whose model's AR part is near an integrator: its lags nearly cancel at
+    # steady state, and planned on their sum (their noise) throughout it ends at 5.8 ×
+    # reference-only; the rule keeps the rank-one map there.
     depth, pitch = draw_vehicle(seed, vehicle)
     spec = depth if channel == "depth" else pitch
     assert spec.kind == kind

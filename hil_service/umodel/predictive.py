@@ -189,25 +189,15 @@ def _dominant_direction(rows: list[list[float]], m: int) -> list[float] | None:
     return v
 
 
-def _rising_share(v: list[float], poly_scale: float, u_lo: float, u_hi: float) -> float:
-    """The share of 64 equal steps across [u_lo, u_hi] over which the polynomial of
-    coefficients ``v`` (x = u·poly_scale, powers 1 … M) moves the way of its mean slope."""
-
-    def value(u: float) -> float:
-        x = u * poly_scale
-        acc = 0.0
-        power = x
-        for c in v:
-            acc += c * power
-            power *= x
-        return acc
-
+def _rising_share(shape: StaticMap, u_lo: float, u_hi: float) -> float:
+    """The share of 64 equal steps across [u_lo, u_hi] over which ``shape`` moves the way
+    of its mean slope."""
     step = (u_hi - u_lo) / 64
-    sign = 1.0 if value(u_hi) >= value(u_lo) else -1.0
+    before = shape.value(u_lo)
+    sign = 1.0 if shape.value(u_hi) >= before else -1.0
     rising = 0
-    before = value(u_lo)
     for i in range(1, 65):
-        after = value(u_lo + i * step)
+        after = shape.value(u_lo + i * step)
         if sign * (after - before) > 0.0:
             rising += 1
         before = after
@@ -240,9 +230,9 @@ def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float]
         return None
     if dyn.rbf is None and len(rows) > 1:
         steady = _steady_state_direction(rows, m)
-        if steady is not None and _rising_share(steady, dyn.poly_scale, u_lo, u_hi) > (
-            _rising_share(v, dyn.poly_scale, u_lo, u_hi)
-        ):
+        if steady is not None and _rising_share(
+            StaticMap(steady, dyn.poly_scale), u_lo, u_hi
+        ) > _rising_share(StaticMap(v, dyn.poly_scale), u_lo, u_hi):
             v = steady
     gains = []
     for row in rows:
