@@ -375,11 +375,11 @@ def test_an_update_undone_restores_theta_and_the_covariance_exactly_once() -> No
     for k in range(40):
         model.step(0.5 * ((k // 7) % 3 - 1), 15.0 + 0.01 * k)
     theta = list(model._theta)
-    covariance = [row[:] for row in model.rls.p]
+    covariance = model.rls.covariance()
     model.step(0.7, 15.5)
     assert model._theta != theta
     assert model.undo_last_update()
-    assert model._theta == theta and model.rls.p == covariance
+    assert model._theta == theta and model.rls.covariance() == covariance
     assert not model.undo_last_update()  # one sample only
     model.step(0.7, 15.5)
     model.step(0.7, 1e6)  # outgrows the output scale: no undo across the rescale

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import statistics
 
+from librt.vecs import vec
+
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from hil_service.umodel.predictive import block_starts, cost_points, cost_start
 from plant_emulator.excitation import build_channel_excitations
@@ -80,10 +82,10 @@ def test_the_cost_starts_where_the_wrong_way_response_peaks() -> None:
     response = [0.0, -2.13, -2.11, -2.43, -2.41, -2.44, -2.41, -2.4] + [
         -2.4 + 4.9 * (1 - 0.9954**m) for m in range(1, 2000)
     ]
-    assert cost_start(response, 730) == 5
+    assert cost_start(vec[float](response), 730) == 5
     # No wrong-way response: the cost starts at the first sample.
-    assert cost_start([0.0, 0.5, 0.8, 0.9, 1.0, 1.0], 6) == 1
-    assert cost_start([0.0] * 10, 10) == 1
+    assert cost_start(vec[float]([0.0, 0.5, 0.8, 0.9, 1.0, 1.0]), 6) == 1
+    assert cost_start(vec[float]([0.0] * 10), 10) == 1
     # The first point is then ``first`` and the weights still cover what is costed.
     points, weights = cost_points(730, 7, block_starts(730, 8), first=5)
     assert points[-1] == 5 and set(range(5, 8)) <= set(points)

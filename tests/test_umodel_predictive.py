@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hil_service.umodel import build_model
-from hil_service.umodel.box_qp import solve_box_qp
+from hil_service.umodel.box_qp import flat_matrix, solve_box_qp
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.horizon import arrival_time, free_response_terms
 from hil_service.umodel.predictive import (
@@ -23,7 +23,7 @@ from hil_service.umodel.predictive import (
 def test_step_response_of_a_first_order_lag() -> None:
     # y(t) = 0.5 y(t−1) + 2 w(t−1): s(j) = 4·(1 − 0.5^j)
     s = step_response([0.5], [2.0], 6)
-    assert s == pytest.approx([4.0 * (1.0 - 0.5**j) for j in range(6)])
+    assert list(s) == pytest.approx([4.0 * (1.0 - 0.5**j) for j in range(6)])
 
 
 def test_settling_horizon_follows_the_pole() -> None:
@@ -90,9 +90,10 @@ def test_box_qp_is_the_minimum_over_the_box(seed: int) -> None:
     h = (a @ a.T + 0.1 * np.eye(3)).tolist()
     f = rng.normal(size=3).tolist()
     lo, hi = [-1.0, -0.5, 0.0], [1.0, 0.5, 2.0]
-    x, state = solve_box_qp(h, f, lo, hi)
-    assert solve_box_qp(h, f, lo, hi, state)[0] == pytest.approx(x)  # warm start
-    assert solve_box_qp(h, f, lo, hi, [1, -1, 1])[0] == pytest.approx(x)  # a wrong one
+    flat = flat_matrix(h)
+    x, state = solve_box_qp(flat, f, lo, hi)
+    assert solve_box_qp(flat, f, lo, hi, state)[0] == pytest.approx(x)  # warm start
+    assert solve_box_qp(flat, f, lo, hi, [1, -1, 1])[0] == pytest.approx(x)  # a wrong one
     assert all(lo[i] - 1e-12 <= x[i] <= hi[i] + 1e-12 for i in range(3))
 
     def cost(v: np.ndarray) -> float:
@@ -234,10 +235,11 @@ def test_the_linear_term_is_the_columns_against_the_predicted_error(na: int, nb:
     f = controller._linear_term(dyn, plan, 0.4, 0.25, 1.7)
     free = _free_response(controller, plan, 0.4, controller._sim)
     expected = [0.0] * len(f)
-    for p, col in enumerate(controller._columns):
+    blocks = len(f)
+    for p in range(len(controller._onset)):
         error = free[p] + 0.3 - 0.25 * controller._onset[p] - 1.7
-        for b in range(len(f)):
-            expected[b] += col[b] * error
+        for b in range(blocks):
+            expected[b] += controller._columns[p * blocks + b] * error
     expected[0] -= controller._rho * 0.25
     assert f == pytest.approx(expected, rel=1e-9, abs=1e-9 * max(map(abs, expected)))
 

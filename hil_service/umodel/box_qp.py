@@ -1,106 +1,133 @@
 """A small dense box-constrained QP, solved exactly: the predictive inverse's plan over
-its input blocks (at most ``max_blocks`` variables, solved once per sample)."""
+its input blocks (at most ``max_blocks`` variables, solved once per sample).
+
+Matrices are row-major ``vec[float]`` (``librt``, mypyc's runtime library): compiled, their
+elements are C doubles, where lists of lists box and unbox every value an elimination
+touches. ``flat_matrix`` makes one from rows.
+"""
 
 from __future__ import annotations
 
-__all__ = ["solve_box_qp", "solve_linear"]
+from librt.vecs import vec
+
+__all__ = ["flat_matrix", "solve_box_qp", "solve_linear"]
 
 
-def solve_linear(a: list[list[float]], b: list[float]) -> list[float] | None:
-    """x with a·x = b by Gaussian elimination with partial pivoting (a and b are
-    consumed); None when a is singular to working precision."""
-    k = len(b)
+def flat_matrix(rows: list[list[float]]) -> vec[float]:
+    """A square matrix given as rows, row-major in one vector."""
+    return vec[float]([float(v) for row in rows for v in row])
+
+
+def solve_linear(a: vec[float], b: vec[float], k: int) -> vec[float] | None:
+    """x with a·x = b by Gaussian elimination with partial pivoting (a, k × k row-major,
+    and b are consumed); None when a is singular to working precision."""
     for col in range(k):
         piv = col
         for r in range(col + 1, k):
-            if abs(a[r][col]) > abs(a[piv][col]):
+            if abs(a[r * k + col]) > abs(a[piv * k + col]):
                 piv = r
-        if not abs(a[piv][col]) > 1e-300:
+        if not abs(a[piv * k + col]) > 1e-300:
             return None
         if piv != col:
-            a[col], a[piv] = a[piv], a[col]
+            for c in range(k):
+                a[col * k + c], a[piv * k + c] = a[piv * k + c], a[col * k + c]
             b[col], b[piv] = b[piv], b[col]
-        pivot_row = a[col]
+        top = col * k
         for r in range(col + 1, k):
-            row = a[r]
-            factor = row[col] / pivot_row[col]
+            base = r * k
+            factor = a[base + col] / a[top + col]
             if factor != 0.0:
                 for c in range(col, k):
-                    row[c] -= factor * pivot_row[c]
+                    a[base + c] -= factor * a[top + c]
                 b[r] -= factor * b[col]
-    x = [0.0] * k
+    x = vec[float]([0.0] * k)
     for r in range(k - 1, -1, -1):
         acc = b[r]
-        row = a[r]
+        base = r * k
         for c in range(r + 1, k):
-            acc -= row[c] * x[c]
-        x[r] = acc / row[r]
+            acc -= a[base + c] * x[c]
+        x[r] = acc / a[base + r]
     return x
 
 
 def solve_box_qp(
-    h: list[list[float]],
+    h: vec[float],
     f: list[float],
     lo: list[float],
     hi: list[float],
     warm: list[int] | None = None,
 ) -> tuple[list[float], list[int]]:
-    """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite): a primal
-    active-set method (Nocedal & Wright, §16.5) from the centre of the box. Each
-    iteration solves for the free variables, steps until a bound blocks, and releases
-    the bound whose multiplier has the wrong sign once no step is left; finite, exact to
-    rounding, deterministic. Returns the best point reached if the iteration limit hits,
-    and the working set (0 free, −1 at lo, +1 at hi): given back as ``warm`` on the next
-    sample, the last plan's active bounds, it usually leaves one or two iterations."""
+    """argmin ½ xᵀHx + fᵀx over lo ≤ x ≤ hi (H symmetric positive definite, n × n
+    row-major with n = len(f)): a primal active-set method (Nocedal & Wright, §16.5)
+    from the centre of the box. Each iteration solves for the free variables, steps until
+    a bound blocks, and releases the bound whose multiplier has the wrong sign once no
+    step is left; finite, exact to rounding, deterministic. Returns the best point
+    reached if the iteration limit hits, and the working set (0 free, −1 at lo, +1 at
+    hi): given back as ``warm`` on the next sample, the last plan's active bounds, it
+    usually leaves one or two iterations."""
     n = len(f)
+    g0 = vec[float](f)
+    low = vec[float](lo)
+    high = vec[float](hi)
     state = [0] * n
     if warm is not None and len(warm) == n:
         state = list(warm)
-    x = [lo[i] if state[i] < 0 else hi[i] if state[i] > 0 else 0.5 * (lo[i] + hi[i])
-         for i in range(n)]  # fmt: skip
+    x = vec[float]([0.0] * n)
+    for i in range(n):
+        x[i] = low[i] if state[i] < 0 else high[i] if state[i] > 0 else 0.5 * (low[i] + high[i])
     for _ in range(8 * n + 8):
-        grad = [0.0] * n
+        grad = vec[float]([0.0] * n)
         for i in range(n):
-            acc = f[i]
-            row = h[i]
+            acc = g0[i]
+            base = i * n
             for j in range(n):
-                acc += row[j] * x[j]
+                acc += h[base + j] * x[j]
             grad[i] = acc
         free = [i for i in range(n) if state[i] == 0]
-        step = [0.0] * n
+        step = vec[float]([0.0] * n)
         moved = False
-        if free:
-            sol = solve_linear(
-                [[h[i][j] for j in free] for i in free], [-grad[i] for i in free]
-            )
+        m = len(free)
+        if m:
+            sub = vec[float]([0.0] * (m * m))
+            rhs = vec[float]([0.0] * m)
+            for r in range(m):
+                base = free[r] * n
+                for c in range(m):
+                    sub[r * m + c] = h[base + free[c]]
+                rhs[r] = -grad[free[r]]
+            sol = solve_linear(sub, rhs, m)
             if sol is None:
-                return x, state
-            for r in range(len(free)):
+                return list(x), state
+            for r in range(m):
                 step[free[r]] = sol[r]
             scale = 0.0
             for i in range(n):
-                scale = max(scale, abs(x[i]), hi[i] - lo[i])
-            moved = any(abs(v) > 1e-14 * (1.0 + scale) for v in step)
+                scale = max(scale, abs(x[i]), high[i] - low[i])
+            limit = 1e-14 * (1.0 + scale)
+            for i in range(n):
+                if abs(step[i]) > limit:
+                    moved = True
+                    break
         if moved:
             alpha = 1.0
             block = -1
             for i in free:
                 v = step[i]
-                if v < 0.0 and x[i] + v < lo[i]:
-                    t = (lo[i] - x[i]) / v
+                if v < 0.0 and x[i] + v < low[i]:
+                    t = (low[i] - x[i]) / v
                     if t < alpha:
                         alpha, block = t, i
-                elif v > 0.0 and x[i] + v > hi[i]:
-                    t = (hi[i] - x[i]) / v
+                elif v > 0.0 and x[i] + v > high[i]:
+                    t = (high[i] - x[i]) / v
                     if t < alpha:
                         alpha, block = t, i
             for i in free:
                 x[i] += alpha * step[i]
             if block >= 0:
                 if step[block] < 0.0:
-                    x[block], state[block] = lo[block], -1
+                    x[block], state[block] = low[block], -1
                 else:
-                    x[block], state[block] = hi[block], 1
+                    x[block], state[block] = high[block], 1
             continue
         # No step left on this face: release the bound that most wants to move inward.
         worst = -1
@@ -111,6 +138,6 @@ def solve_box_qp(
             if g < worst_value:
                 worst, worst_value = i, g
         if worst < 0:
-            return x, state
+            return list(x), state
         state[worst] = 0
-    return x, state
+    return list(x), state

@@ -3,12 +3,16 @@ blocks and cost points, and the fixed matrices of the QP over them (see :mod:`.p
 
 Pure functions of the step response (and the AR part for the free response); they change
 as slowly as the model does, and ``PredictiveInverse`` derives them again every
-``refresh`` samples.
+``refresh`` samples. The long series (a response runs to ``max_horizon``) and the
+matrices are ``vec[float]`` (``librt``, mypyc's runtime library; matrices row-major):
+compiled, their elements are C doubles, where a list boxes and unboxes each one read.
 """
 
 from __future__ import annotations
 
 import math
+
+from librt.vecs import vec
 
 __all__ = [
     "LinearTerm",
@@ -79,7 +83,7 @@ def cost_points(
     return points, weights
 
 
-def cost_start(response: list[float], horizon: int) -> int:
+def cost_start(response: vec[float], horizon: int) -> int:
     """The first sample of the horizon whose error enters the cost (GPC's minimum costing
     horizon N1): 1, or the sample m at which the step response peaks the wrong way (5 on
     ArduSub and glider depth: −2.13 after one sample, −2.44 after five).
@@ -91,7 +95,7 @@ def cost_start(response: list[float], horizon: int) -> int:
     disturbed glider depth 3.8 % (5,000 samples) and 7.3 % (20,000) worse; from m, 1.9 %
     and 2.6 %; a cost from sample 1 holds the steady-state input and never kicks (paper
     depth 33 % worse)."""
-    final = response[-1] if response else 0.0
+    final = response[len(response) - 1] if len(response) else 0.0
     if not (math.isfinite(final) and final != 0.0):
         return 1
     worst = 0.0
@@ -103,12 +107,13 @@ def cost_start(response: list[float], horizon: int) -> int:
     return at if at > 0 else 1
 
 
-def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
+def step_response(ar: list[float], gains: list[float], n: int) -> vec[float]:
     """s(0 … n−1): the output j samples after w steps from 0 to 1 (s(0) = 0: no
     feedthrough), for y(t) = Σ c_i y(t−i) + Σ_L g_L w(t−L)."""
     na = len(ar)
     nb = len(gains)
-    out: list[float] = []
+    c = vec[float](ar)
+    out = vec[float]([0.0] * n)
     forcing = 0.0
     for j in range(n):
         if 1 <= j <= nb:
@@ -116,26 +121,27 @@ def step_response(ar: list[float], gains: list[float], n: int) -> list[float]:
         acc = forcing
         for i in range(na):
             if j - 1 - i >= 0:
-                acc += ar[i] * out[j - 1 - i]
-        out.append(acc)
+                acc += c[i] * out[j - 1 - i]
+        out[j] = acc
     return out
 
 
 def plan_matrices(
-    response: list[float], starts: list[int], points: list[int], weights: list[float]
-) -> tuple[list[list[float]], list[float], list[list[float]]]:
-    """Per cost point, each block's weighted effect on ŷ(k+j) (the columns) and the held
-    input's step s(j − 1) (the onset); and the output cost's Hessian Σ_p w_p·col·colᵀ."""
+    response: vec[float], starts: list[int], points: list[int], weights: list[float]
+) -> tuple[vec[float], list[float], vec[float]]:
+    """Per cost point, each block's weighted effect on ŷ(k+j) (the columns, points ×
+    blocks row-major) and the held input's step s(j − 1) (the onset); and the output
+    cost's Hessian Σ_p w_p·col·colᵀ (blocks × blocks row-major)."""
     nblocks = len(starts)
-    columns: list[list[float]] = []
+    columns = vec[float]([0.0] * (len(points) * nblocks))
     onset: list[float] = []
-    hessian = [[0.0] * nblocks for _ in range(nblocks)]
+    hessian = vec[float]([0.0] * (nblocks * nblocks))
+    col = vec[float]([0.0] * nblocks)
     for p in range(len(points)):
         j = points[p]
         weight = weights[p]
         # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
         # (s(m) = 0 for m ≤ 0: an input acts one sample later).
-        col = [0.0] * nblocks
         for b in range(nblocks):
             first = j - starts[b]
             on = response[first] if first > 0 else 0.0
@@ -145,29 +151,32 @@ def plan_matrices(
                 off = response[after] if after > 0 else 0.0
             col[b] = on - off
         # Stored weighted: the QP's linear term is Σ_p weight·col·residual.
-        columns.append([weight * c for c in col])
+        base = p * nblocks
+        for b in range(nblocks):
+            columns[base + b] = weight * col[b]
         first0 = j - starts[0]
         onset.append(response[first0] if first0 > 0 else 0.0)
         for a in range(nblocks):
             wa = weight * col[a]
+            row = a * nblocks
             for b in range(nblocks):
-                hessian[a][b] += wa * col[b]
+                hessian[row + b] += wa * col[b]
     return columns, onset, hessian
 
 
-def add_move_penalty(hessian: list[list[float]], move_weight: float) -> float:
+def add_move_penalty(hessian: vec[float], nblocks: int, move_weight: float) -> float:
     """Add the move penalty ρ Σ (W_b − W_{b−1})² (W_{−1} = the applied input's level) to
-    ``hessian`` in place, ρ scaled to the output cost's size; returns ρ."""
-    nblocks = len(hessian)
+    ``hessian`` (``nblocks`` square, row-major) in place, ρ scaled to the output cost's
+    size; returns ρ."""
     trace = 0.0
     for b in range(nblocks):
-        trace += hessian[b][b]
+        trace += hessian[b * nblocks + b]
     rho = move_weight * (trace / nblocks + 1e-12)
     for b in range(nblocks):
-        hessian[b][b] += rho if b + 1 == nblocks else 2.0 * rho
+        hessian[b * nblocks + b] += rho if b + 1 == nblocks else 2.0 * rho
         if b + 1 < nblocks:
-            hessian[b][b + 1] -= rho
-            hessian[b + 1][b] -= rho
+            hessian[b * nblocks + b + 1] -= rho
+            hessian[(b + 1) * nblocks + b] -= rho
     return rho
 
 
@@ -179,16 +188,17 @@ def free_response_terms(
     h_A, and h_A(j − l) for l = 1 … L, L = max(na, lags − 1, 1)."""
     na = len(ar)
     lead = max(na, lags - 1, 1)
-    impulse: list[float] = []
+    c = vec[float](ar)
+    impulse = vec[float]([0.0] * n)
     for m in range(n):
         acc = 1.0 if m == 0 else 0.0
         for i in range(na):
             if m - 1 - i >= 0:
-                acc += ar[i] * impulse[m - 1 - i]
-        impulse.append(acc)
-    running = [0.0]
+                acc += c[i] * impulse[m - 1 - i]
+        impulse[m] = acc
+    running = vec[float]([0.0] * (n + 1))
     for m in range(n):
-        running.append(running[-1] + impulse[m])
+        running[m + 1] = running[m] + impulse[m]
     step = [running[j] for j in points]
     impulses = [[impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points]
     return step, impulses
@@ -199,16 +209,16 @@ def lead_of(impulses: list[list[float]]) -> int:
     return len(impulses[0]) if impulses else 0
 
 
-def project(columns: list[list[float]], values: list[float]) -> list[float]:
-    """Σ_p columns[p][b]·values[p] per block b: a per-point vector seen by the blocks."""
-    nblocks = len(columns[0]) if columns else 0
-    out = [0.0] * nblocks
-    for p in range(len(columns)):
+def project(columns: vec[float], nblocks: int, values: list[float]) -> list[float]:
+    """Σ_p columns[p][b]·values[p] per block b (``columns`` points × ``nblocks``,
+    row-major): a per-point vector seen by the blocks."""
+    out = vec[float]([0.0] * nblocks)
+    for p in range(len(values)):
         value = values[p]
-        col = columns[p]
+        base = p * nblocks
         for b in range(nblocks):
-            out[b] += col[b] * value
-    return out
+            out[b] += columns[base + b] * value
+    return list(out)
 
 
 class LinearTerm:
@@ -228,10 +238,10 @@ class LinearTerm:
         self.onset = onset
 
 
-def _final_band(response: list[float], band: float) -> tuple[float, float] | None:
+def _final_band(response: vec[float], band: float) -> tuple[float, float] | None:
     """The step response's final value and ``band`` × its size; None when the final value
     is zero or not finite (there is no level to come within)."""
-    final = response[-1]
+    final = response[len(response) - 1]
     if not math.isfinite(final) or final == 0.0:
         return None
     return final, band * abs(final)
@@ -241,7 +251,7 @@ def _clamp(j: int, lo: int, hi: int) -> int:
     return lo if j < lo else hi if j > hi else j
 
 
-def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> int:
+def settling_horizon(response: vec[float], band: float, lo: int, hi: int) -> int:
     """The first sample after which the step response stays within ``band`` of its last
     value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
     settle or is not finite."""
@@ -262,7 +272,7 @@ def settling_horizon(response: list[float], band: float, lo: int, hi: int) -> in
     return _clamp(last, lo, hi)
 
 
-def arrival_time(response: list[float], band: float, lo: int, hi: int) -> int:
+def arrival_time(response: vec[float], band: float, lo: int, hi: int) -> int:
     """The first sample at which the step response comes within ``band`` of its last
     value, clamped to [lo, hi]; ``hi`` when it never does or is not finite.
 
@@ -270,7 +280,7 @@ def arrival_time(response: list[float], band: float, lo: int, hi: int) -> int:
     new level early and rings about it. The pace at which a level of the residual can be
     told from the model's own transient is set by this time, not by the ringing's decay.
     """
-    if not response:
+    if len(response) == 0:
         return lo
     level = _final_band(response, band)
     if level is None:

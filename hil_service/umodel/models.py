@@ -534,7 +534,7 @@ class DynamicUModel(_ModelBase):
         # fleet of models, per-sample copies keep the garbage collector's young generation
         # full: docs/benchmarks.md, "A fleet").
         self._spare_theta: list[float] = [0.0] * n
-        self._spare_p: list[list[float]] = [[0.0] * n for _ in range(n)]
+        self._spare_p = self.rls.blank()
         self._can_undo = False
         self._reset_history()
 
@@ -594,7 +594,7 @@ class DynamicUModel(_ModelBase):
             self._spare_theta[:] = self._theta
             before = self.rls.p
             self._can_undo = True
-            # The new P goes into the spare lists; the one before the update becomes the
+            # The new P goes into the spare buffer; the one before the update becomes the
             # spare (no copy of P a sample).
             self.rls.update(self._theta, self._phi, error * self._inv_scale, self._spare_p)
             self._spare_p = before
@@ -632,10 +632,7 @@ class DynamicUModel(_ModelBase):
             self.rls.reset()
             self._updates = 0
             return
-        for i, row in enumerate(self.rls.p):
-            fi = factors[i]
-            for j in range(len(row)):
-                row[j] *= fi * factors[j]
+        self.rls.scale(factors)
 
     def _lags(self) -> int:
         return max(self.na - 1, self.nb - 1)

@@ -49,6 +49,8 @@ from __future__ import annotations
 
 import math
 
+from librt.vecs import vec
+
 from .box_qp import solve_box_qp
 from .dynamics import ModelDynamics, StaticMap
 from .horizon import (
@@ -345,9 +347,10 @@ class PredictiveInverse:
         self._estimates = [0.0] * DISTURBANCE_PACES
         self._scores = [0.0] * DISTURBANCE_PACES
         self._points: list[int] = []  # cost points j (ŷ(k+j))
-        self._columns: list[list[float]] = []  # per point: effect of each block's level
+        #: Per cost point, each block's (weighted) effect on it: points × blocks, row-major.
+        self._columns = vec[float]()
         self._onset: list[float] = []  # per point: s(j − 1), the held input's step
-        self._hessian: list[list[float]] = []
+        self._hessian = vec[float]()  # the QP's, blocks × blocks, row-major
         # The free response in closed form at the cost points (see ``_forcing``): the AR
         # part it was derived for; S_A(j) and h_A(j − l) enter only through ``_linear``.
         self._free_ar: list[float] = []
@@ -491,15 +494,19 @@ class PredictiveInverse:
         stride = max(1, -(-span // s.cost_points))
         points, weights = cost_points(span, stride, starts, cost_start(response, n))
         columns, onset, hessian = plan_matrices(response, starts, points, weights)
-        rho = add_move_penalty(hessian, s.move_weight)
+        nblocks = len(starts)
+        rho = add_move_penalty(hessian, nblocks, s.move_weight)
         self._free_ar = list(ar)
         free_step, free_impulse = free_response_terms(ar, len(gains), span, points)
         self._lead = lead_of(free_impulse)
         self._linear = LinearTerm(
-            project(columns, free_step),
-            [project(columns, [row[d] for row in free_impulse]) for d in range(self._lead)],
-            project(columns, [1.0] * len(points)),
-            project(columns, onset),
+            project(columns, nblocks, free_step),
+            [
+                project(columns, nblocks, [row[d] for row in free_impulse])
+                for d in range(self._lead)
+            ],
+            project(columns, nblocks, [1.0] * len(points)),
+            project(columns, nblocks, onset),
         )
         self._horizon = n
         self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from librt.vecs import vec
 
 __all__ = ["RLS", "ListRLS"]
 
@@ -79,13 +80,16 @@ class RLS:
 
 
 class ListRLS:
-    """The same estimator on plain float lists, for the per-sample path of the U-model.
+    """The same estimator on unboxed float vectors, for the per-sample path of the U-model.
 
-    Why lists: for the ~15 parameters of the dynamic U-model a loop over floats (compiled
-    with mypyc) beats numpy's per-call overhead, and every sum runs in a fixed order, so
-    the result does not depend on the CPU's BLAS kernels (the controller's decisions are
-    replayed bit for bit). Only the upper triangle of P is computed; the lower one is its
-    mirror, so P stays exactly symmetric. ``update`` returns the gain Pφ/(λ + φᵀPφ) applied.
+    Why not numpy: for the ~15 parameters of the dynamic U-model a loop over floats
+    (compiled with mypyc) beats numpy's per-call overhead, and every sum runs in a fixed
+    order, so the result does not depend on the CPU's BLAS kernels (the controller's
+    decisions are replayed bit for bit). P is one row-major ``vec[float]`` (``librt``, the
+    runtime library of mypyc): compiled, its elements are C doubles, where a list of lists
+    would box and unbox every one of the n² values it touches (about 9x slower at n = 17).
+    Only the upper triangle of P is computed; the lower one is its mirror, so P stays
+    exactly symmetric. ``update`` returns the gain Pφ/(λ + φᵀPφ) applied.
     """
 
     __slots__ = ("lam", "n", "p", "p0", "prior", "trace_max")
@@ -103,66 +107,89 @@ class ListRLS:
         self.lam = float(lam)
         self.p0 = float(p0)
         self.trace_max = tmax
-        #: The covariance P starts from and returns to on a reset (None: p0·I).
-        self.prior: list[list[float]] | None = None
+        #: The covariance P starts from and returns to on a reset (None: p0·I), row-major.
+        self.prior: vec[float] | None = None
         if prior is not None:
             if len(prior) != n or any(len(row) != n for row in prior):
                 raise ValueError(f"the prior covariance must be {n} x {n}")
-            self.prior = [[float(v) for v in row] for row in prior]
-        self.p: list[list[float]] = []
+            self.prior = vec[float]([float(v) for row in prior for v in row])
+        #: P, n × n row-major: P[i][j] is ``p[i * n + j]``.
+        self.p: vec[float] = vec[float]()
         self.reset()
 
     def reset(self) -> None:
         """Back to the prior covariance, p0·I unless given (after a divergence)."""
         n = self.n
         if self.prior is not None:
-            self.p = [list(row) for row in self.prior]
+            self.p = vec[float](self.prior)
             return
-        self.p = [[self.p0 if i == j else 0.0 for j in range(n)] for i in range(n)]
+        self.p = vec[float]([self.p0 if i == j else 0.0 for i in range(n) for j in range(n)])
+
+    def blank(self) -> vec[float]:
+        """An n × n buffer of zeros, row-major: a spare for ``update(..., into=)``."""
+        return vec[float]([0.0] * (self.n * self.n))
+
+    def covariance(self) -> list[list[float]]:
+        """P as a list of rows (a copy)."""
+        n = self.n
+        p = self.p
+        return [[p[i * n + j] for j in range(n)] for i in range(n)]
+
+    def scale(self, factors: list[float]) -> None:
+        """P[i][j] *= factors[i] · factors[j]: P in new units of the parameters."""
+        n = self.n
+        p = self.p
+        for i in range(n):
+            fi = factors[i]
+            base = i * n
+            for j in range(n):
+                p[base + j] *= fi * factors[j]
 
     def update(
         self,
         theta: list[float],
         phi: list[float],
         error: float,
-        into: list[list[float]] | None = None,
+        into: vec[float] | None = None,
     ) -> bool:
         """θ += k·e in place, P ← (P − k·(Pφ)ᵀ)/λ_eff; False (and P reset) when the
-        update is not finite. With ``into`` (an n × n list of lists, not ``p``) the new P
-        is written there and becomes ``p``, and the old one is left as it was: a caller
-        that may undo the update keeps it without copying it."""
+        update is not finite. With ``into`` (an n × n buffer from ``blank``, not ``p``)
+        the new P is written there and becomes ``p``, and the old one is left as it was:
+        a caller that may undo the update keeps it without copying it."""
         n = self.n
         p = self.p
         out = p if into is None else into
-        pphi = [0.0] * n
+        x = vec[float](phi)
+        pphi = vec[float]([0.0] * n)
         for i in range(n):
-            row = p[i]
+            base = i * n
             acc = 0.0
             for j in range(n):
-                acc += row[j] * phi[j]
+                acc += p[base + j] * x[j]
             pphi[i] = acc
         denom = self.lam
         for i in range(n):
-            denom += phi[i] * pphi[i]
+            denom += x[i] * pphi[i]
         if not (math.isfinite(denom) and denom > 0.0):
             self.reset()
             return False
         inv = 1.0 / denom
-        k = [v * inv for v in pphi]
+        k = vec[float]([0.0] * n)
+        for i in range(n):
+            k[i] = pphi[i] * inv
         for i in range(n):
             theta[i] += k[i] * error
         trace = 0.0
         for i in range(n):
-            trace += p[i][i] - k[i] * pphi[i]
+            trace += p[i * n + i] - k[i] * pphi[i]
         scale = 1.0 / self.lam if trace <= self.trace_max else 1.0
         for i in range(n):
-            row = p[i]
-            new_row = out[i]
             ki = k[i]
+            base = i * n
             for j in range(i, n):
-                v = (row[j] - ki * pphi[j]) * scale
-                new_row[j] = v
-                out[j][i] = v
+                v = (p[base + j] - ki * pphi[j]) * scale
+                out[base + j] = v
+                out[j * n + i] = v
         self.p = out
         if not math.isfinite(trace):
             self.reset()
