@@ -120,6 +120,7 @@ ALLOWED_IMPORTS = {
     "bisect",
     "itertools",
     "librt.vecs",  # mypyc's unboxed float vectors: storage, no I/O
+    "mypy_extensions",  # i64, the machine integer type mypyc compiles natively
 }
 
 

@@ -3,12 +3,14 @@ its input blocks (at most ``max_blocks`` variables, solved once per sample).
 
 Matrices are row-major ``vec[float]`` (``librt``, mypyc's runtime library): compiled, their
 elements are C doubles, where lists of lists box and unbox every value an elimination
-touches. ``flat_matrix`` makes one from rows.
+touches. ``flat_matrix`` makes one from rows. Sizes and indices are ``i64``: compiled,
+their arithmetic is then on machine integers, not on Python ints.
 """
 
 from __future__ import annotations
 
 from librt.vecs import vec
+from mypy_extensions import i64
 
 __all__ = ["flat_matrix", "solve_box_qp", "solve_linear"]
 
@@ -18,7 +20,7 @@ def flat_matrix(rows: list[list[float]]) -> vec[float]:
     return vec[float]([float(v) for row in rows for v in row])
 
 
-def solve_linear(a: vec[float], b: vec[float], k: int) -> vec[float] | None:
+def solve_linear(a: vec[float], b: vec[float], k: i64) -> vec[float] | None:
     """x with a·x = b by Gaussian elimination with partial pivoting (a, k × k row-major,
     and b are consumed); None when a is singular to working precision."""
     for col in range(k):
@@ -65,7 +67,7 @@ def solve_box_qp(
     reached if the iteration limit hits, and the working set (0 free, −1 at lo, +1 at
     hi): given back as ``warm`` on the next sample, the last plan's active bounds, it
     usually leaves one or two iterations."""
-    n = len(f)
+    n: i64 = len(f)
     g0 = vec[float](f)
     low = vec[float](lo)
     high = vec[float](hi)
@@ -83,10 +85,10 @@ def solve_box_qp(
             for j in range(n):
                 acc += h[base + j] * x[j]
             grad[i] = acc
-        free = [i for i in range(n) if state[i] == 0]
+        free = vec[i64]([i for i in range(n) if state[i] == 0])
         step = vec[float]([0.0] * n)
         moved = False
-        m = len(free)
+        m: i64 = len(free)
         if m:
             sub = vec[float]([0.0] * (m * m))
             rhs = vec[float]([0.0] * m)
@@ -100,9 +102,14 @@ def solve_box_qp(
                 return list(x), state
             for r in range(m):
                 step[free[r]] = sol[r]
-            scale = 0.0
+            scale = 0.0  # max(scale, |x_i|, hi_i − lo_i) over i, without boxing the floats
             for i in range(n):
-                scale = max(scale, abs(x[i]), high[i] - low[i])
+                size = abs(x[i])
+                if size > scale:
+                    scale = size
+                width = high[i] - low[i]
+                if width > scale:
+                    scale = width
             limit = 1e-14 * (1.0 + scale)
             for i in range(n):
                 if abs(step[i]) > limit:
@@ -110,7 +117,7 @@ def solve_box_qp(
                     break
         if moved:
             alpha = 1.0
-            block = -1
+            block: i64 = -1
             for i in free:
                 v = step[i]
                 if v < 0.0 and x[i] + v < low[i]:
@@ -130,7 +137,7 @@ def solve_box_qp(
                     x[block], state[block] = high[block], 1
             continue
         # No step left on this face: release the bound that most wants to move inward.
-        worst = -1
+        worst: i64 = -1
         worst_value = 0.0
         for i in range(n):
             # At lo the gradient must be ≥ 0, at hi ≤ 0 (multipliers of the right sign).

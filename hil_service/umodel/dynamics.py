@@ -228,7 +228,10 @@ class ModelDynamics:
         return acc
 
     def is_finite(self) -> bool:
-        values = [self.bias, *self.ar, *self.outputs, *self.inputs]
-        for poly in self.lag_polys:
-            values += poly
-        return all(math.isfinite(v) for v in values)
+        if not math.isfinite(self.bias):
+            return False
+        for values in (self.ar, self.outputs, self.inputs, *self.lag_polys):
+            for v in values:
+                if not math.isfinite(v):
+                    return False
+        return True

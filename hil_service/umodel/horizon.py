@@ -5,7 +5,8 @@ Pure functions of the step response (and the AR part for the free response); the
 as slowly as the model does, and ``PredictiveInverse`` derives them again every
 ``refresh`` samples. The long series (a response runs to ``max_horizon``) and the
 matrices are ``vec[float]`` (``librt``, mypyc's runtime library; matrices row-major):
-compiled, their elements are C doubles, where a list boxes and unboxes each one read.
+compiled, their elements are C doubles, where a list boxes and unboxes each one read; sizes
+and indices are ``i64``, machine integers.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import math
 
 from librt.vecs import vec
+from mypy_extensions import i64
 
 __all__ = [
     "LinearTerm",
@@ -110,12 +112,13 @@ def cost_start(response: vec[float], horizon: int) -> int:
 def step_response(ar: list[float], gains: list[float], n: int) -> vec[float]:
     """s(0 … n−1): the output j samples after w steps from 0 to 1 (s(0) = 0: no
     feedthrough), for y(t) = Σ c_i y(t−i) + Σ_L g_L w(t−L)."""
-    na = len(ar)
-    nb = len(gains)
+    na: i64 = len(ar)
+    nb: i64 = len(gains)
+    count: i64 = n
     c = vec[float](ar)
-    out = vec[float]([0.0] * n)
+    out = vec[float]([0.0] * count)
     forcing = 0.0
-    for j in range(n):
+    for j in range(count):
         if 1 <= j <= nb:
             forcing += gains[j - 1]
         acc = forcing
@@ -132,29 +135,31 @@ def plan_matrices(
     """Per cost point, each block's weighted effect on ŷ(k+j) (the columns, points ×
     blocks row-major) and the held input's step s(j − 1) (the onset); and the output
     cost's Hessian Σ_p w_p·col·colᵀ (blocks × blocks row-major)."""
-    nblocks = len(starts)
-    columns = vec[float]([0.0] * (len(points) * nblocks))
+    nblocks: i64 = len(starts)
+    npoints: i64 = len(points)
+    begins = vec[i64]([i64(start) for start in starts])
+    columns = vec[float]([0.0] * (npoints * nblocks))
     onset: list[float] = []
     hessian = vec[float]([0.0] * (nblocks * nblocks))
     col = vec[float]([0.0] * nblocks)
-    for p in range(len(points)):
-        j = points[p]
+    for p in range(npoints):
+        j: i64 = points[p]
         weight = weights[p]
         # Block b's level acts on ŷ(k+j) through s(j − start_b) − s(j − start_{b+1})
         # (s(m) = 0 for m ≤ 0: an input acts one sample later).
         for b in range(nblocks):
-            first = j - starts[b]
+            first = j - begins[b]
             on = response[first] if first > 0 else 0.0
             off = 0.0
             if b + 1 < nblocks:
-                after = j - starts[b + 1]
+                after = j - begins[b + 1]
                 off = response[after] if after > 0 else 0.0
             col[b] = on - off
         # Stored weighted: the QP's linear term is Σ_p weight·col·residual.
         base = p * nblocks
         for b in range(nblocks):
             columns[base + b] = weight * col[b]
-        first0 = j - starts[0]
+        first0 = j - begins[0]
         onset.append(response[first0] if first0 > 0 else 0.0)
         for a in range(nblocks):
             wa = weight * col[a]
@@ -164,14 +169,14 @@ def plan_matrices(
     return columns, onset, hessian
 
 
-def add_move_penalty(hessian: vec[float], nblocks: int, move_weight: float) -> float:
+def add_move_penalty(hessian: vec[float], nblocks: i64, move_weight: float) -> float:
     """Add the move penalty ρ Σ (W_b − W_{b−1})² (W_{−1} = the applied input's level) to
     ``hessian`` (``nblocks`` square, row-major) in place, ρ scaled to the output cost's
     size; returns ρ."""
     trace = 0.0
     for b in range(nblocks):
         trace += hessian[b * nblocks + b]
-    rho = move_weight * (trace / nblocks + 1e-12)
+    rho = move_weight * (trace / float(nblocks) + 1e-12)
     for b in range(nblocks):
         hessian[b * nblocks + b] += rho if b + 1 == nblocks else 2.0 * rho
         if b + 1 < nblocks:
@@ -186,18 +191,19 @@ def free_response_terms(
     """1/A(q) at the cost points, for the free response in closed form
     (``PredictiveInverse._forcing``): S_A(j), the running sum of the impulse response
     h_A, and h_A(j − l) for l = 1 … L, L = max(na, lags − 1, 1)."""
-    na = len(ar)
-    lead = max(na, lags - 1, 1)
+    na: i64 = len(ar)
+    lead = max(len(ar), lags - 1, 1)
+    count: i64 = n
     c = vec[float](ar)
-    impulse = vec[float]([0.0] * n)
-    for m in range(n):
+    impulse = vec[float]([0.0] * count)
+    for m in range(count):
         acc = 1.0 if m == 0 else 0.0
         for i in range(na):
             if m - 1 - i >= 0:
                 acc += c[i] * impulse[m - 1 - i]
         impulse[m] = acc
-    running = vec[float]([0.0] * (n + 1))
-    for m in range(n):
+    running = vec[float]([0.0] * (count + 1))
+    for m in range(count):
         running[m + 1] = running[m] + impulse[m]
     step = [running[j] for j in points]
     impulses = [[impulse[j - d] if j - d >= 0 else 0.0 for d in range(1, lead + 1)] for j in points]
@@ -209,11 +215,12 @@ def lead_of(impulses: list[list[float]]) -> int:
     return len(impulses[0]) if impulses else 0
 
 
-def project(columns: vec[float], nblocks: int, values: list[float]) -> list[float]:
+def project(columns: vec[float], nblocks: i64, values: list[float]) -> list[float]:
     """Σ_p columns[p][b]·values[p] per block b (``columns`` points × ``nblocks``,
     row-major): a per-point vector seen by the blocks."""
     out = vec[float]([0.0] * nblocks)
-    for p in range(len(values)):
+    npoints: i64 = len(values)
+    for p in range(npoints):
         value = values[p]
         base = p * nblocks
         for b in range(nblocks):
@@ -255,7 +262,7 @@ def settling_horizon(response: vec[float], band: float, lo: int, hi: int) -> int
     """The first sample after which the step response stays within ``band`` of its last
     value (the response is ``hi`` long), clamped to [lo, hi]; ``hi`` when it does not
     settle or is not finite."""
-    n = len(response)
+    n: i64 = len(response)
     if n == 0:
         return lo
     level = _final_band(response, band)

@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 from librt.vecs import vec
+from mypy_extensions import i64
 
 __all__ = ["RLS", "ListRLS"]
 
@@ -131,13 +132,13 @@ class ListRLS:
 
     def covariance(self) -> list[list[float]]:
         """P as a list of rows (a copy)."""
-        n = self.n
+        n: i64 = self.n
         p = self.p
         return [[p[i * n + j] for j in range(n)] for i in range(n)]
 
     def scale(self, factors: list[float]) -> None:
         """P[i][j] *= factors[i] · factors[j]: P in new units of the parameters."""
-        n = self.n
+        n: i64 = self.n
         p = self.p
         for i in range(n):
             fi = factors[i]
@@ -156,7 +157,7 @@ class ListRLS:
         update is not finite. With ``into`` (an n × n buffer from ``blank``, not ``p``)
         the new P is written there and becomes ``p``, and the old one is left as it was:
         a caller that may undo the update keeps it without copying it."""
-        n = self.n
+        n: i64 = self.n
         p = self.p
         out = p if into is None else into
         x = vec[float](phi)
