@@ -33,7 +33,7 @@ ENV_PURE_PYTHON = "GLIDER_HIL_PURE_PYTHON"  # at install time: compile nothing (
 
 #: Every module a MAVLink sample goes through whose own Python code is a noticeable share
 #: of the time (the model's multi-step map, the predictive inverse and the root solver are
-#: the control step; the list-based RLS is the dynamic model's update).
+#: the control step; the RLS is the dynamic model's update).
 HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.box_qp",
     "hil_service.umodel.dynamics",

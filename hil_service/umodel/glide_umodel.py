@@ -40,7 +40,7 @@ M and the drift are the structure, chosen per data set on its training dives by
 enters as y(t−1) with a unit coefficient (an integrator from physics, not a fitted a₁ ≈ 1
 whose error would grow over a thousand-metre free run). Every term is linear in the
 parameters θ (``buoyancy``: [β₁..β_M, β₀, (c,) γ]; ``steady-glide``: [β₁..β_M, (c)]):
-recursive least squares with forgetting (``ListRLS``, plain floats in a fixed order:
+recursive least squares with forgetting (``ListRLS``, sums in a fixed order:
 deterministic, no random initialisation).
 
 Inputs: ``step(u_prev, y, pitch_prev)`` with u_prev = u(t−1), the buoyancy input applied
