@@ -68,7 +68,7 @@ def solve_box_qp(
     hi): given back as ``warm`` on the next sample, the last plan's active bounds, it
     usually leaves one or two iterations."""
     n: i64 = len(f)
-    g0 = vec[float](f)
+    linear = vec[float](f)
     low = vec[float](lo)
     high = vec[float](hi)
     state = [0] * n
@@ -80,7 +80,7 @@ def solve_box_qp(
     for _ in range(8 * n + 8):
         grad = vec[float]([0.0] * n)
         for i in range(n):
-            acc = g0[i]
+            acc = linear[i]
             base = i * n
             for j in range(n):
                 acc += h[base + j] * x[j]
