@@ -229,6 +229,68 @@ def test_the_warm_started_lp_finds_the_optimum_linprog_finds_from_scratch(scenar
             command = controller.command(float(schedule["depth"][k]), sample.u_depth)
     assert len(checked) > 100 and controller.failures == 0
     assert max(checked) > 1.0  # setpoint steps: LPs with a real error to remove
+    # Many of these answers (about half, on this run of steps) came from the last
+    # optimum's basis, without a HiGHS run.
+    assert controller._lp.reused > len(checked) // 4
+
+
+def _random_lp(seed: int):
+    """An L1 fit as the oracle's LP: min Σ t, |F v − g| ≤ t, box bounds on v."""
+    rng = np.random.default_rng(seed)
+    rows, nv = 30, 6
+    forced = rng.normal(size=(rows, nv))
+    eye = np.eye(rows)
+    a_ub = np.vstack((np.hstack((forced, -eye)), np.hstack((-forced, -eye))))
+    cost = np.concatenate((np.zeros(nv), np.ones(rows)))
+    lower = np.concatenate((np.full(nv, -1.0), np.zeros(rows)))
+    upper = np.full(nv + rows, np.inf)
+    return a_ub, cost, lower, upper, forced, nv, rng
+
+
+def test_the_last_optimums_basis_answers_a_nearby_lp_with_linprogs_optimum():
+    """A small change of b keeps the optimal basis feasible: the answer comes without a
+    HiGHS run and is the optimum linprog finds from scratch; a large one does not, and
+    HiGHS is run. Either way the optimum is the same."""
+    from scipy.optimize import linprog
+
+    from hil_service.experiment.oracle import _LpModel
+
+    a_ub, cost, lower, upper, forced, nv, rng = _random_lp(3)
+    model = _LpModel(cost, a_ub, lower, upper)
+    blocks = np.arange(nv, dtype=np.int32)
+    gap = forced @ rng.uniform(-0.5, 0.5, nv) + 0.1 * rng.normal(size=forced.shape[0])
+    answered = []
+    for scale in (0.0, 1e-6, 1e-4, 1.0):
+        g = gap + scale * rng.normal(size=gap.size)
+        b_ub = np.concatenate((g, -g))
+        before = model.reused
+        x = model.solve(b_ub, blocks, np.full(nv, -1.0), np.full(nv, 1.0))
+        answered.append(model.reused > before)
+        bounds = [(-1.0, 1.0)] * nv + [(0.0, None)] * forced.shape[0]
+        reference = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs")
+        assert x is not None and reference.status == 0
+        assert float(cost @ x) == pytest.approx(reference.fun, rel=1e-9, abs=1e-12)
+        assert np.all(a_ub @ x <= b_ub + 1e-9)
+        assert np.all(np.abs(x[:nv]) <= 1.0 + 1e-12)
+    assert answered == [False, True, True, False]
+
+
+def test_a_basis_that_is_not_square_or_is_singular_is_refused():
+    from hil_service.experiment.lp_basis import OptimalBasis
+
+    a_ub = np.array([[1.0, 1.0], [2.0, 2.0], [1.0, -1.0]])
+    at_upper = np.zeros(2, dtype=bool)
+    with pytest.raises(ValueError, match="not a basis"):
+        OptimalBasis(a_ub, np.array([True, True]), at_upper, np.array([True, False, False]))
+    with pytest.raises(ValueError, match=r"singular|ill-conditioned"):
+        OptimalBasis(a_ub, np.array([True, True]), at_upper, np.array([True, True, False]))
+    basis = OptimalBasis(a_ub, np.array([True, True]), at_upper, np.array([True, False, True]))
+    # x = (1, 1) from rows 0 and 2 at b = (2, ·, 0); row 1 (2x + 2y = 4) must hold ≤ b_1.
+    lower, upper = np.full(2, -5.0), np.full(2, 5.0)
+    x = basis.primal(np.array([2.0, 4.0, 0.0]), lower, upper, 1e-10)
+    assert x is not None and np.allclose(x, [1.0, 1.0])
+    assert basis.primal(np.array([2.0, 3.9, 0.0]), lower, upper, 1e-10) is None  # row 1
+    assert basis.primal(np.array([2.0, 4.0, 0.0]), lower, np.full(2, 0.5), 1e-10) is None
 
 
 def test_a_reset_oracle_commands_as_a_fresh_one():

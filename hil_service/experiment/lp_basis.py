@@ -1,0 +1,149 @@
+"""An optimal LP basis kept across solves whose right-hand sides and bounds change.
+
+For min cᵀx s.t. A x ≤ b, lo ≤ x ≤ hi with c and A fixed, a basis (which columns are
+basic, at which bound each non-basic column sits, which rows are active) stays dual
+feasible whatever b, lo and hi become: only its primal values move. So when the basis that
+was optimal for the last solve is still primal feasible for the new b and bounds, it is
+optimal again, and its primal values are the LP's solution, the one a warm-started
+simplex returns after zero iterations. ``OptimalBasis`` checks exactly that, with one
+solve against a factorisation kept per basis: a small fraction of a call into the
+solver, which re-factorises and re-checks from scratch on every run.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import lapack
+
+Array = NDArray[np.float64]
+Index = NDArray[np.intp]
+
+#: A basis whose square part is more ill-conditioned than this (LAPACK's reciprocal
+#: condition estimate) is not used: its primal values would not be trusted to the
+#: feasibility tolerance.
+MIN_RCOND = 1e-12
+
+
+class OptimalBasis:
+    """The basis of an optimum: the basic columns, the non-basic ones' bounds, the active
+    rows, and the square system of the active rows over the basic columns (square: an LP
+    with only ≤ rows has as many basic columns as active rows), factorised.
+
+    Most of that system is column singletons: a basic slack appears in one active row
+    only, and its value follows from that row once the other columns are known. Those
+    are taken out first, and only what remains (the basic inputs, a few dozen at most for
+    the oracle) is LU-factorised densely, which keeps the factorisation a small part of a
+    solve."""
+
+    __slots__ = (
+        "_a_active_n",
+        "_a_inactive",
+        "_active",
+        "_basic",
+        "_coupling",
+        "_diagonal",
+        "_inactive",
+        "_lu",
+        "_nonbasic",
+        "_pivots",
+        "_rest_cols",
+        "_rest_rows",
+        "_single_cols",
+        "_single_rows",
+        "_upper",
+    )
+
+    def __init__(
+        self,
+        a_ub: Array,
+        basic_cols: NDArray[np.bool_],
+        at_upper: NDArray[np.bool_],
+        active_rows: NDArray[np.bool_],
+    ) -> None:
+        """``basic_cols``; ``at_upper``: the non-basic columns at their upper bound (the
+        others sit at their lower); ``active_rows``: the non-basic rows (A_i x = b_i).
+        ValueError when the active rows over the basic columns are not a square,
+        well-conditioned matrix."""
+        self._basic: Index = np.flatnonzero(basic_cols)
+        self._nonbasic: Index = np.flatnonzero(~basic_cols)
+        self._upper = at_upper[self._nonbasic]
+        self._active: Index = np.flatnonzero(active_rows)
+        self._inactive: Index = np.flatnonzero(~active_rows)
+        square = a_ub.take(self._active, 0).take(self._basic, 1)
+        size = square.shape[0]
+        if size != square.shape[1]:
+            raise ValueError(f"not a basis: {size} active rows, {square.shape[1]} basic")
+        nonzero = square != 0.0
+        single_cols = np.flatnonzero(nonzero.sum(axis=0) == 1)
+        single_rows = nonzero[:, single_cols].argmax(axis=0)
+        owned = np.bincount(single_rows, minlength=size)
+        if owned.size and owned.max() > 1:  # two singletons on one row: no shortcut
+            single_cols = single_rows = np.zeros(0, dtype=np.intp)
+            owned = np.zeros(size, dtype=np.intp)
+        rest_rows = np.flatnonzero(owned == 0)
+        single_mask = np.zeros(size, dtype=bool)
+        single_mask[single_cols] = True
+        rest_cols = np.flatnonzero(~single_mask)
+        self._single_cols, self._single_rows = single_cols, single_rows
+        self._rest_cols, self._rest_rows = rest_cols, rest_rows
+        self._diagonal = square[single_rows, single_cols]
+        self._coupling = square.take(single_rows, 0).take(rest_cols, 1)
+        reduced = np.asfortranarray(square.take(rest_rows, 0).take(rest_cols, 1))
+        self._lu, self._pivots = reduced, np.zeros(0, dtype=np.int32)
+        if reduced.size:
+            norm = float(np.max(np.sum(np.abs(reduced), axis=0)))
+            self._lu, self._pivots, info = lapack.dgetrf(reduced, overwrite_a=True)
+            if info != 0:
+                raise ValueError("singular basis")
+            rcond, info = lapack.dgecon(self._lu, norm, norm="1")
+            if info != 0 or not rcond >= MIN_RCOND:
+                raise ValueError(f"basis too ill-conditioned (rcond {rcond:.3g})")
+        self._a_active_n = a_ub.take(self._active, 0).take(self._nonbasic, 1)
+        self._a_inactive = a_ub.take(self._inactive, 0)
+
+    def primal(self, b_ub: Array, lower: Array, upper: Array, tolerance: float) -> Array | None:
+        """x of this basis for ``b_ub`` and the column bounds, or None where it is not
+        feasible: a bound or an inactive row violated by more than ``tolerance``."""
+        nonbasic = self._nonbasic
+        x_n = np.where(self._upper, upper.take(nonbasic), lower.take(nonbasic))
+        if not np.isfinite(x_n).all():
+            return None
+        x = np.empty(lower.size)
+        x[nonbasic] = x_n
+        basic = self._basic
+        if basic.size:
+            rhs = b_ub.take(self._active) - self._a_active_n @ x_n
+            x_b = np.empty(basic.size)
+            x_rest = rhs.take(self._rest_rows)
+            if x_rest.size:
+                x_rest, info = lapack.dgetrs(self._lu, self._pivots, x_rest)
+                if info != 0:
+                    return None
+            x_b[self._rest_cols] = x_rest
+            x_b[self._single_cols] = (
+                rhs.take(self._single_rows) - self._coupling @ x_rest
+            ) / self._diagonal
+            if (x_b < lower.take(basic) - tolerance).any() or (
+                x_b > upper.take(basic) + tolerance
+            ).any():
+                return None
+            x[basic] = x_b
+        if (self._a_inactive @ x > b_ub.take(self._inactive) + tolerance).any():
+            return None
+        return x
+
+
+def from_basic_variables(
+    a_ub: Array, basic_variables: NDArray[np.int32], x: Array, lower: Array, upper: Array
+) -> OptimalBasis:
+    """The basis a solver reports as its basic variables (column j as j, row i as −(i + 1),
+    HiGHS's convention) at the optimum ``x``: each non-basic column sits at the bound it
+    is nearer."""
+    rows, cols = a_ub.shape
+    basic_cols = np.zeros(cols, dtype=bool)
+    basic_rows = np.zeros(rows, dtype=bool)
+    basic_cols[basic_variables[basic_variables >= 0]] = True
+    basic_rows[-1 - basic_variables[basic_variables < 0]] = True
+    at_upper = np.abs(x - upper) < np.abs(x - lower)
+    return OptimalBasis(a_ub, basic_cols, at_upper, ~basic_rows)
