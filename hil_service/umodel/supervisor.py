@@ -264,8 +264,10 @@ class HorizonTest:
         if self.steps < min(horizon, self.minimum):
             return False
         horizon = self.steps
-        ys, us, measured = self._outputs, self._inputs, self._measured
-        na, nb = len(dyn.ar), len(dyn.lag_polys)
+        # Lists, not the deques: a deque's item access walks its blocks.
+        ys, us, measured = list(self._outputs), list(self._inputs), list(self._measured)
+        ar, bias = dyn.ar, dyn.bias
+        na, nb = len(ar), len(dyn.lag_polys)
         sum_m = sum_h = sum_y = sum_y2 = 0.0
         reference = ys[n - 1]
         count = 0
@@ -277,19 +279,20 @@ class HorizonTest:
                 s -= 1
             if s < first:
                 break
-            run = ModelDynamics(
-                dyn.ar,
-                dyn.bias,
-                dyn.lag_polys,
-                dyn.poly_scale,
-                [ys[s - i] for i in range(na)],
-                [us[s - i] for i in range(nb)],
-                dyn.rbf,
-                dyn.rbf_weights,
-            )
+            # The model run freely from the measured outputs up to s, on the recorded
+            # inputs (``ModelDynamics.advance``, summed in the same order): its outputs
+            # oldest first, each prediction appended.
+            run = ys[s - na + 1 : s + 1] if na else []
             y0 = ys[s]
             for j in range(s + 1, end + 1):
-                y_model = run.advance(us[j])
+                y_model = bias
+                last = len(run) - 1
+                for i in range(na):
+                    y_model += ar[i] * run[last - i]
+                for lag in range(1, nb + 1):
+                    y_model += dyn.lag_value(lag, us[j - lag + 1])
+                if na:
+                    run.append(y_model)
                 if not measured[j]:
                     continue
                 y = ys[j]
