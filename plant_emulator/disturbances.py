@@ -49,11 +49,17 @@ class PiecewiseCurrentWave:
     amplitude: float = 0.5
     time_scale: float = 1.0
     breakpoints: tuple[tuple[float, float], ...] = PAPER_WAVE_BREAKPOINTS
+    _times: np.ndarray = field(init=False, repr=False)
+    _values: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # Built once: this runs every plant step of every channel.
+        self._times = np.array([p[0] * self.time_scale for p in self.breakpoints])
+        self._values = np.array([p[1] for p in self.breakpoints])
 
     def sample(self, t: float) -> float:
-        times = [p[0] * self.time_scale for p in self.breakpoints]
-        values = [p[1] for p in self.breakpoints]
-        return self.amplitude * float(np.interp(t % times[-1], times, values))
+        times = self._times
+        return self.amplitude * float(np.interp(t % times[-1], times, self._values))
 
 
 @dataclass
@@ -103,10 +109,10 @@ class WaveOrbital:
         self._phases = tuple(float(p) for p in rng.uniform(0, 2 * math.pi, len(self.periods)))
 
     def sample(self, t: float) -> float:
-        return sum(
-            a * math.sin(2 * math.pi * t / p + ph)
-            for a, p, ph in zip(self.amplitudes, self.periods, self._phases, strict=True)
-        )
+        total = 0.0
+        for a, p, ph in zip(self.amplitudes, self.periods, self._phases, strict=True):
+            total += a * math.sin(2 * math.pi * t / p + ph)
+        return total
 
 
 @dataclass
@@ -114,4 +120,7 @@ class SumOfDisturbances:
     parts: tuple[Disturbance, ...]
 
     def sample(self, t: float) -> float:
-        return sum(part.sample(t) for part in self.parts)
+        total = 0.0
+        for part in self.parts:
+            total += part.sample(t)
+        return total
