@@ -182,12 +182,15 @@ class _Unencodable:
     fieldnames = ("value",)
     fieldtypes = ("float",)
     value = object()
+    # What pymavlink's accessors return, read as the codec reads them (mavlink_io.type_of).
+    _type = "ATTITUDE"
+    _header = dialect.MAVLink_header(30, seq=0, srcSystem=1, srcComponent=1)
 
     def get_type(self) -> str:
-        return "ATTITUDE"
+        return self._type
 
     def get_header(self) -> dialect.MAVLink_header:
-        return dialect.MAVLink_header(30, seq=0, srcSystem=1, srcComponent=1)
+        return self._header
 
 
 def test_an_unencodable_record_is_counted_and_logging_goes_on(tmp_path):
