@@ -291,6 +291,7 @@ def test_a_basis_that_is_not_square_or_is_singular_is_refused():
     assert x is not None and np.allclose(x, [1.0, 1.0])
     assert basis.primal(np.array([2.0, 3.9, 0.0]), lower, upper, 1e-10) is None  # row 1
     assert basis.primal(np.array([2.0, 4.0, 0.0]), lower, np.full(2, 0.5), 1e-10) is None
+    assert basis.primal(np.array([np.nan, 4.0, 0.0]), lower, upper, 1e-10) is None
 
 
 def test_a_reset_oracle_commands_as_a_fresh_one():

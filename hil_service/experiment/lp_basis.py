@@ -104,7 +104,8 @@ class OptimalBasis:
 
     def primal(self, b_ub: Array, lower: Array, upper: Array, tolerance: float) -> Array | None:
         """x of this basis for ``b_ub`` and the column bounds, or None where it is not
-        feasible: a bound or an inactive row violated by more than ``tolerance``."""
+        feasible (a bound or an inactive row violated by more than ``tolerance``) or not
+        finite (a NaN passes every comparison: the solver decides such an LP)."""
         nonbasic = self._nonbasic
         x_n = np.where(self._upper, upper.take(nonbasic), lower.take(nonbasic))
         if not np.isfinite(x_n).all():
@@ -130,6 +131,8 @@ class OptimalBasis:
                 return None
             x[basic] = x_b
         if (self._a_inactive @ x > b_ub.take(self._inactive) + tolerance).any():
+            return None
+        if not np.isfinite(x).all():
             return None
         return x
 
