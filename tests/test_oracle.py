@@ -292,6 +292,10 @@ def test_a_basis_that_is_not_square_or_is_singular_is_refused():
     assert basis.primal(np.array([2.0, 3.9, 0.0]), lower, upper, 1e-10) is None  # row 1
     assert basis.primal(np.array([2.0, 4.0, 0.0]), lower, np.full(2, 0.5), 1e-10) is None
     assert basis.primal(np.array([np.nan, 4.0, 0.0]), lower, upper, 1e-10) is None
+    # A singleton column whose one entry is tiny beside the rest: refused, not divided by.
+    tiny = np.array([[1e-15, 1.0], [0.0, 1.0]])
+    with pytest.raises(ValueError, match="ill-conditioned"):
+        OptimalBasis(tiny, np.array([True, True]), at_upper, np.array([True, True]))
 
 
 def test_a_reset_oracle_commands_as_a_fresh_one():

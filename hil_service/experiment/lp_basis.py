@@ -88,6 +88,10 @@ class OptimalBasis:
         self._single_cols, self._single_rows = single_cols, single_rows
         self._rest_cols, self._rest_rows = rest_cols, rest_rows
         self._diagonal = square[single_rows, single_cols]
+        if self._diagonal.size and not (
+            np.min(np.abs(self._diagonal)) >= MIN_RCOND * np.max(np.abs(square))
+        ):
+            raise ValueError("basis too ill-conditioned (a tiny singleton pivot)")
         self._coupling = square.take(single_rows, 0).take(rest_cols, 1)
         reduced = np.asfortranarray(square.take(rest_rows, 0).take(rest_cols, 1))
         self._lu, self._pivots = reduced, np.zeros(0, dtype=np.int32)
