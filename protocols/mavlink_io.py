@@ -46,10 +46,10 @@ UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
 # One place for the four questions (its type, header, sender and frame), so that the rest
 # of the code never touches pymavlink's attributes. The first three read the attributes
 # that pymavlink's accessors return (``get_type`` is ``return self._type``, ``get_header``
-# ``return self._header``, ``get_srcSystem`` ``return self._header.srcSystem``): a sample
-# asks them some thirty times, and each call of an accessor is a Python frame, which costs
-# several times the attribute read (``tests/test_mavlink_io.py`` checks they agree for
-# every message of the dialect).
+# ``return self._header``, ``get_srcSystem`` ``return self._header.srcSystem``): a plant
+# step asks them about fifty times, and each call of an accessor is a Python frame, which
+# costs several times the attribute read (``tests/test_frame_decoder.py`` checks that they
+# agree for every message type of the dialect).
 
 
 def type_of(message: MavMessage) -> str:

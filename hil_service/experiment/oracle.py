@@ -128,6 +128,9 @@ INF = float(highspy.kHighsInf)
 #: The last optimum's basis is taken again when no bound or row is violated by more than
 #: this: HiGHS's own primal feasibility tolerance (``LP_OPTIONS``).
 PRIMAL_TOLERANCE = 1e-10
+#: The basis is factorised after a HiGHS run while its running hit rate (the share of
+#: solves it answered, averaged with this gain) is at least MIN_HIT_RATE, and otherwise on
+#: every PROBE_EVERY-th run, so that a rate that has fallen can recover.
 HIT_RATE_GAIN = 1.0 / 16.0
 MIN_HIT_RATE = 0.25
 PROBE_EVERY = 32
