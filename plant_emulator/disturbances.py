@@ -49,8 +49,8 @@ class PiecewiseCurrentWave:
     amplitude: float = 0.5
     time_scale: float = 1.0
     breakpoints: tuple[tuple[float, float], ...] = PAPER_WAVE_BREAKPOINTS
-    _times: np.ndarray = field(init=False, repr=False)
-    _values: np.ndarray = field(init=False, repr=False)
+    _times: np.ndarray = field(init=False, repr=False, compare=False)
+    _values: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Built once: this runs every plant step of every channel.

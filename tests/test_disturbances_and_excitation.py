@@ -49,6 +49,8 @@ def test_paper_current_wave_follows_its_breakpoints_and_repeats():
     assert wave.sample(60.0) == 2.0  # on the plateau 40..80 s
     assert wave.sample(30.0) == pytest.approx(1.0)  # halfway up the 20..40 s ramp
     assert wave.sample(60.0 + 200.0) == 2.0
+    # Compared by its settings (its breakpoint arrays, built from them, are not compared).
+    assert wave == PiecewiseCurrentWave(amplitude=2.0) != PiecewiseCurrentWave(amplitude=1.0)
 
 
 def test_only_the_disturbed_scenario_disturbs():

@@ -275,6 +275,36 @@ def test_the_last_optimums_basis_answers_a_nearby_lp_with_linprogs_optimum():
     assert answered == [False, True, True, False]
 
 
+def test_bounds_set_on_a_solve_the_basis_answered_reach_the_solver_later():
+    """A column bound changed on a solve the last basis answers (HiGHS not run) still
+    holds on a later solve that sets other columns and needs HiGHS."""
+    from scipy.optimize import linprog
+
+    from hil_service.experiment.oracle import _LpModel
+
+    a_ub, cost, lower, upper, forced, nv, rng = _random_lp(5)
+    model = _LpModel(cost, a_ub, lower, upper)
+    gap = forced @ rng.uniform(-0.5, 0.5, nv)
+    b_ub = np.concatenate((gap, -gap))
+    blocks = np.arange(nv, dtype=np.int32)
+    x = model.solve(b_ub, blocks, np.full(nv, -1.0), np.full(nv, 1.0))
+    # Column 0's upper bound moved just above its optimum: the same basis answers.
+    first = np.array([0], dtype=np.int32)
+    reused = model.reused
+    x = model.solve(b_ub, first, np.array([-1.0]), np.array([x[0] + 1e-3]))
+    assert model.reused == reused + 1
+    ceiling = float(x[0]) + 1e-3
+    # A large change of b, with only column 1's bounds given: HiGHS runs.
+    far = forced @ np.full(nv, 0.9)
+    b_far = np.concatenate((far, -far))
+    x = model.solve(b_far, np.array([1], dtype=np.int32), np.array([-1.0]), np.array([1.0]))
+    bounds = [(-1.0, ceiling)] + [(-1.0, 1.0)] * (nv - 1) + [(0.0, None)] * forced.shape[0]
+    reference = linprog(cost, A_ub=a_ub, b_ub=b_far, bounds=bounds, method="highs")
+    assert x is not None and reference.status == 0
+    assert x[0] <= ceiling + 1e-9
+    assert float(cost @ x) == pytest.approx(reference.fun, rel=1e-9, abs=1e-12)
+
+
 def test_a_basis_that_is_not_square_or_is_singular_is_refused():
     from hil_service.experiment.lp_basis import OptimalBasis
 

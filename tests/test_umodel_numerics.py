@@ -15,6 +15,7 @@ from hil_service.umodel import (
     GaussianRBF,
     evenly_spaced_centres,
 )
+from hil_service.umodel.dynamics import ModelDynamics
 
 UMODEL_DIR = Path(__file__).resolve().parents[1] / "hil_service" / "umodel"
 
@@ -199,3 +200,25 @@ def test_divergence_guard_sees_the_exact_parameter_norm() -> None:
         exact = dot(model._theta, model._theta)
         worst = max(worst, abs(model._sq_norm - exact) / exact)
     assert worst < 1e-12
+
+
+@pytest.mark.parametrize(("na", "nb", "with_rbf"), [(4, 6, False), (0, 1, True), (2, 3, True)])
+def test_free_run_is_advance_repeated_to_the_bit(na: int, nb: int, with_rbf: bool) -> None:
+    """``ModelDynamics.free_run`` (the horizon test's free runs over a record) gives the
+    predictions of a snapshot at ``start`` advanced on the recorded inputs, bit for bit."""
+    rng = np.random.default_rng(na * 10 + nb)
+    outputs = rng.normal(size=300).tolist()
+    inputs = rng.uniform(-2.0, 2.0, size=300).tolist()
+    ar = (0.3 * rng.normal(size=na)).tolist()
+    lag_polys = [rng.normal(size=3).tolist() for _ in range(nb)]
+    rbf = GaussianRBF(evenly_spaced_centres(9, -2.0, 2.0), 0.5) if with_rbf else None
+    weights = rng.normal(size=9).tolist() if with_rbf else []
+    start, end = 40, 140
+    snapshot = ModelDynamics(
+        ar, 0.1, lag_polys, 0.5,
+        [outputs[start - i] for i in range(na)], [inputs[start - i] for i in range(nb)],
+        rbf, weights,
+    )  # fmt: skip
+    advanced = [snapshot.advance(inputs[j]) for j in range(start + 1, end + 1)]
+    free = ModelDynamics(ar, 0.1, lag_polys, 0.5, [], [], rbf, weights)
+    assert free.free_run(outputs, inputs, start, end) == advanced

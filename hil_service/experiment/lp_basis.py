@@ -40,6 +40,7 @@ class OptimalBasis:
         "_a_active_n",
         "_a_inactive",
         "_active",
+        "_at_upper",
         "_basic",
         "_coupling",
         "_diagonal",
@@ -51,7 +52,6 @@ class OptimalBasis:
         "_rest_rows",
         "_single_cols",
         "_single_rows",
-        "_upper",
     )
 
     def __init__(
@@ -67,7 +67,7 @@ class OptimalBasis:
         well-conditioned matrix."""
         self._basic: Index = np.flatnonzero(basic_cols)
         self._nonbasic: Index = np.flatnonzero(~basic_cols)
-        self._upper = at_upper[self._nonbasic]
+        self._at_upper = at_upper[self._nonbasic]
         self._active: Index = np.flatnonzero(active_rows)
         self._inactive: Index = np.flatnonzero(~active_rows)
         square = a_ub.take(self._active, 0).take(self._basic, 1)
@@ -111,7 +111,7 @@ class OptimalBasis:
         feasible (a bound or an inactive row violated by more than ``tolerance``) or not
         finite (a NaN passes every comparison: the solver decides such an LP)."""
         nonbasic = self._nonbasic
-        x_n = np.where(self._upper, upper.take(nonbasic), lower.take(nonbasic))
+        x_n = np.where(self._at_upper, upper.take(nonbasic), lower.take(nonbasic))
         if not np.isfinite(x_n).all():
             return None
         x = np.empty(lower.size)

@@ -202,6 +202,7 @@ class _LpModel:
         if self.highs.passModel(lp) != highspy.HighsStatus.kOk:
             raise ValueError("HiGHS refused the oracle's LP")
         self._row_index = np.arange(rows, dtype=np.int32)
+        self._col_index = np.arange(cols, dtype=np.int32)
         self._row_lower = np.full(rows, -INF)
         self._a_ub = matrix
         self._lower = np.array(lower, dtype=np.float64)
@@ -236,7 +237,9 @@ class _LpModel:
                 return x
         highs = self.highs
         highs.changeRowsBounds(self.rows, self._row_index, self._row_lower, b_ub)
-        highs.changeColsBounds(col_index.size, col_index, lower, upper)
+        # Every column's bounds: a solve the basis answered may have changed some that
+        # this one does not give, and HiGHS has not seen them.
+        highs.changeColsBounds(self.cols, self._col_index, self._lower, self._upper)
         self._basis = None
         if highs.run() != highspy.HighsStatus.kOk:
             return None

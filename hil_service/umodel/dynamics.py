@@ -227,6 +227,29 @@ class ModelDynamics:
         self.inputs = [u_prev, *inputs[: nb - 1]]
         return acc
 
+    def free_run(
+        self, outputs: list[float], inputs: list[float], start: int, end: int
+    ) -> list[float]:
+        """ŷ(start + 1 … end) run freely from the measured ``outputs`` up to ``start`` on the
+        recorded ``inputs`` (``inputs[j]``: the input one step before ``outputs[j]``): the
+        sums of ``advance``, in its order, from a snapshot whose histories are those
+        records at ``start``. Needs start ≥ max(na, nb) − 1."""
+        ar = self.ar
+        na, nb = len(ar), len(self.lag_polys)
+        run = outputs[start - na + 1 : start + 1] if na else []  # oldest first, ŷ appended
+        predictions: list[float] = []
+        for j in range(start + 1, end + 1):
+            acc = self.bias
+            last = len(run) - 1
+            for i in range(na):
+                acc += ar[i] * run[last - i]
+            for lag in range(1, nb + 1):
+                acc += self.lag_value(lag, inputs[j - lag + 1])
+            if na:
+                run.append(acc)
+            predictions.append(acc)
+        return predictions
+
     def is_finite(self) -> bool:
         if not math.isfinite(self.bias):
             return False

@@ -266,8 +266,7 @@ class HorizonTest:
         horizon = self.steps
         # Lists, not the deques: a deque's item access walks its blocks.
         ys, us, measured = list(self._outputs), list(self._inputs), list(self._measured)
-        ar, bias = dyn.ar, dyn.bias
-        na, nb = len(ar), len(dyn.lag_polys)
+        na = len(dyn.ar)
         sum_m = sum_h = sum_y = sum_y2 = 0.0
         reference = ys[n - 1]
         count = 0
@@ -279,20 +278,10 @@ class HorizonTest:
                 s -= 1
             if s < first:
                 break
-            # The model run freely from the measured outputs up to s, on the recorded
-            # inputs (``ModelDynamics.advance``, summed in the same order): its outputs
-            # oldest first, each prediction appended.
-            run = ys[s - na + 1 : s + 1] if na else []
+            predictions = dyn.free_run(ys, us, s, end)
             y0 = ys[s]
             for j in range(s + 1, end + 1):
-                y_model = bias
-                last = len(run) - 1
-                for i in range(na):
-                    y_model += ar[i] * run[last - i]
-                for lag in range(1, nb + 1):
-                    y_model += dyn.lag_value(lag, us[j - lag + 1])
-                if na:
-                    run.append(y_model)
+                y_model = predictions[j - s - 1]
                 if not measured[j]:
                     continue
                 y = ys[j]
