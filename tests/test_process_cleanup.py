@@ -32,13 +32,21 @@ def _until(condition, timeout: float, what: str) -> None:
         time.sleep(0.05)
 
 
-def test_a_killed_demos_service_and_emulator_are_stopped_with_it(processes, tmp_path):
-    demo = processes.start("demo", "--duration", "120", "--speed", "10", "--log-dir", str(tmp_path))
+def test_a_killed_demos_service_and_emulator_are_stopped_with_it(
+    processes, tmp_path, monkeypatch
+):
+    scratch = tmp_path / "tmp"  # the children's temporary files go here
+    scratch.mkdir()
+    monkeypatch.setenv("TMPDIR", str(scratch))
+    log_dir = tmp_path / "log"
+    demo = processes.start("demo", "--duration", "120", "--speed", "10", "--log-dir", str(log_dir))
     # The service first, then the emulator: two processes of the demo's group.
     _until(lambda: len(_group_members(demo.pid)) >= 2, 120, "the demo's two processes")
     demo.kill()  # dies without stopping them: they die with it (their parent-death signal)
     demo.wait(10)
     _until(lambda: not _group_members(demo.pid), 10, "the demo's processes to end with it")
+    # Nothing temporary is left behind by a demo that could not clean up after itself.
+    assert not [p for p in scratch.iterdir() if p.name.startswith("glider-hil-demo-")]
 
 
 def test_a_verb_dies_with_a_parent_that_is_sigkilled(tmp_path):

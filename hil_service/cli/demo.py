@@ -100,8 +100,9 @@ def run(args: argparse.Namespace) -> int:
     sim_total = args.duration * args.speed
     t_control, t_second = 0.4 * sim_total, 0.7 * sim_total
     Path(args.log_dir).mkdir(parents=True, exist_ok=True)
-    key_dir = tempfile.TemporaryDirectory(prefix="glider-hil-demo-")
-    signing = signing_arguments(Path(key_dir.name)) if args.signing else []
+    # Only with --signing: a demo killed outright cannot remove its temporary directory.
+    key_dir = tempfile.TemporaryDirectory(prefix="glider-hil-demo-") if args.signing else None
+    signing = signing_arguments(Path(key_dir.name)) if key_dir is not None else []
     try:
         service = start_service(
             "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh-listen", endpoint,
@@ -111,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
         )  # fmt: skip
     except NotReady as error:
         print(f"demo: the service did not start: {error}", file=sys.stderr)
-        key_dir.cleanup()
+        if key_dir is not None:
+            key_dir.cleanup()
         return 1
     emulator = None
     session = None
@@ -146,7 +148,8 @@ def run(args: argparse.Namespace) -> int:
         service_out, service_err = stop_process(service)
         if session is not None:
             session.close()
-        key_dir.cleanup()
+        if key_dir is not None:
+            key_dir.cleanup()
     summary = last_json(service_out, "service")
     if not summary:
         print(f"demo: the service printed no summary\n{service_err}", file=sys.stderr)
