@@ -5,7 +5,11 @@ reference-only's IAE per setpoint segment, split into the segment's first half (
 transient) and its second half (the steady state), and in the second half the mean error
 (a bias) and its spread, beside the plant's disturbance. Prints the excess over
 reference-only summed per group (never qualified / tripped / commanded throughout) and per
-part, and whether the steady-state excess is bias or spread.
+part, and whether the steady-state excess is bias or spread; then, for the plants with a
+dead zone in their input map, how much of their excess accrued while the pipeline's input
+sat inside the dead zone and reference-only's did not (the plant does not respond there,
+and the loop creeps across it: docs/control.md, "Crossing a dead zone, and when after
+a step the excess accrues").
 
     python benchmarks/family_diagnose.py --seeds 10 11 12 13 14 --plants 50 --save d.pkl
 """
@@ -25,7 +29,7 @@ from hil_service.experiment.closed_loop import (
     inverse_run,
     setpoint_schedule,
 )
-from hil_service.experiment.family_loop import HARM_LIMIT, known, levels
+from hil_service.experiment.family_loop import HARM_LIMIT, levels, reference_only_controller
 from hil_service.pipeline import PipelineSettings
 from plant_emulator.family import FamilyVehicle, draw_family
 from plant_emulator.models import CHANNELS
@@ -60,21 +64,7 @@ def run(seeds: list[int], plants: int, pipeline: PipelineSettings | None) -> lis
         for depth, pitch in draw_family(seed, plants):
             specs = {"depth": depth, "pitch": pitch}
             schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
-            knowns = {ch: known(specs[ch]) for ch in CHANNELS}
-
-            def reference_only(
-                k: int,
-                sample: Any,
-                specs: Any = specs,
-                schedule: Any = schedule,
-                knowns: Any = knowns,
-            ) -> tuple[float, float]:
-                out = []
-                for ch in CHANNELS:
-                    spec = specs[ch]
-                    lin = spec.wiener_inverse((float(schedule[ch][k]) - spec.offset) / spec.scale)
-                    out.append(knowns[ch].invert_pump(lin / spec.dc_gain, 0.0))
-                return out[0], out[1]
+            reference_only = reference_only_controller(specs, schedule)
 
             inv = inverse_run(settings, FamilyVehicle(depth, pitch, seed), schedule, pipeline)
             ref = _drive(settings, FamilyVehicle(depth, pitch, seed), schedule, reference_only)
@@ -97,6 +87,7 @@ def run(seeds: list[int], plants: int, pipeline: PipelineSettings | None) -> lis
                     "u_ref": ref.u[ch][start:].copy(),
                     "e_inv": (inv.trace.y[ch] - schedule[ch])[start:].copy(),
                     "e_ref": (ref.y[ch] - schedule[ch])[start:].copy(),
+                    "setpoint": schedule[ch][start:].copy(),
                 })  # fmt: skip
     return rows
 
@@ -125,6 +116,63 @@ def report(rows: list[dict[str, Any]]) -> None:
             f"  {name}: {len(found)}; excess / ref IAE summed: transient {excess_t:.2f}, "
             f"steady {excess_s:.2f} (bias {bias:.2f}, spread {spread:.2f}); {dict(dist)}"
         )
+    since_step_report(above)
+    dead_zone_report(above)
+
+
+#: Samples since the last setpoint change, as the excess is binned by them.
+SINCE_STEP_BINS = ((0, 10), (10, 30), (30, 60), (60, 150), (150, 300))
+
+
+def since_step_report(above: list[dict[str, Any]]) -> None:
+    """The excess over reference-only (per plant, ÷ its reference-only IAE, summed) by the
+    samples since the last setpoint change: a loop's transient against its settling."""
+    excess = [0.0] * len(SINCE_STEP_BINS)
+    for r in above:
+        e_inv, e_ref = np.abs(r["e_inv"]), np.abs(r["e_ref"])
+        since = np.empty(e_inv.size, dtype=int)
+        for k0, k1 in segments(r["setpoint"], 0):
+            since[k0:k1] = np.arange(k1 - k0)
+        for i, (a, b) in enumerate(SINCE_STEP_BINS):
+            chosen = (since >= a) & (since < b)
+            excess[i] += float(np.sum((e_inv - e_ref)[chosen])) / float(np.sum(e_ref))
+    parts = ", ".join(
+        f"{a}–{b}: {x:.2f}" for (a, b), x in zip(SINCE_STEP_BINS, excess, strict=True)
+    )
+    print(f"  excess / ref IAE summed, by samples since the setpoint changed: {parts}")
+
+
+def has_dead_zone(row: dict[str, Any]) -> bool:
+    return bool(row["spec"].kind == "hammerstein" and row["spec"].input_map.dead_zone > 0)
+
+
+def inside_dead_zone(row: dict[str, Any]) -> np.ndarray:
+    """Samples where the pipeline's input is inside the plant's dead zone and
+    reference-only's is not."""
+    width = row["spec"].input_map.dead_zone
+    return (np.abs(row["u_inv"]) < width) & (np.abs(row["u_ref"]) >= width)
+
+
+def dead_zone_report(above: list[dict[str, Any]]) -> None:
+    """Of the plants above the limit with a dead zone: the share of their excess IAE over
+    reference-only that accrued while the pipeline's input sat inside it (and
+    reference-only's did not), and those samples' share of the run."""
+    found = [r for r in above if has_dead_zone(r)]
+    if not found:
+        return
+    excess = inside = samples = 0.0
+    for r in found:
+        e_inv, e_ref = np.abs(r["e_inv"]), np.abs(r["e_ref"])
+        mask = inside_dead_zone(r)
+        excess += float(np.sum(e_inv - e_ref)) / float(np.sum(e_ref))
+        inside += float(np.sum((e_inv - e_ref)[mask])) / float(np.sum(e_ref))
+        samples += float(np.mean(mask))
+    print(
+        f"  with a dead zone: {len(found)} of the {len(above)}; excess / ref IAE summed "
+        f"{excess:.2f}, of it {inside:.2f} ({inside / excess:.0%}) while the pipeline's input "
+        f"sat inside the dead zone and reference-only's did not "
+        f"({samples / len(found):.1%} of their samples)"
+    )
 
 
 def main() -> None:
