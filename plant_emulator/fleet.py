@@ -150,7 +150,12 @@ class SharedLink:
 class FleetScheduler:
     """Every vehicle's steps and heartbeats on one thread, to absolute deadlines as
     ``Autopilot.run`` keeps them (start + offset + k·period/speed, heartbeats at 1 Hz), and
-    the shared sockets read between them."""
+    the shared sockets read between them.
+
+    A vehicle more than its ``max_lag_steps`` behind its schedule (a stalled host) slips
+    it, as ``Autopilot.run`` does: its deadlines move on by the time it is behind, and its
+    ``slips``/``slipped_s`` count it, instead of a burst of steps that no command could
+    follow."""
 
     STEP, HEARTBEAT = 0, 1
 
@@ -184,6 +189,7 @@ class FleetScheduler:
         totals = [self._total_steps(a) for a in self.autopilots]
         periods = [a.plant.config.period / a.config.speed for a in self.autopilots]
         finished = [False] * len(self.autopilots)
+        slipped = [0.0] * len(self.autopilots)  # wall s each vehicle's schedule has slipped
         stepping = len(self.autopilots)
         by_fd = {link.fileno(): link for link in self.links}
         while stepping and not stop.is_set():
@@ -204,11 +210,17 @@ class FleetScheduler:
                     finished[index] = True
                     stepping -= 1
                     continue
-                if now - deadline > periods[index]:
+                behind = now - deadline
+                if behind > periods[index]:
                     self.late_steps += 1
+                if behind > autopilot.config.max_lag_steps * periods[index]:
+                    slipped[index] += behind
+                    autopilot.stats.slips += 1
+                    autopilot.stats.slipped_s += behind * autopilot.config.speed
                 autopilot.step()
                 steps = autopilot.stats.steps
-                next_deadline = start + self.offsets[index] + steps * periods[index]
+                origin = start + self.offsets[index] + slipped[index]
+                next_deadline = origin + steps * periods[index]
                 heapq.heappush(heap, (next_deadline, kind, index))
                 now = clock()
             timeout = min(max(heap[0][0] - clock(), 0.0), 0.2) if heap else 0.2

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
+from itertools import pairwise
 
 from plant_emulator.autopilot import AutopilotConfig
 from plant_emulator.excitation import build_channel_excitations
@@ -78,3 +80,69 @@ def test_one_thread_steps_every_vehicle_and_routes_each_command() -> None:
         assert by_id[system_id].stats.commands_accepted == 0
         assert by_id[system_id].latencies == []
     assert shared.unrouted == 0
+
+
+STALL_STEP = 20  # the host stalls after this step
+STALL_PERIODS = 20  # for this many step periods
+
+
+def _stalled_fleet(max_lag_steps: int) -> tuple[TimedAutopilot, list[float]]:
+    """One vehicle at 100× whose scheduler's clock jumps by STALL_PERIODS step periods after
+    step STALL_STEP (a host that stalled the emulator); the clock at each step."""
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    shared = SharedLink(f"udpout:127.0.0.1:{peer.getsockname()[1]}")
+    speed, steps = 100.0, 60
+    autopilot = TimedAutopilot(
+        GliderPlant(PlantConfig(seed=0), system_id=1),
+        shared.port(),
+        build_channel_excitations("steps", seed=0),
+        AutopilotConfig(
+            system_id=1, speed=speed, duration=float(steps), max_lag_steps=max_lag_steps
+        ),
+    )
+    shared.attach(autopilot)
+    jump = [0.0]
+    stepped_at: list[float] = []
+
+    def clock() -> float:
+        return time.perf_counter() + jump[0]
+
+    def on_step(sample: object) -> None:
+        stepped_at.append(clock())
+        if autopilot.stats.steps == STALL_STEP:
+            jump[0] += STALL_PERIODS / speed
+
+    autopilot.on_step = on_step
+    stop = threading.Event()
+    timer = threading.Timer(30.0, stop.set)  # a bound, never reached on a sane machine
+    timer.start()
+    try:
+        FleetScheduler([autopilot], [shared], [0.0], clock=clock).run(stop)
+    finally:
+        timer.cancel()
+        shared.close()
+        peer.close()
+    assert autopilot.stats.steps == steps
+    return autopilot, stepped_at
+
+
+def _steps_in_a_burst(stepped_at: list[float], period: float) -> int:
+    """Steps taken less than half a period after the one before."""
+    return sum(b - a < period / 2 for a, b in pairwise(stepped_at))
+
+
+def test_a_stalled_fleet_slips_each_vehicles_schedule_instead_of_bursting() -> None:
+    autopilot, stepped_at = _stalled_fleet(max_lag_steps=3)
+    period = 1.0 / 100.0
+    assert autopilot.stats.slips == 1
+    # The vehicle's time paused for the stall, less the part of a period that was left
+    # before its next step fell due (simulated s: a plant period of 1 s).
+    assert STALL_PERIODS - 1 <= autopilot.stats.slipped_s <= STALL_PERIODS
+    assert _steps_in_a_burst(stepped_at, period) <= 2
+
+
+def test_without_slipping_a_stalled_fleet_steps_in_a_burst() -> None:
+    autopilot, stepped_at = _stalled_fleet(max_lag_steps=1000)
+    assert autopilot.stats.slips == 0
+    assert _steps_in_a_burst(stepped_at, 1.0 / 100.0) >= STALL_PERIODS - 2
