@@ -12,11 +12,17 @@ and the loop creeps across it: docs/control.md, "Crossing a dead zone, and when 
 a step the excess accrues").
 
     python benchmarks/family_diagnose.py --seeds 10 11 12 13 14 --plants 50 --save d.pkl
+
+``--dead-zone-removed``: a bound, not a controller. The pipeline runs on each plant with its
+dead zone taken out ahead of it (``DeadZoneRemoved``: what it commands, u′, reaches the
+plant as u′ + δ·sign(u′) and it is told u′ back), scored against reference-only on the
+true plant: what an input map that holds a dead zone exactly could at most give.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import pickle
 from collections import defaultdict
 from typing import Any
@@ -31,8 +37,9 @@ from hil_service.experiment.closed_loop import (
 )
 from hil_service.experiment.family_loop import HARM_LIMIT, levels, reference_only_controller
 from hil_service.pipeline import PipelineSettings
-from plant_emulator.family import FamilyVehicle, draw_family
+from plant_emulator.family import FamilyPlantSpec, FamilyVehicle, draw_family
 from plant_emulator.models import CHANNELS
+from protocols.samples import TelemetrySample
 
 
 def segments(setpoint: np.ndarray, start: int) -> list[tuple[int, int]]:
@@ -54,7 +61,43 @@ def plant_parts(y: np.ndarray, r: np.ndarray, start: int) -> dict[str, Any]:
     return {"transient": transient, "steady": steady, "bias": bias, "spread": spread}
 
 
-def run(seeds: list[int], plants: int, pipeline: PipelineSettings | None) -> list[dict[str, Any]]:
+class DeadZoneRemoved(FamilyVehicle):
+    """A family vehicle whose Hammerstein dead zones are taken out ahead of the plant: a
+    command u′ reaches the actuator as u′ + δ·sign(u′), and the applied position u is
+    reported as sign(u)·max(|u| − δ, 0)."""
+
+    def __init__(self, depth: FamilyPlantSpec, pitch: FamilyPlantSpec, seed: int = 0):
+        super().__init__(depth, pitch, seed)
+        self.widths = {
+            ch: spec.input_map.dead_zone if spec.kind == "hammerstein" else 0.0
+            for ch, spec in self.specs.items()
+        }
+
+    def step(self, u_depth: float, u_pitch: float) -> TelemetrySample:
+        wide = self.widths
+        sample = super().step(_widen(u_depth, wide["depth"]), _widen(u_pitch, wide["pitch"]))
+        return sample._replace(
+            u_depth=_narrow(sample.u_depth, wide["depth"]),
+            u_pitch=_narrow(sample.u_pitch, wide["pitch"]),
+        )
+
+
+def _widen(u: float, width: float) -> float:
+    if width == 0.0 or u == 0.0 or not math.isfinite(u):
+        return u
+    return u + math.copysign(width, u)
+
+
+def _narrow(u: float, width: float) -> float:
+    return u if width == 0.0 else math.copysign(max(abs(u) - width, 0.0), u)
+
+
+def run(
+    seeds: list[int],
+    plants: int,
+    pipeline: PipelineSettings | None,
+    dead_zone_removed: bool = False,
+) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for seed in seeds:
         settings = ClosedLoopSettings(
@@ -66,7 +109,8 @@ def run(seeds: list[int], plants: int, pipeline: PipelineSettings | None) -> lis
             schedule = setpoint_schedule(settings, {ch: levels(specs[ch]) for ch in CHANNELS})
             reference_only = reference_only_controller(specs, schedule)
 
-            inv = inverse_run(settings, FamilyVehicle(depth, pitch, seed), schedule, pipeline)
+            vehicle = (DeadZoneRemoved if dead_zone_removed else FamilyVehicle)(depth, pitch, seed)
+            inv = inverse_run(settings, vehicle, schedule, pipeline)
             ref = _drive(settings, FamilyVehicle(depth, pitch, seed), schedule, reference_only)
             for i, ch in enumerate(CHANNELS):
                 spec = specs[ch]
@@ -88,6 +132,7 @@ def run(seeds: list[int], plants: int, pipeline: PipelineSettings | None) -> lis
                     "e_inv": (inv.trace.y[ch] - schedule[ch])[start:].copy(),
                     "e_ref": (ref.y[ch] - schedule[ch])[start:].copy(),
                     "setpoint": schedule[ch][start:].copy(),
+                    "dead_zone_removed": dead_zone_removed,
                 })  # fmt: skip
     return rows
 
@@ -157,7 +202,8 @@ def dead_zone_report(above: list[dict[str, Any]]) -> None:
     """Of the plants above the limit with a dead zone: the share of their excess IAE over
     reference-only that accrued while the pipeline's input sat inside it (and
     reference-only's did not), and those samples' share of the run."""
-    found = [r for r in above if has_dead_zone(r)]
+    # With the dead zones removed, the recorded inputs are the pipeline's own (u′).
+    found = [r for r in above if has_dead_zone(r) and not r.get("dead_zone_removed")]
     if not found:
         return
     excess = inside = samples = 0.0
@@ -181,6 +227,11 @@ def main() -> None:
     parser.add_argument("--plants", type=int, default=50)
     parser.add_argument("--save")
     parser.add_argument("--load", nargs="+")
+    parser.add_argument(
+        "--dead-zone-removed",
+        action="store_true",
+        help="a bound: the pipeline on each plant with its dead zone taken out ahead of it",
+    )
     args = parser.parse_args()
     if args.load:
         rows = []
@@ -188,7 +239,7 @@ def main() -> None:
             with open(path, "rb") as f:
                 rows += pickle.load(f)
     else:
-        rows = run(args.seeds, args.plants, None)
+        rows = run(args.seeds, args.plants, None, args.dead_zone_removed)
     report(rows)
     if args.save:
         with open(args.save, "wb") as f:
