@@ -162,7 +162,23 @@ def report(rows: list[dict[str, Any]]) -> None:
             f"steady {excess_s:.2f} (bias {bias:.2f}, spread {spread:.2f}); {dict(dist)}"
         )
     since_step_report(above)
+    spread_report(above)
     dead_zone_report(above)
+
+
+def spread_report(above: list[dict[str, Any]]) -> None:
+    """Of the plants above the limit commanded throughout, per disturbance: how many settle
+    with an error that varies more than reference-only's (the spread of the segments'
+    second halves above 1.1 × reference-only's): a loop that amplifies the disturbance."""
+    counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+    for r in above:
+        if r["group"] != "commanded throughout":
+            continue
+        kind = r["spec"].disturbance
+        counts[kind][1] += 1
+        counts[kind][0] += r["inv"]["spread"] > HARM_LIMIT * r["ref"]["spread"]
+    parts = ", ".join(f"{kind} {n} of {m}" for kind, (n, m) in sorted(counts.items()))
+    print(f"  commanded throughout, settling with more spread than reference-only: {parts}")
 
 
 #: Samples since the last setpoint change, as the excess is binned by them.
