@@ -177,7 +177,7 @@ def spread_report(above: list[dict[str, Any]]) -> None:
         kind = r["spec"].disturbance
         counts[kind][1] += 1
         counts[kind][0] += r["inv"]["spread"] > HARM_LIMIT * r["ref"]["spread"]
-    parts = ", ".join(f"{kind} {n} of {m}" for kind, (n, m) in sorted(counts.items()))
+    parts = ", ".join(f"{kind} {n} of {m}" for kind, (n, m) in sorted(counts.items())) or "none"
     print(f"  commanded throughout, settling with more spread than reference-only: {parts}")
 
 
