@@ -135,6 +135,21 @@ def test_first_move_respects_amplitude_and_rate() -> None:
     assert u == pytest.approx(1.4)
 
 
+def test_a_plan_held_at_a_limit_is_saturated_to_within_rounding() -> None:
+    # An actuator that reached its limit by rate steps sits an ulp inside it: the plan's
+    # first block at its bound map(−2) is met there, and the command counts as saturated,
+    # or the supervisor's saturation test never sees a plan pinned at the limit.
+    controller = PredictiveInverse(-2.0, 2.0, 0.5)
+    dyn = _dynamics([0.8], [[1.0, 0.0, 0.1]], 0.0)
+    inside = -2.0 + 4.0 * 2.0**-52
+    assert inside > -2.0
+    u, _, saturated = controller.decide(dyn, inside, -100.0)  # far below: the lower limit
+    assert u == pytest.approx(-2.0, abs=1e-12)
+    assert saturated
+    u, _, saturated = controller.decide(dyn, 0.0, 0.0)  # well inside: not saturated
+    assert not saturated
+
+
 class _Hammerstein:
     """A plant unlike the emulator's: second order, a cubic pump with a dead zone, another
     gain and time scale. y(t) = 1.6 y(t−1) − 0.64 y(t−2) + 0.05·f(u(t−1)) + 0.03·f(u(t−2))."""

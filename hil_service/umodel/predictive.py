@@ -84,6 +84,9 @@ __all__ = [
 #: Power-iteration sweeps of the rank-one factorisation (a 3×3 symmetric matrix).
 _POWER_SWEEPS = 30
 
+#: An input this share of the actuator's range from a limit is at the limit (``_at_limit``).
+LIMIT_TOLERANCE = 1e-9
+
 #: The disturbance estimate's candidate paces: the horizon's (``disturbance_share``) and
 #: 2, 4, … 2^(n−1) times slower (see ``PredictiveInverse.track``).
 DISTURBANCE_PACES = 7
@@ -652,10 +655,16 @@ class PredictiveInverse:
         if not first_lo < first_hi:
             # Outside the rising range by more than a step: the one reachable input towards
             # it (``_reachable``), nothing to solve.
-            return first_lo, "fallback", first_lo <= self.u_min or first_lo >= self.u_max
+            return first_lo, "fallback", self._at_limit(first_lo)
         result = solve_inverse(shape.value, shape.derivative, target, u0, first_lo, first_hi)
         u = result.u
         if not math.isfinite(u):
             return u0, "hold", False
-        saturated = u <= self.u_min or u >= self.u_max
-        return u, result.path, saturated
+        return u, result.path, self._at_limit(u)
+
+    def _at_limit(self, u: float) -> bool:
+        """Whether ``u`` is at an actuator limit. To within rounding: a plan held at its
+        bound, map(limit), is inverted to within the map's last bits of the limit, and an
+        input an ulp inside it is as saturated as the limit itself."""
+        tolerance = LIMIT_TOLERANCE * (self.u_max - self.u_min)
+        return u <= self.u_min + tolerance or u >= self.u_max - tolerance
