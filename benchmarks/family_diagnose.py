@@ -61,6 +61,12 @@ def plant_parts(y: np.ndarray, r: np.ndarray, start: int) -> dict[str, Any]:
     return {"transient": transient, "steady": steady, "bias": bias, "spread": spread}
 
 
+def dead_zone_width(spec: FamilyPlantSpec) -> float:
+    """The half-width of the plant's dead zone (0 where its input map has none: only a
+    Hammerstein plant's map acts on the input)."""
+    return spec.input_map.dead_zone if spec.kind == "hammerstein" else 0.0
+
+
 class DeadZoneRemoved(FamilyVehicle):
     """A family vehicle whose Hammerstein dead zones are taken out ahead of the plant: a
     command u′ reaches the actuator as u′ + δ·sign(u′), and the applied position u is
@@ -68,10 +74,7 @@ class DeadZoneRemoved(FamilyVehicle):
 
     def __init__(self, depth: FamilyPlantSpec, pitch: FamilyPlantSpec, seed: int = 0):
         super().__init__(depth, pitch, seed)
-        self.widths = {
-            ch: spec.input_map.dead_zone if spec.kind == "hammerstein" else 0.0
-            for ch, spec in self.specs.items()
-        }
+        self.widths = {ch: dead_zone_width(spec) for ch, spec in self.specs.items()}
 
     def step(self, u_depth: float, u_pitch: float) -> TelemetrySample:
         wide = self.widths
@@ -204,7 +207,7 @@ def since_step_report(above: list[dict[str, Any]]) -> None:
 
 
 def has_dead_zone(row: dict[str, Any]) -> bool:
-    return bool(row["spec"].kind == "hammerstein" and row["spec"].input_map.dead_zone > 0)
+    return dead_zone_width(row["spec"]) > 0.0
 
 
 def inside_dead_zone(row: dict[str, Any]) -> np.ndarray:

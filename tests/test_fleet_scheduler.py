@@ -82,52 +82,63 @@ def test_one_thread_steps_every_vehicle_and_routes_each_command() -> None:
     assert shared.unrouted == 0
 
 
-STALL_STEP = 20  # the host stalls after this step
+STALL_STEP = 20  # the host stalls after the first vehicle's this many steps
 STALL_PERIODS = 20  # for this many step periods
-
-
 SPEED = 25.0  # a step every 40 ms: a loaded machine's own delays stay below a slip
+STALL_IDS = (1, 2)  # two vehicles, half a period apart
 
 
-def _stalled_fleet(max_lag_steps: int) -> tuple[TimedAutopilot, list[float]]:
-    """One vehicle at SPEED whose scheduler's clock jumps by STALL_PERIODS step periods after
-    step STALL_STEP (a host that stalled the emulator); the clock at each step."""
+def _stalled_fleet(max_lag_steps: int) -> list[tuple[TimedAutopilot, list[float]]]:
+    """Two vehicles at SPEED whose scheduler's clock jumps by STALL_PERIODS step periods
+    after the first one's step STALL_STEP (a host that stalled the emulator); each vehicle
+    with the clock at each of its steps."""
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", 0))
     shared = SharedLink(f"udpout:127.0.0.1:{peer.getsockname()[1]}")
-    speed, steps = SPEED, 45
-    autopilot = TimedAutopilot(
-        GliderPlant(PlantConfig(seed=0), system_id=1),
-        shared.port(),
-        build_channel_excitations("steps", seed=0),
-        AutopilotConfig(
-            system_id=1, speed=speed, duration=float(steps), max_lag_steps=max_lag_steps
-        ),
-    )
-    shared.attach(autopilot)
+    steps = 45
     jump = [0.0]
-    stepped_at: list[float] = []
 
     def clock() -> float:
         return time.perf_counter() + jump[0]
 
-    def on_step(sample: object) -> None:
-        stepped_at.append(clock())
-        if autopilot.stats.steps == STALL_STEP:
-            jump[0] += STALL_PERIODS / speed
+    fleet: list[tuple[TimedAutopilot, list[float]]] = []
+    for index, system_id in enumerate(STALL_IDS):
+        autopilot = TimedAutopilot(
+            GliderPlant(PlantConfig(seed=index), system_id=system_id),
+            shared.port(),
+            build_channel_excitations("steps", seed=index),
+            AutopilotConfig(
+                system_id=system_id,
+                speed=SPEED,
+                duration=float(steps),
+                max_lag_steps=max_lag_steps,
+            ),
+        )
+        shared.attach(autopilot)
+        stepped_at: list[float] = []
 
-    autopilot.on_step = on_step
+        def on_step(
+            sample: object, autopilot: TimedAutopilot = autopilot, at: list[float] = stepped_at
+        ) -> None:
+            at.append(clock())
+            if autopilot is fleet[0][0] and autopilot.stats.steps == STALL_STEP:
+                jump[0] += STALL_PERIODS / SPEED
+
+        autopilot.on_step = on_step
+        fleet.append((autopilot, stepped_at))
     stop = threading.Event()
     timer = threading.Timer(30.0, stop.set)  # a bound, never reached on a sane machine
     timer.start()
+    offsets = [i * 0.5 / SPEED for i in range(len(fleet))]
     try:
-        FleetScheduler([autopilot], [shared], [0.0], clock=clock).run(stop)
+        FleetScheduler([a for a, _ in fleet], [shared], offsets, clock=clock).run(stop)
     finally:
         timer.cancel()
         shared.close()
         peer.close()
-    assert autopilot.stats.steps == steps
-    return autopilot, stepped_at
+    for autopilot, _ in fleet:
+        assert autopilot.stats.steps == steps
+    return fleet
 
 
 def _steps_in_a_burst(stepped_at: list[float], period: float) -> int:
@@ -136,16 +147,16 @@ def _steps_in_a_burst(stepped_at: list[float], period: float) -> int:
 
 
 def test_a_stalled_fleet_slips_each_vehicles_schedule_instead_of_bursting() -> None:
-    autopilot, stepped_at = _stalled_fleet(max_lag_steps=3)
-    # The vehicle's time paused for the stall, less the part of a period that was left
-    # before its next step fell due (simulated s: a plant period of 1 s).
-    assert autopilot.stats.slips >= 1
-    assert autopilot.stats.slipped_s >= STALL_PERIODS - 1
-    # At most the few steps a loaded machine's own delays can leave to catch up.
-    assert _steps_in_a_burst(stepped_at, 1.0 / SPEED) < STALL_PERIODS // 2
+    for autopilot, stepped_at in _stalled_fleet(max_lag_steps=3):
+        # Each vehicle's time paused for the stall, less the part of a period that was
+        # left before its next step fell due (simulated s: a plant period of 1 s).
+        assert autopilot.stats.slips >= 1
+        assert autopilot.stats.slipped_s >= STALL_PERIODS - 1
+        # At most the few steps a loaded machine's own delays can leave to catch up.
+        assert _steps_in_a_burst(stepped_at, 1.0 / SPEED) < STALL_PERIODS // 2
 
 
 def test_without_slipping_a_stalled_fleet_steps_in_a_burst() -> None:
-    autopilot, stepped_at = _stalled_fleet(max_lag_steps=1000)
-    assert autopilot.stats.slips == 0
-    assert _steps_in_a_burst(stepped_at, 1.0 / SPEED) >= STALL_PERIODS - 2
+    for autopilot, stepped_at in _stalled_fleet(max_lag_steps=1000):
+        assert autopilot.stats.slips == 0
+        assert _steps_in_a_burst(stepped_at, 1.0 / SPEED) >= STALL_PERIODS - 2
