@@ -107,6 +107,34 @@ def test_saturation_without_progress_trips_at_the_segment_end():
     assert reasons[:9] == [""] * 9 and reasons[9].startswith("saturation held")
 
 
+def _noisy_saturated_segment(supervisor: Supervisor, rng, start: float, end: float) -> list[str]:
+    """One saturated segment of ``supervisor.window`` samples whose tracking error goes
+    from ``start`` to ``end``, with white noise of 0.15 on every sample and on its start."""
+    n = supervisor.window
+    supervisor.start_segment(0.0, -(start + 0.15 * rng.standard_normal()), 0.3)
+    return [
+        supervisor.segment_sample(
+            0.0, 0.0, -(start + (end - start) * k / n + 0.15 * rng.standard_normal()), -1.0, True
+        )
+        for k in range(1, n + 1)
+    ]
+
+
+def test_a_saturated_segment_is_judged_by_its_first_and_last_tenths_not_two_noisy_samples():
+    # A limit held while the error falls from 1 to 0.7 under noise: its end sample is above
+    # its start sample in about one segment in twelve, and that alone must not trip.
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        s = _armed(window=100)
+        reasons = _noisy_saturated_segment(s, rng, 1.0, 0.7)
+        assert reasons == [""] * 100, next(r for r in reasons if r)
+    # The same noise on an error that grows from 1 to 1.3: every segment trips at its end.
+    for _ in range(50):
+        s = _armed(window=100)
+        reasons = _noisy_saturated_segment(s, rng, 1.0, 1.3)
+        assert reasons[:99] == [""] * 99 and reasons[99].startswith("saturation held"), reasons
+
+
 def test_saturation_after_a_ramp_or_under_a_periodic_disturbance_trips():
     # The command ramps into saturation (one sample of ten short of the limit) while the
     # error grows: the segment is not saturated throughout, and still trips.

@@ -29,8 +29,9 @@ from the measured outputs. At each segment's end the segment is judged:
 * ``against``: the output moved one way and the model predicted the other, both by more
   than the prediction's bound;
 * ``saturated``: the command saturated the whole segment and the tracking error did not
-  fall, or saturated at least 90 % of it and the mean |tracking error| over it was not
-  below the error at its start;
+  fall (the mean |error| over its last tenth against its first tenth, the start
+  included), or saturated at least 90 % of it and the mean |tracking error| over it was
+  not below the first tenth's;
 * ``beyond``: the prediction error's RMS exceeded its bound and the tracking error grew
   (two segments running);
 * ``oscillation``: the tracking error changed sign (by more than the bound each time) at
@@ -388,6 +389,8 @@ class Supervisor:
         self._sq = 0.0
         self._sat = 0
         self._abs = 0.0
+        self._head = 0.0
+        self._tail: deque[float] = deque(maxlen=1)
         self._beyond_strikes = 0
         self._flips: deque[int] = deque()
         self._flips_pred: deque[int] = deque()
@@ -462,8 +465,14 @@ class Supervisor:
         self._sq = 0.0
         self._sat = 0
         self._abs = 0.0
+        self._head = self._e0
+        self._tail = deque(maxlen=self._ends())
         self._u0 = u
         self._neutral_error = math.inf
+
+    def _ends(self) -> int:
+        """Samples averaged at each end of a segment by the saturation test."""
+        return max(1, self.window // 10)
 
     def neutral(self, error: float) -> None:
         """|r − the model's steady state at the neutral input| for this segment."""
@@ -483,6 +492,10 @@ class Supervisor:
         if saturated:
             self._sat += 1
         self._abs += abs(error)
+        ends = self._tail.maxlen or 1
+        if self._n < ends:
+            self._head += abs(error)
+        self._tail.append(abs(error))
         self._note_flip(error, error_pred)
         reason = self._oscillation()
         if reason:
@@ -505,15 +518,19 @@ class Supervisor:
             return ""
         rms = math.sqrt(self._sq / n)
         growing = abs(error) > self._e0
-        # Saturated against the predicted response: the error at the segment's end not
-        # below its start, or, over a segment saturated for at least 90 % of its samples
-        # (the rate limit's ramp into saturation takes a few), its mean not below the
-        # start (an end point alone can fall on a periodic disturbance's favourable phase).
-        held = self._sat >= n and abs(error) >= self._e0
-        if held or (10 * self._sat >= 9 * n and self._abs >= n * self._e0):
+        # Saturated against the predicted response: the error over the segment's last
+        # tenth not below its first tenth's (the segment's start included; single samples
+        # on a noisy plant differ either way), or, over a segment saturated for at least
+        # 90 % of its samples (the rate limit's ramp into saturation takes a few), its mean
+        # not below the first tenth's (an end alone can fall on a periodic disturbance's
+        # favourable phase).
+        start = self._head / ends
+        end = sum(self._tail) / ends
+        held = self._sat >= n and end >= start
+        if held or (10 * self._sat >= 9 * n and self._abs >= n * start):
             return self._trip(
                 f"saturation held against the predicted response ({n} samples, "
-                f"error {self._e0:.3g} -> {abs(error):.3g}, mean {self._abs / n:.3g})"
+                f"error {start:.3g} -> {end:.3g}, mean {self._abs / n:.3g})"
             )
         settled = abs(moved) < self.bound and abs(predicted) < self.bound
         if settled and abs(error) > self._neutral_error + self.bound:
