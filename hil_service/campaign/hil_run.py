@@ -13,6 +13,7 @@ missions fast; the service is a real process, so a test can kill it.
 from __future__ import annotations
 
 import json
+import math
 import os
 import select
 import signal
@@ -46,28 +47,30 @@ STOP_TIMEOUT = 30.0  # wall s for it to close its log and exit after SIGTERM
 
 
 class ScheduledInbox(Inbox):
-    """Setpoints from the mission's schedule at the sample's own step: deterministic."""
+    """Setpoints from the mission's schedule at the sample's own step: deterministic.
+
+    The inputs of every step are made once, here: a step's lookup is an index (one object
+    for each run of equal setpoints)."""
 
     def __init__(self, schedule: dict[str, np.ndarray], period: float):
         super().__init__()
-        self.schedule = schedule
         self.period_ms = period * 1000.0
-        self.steps = len(next(iter(schedule.values())))
-        self._cache: dict[int, ControlInputs] = {}
+        columns = {
+            channel: [value if math.isfinite(value) else None for value in values.tolist()]
+            for channel, values in schedule.items()
+        }
+        self.steps = len(next(iter(columns.values())))
+        self._inputs: list[ControlInputs] = []
+        inputs: ControlInputs | None = None
+        for k in range(self.steps):
+            setpoints = {channel: column[k] for channel, column in columns.items()}
+            if inputs is None or inputs.setpoints != setpoints:
+                inputs = ControlInputs(setpoints, True)
+            self._inputs.append(inputs)
 
     def inputs_for(self, sample: TelemetrySample) -> ControlInputs:
         k = round(sample.time_boot_ms / self.period_ms)
-        k = min(max(k, 0), self.steps - 1)
-        setpoints: dict[str, float | None] = {}
-        for channel, values in self.schedule.items():
-            value = float(values[k])
-            setpoints[channel] = value if np.isfinite(value) else None
-        key = hash(tuple(setpoints.values()))
-        cached = self._cache.get(key)
-        if cached is None or cached.setpoints != setpoints:
-            cached = ControlInputs(setpoints, True)
-            self._cache[key] = cached
-        return cached
+        return self._inputs[min(max(k, 0), self.steps - 1)]
 
     def get(self, system_id: int) -> ControlInputs:
         return ControlInputs({"depth": None, "pitch": None}, True)

@@ -107,6 +107,22 @@ def _regressors(
     return row
 
 
+def _design(
+    y: np.ndarray, u: np.ndarray, rows: np.ndarray, na: int, lags: int, degree: int
+) -> np.ndarray:
+    """The rows ``_regressors`` gives for each t in ``rows``, built a column at a time (the
+    same products in the same order, so the same bits)."""
+    columns = [np.ones(rows.size)]
+    columns += [y[rows - i] for i in range(1, na + 1)]
+    for lag in range(1, lags + 1):
+        x = u[rows - lag + 1]
+        p = np.ones(rows.size)
+        for _ in range(degree):
+            p = p * x
+            columns.append(p)
+    return np.column_stack(columns)
+
+
 def _validation_fit(
     theta: np.ndarray, y: np.ndarray, u: np.ndarray, start: int, na: int, lags: int,
     degree: int, segment: int, runs: np.ndarray, first: int,
@@ -168,12 +184,13 @@ def choose_input_lags(
     if not spread > 0.0:
         return None
     y = (y - y[0]) / spread  # the regression is the same in any output unit and offset
-    target = y[rows]
+    row_index = np.asarray(rows, dtype=int)
+    target = y[row_index]
     spread_rows = float(np.var(target))
     fits: dict[int, float] = {}
     residuals: dict[int, float] = {}
     for lags in candidates:
-        design = np.array([_regressors(y, u, t, na, lags, degree) for t in rows])
+        design = _design(y, u, row_index, na, lags, degree)
         theta, *_ = np.linalg.lstsq(design, target, rcond=None)
         if not np.all(np.isfinite(theta)):
             return None
