@@ -525,7 +525,10 @@ class Supervisor:
         # not below the first tenth's (an end alone can fall on a periodic disturbance's
         # favourable phase).
         start = self._head / ends
-        end = sum(self._tail) / ends
+        end = 0.0
+        for value in self._tail:
+            end += value
+        end /= ends
         held = self._sat >= n and end >= start
         if held or (10 * self._sat >= 9 * n and self._abs >= n * start):
             return self._trip(
