@@ -240,6 +240,35 @@ def dead_zone_report(above: list[dict[str, Any]]) -> None:
     )
 
 
+#: What every row of ``run`` holds; rows saved by an older version may lack some.
+ROW_KEYS = frozenset({
+    "seed", "spec", "group", "trips", "commanded", "first_command", "first_trip", "inv",
+    "ref", "u_inv", "u_ref", "e_inv", "e_ref", "setpoint", "dead_zone_removed",
+})  # fmt: skip
+
+
+def load_rows(paths: list[str]) -> list[dict]:
+    """The rows saved by ``--save`` in ``paths``; a clear exit for a file that is not one,
+    or was saved by a version whose rows lack what the report reads."""
+    rows: list[dict] = []
+    for path in paths:
+        try:
+            with open(path, "rb") as f:
+                loaded = pickle.load(f)
+        except (OSError, EOFError, pickle.UnpicklingError) as error:
+            raise SystemExit(f"{path}: not rows saved by --save ({error})") from error
+        if not isinstance(loaded, list) or not all(isinstance(r, dict) for r in loaded):
+            raise SystemExit(f"{path}: not rows saved by --save")
+        missing = sorted(set().union(*(ROW_KEYS - row.keys() for row in loaded)))
+        if missing:
+            raise SystemExit(
+                f"{path}: saved by an older family_diagnose.py, its rows without "
+                f"{', '.join(missing)}: run it again with --save"
+            )
+        rows += loaded
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13, 14])
@@ -253,10 +282,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.load:
-        rows = []
-        for path in args.load:
-            with open(path, "rb") as f:
-                rows += pickle.load(f)
+        rows = load_rows(args.load)
     else:
         rows = run(args.seeds, args.plants, None, args.dead_zone_removed)
     report(rows)
