@@ -95,6 +95,13 @@ def _narrow(u: float, width: float) -> float:
     return u if width == 0.0 else math.copysign(max(abs(u) - width, 0.0), u)
 
 
+#: What every row of ``run`` holds; rows saved by an older version may lack some.
+ROW_KEYS = frozenset({
+    "seed", "spec", "group", "trips", "commanded", "first_command", "first_trip", "inv",
+    "ref", "u_inv", "u_ref", "e_inv", "e_ref", "setpoint", "dead_zone_removed",
+})  # fmt: skip
+
+
 def run(
     seeds: list[int],
     plants: int,
@@ -137,6 +144,7 @@ def run(
                     "setpoint": schedule[ch][start:].copy(),
                     "dead_zone_removed": dead_zone_removed,
                 })  # fmt: skip
+                assert rows[-1].keys() == ROW_KEYS, "ROW_KEYS names what a row holds"
     return rows
 
 
@@ -222,7 +230,7 @@ def dead_zone_report(above: list[dict[str, Any]]) -> None:
     reference-only that accrued while the pipeline's input sat inside it (and
     reference-only's did not), and those samples' share of the run."""
     # With the dead zones removed, the recorded inputs are the pipeline's own (u′).
-    found = [r for r in above if has_dead_zone(r) and not r.get("dead_zone_removed")]
+    found = [r for r in above if has_dead_zone(r) and not r["dead_zone_removed"]]
     if not found:
         return
     excess = inside = samples = 0.0
@@ -238,13 +246,6 @@ def dead_zone_report(above: list[dict[str, Any]]) -> None:
         f"sat inside the dead zone and reference-only's did not "
         f"({samples / len(found):.1%} of their samples)"
     )
-
-
-#: What every row of ``run`` holds; rows saved by an older version may lack some.
-ROW_KEYS = frozenset({
-    "seed", "spec", "group", "trips", "commanded", "first_command", "first_trip", "inv",
-    "ref", "u_inv", "u_ref", "e_inv", "e_ref", "setpoint", "dead_zone_removed",
-})  # fmt: skip
 
 
 def load_rows(paths: list[str]) -> list[dict]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil_service.umodel.structure import choose_input_lags
+from hil_service.umodel.structure import _design, _regressors, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest
 
 
@@ -100,3 +100,18 @@ def test_no_regression_reaches_across_a_reading_served_early():
     dense = list(range(15, y.size, 15))
     ys, us, runs = _shift_at(y, u, dense)
     assert choose_input_lags(ys, us, u_scale=2.0, runs=runs) is None
+
+
+@pytest.mark.parametrize("lags", [4, 6, 8])
+def test_the_free_runs_regressors_are_the_fits_rows_to_the_bit(lags: int) -> None:
+    # A candidate is fitted on rows built a column at a time and validated by free runs
+    # whose regressors are built a sample at a time: the two must be one regression, or
+    # the validation fit scores a model that was never fitted.
+    rng = np.random.default_rng(lags)
+    y = rng.normal(size=600).cumsum()
+    u = rng.uniform(-2.0, 2.0, 600)
+    rows = np.arange(8, 400)
+    by_sample = np.array([_regressors(y, u, int(t), 4, lags, 3) for t in rows])
+    by_column = _design(y, u, rows, 4, lags, 3)
+    assert by_column.shape == by_sample.shape
+    assert by_column.tobytes() == by_sample.tobytes()

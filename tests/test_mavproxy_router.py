@@ -22,6 +22,7 @@ from hil_service.cli.processes import dies_with_parent, last_json, start_verb
 from hil_service.mcap.reader import LogReader
 from protocols.mavlink_io import dialect
 from tests.conftest import free_tcp_port, free_udp_port
+from tests.safe_input import TRIM_DEPTH, depth_error_allowed_after_trip
 from tests.zenoh_peer import ZenohProbe
 
 MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
@@ -36,7 +37,6 @@ US32_SPAN = (1 << 32) / 1e6  # SERVO_OUTPUT_RAW.time_usec wraps at this uptime (
 # controlled across the wrap, typically within the second half whose error is asserted.
 WRAP_AFTER = 130.0
 DEPTH_BAND = 0.4  # m, mean |error| over the step's second half
-TRIM_DEPTH = 15.0  # m, where the neutral ballast input holds the vehicle
 PITCH_BAND = 0.01  # rad (no control leaves 0.1 rad)
 STREAMS = {"SCALED_PRESSURE2", "VFR_HUD", "ATTITUDE", "SERVO_OUTPUT_RAW"}
 
@@ -197,18 +197,9 @@ def test_serve_identifies_and_controls_through_mavproxy_and_its_tlog_imports(pro
     # ~550 samples in 3 of 17 runs (CI failed on one, 0.68 m); after, load 2-6: depth
     # 0.002-0.074 m in 8 runs, pitch below 1e-5 rad.
     depth_trips = [e for e in events if e["channel"] == "depth" and e["event"] == "trip"]
-    if depth_trips:
-        # A model whose steady state is wrong can pass the horizon test against holding
-        # the PRBS's swings and drive depth the wrong way until the supervisor trips
-        # (docs/control.md, "The horizon test", its limit on the wire). Then the safe
-        # input (neutral) takes the vehicle back to its trim depth, and what holds is: at
-        # the end no worse than 1.2 times the error at enable or at trim, whichever is
-        # larger. The PRBS can leave the vehicle nearer the setpoint than its trim is
-        # (0.10 m off at enable, 0.94 m at the end in one run), and no safe input
-        # promises to keep it there once the model that would have is distrusted.
-        enabled_error = abs(telemetry[start]["depth"] - 16.0)
-        allowed = 1.2 * max(enabled_error, abs(TRIM_DEPTH - 16.0))
-        assert depth_error <= allowed, (depth_error, enabled_error, depth_trips)
+    if depth_trips:  # the safe input's bound (tests/safe_input.py)
+        allowed = depth_error_allowed_after_trip(telemetry[start]["depth"], 16.0)
+        assert depth_error <= allowed, (depth_error, telemetry[start]["depth"], depth_trips)
         assert pitch_error < PITCH_BAND
     else:
         assert depth_error < DEPTH_BAND and pitch_error < PITCH_BAND

@@ -14,6 +14,7 @@ import pytest
 from hil_service.mcap.reader import LogReader
 from protocols.mavlink_io import dialect
 from tests.conftest import free_tcp_port, free_udp_port
+from tests.safe_input import TRIM_DEPTH, depth_error_allowed_after_trip
 from tests.zenoh_peer import ZenohProbe
 
 SPEED = 10
@@ -24,7 +25,6 @@ US32_SPAN = (1 << 32) / 1e6  # SERVO_OUTPUT_RAW.time_usec wraps at this uptime (
 # (500 samples, at least 50 s, plus the stream requests' time) and before the control step's
 # 150 s are over (both asserted), so the step is controlled across the wrap.
 WRAP_AFTER = 130.0
-TRIM_DEPTH = 15.0  # m, where the neutral ballast input holds the vehicle
 
 
 @pytest.mark.timeout(400)
@@ -119,13 +119,7 @@ def test_serve_ardusub_identifies_and_controls_through_do_set_servo(processes, t
         depth_trips = [e for e in events if e["channel"] == "depth" and e["event"] == "trip"]
         why = (control, depth_trips, telemetry[start]["depth"])
         if depth_trips:
-            # As through MAVProxy (tests/test_mavproxy_router.py): a model whose steady state
-            # is wrong can pass the horizon test against the PRBS's swings until the
-            # supervisor trips, and the neutral input then takes the vehicle to its trim
-            # depth. What holds then: no worse than 1.2 times the error at enable or at
-            # trim, whichever is larger.
-            enabled_error = abs(telemetry[start]["depth"] - 16.0)
-            allowed = 1.2 * max(enabled_error, abs(TRIM_DEPTH - 16.0))
+            allowed = depth_error_allowed_after_trip(telemetry[start]["depth"], 16.0)
             assert depth_error <= allowed and pitch_error < 0.01, (depth_error, why)
         else:
             assert depth_error < 0.4 and pitch_error < 0.01, (depth_error, pitch_error, why)

@@ -107,7 +107,9 @@ def test_saturation_without_progress_trips_at_the_segment_end():
     assert reasons[:9] == [""] * 9 and reasons[9].startswith("saturation held")
 
 
-def _noisy_saturated_segment(supervisor: Supervisor, rng, start: float, end: float) -> list[str]:
+def _noisy_saturated_segment(
+    supervisor: Supervisor, rng: np.random.Generator, start: float, end: float
+) -> list[str]:
     """One saturated segment of ``supervisor.window`` samples whose tracking error goes
     from ``start`` to ``end``, with white noise of 0.15 on every sample and on its start."""
     n = supervisor.window
