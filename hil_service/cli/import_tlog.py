@@ -17,10 +17,30 @@ import sys
 from pathlib import Path
 
 from hil_service.offline.field import FORMATS, FieldError, read_field
-from hil_service.offline.field.grid import as_recorded, resample
+from hil_service.offline.field.grid import as_recorded, check_period, resample
 from hil_service.offline.field.write import write_field_log
-from hil_service.offline.tlog_import import import_tlog
+from hil_service.offline.tlog_import import TlogError, import_tlog
+from plant_emulator.arguments import positive_float
 from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
+
+
+def system_id(text: str) -> int:
+    """A MAVLink system id, 1..255: the one byte a frame carries (0 is the broadcast)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 1 <= value <= 255:
+        raise argparse.ArgumentTypeError(f"a MAVLink system id is 1..255, got {value}")
+    return value
+
+
+def grid_period(text: str) -> float:
+    """A grid period, s (``grid.check_period``)."""
+    try:
+        return check_period(float(text))
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,13 +60,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", help="Slocum: the directory of the sensor-list .cac files")
     parser.add_argument(
         "--period",
-        type=float,
+        type=grid_period,
         default=None,
         help="field data: grid period, s (default: median step)",
     )
     parser.add_argument(
         "--gap",
-        type=float,
+        type=positive_float,
         default=None,
         help="field data: a longer step starts a new segment, s (default max(60, 6 periods))",
     )
@@ -56,7 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="field data: the samples at their own times, no grid (docs/field-data.md)",
     )
     parser.add_argument(
-        "--system-id", type=int, default=1, help="field data: the vehicle's system id (default 1)"
+        "--system-id",
+        type=system_id,
+        default=1,
+        help="field data: the vehicle's MAVLink system id, 1..255 (default 1)",
     )
     parser.add_argument(
         "--profile",
@@ -65,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--vehicle",
-        type=int,
+        type=system_id,
         default=None,
         help="tlog: the vehicle's system id (default: the first autopilot heard)",
     )
@@ -76,23 +99,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _is_tlog(args: argparse.Namespace) -> bool:
     if args.format is not None:
         return bool(args.format == "tlog")
-    return len(args.inputs) == 1 and Path(args.inputs[0]).suffix.lower() == ".tlog"
+    return any(Path(given).suffix.lower() == ".tlog" for given in args.inputs)
 
 
 def run(args: argparse.Namespace) -> int:
     output = Path(args.output)
+    if output.is_dir():
+        print(
+            f"glider-hil import: -o {output} is a directory (give the .mcap file to write)",
+            file=sys.stderr,
+        )
+        return 2
     if output.exists() and not args.force:
         print(f"glider-hil import: {output} exists (--force to overwrite)", file=sys.stderr)
         return 2
     if not _is_tlog(args):
         return _run_field(args, output)
     if len(args.inputs) != 1:
-        print("glider-hil import: one .tlog at a time", file=sys.stderr)
+        print(
+            f"glider-hil import: a tlog import takes one file, got {len(args.inputs)} "
+            f"({', '.join(args.inputs)})",
+            file=sys.stderr,
+        )
         return 2
     try:
         profile = load_profile(args.profile)
         report = import_tlog(args.inputs[0], output, profile, args.vehicle)
-    except (ProfileError, OSError) as error:
+    except (ProfileError, TlogError, OSError) as error:
         print(f"glider-hil import: {error}", file=sys.stderr)
         return 2
     if args.json:
@@ -101,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         print(report.describe())
         print(
             f"  vehicle system id {report.vehicle}; frames in {report.directions['in']}, "
-            f"out {report.directions['out']}; bad {report.bad_frames}; -> {output}"
+            f"out {report.directions['out']}; bad {report.bad_frames}; records with a time "
+            f"beyond what a log holds {report.bad_times} (skipped); -> {output}"
         )
     return 0 if report.complete else 1
 

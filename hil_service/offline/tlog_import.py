@@ -13,7 +13,9 @@ The vehicle is the system whose autopilot (a HEARTBEAT that is neither a ground 
 nor an onboard controller, from a real autopilot) is heard first, unless given. A damaged
 tlog (a cut-off record, bytes that are no MAVLink frame) is read up to the damage, and
 the report says at which byte and why; frames that fail their checksum are counted and
-skipped.
+skipped, and so are records whose timestamp no log can hold (beyond 2554: MCAP stores
+uint64 ns). A file with no record to write, or a chosen vehicle
+that sent no frame, is a ``TlogError``.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from hil_service.mcap.recorder import McapRecorder
+from hil_service.offline.field.table import MAX_LOG_TIME_NS
 from protocols.mavlink_io import MavlinkCodec, MavMessage, dialect, frame_length
 from protocols.profiles import Profile
 
@@ -46,6 +49,10 @@ COMPANION_COMPONENT = dialect.MAV_COMP_ID_ONBOARD_COMPUTER
 MAX_BACKLOG = 200_000  # records the recorder may hold before the import waits for it
 
 
+class TlogError(ValueError):
+    """A tlog that cannot be imported: the message names the file and why."""
+
+
 class TlogRecord(NamedTuple):
     t_us: int
     offset: int  # byte offset of the record (its timestamp) in the file
@@ -61,6 +68,7 @@ class TlogReport:
     damage: str = ""  # empty when the whole file was read
     bad_frames: int = 0  # frames that failed their checksum or could not be decoded
     unknown_frames: int = 0
+    bad_times: int = 0  # records whose timestamp no log can hold: skipped
     vehicle: int | None = None
     directions: dict[str, int] = field(default_factory=lambda: {"in": 0, "out": 0})
 
@@ -84,6 +92,7 @@ class TlogReport:
             "damage": self.damage,
             "bad_frames": self.bad_frames,
             "unknown_frames": self.unknown_frames,
+            "bad_times": self.bad_times,
             "vehicle_system_id": self.vehicle,
             "frames": dict(self.directions),
         }
@@ -122,12 +131,31 @@ def read_tlog(path: str | Path, report: TlogReport | None = None) -> Iterator[Tl
 
 def find_vehicle(path: str | Path) -> int | None:
     """The system id of the first autopilot heard in a tlog (None when there is none)."""
+    return next(_autopilots(path), None)
+
+
+def autopilots_heard(path: str | Path) -> list[int]:
+    """The system ids of every autopilot heard in a tlog, in the order first heard."""
+    return list(dict.fromkeys(_autopilots(path)))
+
+
+def _autopilots(path: str | Path) -> Iterator[int]:
     codec = MavlinkCodec(0, 0)
     for record in read_tlog(path):
         for message in codec.parse(record.frame, datagram=True):
             if _is_vehicle_heartbeat(message):
-                return int(message.get_srcSystem())
-    return None
+                yield int(message.get_srcSystem())
+
+
+def _check_vehicle(path: Path, vehicle: int) -> None:
+    """A chosen vehicle must have sent a frame: else the log would hold none of its own."""
+    if any(_direction(record.frame, vehicle) == "in" for record in read_tlog(path)):
+        return
+    heard = ", ".join(map(str, autopilots_heard(path))) or "none"
+    raise TlogError(
+        f"{path}: no frame from vehicle {vehicle} (the autopilots heard: {heard}; "
+        "--vehicle takes one of them)"
+    )
 
 
 def _is_vehicle_heartbeat(message: MavMessage) -> bool:
@@ -144,10 +172,13 @@ def import_tlog(
     profile: Profile,
     vehicle: int | None = None,
 ) -> TlogReport:
-    """Write ``path`` (a tlog) as the MCAP log ``output``; the report says what was read."""
+    """Write ``path`` (a tlog) as the MCAP log ``output``; the report says what was read.
+    TlogError when ``vehicle`` sent no frame or no record could be written."""
     source = Path(path)
     output = Path(output)
     report = TlogReport(str(source))
+    if vehicle is not None:
+        _check_vehicle(source, vehicle)
     report.vehicle = vehicle if vehicle is not None else find_vehicle(source)
     metadata = {
         "source": json.dumps({"kind": "tlog import", "tlog": str(source)}),
@@ -162,19 +193,34 @@ def import_tlog(
             recorder.close(timeout=600)
         if recorder.status.error:
             raise OSError(f"writing {output}: {recorder.status.error}")
+        if not sum(report.directions.values()):
+            raise _nothing_written(report)
         (written,) = recorder.status.files
         shutil.move(written, output)
     return report
 
 
+def _nothing_written(report: TlogReport) -> TlogError:
+    if report.records and report.bad_times == report.records:
+        return TlogError(
+            f"{report.path}: no record has a time a log can hold (up to 2554-07-21; "
+            f"{report.records} records): are the timestamps µs since 1970?"
+        )
+    stopped = f" ({report.damage})" if report.damage else ""
+    return TlogError(f"{report.path}: no MAVLink record{stopped}")
+
+
 def _write(recorder: McapRecorder, source: Path, report: TlogReport) -> None:
     codec = MavlinkCodec(0, 0)
     for record in read_tlog(source, report):
+        t_ns = record.t_us * 1000
+        if t_ns > MAX_LOG_TIME_NS:
+            report.bad_times += 1
+            continue
         before = (codec.counters.bad_frames, codec.counters.unknown_frames)
         messages = codec.parse(record.frame, datagram=True)
         report.bad_frames += codec.counters.bad_frames - before[0]
         report.unknown_frames += codec.counters.unknown_frames - before[1]
-        t_ns = record.t_us * 1000
         direction = _direction(record.frame, report.vehicle)
         report.directions[direction] += 1
         recorder.raw(direction, record.frame, t_ns)

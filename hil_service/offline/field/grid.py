@@ -31,6 +31,14 @@ from hil_service.offline.field.table import FieldData
 
 #: Segments shorter than this many grid samples are not worth identifying on.
 MIN_SEGMENT = 4
+#: The shortest grid period, s: the log stamps each sample in whole ms (MAVLink's
+#: ``time_boot_ms``), so a shorter step could not be told from the next.
+MIN_PERIOD = 0.001
+#: Grid samples per raw sample, at most. A finer grid is nearly all interpolation: it gives
+#: the identifier nothing the raw samples do not, and costs log size and time (about 400
+#: bytes and 40 µs of writing a grid sample, measured on SEA035), so such a period is a
+#: mistake (a unit, a typo); 1e-6 s over a day of 10 s samples would be 10¹⁰ grid samples.
+MAX_UPSAMPLING = 100
 
 
 @dataclass(frozen=True)
@@ -101,10 +109,34 @@ def default_period(data: FieldData) -> float:
     return max(0.1, float(f"{float(np.median(good)):.2g}"))  # 10.002 s → 10 s
 
 
+def check_period(period: float) -> float:
+    """``period`` if a grid can have it (finite, at least ``MIN_PERIOD``), else ValueError."""
+    if not (math.isfinite(period) and period >= MIN_PERIOD):
+        raise ValueError(
+            f"grid period must be at least {MIN_PERIOD:g} s (the log stamps whole ms), "
+            f"got {period:g}"
+        )
+    return period
+
+
+def _grid_count(t_raw: np.ndarray, period: float) -> int:
+    """Grid samples of a segment whose raw samples are at ``t_raw``."""
+    return math.floor((t_raw[-1] - t_raw[0]) / period + 1e-9) + 1
+
+
+def _check_upsampling(total: int, raw: int, period: float) -> None:
+    """Refuse a grid of more than ``MAX_UPSAMPLING`` samples per raw sample, before any is
+    made (the grid arrays alone could exhaust the memory)."""
+    if total > MAX_UPSAMPLING * max(raw, 1):
+        raise ValueError(
+            f"grid period {period:g} s would make {total:,} grid samples from {raw:,} raw "
+            f"samples (at most {MAX_UPSAMPLING} per raw sample: the rest is interpolation); "
+            "give a longer period"
+        )
+
+
 def resample(data: FieldData, period: float | None = None, gap: float | None = None) -> GridResult:
-    period = default_period(data) if period is None else float(period)
-    if not (math.isfinite(period) and period > 0):
-        raise ValueError(f"grid period must be > 0 s, got {period}")
+    period = check_period(default_period(data) if period is None else float(period))
     gap = max(60.0, 6.0 * period) if gap is None else float(gap)
     finite_inputs = np.isfinite(data.buoyancy) & np.isfinite(data.pitch_input)
     usable = data.in_dive & finite_inputs
@@ -127,9 +159,12 @@ def resample(data: FieldData, period: float | None = None, gap: float | None = N
     max_distance = 0.0
     size = 0
     used = 0
-    for run in runs:
+    counts = [_grid_count(data.t[run], period) for run in runs]
+    kept = [(int(run.size), count) for run, count in zip(runs, counts, strict=True)]
+    kept = [(raw, count) for raw, count in kept if count >= MIN_SEGMENT]
+    _check_upsampling(sum(c for _, c in kept), sum(r for r, _ in kept), period)
+    for run, count in zip(runs, counts, strict=True):
         t_raw = data.t[run]
-        count = math.floor((t_raw[-1] - t_raw[0]) / period + 1e-9) + 1
         if count < MIN_SEGMENT:
             lost["in segments too short"] += int(run.size)
             continue

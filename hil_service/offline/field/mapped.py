@@ -16,6 +16,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hil_service.offline.field.table import (
     Columns,
     Conversion,
@@ -23,6 +25,8 @@ from hil_service.offline.field.table import (
     FieldError,
     InputScaling,
     Issues,
+    is_log_time,
+    no_log_time,
 )
 
 if sys.version_info >= (3, 11):
@@ -48,6 +52,12 @@ TABLES: dict[str, set[str]] = {
     "surface": {"column", "values"},
 }
 REQUIRED_TABLES = ("time", "pitch", "buoyancy", "pitch_input")
+#: The TOML type of each key's value: text, a number, or a list (``[surface] values``).
+TEXT_KEYS = frozenset({"column", "unit", "format", "kind", "delimiter", "comment"})
+NUMBER_KEYS = frozenset({"centre", "full_scale", "water_density", "surface"})
+#: Keys whose number must be > 0: a scale or a density divides.
+POSITIVE_KEYS = frozenset({"full_scale", "water_density"})
+FILE_KINDS = ("csv", "parquet")
 
 
 @dataclass(frozen=True)
@@ -62,6 +72,10 @@ class Mapping:
 
     def get(self, table: str, key: str, default: Any = None) -> Any:
         return self.data.get(table, {}).get(key, default)
+
+    def error(self, table: str, key: str, problem: str) -> FieldError:
+        """An error naming the mapping file, its line, the table and the key."""
+        return FieldError(f"{self.where(table, key)}: [{table}] {key} {problem}")
 
 
 def _lines(text: str) -> dict[str, int]:
@@ -78,6 +92,9 @@ def _lines(text: str) -> dict[str, int]:
 
 
 def load_mapping(path: str | Path) -> Mapping:
+    """The mapping file, checked: every value is of its key's type and makes sense (a
+    finite number, a scale > 0, one delimiter character, …); else an error naming the
+    file, line, table and key."""
     origin = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -88,7 +105,16 @@ def load_mapping(path: str | Path) -> Mapping:
     except tomllib.TOMLDecodeError as error:
         raise FieldError(f"{origin}: not TOML: {error}") from error
     mapping = Mapping(origin, data, _lines(text))
-    for table, value in data.items():
+    _check_keys(mapping)
+    _check_tables(mapping)
+    _check_units(mapping)
+    _check_file(mapping)
+    return mapping
+
+
+def _check_keys(mapping: Mapping) -> None:
+    """Known tables and keys only, each value of its key's type, every number finite."""
+    for table, value in mapping.data.items():
         if table not in TABLES:
             raise FieldError(
                 f"{mapping.where(table)}: unknown table [{table}] (known: "
@@ -96,17 +122,51 @@ def load_mapping(path: str | Path) -> Mapping:
             )
         if not isinstance(value, dict):
             raise FieldError(f"{mapping.where(table)}: {table} must be a table")
-        for key in value:
+        for key, given in value.items():
             if key not in TABLES[table]:
                 raise FieldError(
                     f"{mapping.where(table, key)}: unknown key {key!r} in [{table}] (known: "
                     f"{', '.join(sorted(TABLES[table]))})"
                 )
+            _check_value(mapping, table, key, given)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _check_value(mapping: Mapping, table: str, key: str, value: Any) -> None:
+    if key in TEXT_KEYS and not isinstance(value, str):
+        raise mapping.error(table, key, f"must be a string, got {value!r}")
+    if key in NUMBER_KEYS:
+        if not (_is_number(value) and math.isfinite(value)):
+            raise mapping.error(table, key, f"must be a finite number, got {value!r}")
+        if key in POSITIVE_KEYS and not value > 0:
+            raise mapping.error(table, key, f"must be > 0, got {value!r}")
+    if key == "values" and not (
+        isinstance(value, list) and all(isinstance(v, str) or _is_number(v) for v in value)
+    ):
+        raise mapping.error(table, key, f"must be a list of strings or numbers, got {value!r}")
+
+
+def _check_tables(mapping: Mapping) -> None:
+    data = mapping.data
     for table in REQUIRED_TABLES:
         if table not in data:
-            raise FieldError(f"{origin}: the mapping needs a [{table}] table")
+            raise FieldError(f"{mapping.origin}: the mapping needs a [{table}] table")
     if ("depth" in data) == ("pressure" in data):
-        raise FieldError(f"{origin}: give exactly one of [depth] or [pressure]")
+        raise FieldError(f"{mapping.origin}: give exactly one of [depth] or [pressure]")
+    for table in ("buoyancy", "pitch_input"):
+        if "column" not in data[table] or "full_scale" not in data[table]:
+            raise FieldError(f"{mapping.where(table)}: [{table}] needs column and full_scale")
+
+
+def _check_units(mapping: Mapping) -> None:
+    data = mapping.data
+    if "unit" in data["time"] and "format" in data["time"]:
+        raise mapping.error(
+            "time", "format", "and unit both given: a number in a unit, or a text in a format"
+        )
     for table, units in (
         ("time", TIME_UNITS),
         ("depth", DEPTH_UNITS),
@@ -118,20 +178,24 @@ def load_mapping(path: str | Path) -> Mapping:
         if "column" not in data[table]:
             raise FieldError(f"{mapping.where(table)}: [{table}] needs a column")
         unit = data[table].get("unit")
-        if table == "time" and (unit is None or "format" in data[table]):
+        if table == "time" and unit is None:
             continue  # a datetime text column (ISO 8601, or the strptime format given)
         if unit not in units:
             raise FieldError(
                 f"{mapping.where(table, 'unit')}: unit {unit!r} of [{table}] is not one of "
                 f"{', '.join(units)}"
             )
-    for table in ("buoyancy", "pitch_input"):
-        if "column" not in data[table] or "full_scale" not in data[table]:
-            raise FieldError(f"{mapping.where(table)}: [{table}] needs column and full_scale")
-        scale = data[table]["full_scale"]
-        if not isinstance(scale, (int, float)) or not scale > 0:
-            raise FieldError(f"{mapping.where(table, 'full_scale')}: full_scale must be > 0")
-    return mapping
+
+
+def _check_file(mapping: Mapping) -> None:
+    kind = mapping.get("file", "kind")
+    if kind is not None and kind not in FILE_KINDS:
+        raise mapping.error("file", "kind", f"must be one of {', '.join(FILE_KINDS)}, got {kind!r}")
+    delimiter = mapping.get("file", "delimiter")
+    if delimiter is not None and (len(delimiter) != 1 or delimiter in '"\r\n'):
+        raise mapping.error(
+            "file", "delimiter", f"must be one character, not a quote or newline: {delimiter!r}"
+        )
 
 
 def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
@@ -255,19 +319,21 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
     time_format = data["time"].get("format")
     depth_factor = _depth_factor(mapping)
     surface_offset = float(mapping.get("pressure", "surface", 0.0))
+    first_row = len(columns.t)
     for line_no, row in rows:
         if not any(cell.strip() for cell in row):
             continue
         try:
+            if len(row) != len(header):  # a row cut short (or run together): not a sample
+                raise ValueError("not as many fields as the header")
             t = _time(row[index[needed["time"]]], time_unit, time_format)
             depth = (_float(row[index[needed[depth_table]]]) - surface_offset) * depth_factor
             pitch = _float(row[index[needed["pitch"]]]) * PITCH_UNITS[data["pitch"]["unit"]]
             inputs = {
-                q: _float(row[index[c]]) if c in index and index[c] < len(row) else math.nan
-                for q, c in optional.items()
+                q: _float(row[index[c]]) if c in index else math.nan for q, c in optional.items()
             }
             dive = int(_float(row[index[dive_column]])) if dive_column in index else number
-        except (ValueError, IndexError):
+        except (ValueError, IndexError, OverflowError):  # int(inf): OverflowError
             issues.unparsable_rows += 1
             if issues.unparsable_rows <= 5:
                 issues.notes.append(f"{path}:{line_no}: unparsable row dropped")
@@ -280,6 +346,22 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
         columns.pitch_input.append(inputs["pitch_input"])
         columns.dive.append(dive)
         columns.in_dive.append(not surface)
+    _check_times(path, columns.t[first_row:], mapping)
+
+
+def _check_times(path: Path, times: list[float], mapping: Mapping) -> None:
+    """A file none of whose times a log can hold is an error: its time unit (or format) is
+    most likely not the one the mapping says, and every row would be dropped."""
+    finite = np.asarray([t for t in times if math.isfinite(t)], dtype=float)
+    if finite.size and not np.any(is_log_time(finite)):
+        unit = mapping.get("time", "unit")
+        said = f"unit {unit!r}" if unit is not None else "format"
+        raise no_log_time(
+            str(path),
+            float(finite[0]),
+            f"is the time {said} ({mapping.where('time', 'unit' if unit else 'format')}) "
+            "the file's?",
+        )
 
 
 def _one_of(cell: str, values: set[str]) -> bool:

@@ -112,15 +112,14 @@ def _read_file(path: Path, columns: Columns, issues: Issues) -> None:
             continue
         fields = line.split(";")
         try:
+            if len(fields) != len(header):  # a row cut short (or run together): not a sample
+                raise ValueError("not as many fields as the header")
             t = _timestamp(fields[position["Timestamp"]])
             depth = _float(fields[position["Depth"]])
             pitch = math.radians(_float(fields[position["Pitch"]]))
-            inputs = {
-                q: math.nan if i is None or i >= len(fields) else _float(fields[i])
-                for q, i in chosen.items()
-            }
+            inputs = {q: math.nan if i is None else _float(fields[i]) for q, i in chosen.items()}
             state = None if nav is None else int(_float(fields[nav]))
-        except (ValueError, IndexError):
+        except (ValueError, IndexError, OverflowError):  # int(inf): OverflowError
             issues.unparsable_rows += 1
             if issues.unparsable_rows <= 5:
                 issues.notes.append(f"{path}:{line_no}: unparsable row dropped")

@@ -3,17 +3,34 @@
 Readers fill ``Columns`` (raw time-ordered rows as the files hold them, already in SI units),
 ``FieldData.from_columns`` cleans them: rows are put in time order (out-of-order counted),
 repeated timestamps keep their last row (counted), rows whose time, depth or pitch is not a
-number are dropped (counted), and an input column missing in a file is carried from the
-previous value within the same dive or left NaN (counted per file). Nothing is dropped
-without a count in ``Issues``.
+number are dropped (counted), rows whose time, depth or pitch no glider can report or no log
+can hold are dropped (counted: ``out_of_range``), and an input column missing in a file is
+carried from the previous value within the same dive or left NaN (counted per file).
+Nothing is dropped without a count in ``Issues``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from protocols.samples import DEPTH_RANGE
+
+#: The latest log time, ns since 1970-01-01 UTC: MCAP log times are uint64 (2554-07-21).
+MAX_LOG_TIME_NS = (1 << 64) - 1
+#: Times a log can hold, s since the epoch; the upper bound is exclusive: below it, t·1e9
+#: rounds to a uint64.
+LOG_TIME_RANGE = (0.0, (MAX_LOG_TIME_NS + 1) / 1e9)
+#: Pitch a glider can report, rad: an Euler pitch lies within ±90° by definition (stricter
+#: than the ±π a live sample may carry, ``protocols.samples.is_plausible``).
+PITCH_LIMIT = math.pi / 2
+RANGE_NOTE = (
+    f"out of range: a time before 1970 or after 2554 (what a log holds), a depth outside "
+    f"{DEPTH_RANGE[0]:g}..{DEPTH_RANGE[1]:g} m or a pitch beyond ±90°"
+)
 
 
 class FieldError(ValueError):
@@ -29,6 +46,7 @@ class Issues:
     repeated_time: int = 0
     nan_rows: int = 0  # rows without a finite time, depth or pitch: dropped
     unparsable_rows: int = 0  # text rows with a field that is no number: dropped
+    out_of_range: int = 0  # rows with a time, depth or pitch out of range: dropped
     missing_columns: dict[str, list[str]] = field(default_factory=dict)  # file → columns
     filled_inputs: int = 0  # input values held from the previous sample (missing/NaN)
     surface_rows: int = 0  # samples the vehicle marked at the surface: not identified
@@ -41,6 +59,7 @@ class Issues:
             "repeated_time": self.repeated_time,
             "nan_rows": self.nan_rows,
             "unparsable_rows": self.unparsable_rows,
+            "out_of_range": self.out_of_range,
             "missing_columns": {k: list(v) for k, v in self.missing_columns.items()},
             "filled_inputs": self.filled_inputs,
             "surface_rows": self.surface_rows,
@@ -51,7 +70,8 @@ class Issues:
         lines = [
             f"{self.rows} rows read; {self.out_of_order} out of time order (sorted), "
             f"{self.repeated_time} repeated timestamps (last kept), {self.nan_rows} without "
-            f"time/depth/pitch and {self.unparsable_rows} unparsable (dropped), "
+            f"time/depth/pitch, {self.unparsable_rows} unparsable and {self.out_of_range} "
+            f"out of range (dropped), "
             f"{self.filled_inputs} input values held from the previous sample, "
             f"{self.surface_rows} at the surface (not identified)"
         ]
@@ -165,6 +185,14 @@ class FieldData:
         issues.nan_rows += int(np.count_nonzero(~finite))
         t = t[finite]
         data = {k: v[finite] for k, v in data.items()}
+        if t.size and not np.any(is_log_time(t)):
+            raise no_log_time(", ".join(files), float(t[0]), "are they seconds since 1970?")
+        plausible = in_range(t, data["depth"], data["pitch"])
+        if not plausible.all():
+            issues.out_of_range += int(np.count_nonzero(~plausible))
+            issues.notes.append(RANGE_NOTE)
+        t = t[plausible]
+        data = {k: v[plausible] for k, v in data.items()}
         if t.size > 1:
             issues.out_of_order += int(np.count_nonzero(np.diff(t) < 0))
         order = np.argsort(t, kind="stable")
@@ -195,6 +223,27 @@ class FieldData:
             issues,
             vehicle,
         )
+
+
+def is_log_time(t: np.ndarray) -> np.ndarray:
+    """Which of the times (s since the epoch) a log can hold (``LOG_TIME_RANGE``)."""
+    return (t >= LOG_TIME_RANGE[0]) & (t < LOG_TIME_RANGE[1])
+
+
+def in_range(t: np.ndarray, depth: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """Which rows a glider can report and a log can hold: a log time, a depth in
+    ``DEPTH_RANGE`` and a pitch within ``PITCH_LIMIT``. Everything beyond is a damaged
+    value, and would not fit the telemetry's 32-bit floats or the log's uint64 times."""
+    depth_ok = (depth >= DEPTH_RANGE[0]) & (depth <= DEPTH_RANGE[1])
+    return is_log_time(t) & depth_ok & (np.abs(pitch) <= PITCH_LIMIT)
+
+
+def no_log_time(where: str, first: float, hint: str) -> FieldError:
+    """The error for data none of whose times a log can hold: most likely a wrong unit."""
+    return FieldError(
+        f"{where}: no time between 1970-01-01 and 2554-07-21 UTC, what a log can hold "
+        f"(the first: {first:g} s since 1970); {hint}"
+    )
 
 
 def _hold_inputs(values: np.ndarray, dive: np.ndarray) -> int:
