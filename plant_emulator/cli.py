@@ -10,7 +10,13 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from plant_emulator.arguments import autopilot_config, telemetry_mapping
+from plant_emulator.arguments import (
+    autopilot_config,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    telemetry_mapping,
+)
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
@@ -44,7 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _add_event_arguments(parser)
     _add_units_arguments(parser)
     parser.add_argument(
-        "--print-every", type=int, default=0, help="print every Nth sample as JSON (0: none)"
+        "--print-every",
+        type=non_negative_int,
+        default=0,
+        help="print every Nth sample as JSON (0: none)",
     )
     _add_lockstep_arguments(parser)
     add_fleet_arguments(parser)
@@ -97,7 +106,7 @@ def _add_time_arguments(parser: argparse.ArgumentParser) -> None:
     for name, hz in DEFAULT_RATES_HZ.items():
         group.add_argument(
             f"--rate-{name.lower().replace('_', '-')}",
-            type=float,
+            type=non_negative_float,
             default=hz,
             metavar="HZ",
             help=f"periodic profiles: {name} per simulated s (default %(default)s, 0: off)",
@@ -106,7 +115,10 @@ def _add_time_arguments(parser: argparse.ArgumentParser) -> None:
         "--speed", type=float, default=_AUTOPILOT.speed, help="times faster than real time"
     )
     group.add_argument(
-        "--duration", type=float, default=None, help="simulated seconds to run (default: forever)"
+        "--duration",
+        type=positive_float,
+        default=None,
+        help="simulated seconds to run (default: forever)",
     )
 
 
@@ -114,13 +126,16 @@ def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("plant")
     group.add_argument("--scenario", choices=SCENARIOS, default=_PLANT.scenario)
     group.add_argument("--excitation", choices=EXCITATIONS, default="steps")
-    group.add_argument("--seed", type=int, default=_PLANT.seed)
+    group.add_argument("--seed", type=non_negative_int, default=_PLANT.seed)
     group.add_argument(
-        "--trim-depth", type=float, default=_PLANT.trim_depth, help="m (default %(default)s)"
+        "--trim-depth",
+        type=non_negative_float,
+        default=_PLANT.trim_depth,
+        help="m below the surface (default %(default)s)",
     )
     group.add_argument(
         "--rate-limit",
-        type=float,
+        type=positive_float,
         default=_PLANT.rate_limit,
         help="model units per step (default %(default)s)",
     )
@@ -130,7 +145,7 @@ def _add_autopilot_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("autopilot")
     group.add_argument(
         "--command-timeout",
-        type=float,
+        type=positive_float,
         default=_AUTOPILOT.command_timeout,
         help="simulated s without a command before falling back (default %(default)s)",
     )
@@ -178,7 +193,9 @@ def _add_event_arguments(parser: argparse.ArgumentParser) -> None:
         "again from boot, it forgets the companion's commands and stream rates)",
     )
     group.add_argument("--change-channel", choices=CHANNELS, default="pitch")
-    group.add_argument("--change-at", type=int, default=0, metavar="STEP", help="plant step")
+    group.add_argument(
+        "--change-at", type=non_negative_int, default=0, metavar="STEP", help="plant step"
+    )
 
 
 def _add_units_arguments(parser: argparse.ArgumentParser) -> None:
@@ -213,7 +230,7 @@ def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--lockstep-timeout",
-        type=float,
+        type=positive_float,
         default=DEFAULT_TIMEOUT,
         metavar="S",
         help="wall s a step waits for the service before going on, counted (default %(default)s)",
@@ -283,8 +300,6 @@ def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
 def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> None:
     if args.lockstep and periodic:
         raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
-    if not (args.lockstep_timeout > 0):
-        raise ValueError("--lockstep-timeout must be positive")
     if args.reboot_at is not None and not periodic:
         raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
     if args.reboot_at is not None and args.reboot_at < 1:

@@ -18,8 +18,13 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hil_service.campaign import SCENARIOS
+from plant_emulator.arguments import positive_float, positive_int
+
+if TYPE_CHECKING:
+    from hil_service.campaign.runner import CampaignSpec
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,16 +50,22 @@ def _add_mission_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"comma list of {', '.join(SCENARIOS)} (default %(default)s)",
     )
     group.add_argument("--seeds", default="0-49", help="N, N-M or a comma list (default 0-49)")
-    group.add_argument("--steps", type=int, default=3600, help="plant steps per mission")
+    group.add_argument(
+        "--steps",
+        type=mission_steps,
+        default=3600,
+        help="plant steps per mission, more than the identifier's burn-in (default 3600)",
+    )
     group.add_argument(
         "--identify",
-        type=int,
+        type=positive_int,
         default=None,
-        help="steps of open-loop excitation before the setpoints start (default steps/3)",
+        help="steps of open-loop excitation before the setpoints start, at least the "
+        "identifier's burn-in (default steps/3)",
     )
     group.add_argument(
         "--step-every",
-        type=int,
+        type=positive_int,
         default=None,
         help="steps between setpoint steps (default steps/6)",
     )
@@ -77,7 +88,7 @@ def _add_execution_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--scheduler-timeout",
-        type=float,
+        type=positive_float,
         default=60.0,
         metavar="S",
         help="wall s to reach the scheduler and for it to have a worker (default %(default)s)",
@@ -105,7 +116,7 @@ def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--lockstep-timeout",
-        type=float,
+        type=positive_float,
         default=1.0,
         metavar="S",
         help="wall s a step waits for the service (default %(default)s)",
@@ -154,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             kill_service=kills,
         )
+        check_mission_segments(spec)
         if not args.resume and (spec.out / "runs").exists():
             raise ValueError(f"{spec.out} already holds runs: --resume, or another -o")
     except ValueError as error:
@@ -189,7 +201,56 @@ def run(args: argparse.Namespace) -> int:
         ),
         flush=True,
     )
+    if counts["failed"] == len(rows):
+        print(
+            f"glider-hil campaign: every mission failed (reasons in {spec.out / 'summary.md'})",
+            file=sys.stderr,
+        )
+        return 1
     return 0
+
+
+def burn_in() -> int:
+    """Samples the identifier learns from before its controller may act (``pipeline.py``):
+    the campaign's service runs the default pipeline (``hil_run.service_config``). Imported
+    here, not with the module: the verb's parser is built without the numerics."""
+    from hil_service.pipeline import PipelineSettings
+
+    return PipelineSettings().burn_in
+
+
+def mission_steps(text: str) -> int:
+    """``--steps``: more plant steps than the identifier's burn-in, the least a mission
+    needs for its controller ever to act."""
+    steps, least = positive_int(text), burn_in()
+    if steps <= least:
+        raise argparse.ArgumentTypeError(
+            f"expected more than the identifier's burn-in of {least} steps, got {text!r}"
+        )
+    return steps
+
+
+def check_mission_segments(spec: CampaignSpec) -> None:
+    """Refuse missions too short to score control: the identification segment must hold
+    the identifier's burn-in (the controller may not act before it, so the first scored
+    setpoints would meet the vehicle's excitation), and the control segment a setpoint
+    change after its first level (where the divergence check starts)."""
+    mission = spec.missions()[0]  # every mission of a campaign has the same segments
+    least = burn_in()
+    if mission.identify < least:
+        what, remedy = f"--identify {mission.identify}", f"--identify {least} or more"
+        if spec.identify is None:  # the default, a third of the steps
+            what = f"{what} (a third of --steps {spec.steps})"
+            remedy = f"{remedy}, or --steps {3 * least} or more"
+        raise ValueError(
+            f"{what} is shorter than the identifier's burn-in of {least} steps: give {remedy}"
+        )
+    if mission.steps - mission.identify <= mission.step_every:
+        raise ValueError(
+            f"--steps {mission.steps} leaves {mission.steps - mission.identify} steps of "
+            f"control after --identify {mission.identify}, not more than one --step-every "
+            f"{mission.step_every}: no setpoint step to score"
+        )
 
 
 def _compare(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ import argparse
 import json
 import os
 import socket
+import subprocess
 import sys
 import tempfile
 import threading
@@ -30,19 +31,26 @@ from hil_service.cli.processes import (
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.live.address import LiveAddress
 from hil_service.umodel import U_MODELS
+from plant_emulator.arguments import non_negative_int, positive_float
+from plant_emulator.scenarios import SCENARIOS
 from protocols import keys
 
 SYSTEM_ID = 1
 TRIM_DEPTH = 15.0
+ERROR_LINES = 20  # the last lines of a child's stderr shown when it exits early
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=60.0, help="wall s (default 60)")
-    parser.add_argument("--speed", type=float, default=50.0, help="x real time (default 50)")
-    parser.add_argument("--scenario", default="disturbed", help="emulator scenario")
+    parser.add_argument("--duration", type=positive_float, default=60.0, help="wall s (default 60)")
+    parser.add_argument(
+        "--speed", type=positive_float, default=50.0, help="x real time (default 50)"
+    )
+    parser.add_argument(
+        "--scenario", choices=SCENARIOS, default="disturbed", help="emulator scenario"
+    )
     parser.add_argument("--model", default="dynamic", choices=U_MODELS)
     parser.add_argument("--log-dir", default="logs")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument(
         "--signing",
@@ -141,15 +149,26 @@ def run(args: argparse.Namespace) -> int:
             f"t={t_control:.0f}s, then setpoint steps at t={t_control:.0f}s and {t_second:.0f}s",
             flush=True,
         )
-        follow_plan(session, observations, emulator, plan, time.monotonic() + args.duration + 20)
+        deadline = time.monotonic() + args.duration + 20
+        follow_plan(session, observations, (emulator, service), plan, deadline)
         subscriber.undeclare()
     finally:
-        emulator_out = stop_process(emulator)[0] if emulator is not None else ""
+        failed = {
+            "emulator": emulator is not None and emulator.poll() not in (None, 0),
+            "service": service.poll() is not None,  # it runs until the demo stops it
+        }
+        emulator_out, emulator_err = stop_process(emulator) if emulator is not None else ("", "")
         service_out, service_err = stop_process(service)
         if session is not None:
             session.close()
         if key_dir is not None:
             key_dir.cleanup()
+    if failed["emulator"]:
+        report_early_exit("emulator", emulator, emulator_err)
+    if failed["service"]:
+        report_early_exit("service", service, service_err)
+    if any(failed.values()):
+        return 1
     summary = last_json(service_out, "service")
     if not summary:
         print(f"demo: the service printed no summary\n{service_err}", file=sys.stderr)
@@ -170,17 +189,31 @@ def signing_arguments(key_dir: Path) -> list[str]:
     return ["--signing-key", str(key_path)]
 
 
+def report_early_exit(name: str, process: Any, stderr: str) -> None:
+    """Say on stderr that the demo's ``name`` child ended before the demo stopped it, with
+    its exit status and the end of its error output (an argparse error, a traceback)."""
+    lines = stderr.strip().splitlines()[-ERROR_LINES:]
+    print(
+        f"demo: the {name} exited with status {process.returncode} before the demo's end; "
+        "its stderr:",
+        *lines,
+        sep="\n",
+        file=sys.stderr,
+    )
+
+
 def follow_plan(
     session: Any,
     observations: Observations,
-    emulator: Any,
+    children: tuple[subprocess.Popen[str], ...],
     plan: list[tuple[float, dict[str, float]]],
     deadline: float,
 ) -> None:
     """Enable control and put each step's setpoints once the telemetry reaches its time,
-    until the emulator exits or the wall-clock deadline passes."""
+    until one of ``children`` (the emulator, the service) exits or the wall-clock deadline
+    passes."""
     step = 0
-    while emulator.poll() is None and time.monotonic() < deadline:
+    while all(child.poll() is None for child in children) and time.monotonic() < deadline:
         t = observations.latest_t()
         if step < len(plan) and t >= plan[step][0]:
             session.put(keys.control(SYSTEM_ID), json.dumps({"enabled": True}))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -39,6 +40,7 @@ from hil_service.experiment.random_loop import (
 from hil_service.experiment.speed import measure_all
 from hil_service.offline.plots import prediction_figure, tracking_figure
 from hil_service.pipeline import PipelineSettings
+from plant_emulator.arguments import non_negative_int
 from plant_emulator.excitation import EXCITATIONS
 from plant_emulator.models import CHANNELS
 from plant_emulator.scenarios import SCENARIOS
@@ -64,7 +66,7 @@ def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
     group.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
-    group.add_argument("--seed", type=int, default=0)
+    group.add_argument("--seed", type=non_negative_int, default=0)
     group.add_argument(
         "--burn-in", type=int, default=None, help="samples not scored (default: a fifth)"
     )
@@ -162,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
             return _field(args)
         if args.bench:
             return _bench(args)
+        if args.plots:
+            _plots_directory(args.plots)
         if args.closed_loop:
             return _closed_loop(args)
         return _identification(args)
@@ -177,6 +181,19 @@ def _field(args: argparse.Namespace) -> int:
     results: list[FieldExperiment] = [run_field_experiment(args.log, split) for split in splits]
     _emit(results, args.json, field_table)
     return 0
+
+
+def _plots_directory(directory: Path) -> None:
+    """Create ``--plots DIR`` before the experiment runs, so that a path that cannot be a
+    writable directory is refused before a run of minutes rather than after it."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(
+            f"--plots {directory}: cannot create the directory ({error.strerror})"
+        ) from None
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise ValueError(f"--plots {directory}: the directory is not writable")
 
 
 def _choices(value: str, options: tuple[str, ...]) -> tuple[str, ...]:
@@ -244,7 +261,6 @@ def identification_table(results: list[IdentificationResult]) -> str:
 
 
 def _identification_plots(result: IdentificationResult, directory: Path) -> None:
-    directory.mkdir(parents=True, exist_ok=True)
     s = result.settings
     t = np.arange(s.samples, dtype=float)
     for name, trace in result.models.items():
@@ -405,7 +421,6 @@ def closed_loop_table(result: ClosedLoopResult) -> str:
 
 
 def _closed_loop_plots(result: ClosedLoopResult, directory: Path) -> None:
-    directory.mkdir(parents=True, exist_ok=True)
     t = np.arange(result.settings.samples, dtype=float)
     for ch in CHANNELS:
         tracking_figure(

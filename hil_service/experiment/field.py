@@ -36,6 +36,7 @@ from hil_service.offline.field.evaluate import (
     identify_dives,
 )
 from hil_service.offline.field.report import field_arrays
+from hil_service.offline.series import telemetry_columns
 from hil_service.pipeline import PipelineSettings
 from hil_service.umodel import paper_preset
 from protocols import keys
@@ -96,10 +97,8 @@ def recorded_arrays(log: str | Path, system_id: int = 1) -> Arrays:
     if len(rows) < 8:
         raise ValueError(f"{log}: {len(rows)} telemetry samples of vehicle {system_id}, 8 needed")
 
-    def column(name: str) -> np.ndarray:
-        return np.asarray([float(r.get(name, math.nan)) for r in rows], dtype=float)
-
-    t = column("t")
+    column = telemetry_columns(rows, ("t", "depth", "pitch", "u_depth", "u_pitch"), log)
+    t = column["t"]
     steps = np.diff(t)
     forward = steps[np.isfinite(steps) & (steps > 0)]
     if forward.size == 0:
@@ -112,7 +111,7 @@ def recorded_arrays(log: str | Path, system_id: int = 1) -> Arrays:
         runs = [(a, (a + b) // 2), ((a + b) // 2, b)]
     segments = [Segment(i, a, b) for i, (a, b) in enumerate(runs)]
     return Arrays(
-        period, column("depth"), column("pitch"), column("u_depth"), column("u_pitch"), segments
+        period, column["depth"], column["pitch"], column["u_depth"], column["u_pitch"], segments
     )
 
 

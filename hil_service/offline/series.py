@@ -93,6 +93,32 @@ def _number(value: Any) -> float:
     return float(value) if isinstance(value, (int, float)) else math.nan
 
 
+def telemetry_columns(
+    rows: list[Any], names: tuple[str, ...], where: str | Path
+) -> dict[str, np.ndarray]:
+    """Each of ``names`` over the telemetry payloads ``rows``, as floats.
+
+    ValueError, naming ``where``, each field and how many samples lack it, when any sample
+    has no finite number there (the recorder writes a NaN as null): no model can train on
+    such a sample, nor be scored against it.
+    """
+    columns = {
+        name: np.asarray(
+            [_number(row.get(name)) if isinstance(row, dict) else math.nan for row in rows],
+            dtype=float,
+        )
+        for name in names
+    }
+    lacking = {name: int(np.count_nonzero(~np.isfinite(v))) for name, v in columns.items()}
+    counts = ", ".join(f"{name} in {n}" for name, n in lacking.items() if n)
+    if counts:
+        raise ValueError(
+            f"{where}: telemetry samples without a finite number (null, as a NaN is recorded, "
+            f"or missing): {counts} of {len(rows)}; the identification needs every value"
+        )
+    return columns
+
+
 def load_series(path: str | Path) -> LogSeries:
     """All vehicles' series; a log cut short is read up to its last complete chunk."""
     reader = LogReader(path)

@@ -27,6 +27,7 @@ from hil_service.offline.field.evaluate import (
     Segment,
     identify_dives,
 )
+from hil_service.offline.series import telemetry_columns
 from hil_service.pipeline import PipelineSettings
 from protocols import keys
 
@@ -41,15 +42,13 @@ def field_arrays(log: str | Path, field: dict[str, Any], system_id: int = 1) -> 
         Segment(int(s["dive"]), int(s["start"]), int(s["stop"])) for s in grid.get("segments", [])
     ]
 
-    def column(name: str) -> np.ndarray:
-        return np.asarray([float(r.get(name, math.nan)) for r in rows], dtype=float)
-
+    column = telemetry_columns(rows, ("depth", "pitch", "u_depth", "u_pitch"), log)
     return Arrays(
         float(grid.get("period_s", 1.0)),
-        column("depth"),
-        column("pitch"),
-        column("u_depth"),
-        column("u_pitch"),
+        column["depth"],
+        column["pitch"],
+        column["u_depth"],
+        column["u_pitch"],
         [s for s in segments if s.stop <= len(rows)],
         float(field.get("full_scale", 2.0)),
     )
