@@ -26,7 +26,13 @@ from hil_service.live.address import LiveAddress
 from hil_service.pipeline import PipelineSettings
 from protocols.keys import MAX_LINKS
 from protocols.mapping import TelemetryMapping
-from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile, parse_profile
+from protocols.profiles import (
+    DEFAULT_PROFILE,
+    Profile,
+    load_profile,
+    parse_profile,
+    sample_period_problem,
+)
 from protocols.units import InputScale, PressureDepth
 
 #: Keys of the metadata record (``hil_service.mcap.recorder.CONFIG_METADATA``).
@@ -144,6 +150,16 @@ class ServiceConfig:
     def __post_init__(self) -> None:
         if not (0 < self.health_period < float("inf")):
             raise ValueError(f"--health-period must be positive s, got {self.health_period}")
+        # With NaN, health's "no sample for longer than this" is never true: never stale.
+        if not (0 < self.stale_timeout < float("inf")):
+            raise ValueError(
+                f"--stale-timeout must be a positive finite number of s, got {self.stale_timeout}"
+            )
+        period_problem = (
+            "" if self.sample_period is None else sample_period_problem(self.sample_period)
+        )
+        if period_problem:
+            raise ValueError(f"--sample-period {period_problem}")
         if self.vehicle_ids not in VEHICLE_ID_MODES:
             raise ValueError(
                 f"--vehicle-ids must be one of {', '.join(VEHICLE_ID_MODES)}, "
@@ -218,7 +234,7 @@ class ServiceConfig:
         limits = service.get("limits") or {}
         profile = stored_profile(stored) or default_profile()
         periodic = profile.sampling.mode == "periodic"
-        recorded = service.get("profile") or {}
+        recorded = (service.get("profile") or {}).get("sample_period")
         return cls(
             system_ids=tuple(service.get("system_ids", ())),
             control_default=service.get("control_default", False),
@@ -231,7 +247,7 @@ class ServiceConfig:
                 limits.get("min_depth"), limits.get("max_depth"), limits.get("max_abs_pitch")
             ),
             profile=profile,
-            sample_period=(recorded.get("sample_period") or profile.sampling.period)
+            sample_period=(profile.sampling.period if recorded is None else recorded)
             if periodic
             else None,
         )

@@ -31,16 +31,52 @@ class ControlInputs:
 _NO_INPUTS = ControlInputs()
 
 
+#: The flag that sets each limit, to name it in an error.
+_LIMIT_FLAGS = {
+    "min_depth": "--min-depth",
+    "max_depth": "--max-depth",
+    "max_abs_pitch": "--max-pitch",
+}
+
+
 @dataclass(frozen=True)
 class SetpointLimits:
-    """Limits a vehicle owner sets: setpoints outside them are refused, never clipped."""
+    """Limits a vehicle owner sets: setpoints outside them are refused, never clipped.
+
+    A limit that would refuse nothing or everything unnoticed is itself refused (ValueError
+    naming the flag): a non-finite one (every comparison with NaN is false), a negative
+    largest |pitch|, a minimum depth deeper than the maximum. ``min_depth == max_depth`` is taken:
+    it is a consistent range that admits one depth, e.g. to hold a vehicle at one level.
+    """
 
     min_depth: float | None = None  # m
     max_depth: float | None = None  # m
     max_abs_pitch: float | None = None  # rad
 
+    def __post_init__(self) -> None:
+        for name, flag in _LIMIT_FLAGS.items():
+            value = getattr(self, name)
+            if value is not None and not _is_finite_number(value):
+                raise ValueError(f"{flag} must be a finite number, got {value!r}")
+        if self.max_abs_pitch is not None and self.max_abs_pitch < 0:
+            raise ValueError(
+                f"--max-pitch is the largest |pitch|: it must be ≥ 0 rad, got "
+                f"{self.max_abs_pitch:g}"
+            )
+        if (
+            self.min_depth is not None
+            and self.max_depth is not None
+            and self.min_depth > self.max_depth
+        ):
+            raise ValueError(
+                f"--min-depth {self.min_depth:g} m is deeper than --max-depth "
+                f"{self.max_depth:g} m: every depth setpoint would be refused"
+            )
+
     def violation(self, channel: str, value: float) -> str:
         """Why ``value`` is refused for ``channel``, or "" when it is acceptable."""
+        if not math.isfinite(value):
+            return f"{channel} setpoint {value} is not a finite number"
         if channel == "depth":
             if self.max_depth is not None and value > self.max_depth:
                 return f"depth setpoint {value:g} m below the maximum depth {self.max_depth:g} m"
@@ -49,6 +85,10 @@ class SetpointLimits:
         elif self.max_abs_pitch is not None and abs(value) > self.max_abs_pitch:
             return f"pitch setpoint {value:g} rad beyond ±{self.max_abs_pitch:g} rad"
         return ""
+
+
+def _is_finite_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 class Inbox:

@@ -43,10 +43,32 @@ COMMANDS = {"DO_SET_SERVO": ("pwm", 16), "DO_SET_ACTUATOR": ("normalised", 6)}
 #: Clock kinds of ``hil_service.sources.sampler``: name → (seconds per tick, wrap modulus or 0).
 CLOCKS = {"ms32": (1e-3, 1 << 32), "us32": (1e-6, 1 << 32), "us64": (1e-6, 0)}
 AUTOPILOT_COMPONENT = 1
+#: The shortest sampling period, s. MAVLink stamps the messages a periodic sample is formed
+#: from in whole milliseconds (``time_boot_ms``): ticks closer than 1 ms cannot be told apart,
+#: and a vehicle's clock advancing 1 ms would make thousands of them due at once.
+MIN_SAMPLE_PERIOD = 1e-3
+#: The longest sampling period, s: under half the wrap of a 32-bit µs clock (2^31 µs ≈
+#: 2147 s, e.g. ``SERVO_OUTPUT_RAW.time_usec``), since a wrapping clock is unwrapped to the
+#: candidate nearest the last stamp, and ``MAV_CMD_SET_MESSAGE_INTERVAL`` asks for a
+#: stream's interval as an int32 of µs. Every staleness limit (twice a period) stays finite.
+MAX_SAMPLE_PERIOD = 2000.0
 
 
 class ProfileError(ValueError):
     """A profile that cannot be used; the message names the file and, where known, the line."""
+
+
+def sample_period_problem(period: float) -> str:
+    """Why ``period`` (s) cannot be a sampling period, or "" when it can: it must lie in
+    ``MIN_SAMPLE_PERIOD``..``MAX_SAMPLE_PERIOD`` (NaN lies in no range)."""
+    if isinstance(period, bool) or not isinstance(period, (int, float)):
+        return f"must be a number of s, got {period!r}"
+    if not MIN_SAMPLE_PERIOD <= period <= MAX_SAMPLE_PERIOD:
+        return (
+            f"must be {MIN_SAMPLE_PERIOD:g}..{MAX_SAMPLE_PERIOD:g} s (MAVLink stamps are in "
+            f"ms; 32-bit µs clocks wrap), got {period!r}"
+        )
+    return ""
 
 
 class Reading(NamedTuple):
@@ -459,6 +481,9 @@ class _Parser:
     def _sampling(self, table: dict) -> Sampling:
         mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)
         period = self._number(table, "sampling", "period", None, positive=True)
+        problem = "" if period is None else sample_period_problem(period)
+        if problem:
+            self.fail(problem, "sampling", "period")
         delay = self._number(table, "sampling", "delay", None)
         if delay is not None and delay < 0:
             self.fail(f"must be ≥ 0, got {delay!r}", "sampling", "delay")

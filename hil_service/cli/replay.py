@@ -14,7 +14,7 @@ from hil_service.mcap.reader import LogError
 from hil_service.offline.replay import ReplayError, ReplayOptions, replay
 from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
-from protocols.profiles import ProfileError
+from protocols.profiles import MAX_SAMPLE_PERIOD, MIN_SAMPLE_PERIOD, ProfileError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,10 +31,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--profile",
         default=None,
-        help="vehicle profile, a built-in name or a TOML file (default: the one the log stores)",
+        help="vehicle profile, a built-in name or a TOML file (default: the one the log "
+        "stores); its period, if periodic, replaces the one the log recorded",
     )
     parser.add_argument(
-        "--sample-period", type=float, default=None, help="periodic profiles: s between samples"
+        "--sample-period",
+        type=float,
+        default=None,
+        metavar="S",
+        help=f"periodic profiles: s between samples, {MIN_SAMPLE_PERIOD:g}..{MAX_SAMPLE_PERIOD:g}; "
+        "wins over the period of --profile and the one the log recorded (default: --profile's "
+        "period, else the log's, else its profile's)",
     )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     add_foxglove_argument(parser)

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from hil_service.builder import open_recorder, wire
@@ -34,7 +36,13 @@ from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
 from hil_service.vehicle_links import LinkSet
 from protocols.mavlink_io import Link
-from protocols.profiles import DEFAULT_PROFILE, Profile, load_profile
+from protocols.profiles import (
+    DEFAULT_PROFILE,
+    MAX_SAMPLE_PERIOD,
+    MIN_SAMPLE_PERIOD,
+    Profile,
+    load_profile,
+)
 from protocols.signing import load_key
 
 if TYPE_CHECKING:
@@ -106,7 +114,9 @@ def _add_profile_arguments(parser: argparse.ArgumentParser) -> None:
         "--sample-period",
         type=float,
         default=None,
-        help="periodic profiles: s between samples on the vehicle's clock (default: the profile's)",
+        metavar="S",
+        help="periodic profiles: s between samples on the vehicle's clock, "
+        f"{MIN_SAMPLE_PERIOD:g}..{MAX_SAMPLE_PERIOD:g} (default: the profile's)",
     )
 
 
@@ -126,7 +136,13 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         help="release every step to the vehicle from the start (docs/lockstep.md; default: "
         "when the vehicle announces lockstep)",
     )
-    group.add_argument("--stale-timeout", type=float, default=3.0, help="s (default 3)")
+    group.add_argument(
+        "--stale-timeout",
+        type=float,
+        default=3.0,
+        metavar="S",
+        help="s without a sample before commands stop, positive (default 3)",
+    )
     group.add_argument(
         "--health-period",
         type=float,
@@ -292,7 +308,11 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         units=units_from_args(args, profile),
         limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),
         profile=profile,
-        sample_period=(args.sample_period or profile.sampling.period) if periodic else None,
+        sample_period=(
+            (profile.sampling.period if args.sample_period is None else args.sample_period)
+            if periodic
+            else None
+        ),
         lockstep=args.lockstep,
         max_vehicles=args.max_vehicles,
         vehicle_ids=args.vehicle_ids,
@@ -316,6 +336,23 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
     )
 
 
+def prepare_log_directory(log: LogOptions) -> None:
+    """Create the log directory now, so that one that cannot hold a log (a file is there,
+    no permission) is an error at start-up rather than every record dropped; OSError says
+    why."""
+    if log.directory is None:
+        return
+    directory = Path(log.directory)
+    if directory.exists() and not directory.is_dir():
+        raise OSError(f"--log-dir {directory}: not a directory")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise OSError(f"--log-dir {directory}: cannot create: {error.strerror}") from error
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise OSError(f"--log-dir {directory}: not writable")
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         config = config_from_args(args)
@@ -328,6 +365,11 @@ def run(args: argparse.Namespace) -> int:
 
 def main(config: ServeConfig) -> int:
     """Run the service until SIGINT/SIGTERM or ``config.duration``; 2 if a part cannot open."""
+    try:
+        prepare_log_directory(config.log)
+    except OSError as error:
+        print(f"glider-hil serve: {error}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -46,7 +46,8 @@ class ReplayOptions:
     check: bool = False
     model: str | None = None  # override the stored model (disables bit-for-bit checking)
     profile: str | None = None  # a vehicle profile (name or file); default: the log's own
-    sample_period: float | None = None  # periodic profiles; default: the log's or profile's
+    #: Periodic profiles; default: an explicit profile's period, else the log's, else its profile's.
+    sample_period: float | None = None
     progress: Callable[[int, int], None] | None = None  # (bytes read, file size)
 
 
@@ -212,16 +213,9 @@ class _Replay:
             chosen = bool(config.pipeline.choose_input_lags) and model == "dynamic"
             pipeline = config.pipeline.replace(model=model, choose_input_lags=chosen)
             config = replace(config, pipeline=pipeline)
-        profile = self._profile(stored)
-        if profile is not None:
-            recorded = (stored.get("service") or {}).get("profile") or {}
-            period = (
-                self.options.sample_period
-                or recorded.get("sample_period")
-                or profile.sampling.period
-            )
-            periodic = profile.sampling.mode == "periodic"
-            config = replace(config, profile=profile, sample_period=period if periodic else None)
+        profile = self._profile(stored) or config.profile
+        period = self._sample_period(profile, stored)
+        config = replace(config, profile=profile, sample_period=period)
         wired = wire(config, inbox=self.inbox, listeners=self.listeners, send_commands=False)
         self.service = wired.service
         return self.service
@@ -231,6 +225,24 @@ class _Replay:
         if self.options.profile is not None:
             return load_profile(self.options.profile)
         return stored_profile(stored)
+
+    def _sample_period(self, profile: Profile, stored: dict[str, Any]) -> float | None:
+        """The period replayed with a periodic ``profile`` (None for a lockstep one), the most
+        explicit first: ``--sample-period``; the period of a ``--profile`` given (the user
+        chose it, not the log); the period the log recorded; the profile's."""
+        given = self.options.sample_period
+        if profile.sampling.mode != "periodic":
+            if given is not None:
+                raise ReplayError(
+                    f"--sample-period needs a periodic profile; {profile.name} is not"
+                )
+            return None
+        if given is not None:
+            return given
+        recorded = ((stored.get("service") or {}).get("profile") or {}).get("sample_period")
+        if self.options.profile is not None or recorded is None:
+            return profile.sampling.period
+        return float(recorded)
 
     def _finish(self) -> ReplayResult:
         result, report, service = self.result, self.reader.report, self.service

@@ -28,12 +28,10 @@ from typing import Any
 import numpy as np
 
 from hil_service.offline.field.table import FieldData
+from protocols.profiles import MIN_SAMPLE_PERIOD
 
 #: Segments shorter than this many grid samples are not worth identifying on.
 MIN_SEGMENT = 4
-#: The shortest grid period, s: the log stamps each sample in whole ms (MAVLink's
-#: ``time_boot_ms``), so a shorter step could not be told from the next.
-MIN_PERIOD = 0.001
 #: Grid samples per raw sample, at most. A finer grid is nearly all interpolation: it gives
 #: the identifier nothing the raw samples do not, and costs log size and time (about 400
 #: bytes and 40 µs of writing a grid sample, measured on SEA035), so such a period is a
@@ -110,10 +108,11 @@ def default_period(data: FieldData) -> float:
 
 
 def check_period(period: float) -> float:
-    """``period`` if a grid can have it (finite, at least ``MIN_PERIOD``), else ValueError."""
-    if not (math.isfinite(period) and period >= MIN_PERIOD):
+    """``period`` if a grid can have it (finite, at least ``MIN_SAMPLE_PERIOD``: the log
+    stamps whole ms), else ValueError."""
+    if not (math.isfinite(period) and period >= MIN_SAMPLE_PERIOD):
         raise ValueError(
-            f"grid period must be at least {MIN_PERIOD:g} s (the log stamps whole ms), "
+            f"grid period must be at least {MIN_SAMPLE_PERIOD:g} s (the log stamps whole ms), "
             f"got {period:g}"
         )
     return period
