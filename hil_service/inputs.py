@@ -91,6 +91,22 @@ def _is_finite_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
+#: The largest integer every float holds exactly. A JSON setpoint may be an integer of any
+#: size; beyond this one it is no depth or pitch, and the log's encoder (64-bit integers)
+#: could not write it.
+MAX_EXACT_INTEGER = 2**53
+#: The longest refusal reason kept: health repeats the last one every second for every
+#: vehicle, and a reason may quote the refused input.
+MAX_REASON = 300
+
+
+def _shortened(reason: str) -> str:
+    """``reason``, cut to ``MAX_REASON`` characters with the length it had."""
+    if len(reason) <= MAX_REASON:
+        return reason
+    return f"{reason[:MAX_REASON]}… ({len(reason):,} characters)"
+
+
 class Inbox:
     """Thread-safe store of control inputs, written by Zenoh callbacks, read per sample.
 
@@ -136,7 +152,7 @@ class Inbox:
         Returns why it was refused, or "" when it was taken: the recorder keeps accepted
         inputs on their own channel and refused ones, with this reason, apart.
         """
-        reason = self._apply(key, raw)
+        reason = _shortened(self._apply(key, raw))
         if reason:
             self.reject(reason)
         return reason
@@ -150,11 +166,15 @@ class Inbox:
             payload = json.loads(raw)
         except ValueError as error:
             return f"{key}: {error}"
+        except RecursionError:
+            return f"{key}: JSON nested too deeply"
         errors = validation_errors(keys.SCHEMA_FOR_KIND[parsed.kind], payload)
         if errors:
             return f"{key}: {errors[0]}"
         if parsed.channel is not None:  # a setpoint
             value = payload["value"]
+            if isinstance(value, int) and abs(value) > MAX_EXACT_INTEGER:
+                return f"{key}: setpoint integer beyond ±2**53 (no float holds it exactly)"
             if value is not None and not math.isfinite(value):
                 return f"{key}: non-finite setpoint"
             violation = "" if value is None else self.limits.violation(parsed.channel, value)

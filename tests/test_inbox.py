@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 
-from hil_service.inputs import Inbox, SetpointLimits
+from hil_service.inputs import MAX_REASON, Inbox, SetpointLimits
+from protocols import payload_json
 
 
 def put(inbox: Inbox, key: str, payload: object) -> None:
@@ -89,3 +90,27 @@ def test_every_refusal_names_the_key_and_why():
     # None of them set anything.
     assert inbox.get(1).enabled is None
     assert inbox.get(1).setpoints == {"depth": None, "pitch": None}
+
+
+def test_a_setpoint_integer_no_float_holds_is_refused_and_counted():
+    inbox = Inbox()  # no limits: the integer check alone stands between it and the log
+    for digits in (21, 401):
+        reason = inbox.accept("glider/1/setpoint/depth", b'{"value": 1' + b"0" * digits + b"}")
+        assert "beyond" in reason
+    assert inbox.rejected == 2 and inbox.get(1).setpoints["depth"] is None
+    assert inbox.accept("glider/1/setpoint/depth", b'{"value": 20}') == ""
+    assert payload_json.encode(inbox.get(1).setpoints)  # what the service logs per decision
+
+
+def test_json_nested_too_deep_is_refused_and_counted():
+    inbox = Inbox()
+    reason = inbox.accept("glider/1/setpoint/depth", b"[" * 100_000 + b"]" * 100_000)
+    assert "nested too deeply" in reason and inbox.rejected == 1
+
+
+def test_a_huge_refused_input_leaves_a_short_reason_for_health():
+    inbox = Inbox()
+    text = "x" * 1_000_000
+    reason = inbox.accept("glider/1/setpoint/depth", json.dumps({"value": text}).encode())
+    assert len(reason) <= MAX_REASON + 40 and "characters)" in reason
+    assert inbox.last_rejection == reason

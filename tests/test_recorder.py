@@ -206,6 +206,16 @@ def test_an_unencodable_record_is_counted_and_logging_goes_on(tmp_path):
     assert reader.report.complete and len(messages) == 10
 
 
+def test_a_zenoh_payload_json_cannot_hold_is_counted_and_logging_goes_on(tmp_path):
+    recorder = McapRecorder(tmp_path, flush_interval=0.05).start()
+    recorder.zenoh("glider/1/setpoint/depth", {"value": 10**20}, "in")  # beyond 64 bits
+    recorder.zenoh("glider/1/setpoint/depth", {"value": 12.5}, "in")
+    recorder.close()
+    assert recorder.status.dropped == 1 and "Integer" in recorder.status.last_drop
+    messages, reader = read_all(next(tmp_path.glob("*.mcap")))
+    assert reader.report.complete and [m.json() for m in messages] == [{"value": 12.5}]
+
+
 def test_files_open_in_the_mcap_librarys_indexed_reader(tmp_path):
     """Our writer's summary, chunk and message indexes, as another MCAP tool uses them."""
     from mcap.reader import make_reader

@@ -145,14 +145,25 @@ class McapRecorder:
         try:
             data = payload_json.encode(message_to_json(message))
         except Exception as error:  # an unencodable record must not end all logging
-            with self._lock:
-                self.status.last_drop = f"{type(error).__name__}: {error}"
-                self.status.dropped += 1
+            self._drop(error)
             return
         self._record(("json_mav", direction, type_of(message)), data, _now_if_none(t_ns))
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
-        self.zenoh_encoded(key, payload_json.encode(payload), direction, t_ns)
+        """A payload on ``key``, encoded here; one that JSON cannot hold (an integer beyond
+        64 bits) is dropped and counted, as the producer must not fail for its log."""
+        try:
+            data = payload_json.encode(payload)
+        except Exception as error:
+            self._drop(error)
+            return
+        self.zenoh_encoded(key, data, direction, t_ns)
+
+    def _drop(self, error: Exception) -> None:
+        """A record that could not be encoded: counted, and why the last one was."""
+        with self._lock:
+            self.status.last_drop = f"{type(error).__name__}: {error}"
+            self.status.dropped += 1
 
     def zenoh_encoded(self, key: str, data: bytes, direction: str, t_ns: int | None = None) -> None:
         """Record a payload that is already JSON-encoded (what was published, byte for byte)."""
