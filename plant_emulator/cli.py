@@ -10,13 +10,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from plant_emulator.arguments import (
-    autopilot_config,
-    non_negative_float,
-    non_negative_int,
-    positive_float,
-    telemetry_mapping,
-)
+from plant_emulator.arguments import autopilot_config, telemetry_mapping
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
@@ -26,6 +20,7 @@ from plant_emulator.plant import FamilyPlant, GliderPlant, PlantConfig, wire_bou
 from plant_emulator.reboot import RebootAt
 from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
 from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
+from protocols.flag_types import non_negative_float, non_negative_int, positive_float
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, ProfileError, load_profile
@@ -298,6 +293,10 @@ def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
 
 
 def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> None:
+    if args.latency_trace:
+        raise ValueError(
+            "--latency-trace measures a fleet: it needs --vehicles N or --fleet-connect"
+        )
     if args.lockstep and periodic:
         raise ValueError("--lockstep needs the glider profile (one timestamp per step)")
     if args.reboot_at is not None and not periodic:

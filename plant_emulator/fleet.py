@@ -33,6 +33,7 @@ import argparse
 import heapq
 import json
 import math
+import os
 import select
 import signal
 import sys
@@ -83,7 +84,8 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         "--latency-trace",
         metavar="FILE",
         help="with --vehicles: write every telemetry -> command latency to FILE at the end, "
-        "one JSON line [sent (time.perf_counter s), system id, latency s] each (benchmarks)",
+        "one JSON line [sent (time.perf_counter s), system id, latency s] each (benchmarks; "
+        "a FILE that cannot be written is refused before the run)",
     )
 
 
@@ -345,6 +347,8 @@ def run_fleet(args: argparse.Namespace) -> int:
         )
         return 2
     try:
+        if args.latency_trace:
+            check_latency_trace(args.latency_trace)
         links, autopilots = _open_fleet(args, connections, identities, per_link)
     except (ValueError, OSError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
@@ -369,9 +373,17 @@ def run_fleet(args: argparse.Namespace) -> int:
         for shared in links.values():
             shared.close()
     summary = _fleet_summary(links, connections, autopilots, scheduler, cpu_at_start)
-    if args.latency_trace:
-        write_latency_trace(args.latency_trace, autopilots)
     print(json.dumps({"emulator": summary}), flush=True)
+    if args.latency_trace:
+        try:
+            write_latency_trace(args.latency_trace, autopilots)
+        except OSError as error:  # e.g. its directory removed or the disk full during the run
+            print(
+                f"glider-hil emulate: --latency-trace {args.latency_trace}: cannot write "
+                f"({error.strerror or error})",
+                file=sys.stderr,
+            )
+            return 1
     return 0
 
 
@@ -433,6 +445,21 @@ def _fleet_summary(
         },
         "per_vehicle": per_vehicle,
     }
+
+
+def check_latency_trace(path: str) -> None:
+    """Raise ValueError, naming the flag, if ``--latency-trace FILE`` cannot be written: the
+    trace is written after the run, and a typo must not cost the run. Nothing is created."""
+    directory = os.path.dirname(path) or "."
+    if os.path.isdir(path):
+        raise ValueError(f"--latency-trace {path}: is a directory")
+    if not os.path.isdir(directory):
+        raise ValueError(f"--latency-trace {path}: the directory {directory} does not exist")
+    if os.path.exists(path):
+        if not os.access(path, os.W_OK):
+            raise ValueError(f"--latency-trace {path}: the file is not writable")
+    elif not os.access(directory, os.W_OK | os.X_OK):
+        raise ValueError(f"--latency-trace {path}: the directory {directory} is not writable")
 
 
 def write_latency_trace(path: str, autopilots: list[TimedAutopilot]) -> None:

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from hil_service.campaign import SCENARIOS
-from plant_emulator.arguments import positive_float, positive_int
+from protocols.flag_types import positive_float, positive_int
 
 if TYPE_CHECKING:
     from hil_service.campaign.runner import CampaignSpec

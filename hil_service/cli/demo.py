@@ -31,9 +31,9 @@ from hil_service.cli.processes import (
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from hil_service.live.address import LiveAddress
 from hil_service.umodel import U_MODELS
-from plant_emulator.arguments import non_negative_int, positive_float
 from plant_emulator.scenarios import SCENARIOS
 from protocols import keys
+from protocols.flag_types import non_negative_int, positive_float
 
 SYSTEM_ID = 1
 TRIM_DEPTH = 15.0

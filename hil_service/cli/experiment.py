@@ -40,11 +40,11 @@ from hil_service.experiment.random_loop import (
 from hil_service.experiment.speed import measure_all
 from hil_service.offline.plots import prediction_figure, tracking_figure
 from hil_service.pipeline import PipelineSettings
-from plant_emulator.arguments import non_negative_int
 from plant_emulator.excitation import EXCITATIONS
 from plant_emulator.models import CHANNELS
 from plant_emulator.scenarios import SCENARIOS
 from protocols import compiled
+from protocols.flag_types import non_negative_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -29,6 +29,7 @@ import zenoh
 
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session
 from protocols import keys
+from protocols.flag_types import non_negative_float, positive_float
 
 HEALTH_KEYS = f"{keys.ROOT}/*/{keys.HEALTH}"
 COMMAND_KEYS = f"{keys.ROOT}/*/{keys.COMMAND_BALLAST}"
@@ -193,9 +194,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--json", action="store_true", help="print one snapshot as JSON")
     parser.add_argument(
-        "--wait", type=float, default=2.5, help="with --json: s to listen first (default 2.5)"
+        "--wait",
+        type=non_negative_float,
+        default=2.5,
+        help="with --json: s to listen first (default 2.5)",
     )
-    parser.add_argument("--period", type=float, default=1.0, help="table refresh, s")
+    parser.add_argument(
+        "--period", type=positive_float, default=1.0, help="table refresh, s (default 1)"
+    )
 
 
 def open_fleet(session: zenoh.Session, fleet: Fleet) -> list[Any]:

@@ -20,7 +20,7 @@ from hil_service.offline.field import FORMATS, FieldError, read_field
 from hil_service.offline.field.grid import as_recorded, check_period, resample
 from hil_service.offline.field.write import write_field_log
 from hil_service.offline.tlog_import import TlogError, import_tlog
-from plant_emulator.arguments import positive_float
+from protocols.flag_types import positive_float
 from protocols.profiles import DEFAULT_PROFILE, ProfileError, load_profile
 
 

@@ -19,6 +19,8 @@ import threading
 
 import zenoh
 
+from protocols.flag_types import positive_float
+
 #: What ``router`` prints on stderr once it listens.
 ROUTER_READY = "glider-hil router: ready"
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -33,7 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help=f"endpoint to listen on (repeatable; default without --config: {DEFAULT_LISTEN})",
     )
-    parser.add_argument("--duration", type=float, default=None, help="wall s, then exit")
+    parser.add_argument(
+        "--duration", type=positive_float, default=None, help="wall s, then exit (default: run)"
+    )
 
 
 def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
