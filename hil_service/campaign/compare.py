@@ -3,7 +3,9 @@
 Runs are paired by (scenario, seed); only pairs where both runs are ``ok`` count. For each
 scenario and metric the mean of B − A is given with a two-sided 95 % Student t confidence
 interval (n − 1 degrees of freedom), which assumes the paired differences are roughly
-normal; the median difference and how many pairs B improved are printed beside it.
+normal; the median difference and how many pairs B improved are printed beside it. A
+pair whose metric value is not a finite number (NaN, a string) is left out of that metric
+and counted.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import json
 import math
 from pathlib import Path
 from statistics import mean, median, stdev
-from typing import Any
+from typing import Any, NamedTuple
 
 from scipy import stats
 
@@ -24,14 +26,58 @@ METRICS = tuple(
 )
 
 
-def load_runs(directory: Path) -> list[dict[str, Any]]:
+class Runs(NamedTuple):
+    """A campaign's usable rows of runs.json, and how many rows were skipped as unusable."""
+
+    rows: list[dict[str, Any]]
+    skipped: int
+
+
+def _usable(row: Any) -> bool:
+    """A row that can be paired: an object with a scenario name and an integer seed."""
+    return (
+        isinstance(row, dict)
+        and isinstance(row.get("scenario"), str)
+        and type(row.get("seed")) is int
+    )
+
+
+def load_runs(directory: Path) -> Runs:
+    """The rows of ``directory/runs.json`` that can be paired; rows that are not an object
+    with a ``scenario`` string and an integer ``seed`` are skipped and counted. ValueError
+    names the file when it cannot be read, holds no usable row, or records a mission twice
+    (a campaign records each once, so which of the two is right cannot be told)."""
     path = directory / "runs.json"
     if not path.exists():
         raise ValueError(f"{directory}: no runs.json (not a campaign directory?)")
-    rows = json.loads(path.read_text())
+    try:
+        rows = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{path}: cannot be read: {error}") from None
     if not isinstance(rows, list):
         raise ValueError(f"{path}: expected a list of runs")
-    return rows
+    usable = [row for row in rows if _usable(row)]
+    if not usable:
+        raise ValueError(
+            f"{path}: none of its {len(rows)} rows is a run with a scenario name and an "
+            "integer seed"
+        )
+    seen: set[tuple[str, int]] = set()
+    for row in usable:
+        key = (row["scenario"], row["seed"])
+        if key in seen:
+            raise ValueError(f"{path}: {key[0]} seed {key[1]} is recorded more than once")
+        seen.add(key)
+    return Runs(usable, len(rows) - len(usable))
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _invalid(value: Any) -> bool:
+    """A metric recorded but not a finite number (NaN, a string); None means not measured."""
+    return value is not None and not _finite(value)
 
 
 def t_interval(differences: list[float], level: float = 0.95) -> tuple[float, float] | None:
@@ -45,7 +91,12 @@ def t_interval(differences: list[float], level: float = 0.95) -> tuple[float, fl
 
 
 def compare(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One entry per scenario and metric with at least one finished pair."""
+    """One entry per scenario and metric with a finished pair (one left out counts too).
+
+    ``a`` and ``b`` are rows as ``load_runs`` returns them (one per scenario and seed). A
+    pair where both runs are ``ok`` but either metric value is present and not a finite
+    number is left out of that metric's statistics and counted in its ``excluded``.
+    """
     index_a = {(r["scenario"], r["seed"]): r for r in a}
     results = []
     scenarios = list(dict.fromkeys(r["scenario"] for r in b))
@@ -55,27 +106,32 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> list[dict[str, 
             for r in b
             if r["scenario"] == scenario and (scenario, r["seed"]) in index_a
         ]
+        ok_pairs = [(ra, rb) for ra, rb in pairs if ra.get("status") == rb.get("status") == "ok"]
         for metric in METRICS:
-            differences = []
-            for ra, rb in pairs:
-                va, vb = ra.get(metric), rb.get(metric)
-                if ra.get("status") == rb.get("status") == "ok" and None not in (va, vb):
-                    differences.append(float(vb) - float(va))
-            if not differences:
+            values = [(ra.get(metric), rb.get(metric)) for ra, rb in ok_pairs]
+            differences = [
+                float(vb) - float(va) for va, vb in values if _finite(va) and _finite(vb)
+            ]
+            excluded = sum(_invalid(va) or _invalid(vb) for va, vb in values)
+            if not differences and not excluded:
                 continue
-            interval = t_interval(differences)
             results.append(
                 {
                     "scenario": scenario,
                     "metric": metric,
                     "pairs": len(differences),
-                    "mean_difference": mean(differences),
-                    "ci95": interval,
-                    "median_difference": median(differences),
+                    "excluded": excluded,
+                    "mean_difference": mean(differences) if differences else None,
+                    "ci95": t_interval(differences),
+                    "median_difference": median(differences) if differences else None,
                     "b_better": sum(d < 0 for d in differences),
                 }
             )
     return results
+
+
+def _signed(value: float | None) -> str:
+    return "—" if value is None else f"{value:+.4g}"
 
 
 def format_table(results: list[dict[str, Any]], a: str, b: str) -> str:
@@ -90,7 +146,15 @@ def format_table(results: list[dict[str, Any]], a: str, b: str) -> str:
         ci = r["ci95"]
         ci_text = "—" if ci is None else f"[{ci[0]:+.4g}, {ci[1]:+.4g}]"
         lines.append(
-            f"| {r['scenario']} | {r['metric']} | {r['pairs']} | {r['mean_difference']:+.4g} | "
-            f"{ci_text} | {r['median_difference']:+.4g} | {r['b_better']}/{r['pairs']} |"
+            f"| {r['scenario']} | {r['metric']} | {r['pairs']} | {_signed(r['mean_difference'])} | "
+            f"{ci_text} | {_signed(r['median_difference'])} | {r['b_better']}/{r['pairs']} |"
+        )
+    excluded = [r for r in results if r["excluded"]]
+    if excluded:
+        lines.append("")
+    for r in excluded:
+        lines.append(
+            f"Left out of {r['scenario']} {r['metric']}: {r['excluded']} pair(s) of ok runs "
+            "with a value that is not a finite number."
         )
     return "\n".join(lines)

@@ -3,7 +3,8 @@
 Each worker runs one mission (``hil_run.run_hil``: its own forked service), scores it and
 writes ``runs/RUN_ID/run.json``; the parent only forks, waits and collects. A worker that
 dies, or a mission that fails or diverges, is recorded with its reason and the campaign
-goes on. ``resume`` skips missions whose ``run.json`` is already there.
+goes on. ``resume`` skips missions whose ``run.json`` is already there and is theirs, in a
+directory made with the same settings (``check_resume``).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import resource
+import shutil
 import sys
 import time
 import traceback
@@ -25,6 +27,17 @@ from hil_service.campaign.mission import Mission, oracle_trace, reference_only_t
 
 RUN_FILE = "run.json"
 RUNS_DIR = "runs"
+SPEC_FILE = "campaign.json"
+#: Keys every recorded row holds (``execute`` and ``failed_row`` write them all).
+ROW_KEYS = ("scenario", "seed", "steps", "status")
+STATUSES = ("ok", "diverged", "failed")
+#: The settings in campaign.json that change a mission's result, and their flags.
+RESULT_SETTINGS = {
+    "steps": "--steps",
+    "identify": "--identify",
+    "step_every": "--step-every",
+    "oracle": "--oracle/--no-oracle",
+}
 
 
 @dataclass(frozen=True)
@@ -158,15 +171,39 @@ def describe_exit(status: int) -> str:
     return f"worker exited with {os.WEXITSTATUS(status)} without a result"
 
 
-def load_row(directory: Path) -> dict[str, Any] | None:
+def recorded_row(
+    directory: Path, mission: Mission | None = None
+) -> tuple[dict[str, Any] | None, str]:
+    """The row in ``directory/run.json``, or None and why it is not usable ("" when there is
+    no file). A usable row is an object with every key of ``ROW_KEYS``, a known status and,
+    when ``mission`` is given, that mission's scenario, seed and steps."""
     path = directory / RUN_FILE
     if not path.exists():
-        return None
+        return None, ""
     try:
         row = json.loads(path.read_text())
-    except ValueError:
-        return None
-    return row if isinstance(row, dict) else None
+    except (OSError, ValueError) as error:
+        return None, f"cannot be read ({error})"
+    if not isinstance(row, dict):
+        return None, "is not a JSON object"
+    missing = [key for key in ROW_KEYS if key not in row]
+    if missing:
+        return None, f"lacks {', '.join(missing)}"
+    if row["status"] not in STATUSES:
+        return None, f"has an unknown status {row['status']!r}"
+    if mission is not None:
+        identity = (row["scenario"], row["seed"], row["steps"])
+        if identity != (mission.scenario, mission.seed, mission.steps):
+            return None, (
+                f"is {row['scenario']!r} seed {row['seed']!r} of {row['steps']!r} steps, not "
+                f"{mission.scenario!r} seed {mission.seed} of {mission.steps} steps"
+            )
+    return row, ""
+
+
+def load_row(directory: Path, mission: Mission | None = None) -> dict[str, Any] | None:
+    """The usable row in ``directory/run.json`` (``recorded_row``), or None."""
+    return recorded_row(directory, mission)[0]
 
 
 class Progress:
@@ -212,25 +249,81 @@ def failed_row(mission: Mission, reason: str) -> dict[str, Any]:
     return row
 
 
-def prepare(spec: CampaignSpec) -> tuple[dict[str, dict[str, Any]], list[Mission]]:
-    """Write campaign.json; the rows already recorded (when resuming) and what is left."""
+def check_resume(spec: CampaignSpec) -> None:
+    """With ``resume``, refuse (ValueError) a directory whose recorded runs had other
+    settings that change a mission's result: resuming would mix them in one summary. A
+    directory with runs but no readable campaign.json is refused too (its settings are
+    unknown). Without ``resume``, or on a new directory, there is nothing to check."""
+    path = spec.out / SPEC_FILE
+    if not spec.resume or not (path.exists() or (spec.out / RUNS_DIR).exists()):
+        return
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(
+            f"--resume: cannot read {path} ({error}), so whether the runs recorded in "
+            f"{spec.out} had these settings is unknown: use another -o"
+        ) from None
+    if not isinstance(stored, dict):
+        raise ValueError(f"--resume: {path} is not a JSON object: use another -o")
+    current = spec.to_json()
+    differing = [
+        f"{flag} {stored.get(key)!r} there, {current[key]!r} here"
+        for key, flag in RESULT_SETTINGS.items()
+        if stored.get(key) != current[key]
+    ]
+    if differing:
+        raise ValueError(
+            f"--resume: the runs in {spec.out} were made with other settings "
+            f"({'; '.join(differing)}): give the same settings, or another -o"
+        )
+
+
+def prepare(
+    spec: CampaignSpec, report: TextIO | None = None
+) -> tuple[dict[str, dict[str, Any]], list[Mission]]:
+    """Write campaign.json; the rows already recorded (when resuming) and what is left.
+
+    Raises ValueError when resuming into a directory made with other settings
+    (``check_resume``). A recorded run.json that is not usable, or not this mission's, is
+    said on ``report`` (stderr by default) and its mission runs again.
+    """
+    check_resume(spec)
     spec.out.mkdir(parents=True, exist_ok=True)
-    (spec.out / "campaign.json").write_text(json.dumps(spec.to_json(), indent=1))
+    (spec.out / SPEC_FILE).write_text(json.dumps(spec.to_json(), indent=1))
+    report = report if report is not None else sys.stderr
     rows: dict[str, dict[str, Any]] = {}
     pending: list[Mission] = []
+    unusable = 0
     for mission in spec.missions():
-        row = load_row(run_dir(spec, mission)) if spec.resume else None
+        directory = run_dir(spec, mission)
+        row, problem = recorded_row(directory, mission) if spec.resume else (None, "")
         if row is not None:
             rows[mission.run_id] = row
-        else:
-            pending.append(mission)
+            continue
+        pending.append(mission)
+        if problem:
+            unusable += 1
+            print(
+                f"glider-hil campaign: {directory / RUN_FILE} {problem}: "
+                f"{mission.run_id} runs again",
+                file=report,
+            )
+    if unusable:
+        print(
+            f"glider-hil campaign: {unusable} recorded result(s) not usable, run again",
+            file=report,
+        )
     return rows, pending
 
 
 def clear_result(spec: CampaignSpec, mission: Mission) -> None:
-    """Remove a mission's stale ``run.json`` (an earlier, unfinished campaign's) before it runs."""
+    """Remove a mission's stale ``run.json`` (an earlier, unfinished campaign's, or one
+    that was not usable) before it runs."""
     stale = run_dir(spec, mission) / RUN_FILE
-    if stale.exists():
+    if stale.is_dir() and not stale.is_symlink():
+        shutil.rmtree(stale)
+    elif stale.exists() or stale.is_symlink():
         stale.unlink()
 
 
@@ -260,7 +353,7 @@ def run_campaign(
         mission = running.pop(pid, None)
         if mission is None:
             continue
-        row = load_row(run_dir(spec, mission))
+        row = load_row(run_dir(spec, mission), mission)
         if row is None:
             row = failed_row(mission, describe_exit(status))
             write_row(run_dir(spec, mission), row)

@@ -134,7 +134,12 @@ def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.action == "compare":
         return _compare(args)
-    from hil_service.campaign.runner import CampaignSpec, parse_seeds, run_campaign
+    from hil_service.campaign.runner import (
+        CampaignSpec,
+        check_resume,
+        parse_seeds,
+        run_campaign,
+    )
     from hil_service.campaign.summary import write_outputs
 
     try:
@@ -168,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
         check_mission_segments(spec)
         if not args.resume and (spec.out / "runs").exists():
             raise ValueError(f"{spec.out} already holds runs: --resume, or another -o")
+        check_resume(spec)  # before a scheduler is reached or anything is written
     except ValueError as error:
         print(f"glider-hil campaign: {error}", file=sys.stderr)
         return 2
@@ -264,9 +270,25 @@ def _compare(args: argparse.Namespace) -> int:
     except ValueError as error:
         print(f"glider-hil campaign compare: {error}", file=sys.stderr)
         return 2
-    results = compare(a, b)
+    for directory, runs in zip(args.dirs, (a, b), strict=True):
+        if runs.skipped:
+            print(
+                f"glider-hil campaign compare: {Path(directory) / 'runs.json'}: skipped "
+                f"{runs.skipped} of {runs.skipped + len(runs.rows)} rows that are not a run "
+                "with a scenario name and an integer seed",
+                file=sys.stderr,
+            )
+    results = compare(a.rows, b.rows)
+    if not results:
+        print(
+            f"glider-hil campaign compare: no pairs to compare: no scenario and seed is ok in "
+            f"both {args.dirs[0]} and {args.dirs[1]} with a compared metric in both",
+            file=sys.stderr,
+        )
+        return 1
     if args.json:
-        print(json.dumps({"compare": results}))
+        skipped = {"a": a.skipped, "b": b.skipped}
+        print(json.dumps({"compare": results, "skipped_rows": skipped}))
     else:
         print(format_table(results, args.dirs[0], args.dirs[1]))
     return 0
