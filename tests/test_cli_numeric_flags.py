@@ -18,23 +18,10 @@ import pytest
 from hil_service.cli import build_parser, main
 from hil_service.mcap.recorder import McapRecorder
 from protocols import keys
+from tests.refused_flags import must_not_run, refused_by_argparse
 
 #: A run short enough to end by itself, should a refused flag get through.
 SHORT_EMULATION = ("--connect", "udpout:127.0.0.1:9", "--duration", "1", "--speed", "100")
-
-
-def _refused(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    """``glider-hil ARGV`` exits 2 from argparse; its stderr."""
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    err = capsys.readouterr().err
-    assert exit_info.value.code == 2, err
-    assert "Traceback" not in err
-    return err
-
-
-def _must_not_run(*_: Any, **__: Any) -> Any:
-    raise AssertionError("ran although a flag is bad")
 
 
 # ---- emulate -------------------------------------------------------------------------------
@@ -62,7 +49,9 @@ def _must_not_run(*_: Any, **__: Any) -> Any:
 def test_emulate_refuses_a_number_its_flag_cannot_take(
     capsys: pytest.CaptureFixture[str], flag: str, value: str, profile: str
 ) -> None:
-    err = _refused(capsys, ["emulate", *SHORT_EMULATION, "--profile", profile, flag, value])
+    err = refused_by_argparse(
+        capsys, ["emulate", *SHORT_EMULATION, "--profile", profile, flag, value]
+    )
     assert f"argument {flag}: expected" in err and repr(value) in err
 
 
@@ -82,8 +71,8 @@ def test_emulate_takes_the_boundary_values_its_flags_allow() -> None:
 def test_demo_refuses_a_bad_flag_before_it_starts_a_process(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, flag: str, value: str
 ) -> None:
-    monkeypatch.setattr("hil_service.cli.demo.start_service", _must_not_run)
-    err = _refused(capsys, ["demo", "--duration", "5", flag, value])
+    monkeypatch.setattr("hil_service.cli.demo.start_service", must_not_run)
+    err = refused_by_argparse(capsys, ["demo", "--duration", "5", flag, value])
     assert f"argument {flag}" in err
 
 
@@ -167,8 +156,8 @@ def test_experiment_log_with_null_values_is_a_clear_error(
 def test_experiment_refuses_a_plots_path_that_is_a_file_before_it_runs(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    monkeypatch.setattr("hil_service.cli.experiment.run_identification", _must_not_run)
-    monkeypatch.setattr("hil_service.cli.experiment.run_closed_loop", _must_not_run)
+    monkeypatch.setattr("hil_service.cli.experiment.run_identification", must_not_run)
+    monkeypatch.setattr("hil_service.cli.experiment.run_closed_loop", must_not_run)
     a_file = tmp_path / "afile"
     a_file.write_text("")
     for mode in ([], ["--closed-loop"]):
@@ -178,7 +167,7 @@ def test_experiment_refuses_a_plots_path_that_is_a_file_before_it_runs(
 
 
 def test_experiment_refuses_a_negative_seed(capsys: pytest.CaptureFixture[str]) -> None:
-    assert "argument --seed: expected an integer >= 0" in _refused(
+    assert "argument --seed: expected an integer >= 0" in refused_by_argparse(
         capsys, ["experiment", "--seed", "-1"]
     )
 
@@ -187,8 +176,8 @@ def test_experiment_refuses_a_negative_seed(capsys: pytest.CaptureFixture[str]) 
 @pytest.fixture
 def no_missions(monkeypatch: pytest.MonkeyPatch) -> None:
     """Neither a local campaign nor a Dask one may start."""
-    monkeypatch.setattr("hil_service.campaign.runner.run_campaign", _must_not_run)
-    monkeypatch.setattr("hil_service.campaign.dask_engine.run_campaign_dask", _must_not_run)
+    monkeypatch.setattr("hil_service.campaign.runner.run_campaign", must_not_run)
+    monkeypatch.setattr("hil_service.campaign.dask_engine.run_campaign_dask", must_not_run)
 
 
 @pytest.mark.parametrize(
@@ -209,7 +198,7 @@ def no_missions(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_campaign_refuses_a_bad_number_before_it_connects_or_runs(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, flags: list[str]
 ) -> None:
-    err = _refused(capsys, ["campaign", "-o", str(tmp_path / "c"), *flags])
+    err = refused_by_argparse(capsys, ["campaign", "-o", str(tmp_path / "c"), *flags])
     assert f"argument {flags[-2]}: expected" in err
 
 

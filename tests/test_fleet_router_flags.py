@@ -7,31 +7,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from hil_service.cli import main
+from tests.refused_flags import must_not_run, refused_by_argparse
 
 #: A fleet run short enough to end by itself: 1 s of plant time at 100x.
 SHORT_FLEET = (
     "emulate", "--vehicles", "2", "--connect", "udpout:127.0.0.1:9", "--duration", "1",
     "--speed", "100",
 )  # fmt: skip
-
-
-def _must_not_run(*_: Any, **__: Any) -> Any:
-    raise AssertionError("ran although a flag is bad")
-
-
-def _refused_by_argparse(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    """``glider-hil ARGV`` exits 2 from argparse; its stderr."""
-    with pytest.raises(SystemExit) as exit_info:
-        main(argv)
-    err = capsys.readouterr().err
-    assert exit_info.value.code == 2, err
-    assert "Traceback" not in err
-    return err
 
 
 # ---- fleet ---------------------------------------------------------------------------------
@@ -55,9 +41,9 @@ def test_fleet_refuses_a_number_its_flag_cannot_take(
     value: str,
     json_output: bool,
 ) -> None:
-    monkeypatch.setattr("hil_service.cli.fleet.run", _must_not_run)
+    monkeypatch.setattr("hil_service.cli.fleet.run", must_not_run)
     argv = ["fleet", *(["--json"] if json_output else []), flag, value]
-    err = _refused_by_argparse(capsys, argv)
+    err = refused_by_argparse(capsys, argv)
     assert f"argument {flag}: expected" in err and repr(value) in err
 
 
@@ -73,8 +59,8 @@ def test_fleet_takes_a_zero_wait() -> None:
 def test_router_refuses_a_duration_that_is_not_a_positive_number(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, value: str
 ) -> None:
-    monkeypatch.setattr("hil_service.cli.router.run", _must_not_run)
-    err = _refused_by_argparse(capsys, ["router", "--duration", value])
+    monkeypatch.setattr("hil_service.cli.router.run", must_not_run)
+    err = refused_by_argparse(capsys, ["router", "--duration", value])
     assert "argument --duration: expected" in err and repr(value) in err
 
 
@@ -86,7 +72,7 @@ def test_emulate_refuses_a_latency_trace_it_cannot_write_before_the_run(
     tmp_path: Path,
     where: str,
 ) -> None:
-    monkeypatch.setattr("plant_emulator.fleet._open_fleet", _must_not_run)
+    monkeypatch.setattr("plant_emulator.fleet._open_fleet", must_not_run)
     trace = tmp_path / "missing" / "trace.jsonl" if where == "missing directory" else tmp_path
     assert main([*SHORT_FLEET, "--latency-trace", str(trace)]) == 2
     err = capsys.readouterr().err
@@ -97,7 +83,7 @@ def test_emulate_refuses_a_latency_trace_it_cannot_write_before_the_run(
 def test_emulate_refuses_a_latency_trace_for_one_vehicle(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    monkeypatch.setattr("plant_emulator.cli._emulate", _must_not_run)
+    monkeypatch.setattr("plant_emulator.cli._emulate", must_not_run)
     argv = ["emulate", "--latency-trace", str(tmp_path / "trace.jsonl"), *SHORT_FLEET[3:]]
     assert main(argv) == 2
     assert "--latency-trace measures a fleet" in capsys.readouterr().err
