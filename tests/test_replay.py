@@ -197,6 +197,28 @@ def test_info_and_cli_errors(capsys, tmp_path):
     assert "not an MCAP file" in capsys.readouterr().err
 
 
+def test_a_chunk_damaged_inside_is_skipped_and_the_rest_read(capsys, tmp_path):
+    from mcap.reader import make_reader
+
+    data = bytearray((DATA / "nonlinear.mcap").read_bytes())
+    with open(DATA / "nonlinear.mcap", "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    chunks = sorted(summary.chunk_indexes, key=lambda index: index.chunk_start_offset)
+    middle = chunks[len(chunks) // 2]
+    end = middle.chunk_start_offset + middle.chunk_length
+    data[end - middle.compressed_size // 2] ^= 0xFF  # inside its compressed records
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    assert main(["info", "--json", str(damaged)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["complete"] and info["damaged_chunks"] == 1
+    assert f"at byte {middle.chunk_start_offset}" in info["recovery"]
+    times = [m.log_time_ns for m in LogReader(DATA / "nonlinear.mcap").messages()]
+    in_middle = sum(middle.message_start_time <= t <= middle.message_end_time for t in times)
+    read = sum(c["count"] for c in info["channels"].values())
+    assert len(times) - in_middle <= read < len(times)  # only the damaged chunk is lost
+
+
 def _log_with(tmp_path, metadata: dict[str, str], raw_frames: list[bytes]):
     """A log written by the service's recorder with the given metadata and raw frames."""
     from hil_service.mcap.recorder import McapRecorder

@@ -30,6 +30,7 @@ def run(args: argparse.Namespace) -> int:
     info = {
         "path": report.path,
         "complete": report.complete,
+        "damaged_chunks": report.damaged_chunks,
         "messages": report.messages,
         "duration_s": 0.0 if first is None else (last - first) / 1e9,
         "channels": {
@@ -41,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     defaults = _defaulted(reader.config(), info["config"])
     if defaults:
         info["config_defaults"] = defaults
-    if not report.complete:
+    if not report.intact:
         info["recovery"] = report.describe()
     try:
         _print(info, args.json)

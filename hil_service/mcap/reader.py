@@ -2,7 +2,10 @@
 
 A complete file is read through its records like any other; a file with no summary section
 (the writer was killed) is read up to its last complete chunk, and a truncated or corrupted
-file stops at the first bad record with the byte offset reported, never an exception.
+file stops at the first bad record with the byte offset reported, never an exception. A
+chunk whose contents are damaged but whose record is whole is skipped and counted, and
+reading goes on after it; messages on a channel that only such a chunk defined are counted
+as lost.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from typing import Any, NamedTuple
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 
 from hil_service.mcap.recorder import CONFIG_METADATA
-from hil_service.mcap.records import read_records
+from hil_service.mcap.records import DamagedChunk, read_records
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
 
@@ -52,17 +55,35 @@ class ReadReport:
     file_size: int = 0
     error: str = ""
     error_offset: int | None = None
+    #: Chunks skipped for damaged contents, and the first one's reason and offset.
+    damaged_chunks: int = 0
+    first_damage: str = ""
+    #: Messages on a channel no readable record defined (its definition was in a damaged
+    #: chunk): skipped.
+    lost_messages: int = 0
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
 
+    @property
+    def intact(self) -> bool:
+        """Finished, and every chunk read."""
+        return self.complete and not self.damaged_chunks
+
     def describe(self) -> str:
+        damage = ""
+        if self.damaged_chunks:
+            damage = (
+                f"; {self.damaged_chunks} damaged chunk(s) skipped (the first: "
+                f"{self.first_damage}), {self.lost_messages} messages on channels they "
+                "defined lost"
+            )
         if self.complete:
-            return f"{self.path}: complete, {self.messages} messages"
+            return f"{self.path}: complete, {self.messages} messages{damage}"
         return (
             f"{self.path}: not finished ({self.error or 'no footer'}"
             f"{'' if self.error_offset is None else f' at byte {self.error_offset}'}); "
             f"recovered {self.messages} messages from {self.bytes_read} of "
-            f"{self.file_size} bytes"
+            f"{self.file_size} bytes{damage}"
         )
 
 
@@ -96,7 +117,11 @@ class LogReader:
                     report.ended = True
                     break
                 report.bytes_read = stream.tell()
-                if isinstance(record, Schema):
+                if isinstance(record, DamagedChunk):
+                    report.damaged_chunks += 1
+                    if not report.first_damage:
+                        report.first_damage = f"{record.reason} at byte {record.offset}"
+                elif isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels[record.id] = record
@@ -116,6 +141,7 @@ class LogReader:
                 elif isinstance(record, Message):
                     channel = channels.get(record.channel_id)
                     if channel is None:
+                        report.lost_messages += 1
                         continue
                     report.messages += 1
                     report.channels[channel.topic]["count"] += 1

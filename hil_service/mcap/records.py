@@ -9,9 +9,12 @@ Records that reading in order does not need (message and chunk indexes, statisti
 summary offsets, attachments) are skipped by their length. Headers, schemas, channels,
 metadata and the footer are parsed by the ``mcap`` package's own record classes.
 
-Errors (bad magic, a record cut short, a length beyond the limit, a chunk that does not
-decompress or fails its CRC) raise ``McapFormatError`` naming what was wrong. The caller
-knows the byte offset and reports it.
+Errors in the record stream (bad magic, a record cut short, a length beyond the limit)
+raise ``McapFormatError`` naming what was wrong; the caller knows the byte offset and
+reports it. A chunk whose contents are damaged (it does not decompress, fails its CRC, or
+its records are cut short) while its record is whole is yielded as a ``DamagedChunk`` in
+place of its records, and reading goes on with the next record: the chunk's length frames
+it, so one damaged chunk loses its own messages, not the rest of the file.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import struct
 import zlib
 from collections.abc import Iterator
 from io import BytesIO
-from typing import BinaryIO
+from typing import BinaryIO, NamedTuple
 
 import lz4.frame
 import zstandard
@@ -47,6 +50,15 @@ class McapFormatError(ValueError):
     """The bytes are not (or no longer) a valid MCAP record stream."""
 
 
+class DamagedChunk(NamedTuple):
+    """A chunk record, whole, whose contents are damaged: what was wrong, where it starts,
+    and how many of its messages were read before the damage (a cut inner record)."""
+
+    reason: str
+    offset: int
+    messages_read: int
+
+
 def read_records(
     stream: BinaryIO, validate_crcs: bool = True, record_size_limit: int = 1 << 30
 ) -> Iterator[McapRecord]:
@@ -58,6 +70,7 @@ def read_records(
     if stream.read(len(MAGIC)) != MAGIC:
         raise McapFormatError("no MCAP magic at the start")
     while True:
+        start = stream.tell()
         head = stream.read(_RECORD_HEAD.size)
         if not head:
             return
@@ -70,7 +83,13 @@ def read_records(
         if len(body) < length:
             raise McapFormatError(f"record (opcode {opcode:#x}) cut short")
         if opcode == Opcode.CHUNK:
-            yield from _chunk_records(body, validate_crcs, record_size_limit)
+            messages = 0
+            try:
+                for record in _chunk_records(body, validate_crcs, record_size_limit):
+                    messages += isinstance(record, Message)
+                    yield record
+            except McapFormatError as error:
+                yield DamagedChunk(str(error), start, messages)
         elif opcode == Opcode.MESSAGE:
             yield _message(body, 0, length)
         elif opcode == Opcode.FOOTER:

@@ -249,12 +249,12 @@ class _Replay:
         assert service is not None
         result.samples = service.source.samples
         result.complete = report.complete
-        if report.ended and not report.complete:
+        if report.ended and not report.intact:
             # Only a read that reached the end can tell a damaged file (--check stops early).
             result.recovered = report.describe()
         result.wall_s = time.monotonic() - self.started
         result.summary = service.summary()
-        if self.options.check and result.mismatch is None and report.complete:
+        if self.options.check and result.mismatch is None and report.intact:
             # A finished log holds every publication: anything left over was never recorded.
             for key, queue in self.collector.published.items():
                 if queue:

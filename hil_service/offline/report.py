@@ -402,7 +402,7 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
         f"# Glider HIL report: `{series.path.name}`",
         "",
         f"- log: `{series.path}` ({read.messages} messages, "
-        f"{'complete' if read.complete else 'not finished: ' + read.describe()})",
+        f"{'complete' if read.intact else read.describe()})",
         f"- scores after a burn-in of {burn_in} samples; skill = 1 − MSE(model) / "
         "MSE(persistence); convergence = first sample after which the a-priori error stays "
         f"within {CONVERGENCE_BAND:.0%} of the output's range",
