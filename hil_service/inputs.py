@@ -12,6 +12,7 @@ import threading
 from dataclasses import dataclass, field
 
 from protocols import keys
+from protocols.payload_json import is_finite_number
 from protocols.samples import TelemetrySample
 from protocols.schemas import validation_errors
 
@@ -56,7 +57,7 @@ class SetpointLimits:
     def __post_init__(self) -> None:
         for name, flag in _LIMIT_FLAGS.items():
             value = getattr(self, name)
-            if value is not None and not _is_finite_number(value):
+            if value is not None and not is_finite_number(value):
                 raise ValueError(f"{flag} must be a finite number, got {value!r}")
         if self.max_abs_pitch is not None and self.max_abs_pitch < 0:
             raise ValueError(
@@ -85,10 +86,6 @@ class SetpointLimits:
         elif self.max_abs_pitch is not None and abs(value) > self.max_abs_pitch:
             return f"pitch setpoint {value:g} rad beyond ±{self.max_abs_pitch:g} rad"
         return ""
-
-
-def _is_finite_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 #: The largest integer every float holds exactly. A JSON setpoint may be an integer of any

@@ -14,11 +14,12 @@ encoded as numbers.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import orjson
 
-__all__ = ["decode", "encode"]
+__all__ = ["decode", "encode", "is_finite_number"]
 
 _OPTIONS = orjson.OPT_SERIALIZE_NUMPY
 
@@ -31,3 +32,9 @@ def encode(payload: Any) -> bytes:
 def decode(data: bytes | str) -> Any:
     """Parse JSON bytes or text (raises ``ValueError`` on malformed input)."""
     return orjson.loads(data)
+
+
+def is_finite_number(value: Any) -> bool:
+    """Whether a decoded value (JSON, TOML) is a finite number: an int or a float, not a
+    bool (which Python counts as an int), not NaN or infinite."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 from scipy import stats
 
 from plant_emulator.models import CHANNELS
+from protocols.payload_json import is_finite_number
 
 #: Compared metrics; lower is better for every one of them.
 METRICS = tuple(
@@ -71,13 +72,9 @@ def load_runs(directory: Path) -> Runs:
     return Runs(usable, len(rows) - len(usable))
 
 
-def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def _invalid(value: Any) -> bool:
     """A metric recorded but not a finite number (NaN, a string); None means not measured."""
-    return value is not None and not _finite(value)
+    return value is not None and not is_finite_number(value)
 
 
 def t_interval(differences: list[float], level: float = 0.95) -> tuple[float, float] | None:
@@ -110,7 +107,9 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> list[dict[str, 
         for metric in METRICS:
             values = [(ra.get(metric), rb.get(metric)) for ra, rb in ok_pairs]
             differences = [
-                float(vb) - float(va) for va, vb in values if _finite(va) and _finite(vb)
+                float(vb) - float(va)
+                for va, vb in values
+                if is_finite_number(va) and is_finite_number(vb)
             ]
             excluded = sum(_invalid(va) or _invalid(vb) for va, vb in values)
             if not differences and not excluded:

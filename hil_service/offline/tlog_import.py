@@ -147,12 +147,10 @@ def _autopilots(path: str | Path) -> Iterator[int]:
                 yield int(message.get_srcSystem())
 
 
-def _check_vehicle(path: Path, vehicle: int) -> None:
-    """A chosen vehicle must have sent a frame: else the log would hold none of its own."""
-    if any(_direction(record.frame, vehicle) == "in" for record in read_tlog(path)):
-        return
+def _silent_vehicle(path: Path, vehicle: int) -> TlogError:
+    """A chosen vehicle that sent no frame: the log would hold none of its own."""
     heard = ", ".join(map(str, autopilots_heard(path))) or "none"
-    raise TlogError(
+    return TlogError(
         f"{path}: no frame from vehicle {vehicle} (the autopilots heard: {heard}; "
         "--vehicle takes one of them)"
     )
@@ -177,8 +175,6 @@ def import_tlog(
     source = Path(path)
     output = Path(output)
     report = TlogReport(str(source))
-    if vehicle is not None:
-        _check_vehicle(source, vehicle)
     report.vehicle = vehicle if vehicle is not None else find_vehicle(source)
     metadata = {
         "source": json.dumps({"kind": "tlog import", "tlog": str(source)}),
@@ -195,6 +191,8 @@ def import_tlog(
             raise OSError(f"writing {output}: {recorder.status.error}")
         if not sum(report.directions.values()):
             raise _nothing_written(report)
+        if vehicle is not None and not report.directions["in"]:
+            raise _silent_vehicle(source, vehicle)  # before the output is written
         (written,) = recorder.status.files
         shutil.move(written, output)
     return report

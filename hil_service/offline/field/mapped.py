@@ -28,6 +28,7 @@ from hil_service.offline.field.table import (
     is_log_time,
     no_log_time,
 )
+from protocols.payload_json import is_finite_number
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -131,20 +132,17 @@ def _check_keys(mapping: Mapping) -> None:
             _check_value(mapping, table, key, given)
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _check_value(mapping: Mapping, table: str, key: str, value: Any) -> None:
     if key in TEXT_KEYS and not isinstance(value, str):
         raise mapping.error(table, key, f"must be a string, got {value!r}")
     if key in NUMBER_KEYS:
-        if not (_is_number(value) and math.isfinite(value)):
+        if not is_finite_number(value):
             raise mapping.error(table, key, f"must be a finite number, got {value!r}")
         if key in POSITIVE_KEYS and not value > 0:
             raise mapping.error(table, key, f"must be > 0, got {value!r}")
     if key == "values" and not (
-        isinstance(value, list) and all(isinstance(v, str) or _is_number(v) for v in value)
+        isinstance(value, list)
+        and all(isinstance(v, (str, int, float)) and not isinstance(v, bool) for v in value)
     ):
         raise mapping.error(table, key, f"must be a list of strings or numbers, got {value!r}")
 
