@@ -117,11 +117,7 @@ class LogReader:
                     report.ended = True
                     break
                 report.bytes_read = stream.tell()
-                if isinstance(record, DamagedChunk):
-                    report.damaged_chunks += 1
-                    if not report.first_damage:
-                        report.first_damage = f"{record.reason} at byte {record.offset}"
-                elif isinstance(record, Schema):
+                if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels[record.id] = record
@@ -155,6 +151,10 @@ class LogReader:
                         )
                 elif isinstance(record, Footer):
                     report.complete = True
+                elif isinstance(record, DamagedChunk):
+                    report.damaged_chunks += 1
+                    if not report.first_damage:
+                        report.first_damage = f"{record.reason} at byte {record.offset}"
 
     def config(self) -> dict[str, Any]:
         """The service configuration stored in the log (read the messages first)."""
