@@ -69,7 +69,7 @@ def system_of(message: MavMessage) -> int:
 
 def frame_of(message: MavMessage) -> bytes:
     """``bytes(message.get_msgbuf())``: the message's frame."""
-    return bytes(message.get_msgbuf())
+    return bytes(message._msgbuf)
 
 
 @dataclass

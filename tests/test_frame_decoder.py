@@ -7,7 +7,7 @@ import random
 import pytest
 
 from protocols.frame_decoder import FrameDecoder
-from protocols.mavlink_io import MavlinkCodec, dialect, header_of, system_of, type_of
+from protocols.mavlink_io import MavlinkCodec, dialect, frame_of, header_of, system_of, type_of
 
 #: Every message type of the dialect that the fast decoder handles (no text fields).
 FAST_TYPES = sorted(
@@ -106,9 +106,9 @@ def test_codec_results_are_the_same_on_both_paths() -> None:
 
 
 def test_the_codecs_accessors_answer_what_pymavlinks_methods_answer():
-    """``type_of``, ``header_of`` and ``system_of`` read the attributes behind pymavlink's
-    accessors: for every message type of the dialect, decoded from the wire, they give
-    what the accessors give."""
+    """``type_of``, ``header_of``, ``system_of`` and ``frame_of`` read the attributes behind
+    pymavlink's accessors: for every message type of the dialect, decoded from the wire,
+    they give what the accessors give."""
     codec = MavlinkCodec(1, 1)
     messages = []
     for seed, message_class in enumerate(sorted(dialect.mavlink_map.values(), key=lambda c: c.id)):
@@ -120,3 +120,4 @@ def test_the_codecs_accessors_answer_what_pymavlinks_methods_answer():
         assert type_of(message) == message.get_type()
         assert header_of(message) is message.get_header()
         assert system_of(message) == message.get_srcSystem()
+        assert frame_of(message) == bytes(message.get_msgbuf())

@@ -174,13 +174,22 @@ class McapRecorder:
         self, direction: str, message: MavMessage | None, frame: bytes | None, t_ns: int
     ) -> None:
         """A frame on ``mavlink/raw/{direction}`` (a received one: the message's own bytes)
-        and the message, if any, as JSON."""
+        and the message, if any, as JSON; both records under one hold of the lock."""
         if frame is None and message is not None:
             frame = frame_of(message)
-        if frame is not None:
-            self.raw(direction, frame, t_ns)
+        data = None
         if message is not None:
-            self.mavlink(direction, message, t_ns)
+            try:
+                data = payload_json.encode(message_to_json(message))
+            except Exception as error:  # an unencodable record must not end all logging
+                self._drop(error)
+        with self._lock:
+            full = frame is not None and self._add_locked(("raw", direction), frame, t_ns)
+            if data is not None:
+                route = ("json_mav", direction, type_of(message))
+                full = self._add_locked(route, data, t_ns) or full
+        if full:
+            self._wake.set()
 
     def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
         self.zenoh_encoded(key, data, "out")
@@ -190,18 +199,25 @@ class McapRecorder:
 
     def _record(self, route: tuple[str, ...], data: bytes, t_ns: int) -> None:
         with self._lock:
-            builder = self._builder
-            if self._closed or self._backlog + builder.messages >= self.max_queue:
-                self.status.dropped += 1
-                return
-            channel = self._channels.get(route)
-            if channel is None:
-                channel = self._channels[route] = self._register(builder, route)
-            builder.add_message(channel, t_ns, data)
-            if builder.size < self.chunk_bytes:
-                return
-            self._seal_locked()
-        self._wake.set()
+            full = self._add_locked(route, data, t_ns)
+        if full:
+            self._wake.set()
+
+    def _add_locked(self, route: tuple[str, ...], data: bytes, t_ns: int) -> bool:
+        """One record into the open chunk; True when that sealed a full chunk (the writer
+        thread must be woken once the lock is released)."""
+        builder = self._builder
+        if self._closed or self._backlog + builder.messages >= self.max_queue:
+            self.status.dropped += 1
+            return False
+        channel = self._channels.get(route)
+        if channel is None:
+            channel = self._channels[route] = self._register(builder, route)
+        builder.add_message(channel, t_ns, data)
+        if builder.size < self.chunk_bytes:
+            return False
+        self._seal_locked()
+        return True
 
     @property
     def backlog(self) -> int:
