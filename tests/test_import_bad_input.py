@@ -264,6 +264,26 @@ def test_an_output_that_is_a_directory_is_refused(tmp_path, capsys, kind):
     assert not any(out.iterdir())
 
 
+@pytest.mark.parametrize("kind", ["field", "tlog"])
+def test_the_import_functions_refuse_a_directory_as_the_log(tmp_path, kind):
+    """``import_tlog`` and ``write_field_log``, called from Python, refuse a directory at
+    the log's path as the CLI does, and leave nothing in it."""
+    from hil_service.offline.field.grid import resample
+    from hil_service.offline.field.write import write_field_log
+    from hil_service.offline.tlog_import import import_tlog
+    from protocols.profiles import load_profile
+
+    out = tmp_path / "logs"
+    out.mkdir()
+    with pytest.raises(IsADirectoryError, match=r"is a directory: give the path of the \.mcap"):
+        if kind == "tlog":
+            import_tlog(_tlog(tmp_path, tlog_bytes()[0]), out, load_profile("glider"))
+        else:
+            data = read_field([SEA])
+            write_field_log(data, resample(data), out)
+    assert not any(out.iterdir())
+
+
 def test_a_vehicle_without_frames_is_an_error_listing_the_vehicles(tmp_path, capsys):
     log = tmp_path / "t.mcap"
     code, _, err = _import(

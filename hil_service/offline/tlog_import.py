@@ -21,7 +21,6 @@ that sent no frame, is a ``TlogError``.
 from __future__ import annotations
 
 import json
-import shutil
 import struct
 import tempfile
 import time
@@ -32,6 +31,7 @@ from typing import NamedTuple
 
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.field.table import MAX_LOG_TIME_NS
+from hil_service.offline.log_output import move_into_place, refuse_directory
 from protocols.mavlink_io import MavlinkCodec, MavMessage, dialect, frame_length
 from protocols.profiles import Profile
 
@@ -174,6 +174,7 @@ def import_tlog(
     TlogError when ``vehicle`` sent no frame or no record could be written."""
     source = Path(path)
     output = Path(output)
+    refuse_directory(output)
     report = TlogReport(str(source))
     report.vehicle = vehicle if vehicle is not None else find_vehicle(source)
     metadata = {
@@ -194,7 +195,7 @@ def import_tlog(
         if vehicle is not None and not report.directions["in"]:
             raise _silent_vehicle(source, vehicle)  # before the output is written
         (written,) = recorder.status.files
-        shutil.move(written, output)
+        move_into_place(written, output)
     return report
 
 

@@ -19,7 +19,6 @@ input scaling, the reader's counts, the grid and its segments (docs/mcap.md).
 from __future__ import annotations
 
 import json
-import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ import numpy as np
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.field.grid import GridResult
 from hil_service.offline.field.table import FieldData
+from hil_service.offline.log_output import move_into_place, refuse_directory
 from protocols import keys
 from protocols.mapping import AUTOPILOT_COMPONENT, TelemetryMapping
 from protocols.mavlink_io import MavlinkCodec
@@ -93,6 +93,7 @@ def write_field_log(
     data: FieldData, grid: GridResult, output: str | Path, system_id: int = 1
 ) -> WriteReport:
     output = Path(output)
+    refuse_directory(output)
     profile = load_profile("glider")
     u_depth, u_pitch, clipped = model_inputs(data, grid)
     metadata = {
@@ -140,5 +141,5 @@ def write_field_log(
         if recorder.status.error:
             raise OSError(f"writing {output}: {recorder.status.error}")
         (written,) = recorder.status.files
-        shutil.move(written, output)
+        move_into_place(written, output)
     return WriteReport(str(output), grid.size, frames, clipped)
