@@ -69,17 +69,19 @@ def rss_mib() -> float:
 SETPOINTS = {"depth": 16.0, "pitch": 0.1}
 
 
-def build_service(log_dir: str, control: bool = False) -> tuple[HilService, McapRecorder, object]:
+def build_service(
+    log_dir: str, control: bool = False, log: bool = True
+) -> tuple[HilService, McapRecorder | None, object]:
     """The service as ``serve`` builds it (interpreter tuning included), minus the link.
 
     ``control``: control enabled and both setpoints given before the first sample, so the
     predictive controller decides (and publishes a command) for every sample once the
-    identifier qualifies, as ``serve --control`` with an operator's setpoints.
+    identifier qualifies, as ``serve --control`` with an operator's setpoints. ``log``
+    False: as ``serve --no-log``.
     """
     config = ServiceConfig(control_default=control)
     session = open_session(ZenohOptions())  # no peers: publications go nowhere, as fast as can be
-    recorder = open_recorder(config, LogOptions(directory=log_dir), {"bench": "1"})
-    assert recorder is not None
+    recorder = open_recorder(config, LogOptions(directory=log_dir), {"bench": "1"}) if log else None
     wired = wire(config, session=session, recorder=recorder)
     if control:
         for channel, value in SETPOINTS.items():
@@ -90,9 +92,10 @@ def build_service(log_dir: str, control: bool = False) -> tuple[HilService, Mcap
 
 def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, object]:
     """Each measurement ``repeats`` times on the same datagrams (a fresh service each time);
-    ``control``: with the controller on (``build_service``)."""
+    ``control``: with the controller on (``build_service``). Each repeat also runs the
+    service without its log (``serve --no-log``): what the log costs, in the same run."""
     datagrams = telemetry_datagrams(n)
-    parse_s, path_s, total_s = [], [], []
+    parse_s, path_s, total_s, unlogged_s = [], [], [], []
     samples = 0
     for _ in range(repeats):
         mav = dialect.MAVLink(None)
@@ -103,6 +106,7 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
         parse_s.append(time.perf_counter() - t0)
         with tempfile.TemporaryDirectory() as log_dir:
             service, recorder, session = build_service(log_dir, control)
+            assert recorder is not None
             t0 = time.perf_counter()
             for data in datagrams:
                 service.process_datagram(data)
@@ -113,6 +117,13 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
             commands = sum(v.commands_sent for v in service.vehicles.values())
             service.notifier.stop()
             session.close()
+        service, _, session = build_service("", control, log=False)
+        t0 = time.perf_counter()
+        for data in datagrams:
+            service.process_datagram(data)
+        unlogged_s.append(time.perf_counter() - t0)
+        service.notifier.stop()
+        session.close()
     return {
         "modules": compiled.summary(),
         "control": control,
@@ -124,6 +135,8 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
         "service_incl_log_drain_samples_per_s": rates(samples, total_s),
         "ratio_to_pymavlink_best": min(parse_s) / min(total_s),
         "ratio_to_pymavlink_median": statistics.median(parse_s) / statistics.median(total_s),
+        "service_without_log_samples_per_s": rates(samples, unlogged_s),
+        "ratio_to_pymavlink_without_log_best": min(parse_s) / min(unlogged_s),
     }
 
 
@@ -139,6 +152,7 @@ def bench_memory(n: int) -> dict[str, float]:
     marks = {}
     with tempfile.TemporaryDirectory() as log_dir:
         service, recorder, session = build_service(log_dir)
+        assert recorder is not None
         for k in range(n):
             sample = plant.step(excitation["depth"].value(k), excitation["pitch"].value(k))
             for message in mapping.encode_telemetry(sample):

@@ -149,6 +149,7 @@ def main_compiled(args: argparse.Namespace) -> int:
         data_file = str(Path(scratch) / "perf.data")
         log_dir = str(Path(scratch) / "log")
         service, recorder, session = bench_service.build_service(log_dir, args.control)
+        assert recorder is not None
         try:
             for data in datagrams[:warm]:
                 service.process_datagram(data)
@@ -208,6 +209,7 @@ def main() -> int:
     datagrams = bench_service.telemetry_datagrams(args.samples)
     with tempfile.TemporaryDirectory() as log_dir:
         service, recorder, session = bench_service.build_service(log_dir, args.control)
+        assert recorder is not None
         try:
             profiler = cProfile.Profile(time.process_time)
             profiler.enable()
