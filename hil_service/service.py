@@ -61,8 +61,11 @@ class VehicleRuntime:
     last_command: dict[str, Any] | None = None
     control_reason: str = "no sample yet"
     commands_sent: int = 0
+    command_frames: int = 0  # the MAVLink commands they took (a profile may send several)
+    #: Its acknowledgements of ballast commands: ``unsolicited`` when there are more than
+    #: the commands it was sent (docs/mavlink.md, "Whose message is it").
     acks: dict[str, int] = field(
-        default_factory=lambda: {"accepted": 0, "refused": 0, "not_ours": 0}
+        default_factory=lambda: {"accepted": 0, "refused": 0, "not_ours": 0, "unsolicited": 0}
     )
     last_applied: dict[str, Any] | None = None
     reset_pending: bool = False
@@ -96,6 +99,11 @@ class HilService:
         self._senders: dict[int, MavlinkCodec] = {}
         #: Where each vehicle's frames last came from (udpin): its replies go there.
         self._routes: dict[int, Address] = {}
+        #: The address each (system, component) was last heard from, and per system how
+        #: often one of its components moved to another address: two hosts sending as
+        #: one system id alternate on every frame (docs/mavlink.md, "Whose message is it").
+        self._heard_from: dict[int, Address] = {}
+        self.address_changes: dict[int, int] = {}
         #: ``--vehicle-ids link``: messages renumbered to vehicle ids (vehicle_links.py).
         self.identity: LinkIdentity | None = identity_for(config.vehicle_ids)
         # Decoding (and checking signatures) only: nothing is sent under this identity.
@@ -141,11 +149,23 @@ class HilService:
             identity.admit(messages, source)
         if source is not None:
             for message in messages:
-                self._routes[system_of(message)] = source
+                self._heard(header_of(message), source)
         for message in messages:
             notifier.mavlink("in", message, None, now_ns)
             samples.extend(self.process_message(message))
         return samples
+
+    def _heard(self, header: Any, source: Address) -> None:
+        """Commands to a system go where it was last heard from; a component of it heard
+        from another address than before is counted."""
+        system = header.srcSystem
+        self._routes[system] = source
+        component = system * 256 + header.srcComponent
+        before = self._heard_from.get(component)
+        if before != source:
+            if before is not None:
+                self.address_changes[system] = self.address_changes.get(system, 0) + 1
+            self._heard_from[component] = source
 
     def process_message(self, message: MavMessage) -> list[TelemetrySample]:
         """One decoded message: the samples it completes (a periodic source may complete
@@ -208,6 +228,7 @@ class HilService:
                     command.u_depth, command.u_pitch, system_id
                 ):
                     self._send(message, system_id)
+                    vehicle.command_frames += 1
             self.notifier.publish(
                 topics.command_ballast, decision.payload, reliable=COMMANDS_RELIABLE
             )
@@ -235,10 +256,13 @@ class HilService:
         vehicle = self.vehicles.get(system_of(message))
         if vehicle is None:
             return
+        acks = vehicle.acks
         if not ack_is_ours(message):  # the vehicle's answer to a ground station
-            vehicle.acks["not_ours"] += 1
-            return
-        vehicle.acks["accepted" if ack_accepted(message) else "refused"] += 1
+            acks["not_ours"] += 1
+        elif acks["accepted"] + acks["refused"] >= vehicle.command_frames:
+            acks["unsolicited"] += 1  # no command of ours is waiting for it
+        else:
+            acks["accepted" if ack_accepted(message) else "refused"] += 1
 
     def _vehicle(self, system_id: int) -> VehicleRuntime:
         vehicle = self.vehicles.get(system_id)
@@ -308,6 +332,8 @@ class HilService:
             "commands_sent": vehicle.commands_sent,
             "acks_accepted": vehicle.acks["accepted"],
             "acks_refused": vehicle.acks["refused"],
+            "acks_unsolicited": vehicle.acks["unsolicited"],
+            "address_changes": self.address_changes.get(system_id, 0),
             "step_gaps": vehicle.pipeline.gaps.gaps,
         }
         malformed = assembled["invalid"] + assembled["out_of_order"] + assembled["incomplete"]
@@ -403,6 +429,7 @@ class HilService:
                     "identifier": vehicle.pipeline.identifier_health(),
                     "commands_sent": vehicle.commands_sent,
                     "acks": dict(vehicle.acks),
+                    "address_changes": self.address_changes.get(system_id, 0),
                     "step_gaps": vehicle.pipeline.gaps.gaps,
                     "counters": self._assembled(system_id),
                     "link": self.sequence.for_system(system_id).as_dict(),
