@@ -487,7 +487,12 @@ class ChannelPipeline:
         self.last = estimate
         self._account(estimate, y, baseline.error)
         self._free_run_left -= 1
-        if self._free_run_left <= 0:
+        if self._free_run_left <= 0 or (
+            self._free_run is not None and self._free_run_left > self.controller.horizon
+        ):
+            # Due, or the horizon has become shorter than what is left of the free run:
+            # the accuracy is that of the control horizon, not of a run started for a
+            # longer one (a model with no input map yet gets the longest horizon).
             self._restart_free_run()
         due = self.converged and self._until_evaluation <= 0
         if due and (
