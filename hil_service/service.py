@@ -373,11 +373,9 @@ class HilService:
     def _link_wide(self) -> dict[str, int]:
         """Counters of the MAVLink link that belong to no one vehicle: frames decoded from
         every system, bytes that were no frame, frames of unknown types or of systems not
-        served, and (with signing) the verifier's counts."""
-        counters = {
-            **self.codec.counters.as_dict(),
-            "unknown_system": self.source.unknown_system,
-        }
+        served (and lockstep announcements from them), and (with signing) the verifier's
+        counts."""
+        counters = {**self.codec.counters.as_dict(), **self.source.link_counters()}
         if self.verifier is not None:
             counters.update(self.verifier.counters.as_dict())
         return counters

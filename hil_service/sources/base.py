@@ -46,9 +46,9 @@ class SampleSource(Protocol):
         """Samples assembled, every vehicle together."""
         ...
 
-    @property
-    def unknown_system(self) -> int:
-        """Messages of systems not served."""
+    def link_counters(self) -> dict[str, int]:
+        """What the source counted of the link as a whole, belonging to no vehicle:
+        ``unknown_system`` (messages of systems not served) and what else it refuses."""
         ...
 
     def counters_for(self, system_id: int) -> dict[str, int]:

@@ -13,6 +13,16 @@ clock starts again from a lower value and keeps advancing for ``REBOOT_STEPS`` s
 rebooted (its ``time_boot_ms`` restarts): that is counted in ``restarts`` and assembly
 starts afresh rather than dropping it forever. Everything is counted per vehicle
 (``counters_for``); only ``unknown_system`` belongs to no vehicle.
+
+Vehicle slots (``max_vehicles``): a system takes one with its first complete step (a sample,
+or a complete step refused as invalid), so stray frames of other systems cannot fill them.
+Until then it is a *candidate*: its partial steps are held as a vehicle's would be, for at
+most ``max_vehicles`` candidates (the least recently heard is dropped for a new one). The
+totals (``counters``) count what candidates counted and the partial steps a dropped
+candidate held (``incomplete``). Once every slot is taken the candidates are dropped
+likewise, and the messages of any other system are counted in ``unknown_system``, as are
+those of a system not listed (``serve --sysid``) and those whose system id is no vehicle's
+(the broadcast id 0, ``protocols.keys.is_vehicle_id``).
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+from protocols.keys import is_vehicle_id
 from protocols.mavlink_io import MavMessage, system_of, type_of
 from protocols.profiles import DEFAULT_PROFILE, Profile, clock_of, load_profile
 from protocols.readings import MessageReader
@@ -53,7 +64,8 @@ class VehicleCounters:
 
 @dataclass
 class AssemblyCounters:
-    """All vehicles together, and the messages of systems not served (``unknown_system``)."""
+    """All vehicles together (``incomplete`` also the partial steps of dropped candidates),
+    and the messages of systems not served (``unknown_system``)."""
 
     samples: int = 0
     incomplete: int = 0
@@ -81,6 +93,7 @@ class _VehicleState:
     last_late_ms: int | None = None
     late_run: int = 0  # distinct, increasing late timestamps in a row
     counters: VehicleCounters = field(default_factory=VehicleCounters)
+    serving: bool = False  # holds a slot (False: a candidate)
 
 
 class SampleAssembler:
@@ -110,7 +123,13 @@ class SampleAssembler:
         #: The timestamp of the last complete step refused as invalid, until taken
         #: (``take_refused``; -1: none): a lockstep service has finished with it too.
         self.refused_ms = -1
+        #: The vehicles served: the systems that have completed a step.
         self._vehicles: dict[int, _VehicleState] = {}
+        #: Systems heard, not yet served, least recently heard first (none once every
+        #: slot is taken).
+        self._candidates: dict[int, _VehicleState] = {}
+        #: The partial steps that dropped candidates held.
+        self._dropped_incomplete = 0
 
     @property
     def system_ids(self) -> list[int]:
@@ -123,16 +142,23 @@ class SampleAssembler:
 
     @property
     def counters(self) -> AssemblyCounters:
-        """Every vehicle's counters summed, with ``unknown_system``: the whole link's."""
-        total = AssemblyCounters(unknown_system=self.unknown_system)
-        for vehicle in self._vehicles.values():
-            counted = vehicle.counters
-            total.samples += counted.samples
-            total.incomplete += counted.incomplete
-            total.out_of_order += counted.out_of_order
-            total.invalid += counted.invalid
-            total.restarts += counted.restarts
+        """Every vehicle's and candidate's counters summed, with the partial steps of dropped
+        candidates and ``unknown_system``: the whole link's."""
+        total = AssemblyCounters(
+            incomplete=self._dropped_incomplete, unknown_system=self.unknown_system
+        )
+        for states in (self._vehicles, self._candidates):
+            for vehicle in states.values():
+                self._add_counts(total, vehicle.counters)
         return total
+
+    @staticmethod
+    def _add_counts(total: AssemblyCounters, counted: VehicleCounters) -> None:
+        total.samples += counted.samples
+        total.incomplete += counted.incomplete
+        total.out_of_order += counted.out_of_order
+        total.invalid += counted.invalid
+        total.restarts += counted.restarts
 
     def add(self, message: MavMessage) -> TelemetrySample | None:
         """Take one decoded message; return the sample it completes, if any."""
@@ -141,7 +167,8 @@ class SampleAssembler:
         if clock is None:
             return None
         stamp = int(getattr(message, clock[1])) // clock[0]
-        vehicle = self._vehicle(system_of(message))
+        system_id = system_of(message)
+        vehicle = self._vehicle(system_id)
         if vehicle is None:
             return None
         if vehicle.last_emitted_ms is not None and stamp <= vehicle.last_emitted_ms:
@@ -173,7 +200,9 @@ class SampleAssembler:
                 vehicle.counters.incomplete += 1
             del vehicle.pending[older]
         vehicle.last_emitted_ms = stamp
-        sample = self._build(system_of(message), stamp, pending)
+        if not vehicle.serving:
+            self._admit(system_id, vehicle)
+        sample = self._build(system_id, stamp, pending)
         if sample is None:
             vehicle.counters.invalid += 1
             self.refused_ms = stamp
@@ -189,16 +218,42 @@ class SampleAssembler:
         return refused
 
     def _vehicle(self, system_id: int) -> _VehicleState | None:
-        if self.allowed is not None and system_id not in self.allowed:
+        """The system's state, served or a candidate; None (counted) when not served."""
+        vehicle = self._vehicles.get(system_id)
+        if vehicle is not None:
+            return vehicle
+        return self._candidate(system_id)
+
+    def _candidate(self, system_id: int) -> _VehicleState | None:
+        """A system without a slot: its candidate state, now the most recently heard."""
+        if (
+            not is_vehicle_id(system_id)
+            or (self.allowed is not None and system_id not in self.allowed)
+            or len(self._vehicles) >= self.max_vehicles
+        ):
             self.unknown_system += 1
             return None
-        vehicle = self._vehicles.get(system_id)
-        if vehicle is None:
-            if len(self._vehicles) >= self.max_vehicles:
-                self.unknown_system += 1
-                return None
-            vehicle = self._vehicles[system_id] = _VehicleState()
-        return vehicle
+        candidate = self._candidates.pop(system_id, None)
+        if candidate is None:
+            candidate = _VehicleState()
+            if len(self._candidates) >= self.max_vehicles:
+                self._drop(next(iter(self._candidates)))
+        self._candidates[system_id] = candidate
+        return candidate
+
+    def _admit(self, system_id: int, vehicle: _VehicleState) -> None:
+        """A candidate that completed its first step takes a slot (one is free: candidates
+        are dropped when the last one is taken)."""
+        del self._candidates[system_id]
+        vehicle.serving = True
+        self._vehicles[system_id] = vehicle
+        if len(self._vehicles) >= self.max_vehicles:
+            for other in list(self._candidates):
+                self._drop(other)
+
+    def _drop(self, system_id: int) -> None:
+        dropped = self._candidates.pop(system_id)
+        self._dropped_incomplete += dropped.counters.incomplete + len(dropped.pending)
 
     def _evict(self, vehicle: _VehicleState) -> None:
         while len(vehicle.pending) > MAX_PENDING_STEPS:

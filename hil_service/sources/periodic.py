@@ -65,9 +65,8 @@ class PeriodicSource:
     def samples(self) -> int:
         return self.assembler.counters.samples
 
-    @property
-    def unknown_system(self) -> int:
-        return self.assembler.counters.unknown_system
+    def link_counters(self) -> dict[str, int]:
+        return {"unknown_system": self.assembler.counters.unknown_system}
 
     def counters_for(self, system_id: int) -> dict[str, int]:
         counted = self.assembler.counters_for(system_id)
