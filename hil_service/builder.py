@@ -82,8 +82,10 @@ def wire(
     ``inbox``: one that refuses setpoints outside ``config.limits``."""
     inbox = Inbox(config.limits) if inbox is None else inbox
     notifier = Notifier()
+    zenoh_publisher = None
     if session is not None:
-        notifier.add_listener(ZenohPublisher(session, inbox, notifier.record))
+        zenoh_publisher = ZenohPublisher(session, inbox, notifier.record)
+        notifier.add_listener(zenoh_publisher)
     if recorder is not None:
         notifier.add_listener(recorder)
     for listener in listeners:
@@ -95,8 +97,10 @@ def wire(
     service = HilService(
         config, notifier, inbox, link=link, recorder=recorder, send_commands=send_commands
     )
+    if zenoh_publisher is not None:
+        service.wide_counters.append(zenoh_publisher.counters)
     if live is not None:
-        service.live_counters = live.counters
+        service.wide_counters.append(live.counters)
     return Wired(service, inbox, notifier, recorder, link, session, live)
 
 
@@ -104,4 +108,4 @@ def publisher(session: Any) -> ZenohPublisher:
     """The listener of ``replay --publish``: the replayed service's output on Zenoh under the
     same keys. Inputs it receives go to an inbox nobody reads (replay applies the recorded
     ones)."""
-    return ZenohPublisher(session, Inbox())
+    return ZenohPublisher(session, Inbox(), program="glider-hil replay")

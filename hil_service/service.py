@@ -127,9 +127,10 @@ class HilService:
         self._next_poll = 0.0  # when the companions are polled next (tick)
         self._health_turn = 0  # the next vehicle (in order of first sample) whose health is due
         self._lock = threading.Lock()  # guards snapshots read by the state queryable
-        #: The live view's counters (``LiveView.counters``) when one runs: health's
-        #: ``service_wide`` carries them (builder.wire sets it).
-        self.live_counters: Callable[[], dict[str, int]] | None = None
+        #: More counters of the service as a whole for health's ``service_wide``: the Zenoh
+        #: publisher's (vehicles another service serves too) and, when one runs, the live
+        #: view's (``LiveView.counters``); builder.wire adds them.
+        self.wide_counters: list[Callable[[], dict[str, int]]] = []
 
     # ---- the per-datagram path --------------------------------------------------------
     def process_datagram(
@@ -381,14 +382,15 @@ class HilService:
         return counters
 
     def _service_wide(self) -> dict[str, int]:
-        """Counters of the service as a whole: refused operator inputs, log records, the
-        live view's messages (with ``--foxglove``)."""
+        """Counters of the service as a whole: refused operator inputs, log records, vehicles
+        another service on the Zenoh network serves too, the live view's messages (with
+        ``--foxglove``)."""
         counters = {"setpoints_rejected": self.inbox.rejected}
         if self.recorder is not None:
             counters["log_records"] = self.recorder.status.records
             counters["log_dropped"] = self.recorder.status.dropped
-        if self.live_counters is not None:
-            counters.update(self.live_counters())
+        for more in self.wide_counters:
+            counters.update(more())
         return counters
 
     def state(self, system_id: int) -> dict[str, Any]:
