@@ -7,7 +7,9 @@ record holds three JSON strings, ``service`` (identification, control, vehicles,
 whether the link is signed; never the key), ``mapping`` (the units the service ran with)
 and ``profile`` (the vehicle profile's name and TOML text). Logs written before a field
 existed read with that field's default; a log without ``mapping`` was written with the
-default units, one without ``profile`` with the built-in ``glider`` profile.
+default units, one without ``profile`` with the built-in ``glider`` profile. A value of the
+wrong JSON type or out of range is refused where it is read (``from_stored``) with a
+``StoredConfigError`` naming the log and the stored key, never read as a default.
 
 ``ServeConfig`` adds what only a live run needs (the link, Zenoh, the log files); it is not
 stored.
@@ -16,19 +18,24 @@ stored.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
 from functools import cache
+from pathlib import Path
 from typing import Any
 
 from hil_service.inputs import SetpointLimits
 from hil_service.listeners.zenoh_config import ZenohOptions
 from hil_service.live.address import LiveAddress
-from hil_service.pipeline import PipelineSettings
-from protocols.keys import MAX_LINKS
+from hil_service.mcap.reader import StoredConfigError
+from hil_service.pipeline import ControlSettings, PipelineSettings, VehiclePipeline
+from hil_service.umodel import build_model
+from protocols.keys import CHANNELS, MAX_LINKS
 from protocols.mapping import TelemetryMapping
 from protocols.profiles import (
     DEFAULT_PROFILE,
     Profile,
+    ProfileError,
     load_profile,
     parse_profile,
     sample_period_problem,
@@ -94,14 +101,20 @@ class Units:
         }
 
     @classmethod
-    def from_json(cls, stored: dict[str, Any] | None) -> Units:
-        if not stored:
-            return cls()
-        return cls(
-            full_scale=float(stored["full_scale"]),
-            water_density=float(stored["water_density"]),
-            surface_pressure=float(stored["surface_pressure"]),
-        )
+    def from_json(cls, stored: Any) -> Units:
+        """The units a log stores (``mapping``): all three, each a number; StoredConfigError
+        names the one missing or wrong."""
+        values = _object(stored, MAPPING_KEY)
+        numbers: dict[str, float] = {}
+        for name in ("full_scale", "water_density", "surface_pressure"):
+            key = f"{MAPPING_KEY}.{name}"
+            if name not in values:
+                raise StoredConfigError(key, "missing")
+            numbers[name] = float(_typed(values[name], float, key))
+        try:
+            return cls(**numbers)
+        except ValueError as error:
+            raise StoredConfigError(MAPPING_KEY, str(error)) from None
 
 
 @cache
@@ -224,40 +237,237 @@ class ServiceConfig:
         return {name: json.dumps(value) for name, value in self.stored().items()}
 
     @classmethod
-    def from_stored(cls, stored: dict[str, Any]) -> ServiceConfig | None:
+    def from_stored(
+        cls, stored: dict[str, Any], log: str | Path | None = None
+    ) -> ServiceConfig | None:
         """The configuration a log's metadata describes (``LogReader.config()``), or None
         when the log has none. The signing key is never stored: the result has none (a
-        signed log replays without it)."""
+        signed log replays without it).
+
+        StoredConfigError, naming ``log`` and the stored key, for a value of the wrong JSON
+        type or out of range: such a log is refused, never read with a default instead."""
+        try:
+            return cls._read_stored(stored)
+        except StoredConfigError as error:
+            raise _naming(error, log) from None
+
+    @classmethod
+    def _read_stored(cls, stored: dict[str, Any]) -> ServiceConfig | None:
         service = stored.get(SERVICE_KEY)
-        if not isinstance(service, dict) or "pipeline" not in service:
+        if service is None or "pipeline" not in _object(service, SERVICE_KEY):
             return None
-        limits = service.get("limits") or {}
+        pipeline = _pipeline(service["pipeline"])
         profile = stored_profile(stored) or default_profile()
-        periodic = profile.sampling.mode == "periodic"
-        recorded = (service.get("profile") or {}).get("sample_period")
-        return cls(
-            system_ids=tuple(service.get("system_ids", ())),
-            control_default=service.get("control_default", False),
-            stale_timeout=service.get("stale_timeout", 3.0),
-            max_vehicles=service.get("max_vehicles", DEFAULT_MAX_VEHICLES),
-            vehicle_ids=service.get("vehicle_ids", "sysid"),
-            pipeline=PipelineSettings.from_json(service["pipeline"]),
-            units=Units.from_json(stored[MAPPING_KEY]) if stored.get(MAPPING_KEY) else None,
-            limits=SetpointLimits(
-                limits.get("min_depth"), limits.get("max_depth"), limits.get("max_abs_pitch")
-            ),
-            profile=profile,
-            sample_period=(profile.sampling.period if recorded is None else recorded)
-            if periodic
-            else None,
+        mapping = stored.get(MAPPING_KEY)
+        units = None if mapping is None else Units.from_json(mapping)
+        limits = _optional_object(service, "limits", f"{SERVICE_KEY}.limits")
+        recorded = _typed(
+            _optional_object(service, "profile", f"{SERVICE_KEY}.profile").get("sample_period"),
+            float,
+            f"{SERVICE_KEY}.profile.sample_period",
+            nullable=True,
         )
+        periodic = profile.sampling.mode == "periodic"
+        system_ids = _system_ids(service.get("system_ids", []))
+        control_default = _service_value(service, "control_default", bool, False)
+        stale_timeout = _service_value(service, "stale_timeout", float, 3.0)
+        max_vehicles = _service_value(service, "max_vehicles", int, DEFAULT_MAX_VEHICLES)
+        vehicle_ids = _service_value(service, "vehicle_ids", str, "sysid")
+        try:
+            return cls(
+                system_ids=system_ids,
+                control_default=control_default,
+                stale_timeout=stale_timeout,
+                max_vehicles=max_vehicles,
+                vehicle_ids=vehicle_ids,
+                pipeline=pipeline,
+                units=units,
+                limits=SetpointLimits(
+                    limits.get("min_depth"), limits.get("max_depth"), limits.get("max_abs_pitch")
+                ),
+                profile=profile,
+                sample_period=(profile.sampling.period if recorded is None else recorded)
+                if periodic
+                else None,
+            )
+        except ValueError as error:
+            raise _flag_as_stored_key(error) from None
 
 
-def stored_profile(stored: dict[str, Any]) -> Profile | None:
-    """The vehicle profile a log stores (``serve --profile`` and ``import`` store theirs)."""
-    entry = stored.get(PROFILE_KEY) or {}
-    text = entry.get("text") if isinstance(entry, dict) else None
-    return parse_profile(text, "(the log's stored profile)") if text else None
+def stored_profile(stored: dict[str, Any], log: str | Path | None = None) -> Profile | None:
+    """The vehicle profile a log stores (``serve --profile`` and ``import`` store theirs), or
+    None when it stores none; StoredConfigError, naming ``log``, when it cannot be read."""
+    entry = stored.get(PROFILE_KEY)
+    if entry is None:
+        return None
+    key = f"{PROFILE_KEY}.text"
+    try:
+        text = _typed(_object(entry, PROFILE_KEY).get("text"), str, key, nullable=True)
+        return parse_profile(text, "TOML") if text else None
+    except ProfileError as error:
+        raise _naming(StoredConfigError(key, str(error)), log) from None
+    except StoredConfigError as error:
+        raise _naming(error, log) from None
+
+
+def stored_pipeline(stored: dict[str, Any]) -> dict[str, Any] | None:
+    """The pipeline settings a log's decoded configuration holds (``service.pipeline``), as
+    stored, or None when it holds none (``ServiceConfig.from_stored`` reads them)."""
+    service = stored.get(SERVICE_KEY)
+    pipeline = service.get("pipeline") if isinstance(service, dict) else None
+    return pipeline if isinstance(pipeline, dict) else None
+
+
+# ---- reading the stored values ------------------------------------------------------------
+
+#: The ``serve`` flag each stored value is set by. The checks of ``ServiceConfig`` and
+#: ``SetpointLimits`` name the flag; a value read from a log is named by its stored key.
+_STORED_KEYS = {
+    "--stale-timeout": f"{SERVICE_KEY}.stale_timeout",
+    "--sample-period": f"{SERVICE_KEY}.profile.sample_period",
+    "--vehicle-ids": f"{SERVICE_KEY}.vehicle_ids",
+    "--sysid": f"{SERVICE_KEY}.system_ids",
+    "--max-vehicles": f"{SERVICE_KEY}.max_vehicles",
+    "--min-depth": f"{SERVICE_KEY}.limits.min_depth",
+    "--max-depth": f"{SERVICE_KEY}.limits.max_depth",
+    "--max-pitch": f"{SERVICE_KEY}.limits.max_abs_pitch",
+}
+
+
+def _is_integer(value: Any) -> bool:
+    """A JSON integer (JSON true is not one, though Python counts a bool as an int)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    """A JSON number: an integer or a float, not a bool."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+#: A stored value's JSON type, by the Python type it is read as: what the message calls it,
+#: and the test.
+_KINDS: dict[type, tuple[str, Callable[[Any], bool]]] = {
+    bool: ("true or false", lambda value: isinstance(value, bool)),
+    int: ("an integer", _is_integer),
+    float: ("a number", _is_number),
+    str: ("a string", lambda value: isinstance(value, str)),
+}
+
+
+#: Fields of ``PipelineSettings`` and ``ControlSettings`` whose None a log stores as null:
+#: the input lags' choice left to the model, a horizon test without the mean's threshold.
+#: Named here, not read from the annotations, which a compiled dataclass does not keep.
+_NULLABLE_SETTINGS = frozenset({"choose_input_lags", "mean_fit"})
+
+
+def _naming(error: StoredConfigError, log: str | Path | None) -> StoredConfigError:
+    """``error``, naming ``log`` when it is given and the error names no log yet."""
+    return error if log is None or error.log is not None else error.of_log(log)
+
+
+def _flag_as_stored_key(error: ValueError) -> StoredConfigError:
+    """A check's ValueError, which names the ``serve`` flag, as a StoredConfigError naming
+    the stored key instead: the user of ``replay`` or ``report`` gave no such flag."""
+    message = str(error)
+    flag = message.split(" ", 1)[0]
+    key = _STORED_KEYS.get(flag)
+    problem = message[len(flag) :].lstrip() if key is not None else message
+    for other, stored_key in _STORED_KEYS.items():
+        problem = problem.replace(other, stored_key)
+    return StoredConfigError(key or SERVICE_KEY, problem)
+
+
+def shown_json(value: Any) -> str:
+    """A decoded JSON value as an error message quotes it: its JSON, shortened."""
+    text = json.dumps(value)
+    return text if len(text) <= 80 else f"{text[:77]}..."
+
+
+def _object(value: Any, key: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise StoredConfigError(key, f"expected an object, got {shown_json(value)}")
+    return value
+
+
+def _optional_object(parent: dict[str, Any], name: str, key: str) -> dict[str, Any]:
+    """``parent[name]``, an object; {} when it is absent or null."""
+    value = parent.get(name)
+    return {} if value is None else _object(value, key)
+
+
+def _typed(value: Any, kind: type, key: str, nullable: bool = False) -> Any:
+    """``value`` when its JSON type is ``kind``'s (or it is null and ``nullable``)."""
+    if value is None and nullable:
+        return None
+    expected, fits = _KINDS[kind]
+    if not fits(value):
+        or_null = " or null" if nullable else ""
+        raise StoredConfigError(key, f"expected {expected}{or_null}, got {shown_json(value)}")
+    return value
+
+
+def _service_value(service: dict[str, Any], name: str, kind: type, default: Any) -> Any:
+    """``service[name]`` of JSON type ``kind``, or ``default`` in a log written without it
+    (ranges are ``ServiceConfig``'s own checks)."""
+    if name not in service:
+        return default
+    return _typed(service[name], kind, f"{SERVICE_KEY}.{name}")
+
+
+def _system_ids(value: Any) -> tuple[int, ...]:
+    if not isinstance(value, list) or not all(
+        _is_integer(sid) and 1 <= sid <= MAX_SYSTEM_IDS for sid in value
+    ):
+        raise StoredConfigError(
+            f"{SERVICE_KEY}.system_ids",
+            f"expected a list of system ids 1..{MAX_SYSTEM_IDS}, got {shown_json(value)}",
+        )
+    return tuple(value)
+
+
+def _settings_fields(stored: dict[str, Any], defaults: Any, key: str) -> None:
+    """Each stored field of a settings dataclass has the JSON type of its default value, or
+    is null where the settings take None (``_NULLABLE_SETTINGS``). Fields of other types
+    (nested settings, model options) are checked by their readers."""
+    for spec in fields(defaults):
+        kind = type(getattr(defaults, spec.name))
+        if spec.name in stored and kind in _KINDS:
+            nullable = spec.name in _NULLABLE_SETTINGS
+            _typed(stored[spec.name], kind, f"{key}.{spec.name}", nullable)
+
+
+def _pipeline(value: Any) -> PipelineSettings:
+    """The stored identifier and controller settings, each field of its JSON type, and
+    every channel's model built once from them (its options are the model's to check)."""
+    key = f"{SERVICE_KEY}.pipeline"
+    stored = _object(value, key)
+    known = {spec.name for spec in fields(PipelineSettings)}
+    for name in stored:
+        if name not in known:
+            raise StoredConfigError(f"{key}.{name}", "not a setting of this version's pipeline")
+    _settings_fields(stored, PipelineSettings(), key)
+    control = _optional_object(stored, "control", f"{key}.control")
+    _settings_fields(control, ControlSettings(), f"{key}.control")
+    options = _optional_object(stored, "model_options", f"{key}.model_options")
+    for channel, chosen in options.items():
+        _object(chosen, f"{key}.model_options.{channel}")
+    burn_in = stored.get("burn_in", 0)
+    if burn_in < 0:
+        raise StoredConfigError(f"{key}.burn_in", f"must be ≥ 0 samples, got {burn_in}")
+    try:
+        settings = PipelineSettings.from_json(stored)
+    except (TypeError, ValueError) as error:
+        raise StoredConfigError(key, str(error)) from None
+    for channel in CHANNELS:
+        try:
+            build_model(settings.model, **settings.options_for(channel))
+        except (TypeError, ValueError) as error:
+            raise StoredConfigError(f"{key}.model_options.{channel}", str(error)) from None
+    try:
+        VehiclePipeline(settings)
+    except (TypeError, ValueError) as error:
+        raise StoredConfigError(key, str(error)) from None
+    return settings
 
 
 @dataclass(frozen=True)

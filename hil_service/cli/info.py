@@ -7,8 +7,8 @@ import json
 import sys
 from typing import Any
 
-from hil_service.config import ServiceConfig
-from hil_service.mcap.reader import LogError, LogReader
+from hil_service.config import ServiceConfig, stored_profile
+from hil_service.mcap.reader import LogError, LogReader, StoredConfigError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,11 +37,8 @@ def run(args: argparse.Namespace) -> int:
             topic: {"count": c["count"], "encoding": c["encoding"], "schema": c["schema"]}
             for topic, c in sorted(report.channels.items())
         },
-        "config": _config(reader.config()),
     }
-    defaults = _defaulted(reader.config(), info["config"])
-    if defaults:
-        info["config_defaults"] = defaults
+    info.update(_config_entries(reader))
     if not report.intact:
         info["recovery"] = report.describe()
     try:
@@ -51,14 +48,23 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _config(stored: dict[str, Any]) -> dict[str, Any]:
-    """The stored configuration as the service reads it back (defaults filled in for fields
-    an older log lacks); what the file holds when that is not a service configuration."""
+def _config_entries(reader: LogReader) -> dict[str, Any]:
+    """``config``: the stored configuration as the service reads it back (defaults filled in
+    for fields an older log lacks, listed in ``config_defaults``), or what the file holds
+    when that is not a service configuration. When a stored value cannot be read: what the
+    file holds (a value that is not JSON as its text) and ``config_error`` naming it."""
+    stored, problems = reader.config_parts()
+    if problems:
+        return {"config": stored, "config_error": "; ".join(str(p) for p in problems)}
     try:
-        config = ServiceConfig.from_stored(stored)
-    except (TypeError, ValueError, KeyError) as error:
-        return {**stored, "error": f"unreadable configuration: {error}"}
-    return stored if config is None else config.stored()
+        config = ServiceConfig.from_stored(stored, reader.path)
+        if config is None:
+            stored_profile(stored, reader.path)  # what replay runs with, an import's too
+    except StoredConfigError as error:
+        return {"config": stored, "config_error": str(error)}
+    read = stored if config is None else config.stored()
+    defaults = _defaulted(stored, read)
+    return {"config": read, **({"config_defaults": defaults} if defaults else {})}
 
 
 def _defaulted(stored: dict[str, Any], read: dict[str, Any]) -> list[str]:
@@ -88,5 +94,7 @@ def _print(info: dict, as_json: bool) -> None:
         print(f"  {topic:48} {channel['count']:>8}  {channel['encoding']:8}  {channel['schema']}")
     print("  configuration:")
     print("    " + json.dumps(info["config"], indent=2).replace("\n", "\n    "))
+    if "config_error" in info:
+        print(f"  configuration unreadable, shown as stored: {info['config_error']}")
     if "config_defaults" in info:
         print(f"  not in this log, shown with their defaults: {', '.join(info['config_defaults'])}")

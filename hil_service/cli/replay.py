@@ -85,6 +85,13 @@ def run(args: argparse.Namespace) -> int:
                 print(file=sys.stderr)
             if result.recovered:
                 print(f"glider-hil replay: {result.recovered}", file=sys.stderr)
+            if result.skipped_inputs:
+                print(
+                    f"glider-hil replay: {args.log}: {result.skipped_inputs} decision-inputs "
+                    f"record(s) could not be read and were skipped; the first: "
+                    f"{result.first_skipped}",
+                    file=sys.stderr,
+                )
             if result.mismatch is not None or not args.loop:
                 break
     except (LogError, ReplayError, ProfileError, OSError, ValueError) as error:
@@ -106,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
         "complete": result.complete,
         "wall_s": round(result.wall_s, 3),
         "max_lag_s": round(result.lag_s, 4),
+        "bad_frames": result.bad_frames,
+        "unknown_frames": result.unknown_frames,
+        "empty_frames": result.empty_frames,
+        "skipped_inputs": result.skipped_inputs,
         "identifier": {
             sid: v["identifier"] for sid, v in result.summary.get("vehicles", {}).items()
         },
@@ -113,9 +124,11 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
     else:
+        unusable = result.unusable()
         print(
             f"replayed {result.samples} samples ({result.frames} frames) in "
             f"{result.wall_s:.2f} s; {result.compared} recorded estimates/commands compared"
+            + (f"; not decoded: {unusable}" if unusable else "")
         )
     if result.mismatch is not None:
         print(f"glider-hil replay: check failed: {result.mismatch.describe()}", file=sys.stderr)

@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hil_service.mcap.reader import LogError
+from hil_service.mcap.reader import LogError, StoredConfigError
 from hil_service.offline.report import write_report
 
 
@@ -24,9 +24,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.output.exists() and not args.output.is_dir():
+        print(f"glider-hil report: {args.output} is a file, not a directory", file=sys.stderr)
+        return 2
     try:
         report = write_report(args.log, args.output)
-    except (LogError, OSError) as error:
+    except (LogError, OSError, StoredConfigError) as error:
         print(f"glider-hil report: {error}", file=sys.stderr)
         return 2
     if not report.summaries:

@@ -28,6 +28,23 @@ class LogError(Exception):
     """The file is not an MCAP log at all (missing or wrong magic)."""
 
 
+class StoredConfigError(ValueError):
+    """A value of a log's stored configuration (the ``glider-hil.config`` record) that
+    cannot be used: not JSON, of the wrong JSON type, or out of range. The message names
+    the log (when known), the stored key (``service.stale_timeout``) and what is wrong."""
+
+    def __init__(self, key: str, problem: str, log: str | Path | None = None) -> None:
+        self.key = key
+        self.problem = problem
+        self.log = None if log is None else str(log)
+        where = "" if log is None else f"{log}: "
+        super().__init__(f"{where}stored config {key}: {problem}")
+
+    def of_log(self, log: str | Path) -> StoredConfigError:
+        """The same problem, naming the log it was read from."""
+        return StoredConfigError(self.key, self.problem, log)
+
+
 class LogMessage(NamedTuple):
     """One logged message (a named tuple: replay builds tens of thousands per second)."""
 
@@ -157,6 +174,23 @@ class LogReader:
                         report.first_damage = f"{record.reason} at byte {record.offset}"
 
     def config(self) -> dict[str, Any]:
-        """The service configuration stored in the log (read the messages first)."""
-        stored = self.report.metadata.get(CONFIG_METADATA, {})
-        return {key: json.loads(value) for key, value in stored.items()}
+        """The service configuration stored in the log, each value decoded (read the
+        messages first); StoredConfigError, naming the log and the key, when a value is not
+        JSON."""
+        decoded, problems = self.config_parts()
+        if problems:
+            raise problems[0]
+        return decoded
+
+    def config_parts(self) -> tuple[dict[str, Any], list[StoredConfigError]]:
+        """What can be read of the stored configuration: each value decoded, one that is not
+        JSON left as its text; and a StoredConfigError for each of those."""
+        decoded: dict[str, Any] = {}
+        problems: list[StoredConfigError] = []
+        for key, value in self.report.metadata.get(CONFIG_METADATA, {}).items():
+            try:
+                decoded[key] = json.loads(value)
+            except ValueError as error:
+                decoded[key] = value
+                problems.append(StoredConfigError(key, f"not JSON ({error})", self.path))
+        return decoded, problems

@@ -6,7 +6,8 @@ decision-inputs channel, applied at the same sample; the service configuration i
 rebuilt from the log's metadata (``ServiceConfig.from_stored``) and the service wired by
 ``hil_service.builder`` as ``serve`` wires it. With ``check``, every recomputed estimate and
 command is compared, as published bytes, with the recorded one, and the first difference
-is reported.
+is reported. A decision-inputs record that cannot be read (not JSON, a field missing or of the
+wrong type) is counted and skipped (``ReplayResult.skipped_inputs``), the first one named.
 Timed replay sleeps to absolute deadlines derived from the log's timestamps, so it does not
 drift over long logs.
 """
@@ -18,17 +19,20 @@ import time
 from collections import defaultdict, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from hil_service.builder import wire
-from hil_service.config import ServiceConfig, stored_profile
+from hil_service.config import ServiceConfig, shown_json, stored_profile
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.listeners import Listener
 from hil_service.mcap.reader import LogMessage, LogReader
 from hil_service.mcap.recorder import RAW_TOPIC
 from hil_service.service import HilService
 from protocols import keys, payload_json
+from protocols.keys import CHANNELS
+from protocols.payload_json import is_finite_number
 from protocols.profiles import Profile, load_profile
 from protocols.samples import TelemetrySample
 
@@ -78,6 +82,23 @@ class ReplayResult:
     wall_s: float = 0.0
     lag_s: float = 0.0  # timed replay: worst lateness behind the schedule
     summary: dict[str, Any] = field(default_factory=dict)
+    #: Decision-inputs records that could not be read, skipped; and why the first was.
+    skipped_inputs: int = 0
+    first_skipped: str = ""
+    #: What the service's MAVLink decoder could not use (its ``ParseCounters``) and raw
+    #: records with no bytes at all: a log of only these replays to 0 samples.
+    bad_frames: int = 0
+    unknown_frames: int = 0
+    empty_frames: int = 0
+
+    def unusable(self) -> str:
+        """The frames that gave nothing, as the summary line says it ("" when none)."""
+        counts = (
+            (self.bad_frames, "bad frames"),
+            (self.unknown_frames, "frames of unknown messages"),
+            (self.empty_frames, "empty records"),
+        )
+        return ", ".join(f"{count} {what}" for count, what in counts if count)
 
 
 class ReplayInbox(Inbox):
@@ -171,7 +192,7 @@ class _Replay:
             if parsed is None:
                 continue
             if parsed.kind == keys.DECISION_INPUTS:
-                self.inbox.add_event(parsed.system_id, message.json())
+                self._add_inputs(parsed.system_id, message)
             elif self.options.check and parsed.kind in CHECKED_KINDS:
                 self.to_compare.append(message)
         if pending is not None:
@@ -179,6 +200,20 @@ class _Replay:
         if self.service is None:
             raise ReplayError(f"{self.path}: no {RAW_IN} frames to replay")
         return self._finish()
+
+    def _add_inputs(self, system_id: int, message: LogMessage) -> None:
+        """A decision-inputs record to the inbox; one that cannot be read is counted and
+        skipped, the first one named (channel, log time and what is wrong)."""
+        try:
+            event = decision_event(_decoded(message))
+        except ValueError as error:
+            result = self.result
+            result.skipped_inputs += 1
+            if not result.first_skipped:
+                at = datetime.fromtimestamp(message.log_time_ns / 1e9, UTC).isoformat()
+                result.first_skipped = f"{message.topic} at log time {at}: {error}"
+            return
+        self.inbox.add_event(system_id, event)
 
     def _feed(self, frame: LogMessage) -> bool:
         """Process one raw frame, then compare what was logged since; False on a mismatch."""
@@ -189,6 +224,8 @@ class _Replay:
                 self.first_log_ns = frame.log_time_ns
             offset_s = (frame.log_time_ns - self.first_log_ns) / 1e9 / options.speed
             result.lag_s = max(result.lag_s, _wait_until(self.started + offset_s))
+        if not frame.data:
+            result.empty_frames += 1
         service.process_datagram(frame.data)
         result.frames += 1
         for message in self.to_compare:
@@ -203,7 +240,7 @@ class _Replay:
     def _start(self) -> HilService:
         """The service as the log's metadata describes it (metadata precedes all messages)."""
         stored = self.reader.config()
-        config = ServiceConfig.from_stored(stored)
+        config = ServiceConfig.from_stored(stored, self.path)
         if config is None:
             if self.options.check:
                 raise ReplayError(f"{self.path}: no stored configuration, cannot --check")
@@ -224,7 +261,7 @@ class _Replay:
         """``--profile``, else the profile the log stores (serve and import store theirs)."""
         if self.options.profile is not None:
             return load_profile(self.options.profile)
-        return stored_profile(stored)
+        return stored_profile(stored, self.path)
 
     def _sample_period(self, profile: Profile, stored: dict[str, Any]) -> float | None:
         """The period replayed with a periodic ``profile`` (None for a lockstep one), the most
@@ -254,6 +291,8 @@ class _Replay:
             result.recovered = report.describe()
         result.wall_s = time.monotonic() - self.started
         result.summary = service.summary()
+        counters = service.codec.counters
+        result.bad_frames, result.unknown_frames = counters.bad_frames, counters.unknown_frames
         if self.options.check and result.mismatch is None and report.intact:
             # A finished log holds every publication: anything left over was never recorded.
             for key, queue in self.collector.published.items():
@@ -265,6 +304,47 @@ class _Replay:
                     )
                     break
         return result
+
+
+def _decoded(message: LogMessage) -> Any:
+    try:
+        return message.json()
+    except ValueError as error:
+        raise ValueError(f"not JSON ({error})") from None
+
+
+def decision_event(payload: Any) -> dict[str, Any]:
+    """A decision-inputs record as ``ReplayInbox`` applies it (its schema:
+    protocols/schemas/decision_inputs.json; ``reset`` may be absent). ValueError names the
+    field that is missing or of the wrong type."""
+    if not isinstance(payload, dict):
+        raise ValueError(f"expected an object, got {shown_json(payload)}")
+    stamp = payload.get("time_boot_ms")
+    if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0:
+        raise ValueError(f"time_boot_ms: expected an integer ≥ 0, got {shown_json(stamp)}")
+    setpoints = payload.get("setpoints")
+    if not _readable_setpoints(setpoints):
+        raise ValueError(
+            f"setpoints: expected an object of {' and '.join(CHANNELS)}, each a number or "
+            f"null, got {shown_json(setpoints)}"
+        )
+    enabled = payload.get("enabled")
+    if not isinstance(enabled, bool):
+        raise ValueError(f"enabled: expected true or false, got {shown_json(enabled)}")
+    reset = payload.get("reset", False)
+    if not isinstance(reset, bool):
+        raise ValueError(f"reset: expected true or false, got {shown_json(reset)}")
+    return payload
+
+
+def _readable_setpoints(setpoints: Any) -> bool:
+    """An object holding every channel's setpoint, each a number or null (a NaN is stored
+    as null)."""
+    return (
+        isinstance(setpoints, dict)
+        and all(channel in setpoints for channel in CHANNELS)
+        and all(value is None or is_finite_number(value) for value in setpoints.values())
+    )
 
 
 def _messages(reader: LogReader, options: ReplayOptions) -> Iterator[LogMessage]:

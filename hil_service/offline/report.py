@@ -4,6 +4,11 @@ A vehicle that rebooted during the log restarted its clock: the report covers ev
 it (a segment). Scores are over all segments; the figures put the segments one after
 another on a clock that runs on (a segment starts one step after the previous one ended),
 with each restart marked, so a log without a restart is drawn on its own clock unchanged.
+
+The scores use the settings the log stores (burn-in, the model to re-identify): a stored
+configuration that cannot be read is refused (``StoredConfigError``), never replaced by the
+defaults; a log that stores none is scored with the default burn-in, which ``report.md``
+states as it states any.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.config import ServiceConfig
+from hil_service.config import ServiceConfig, stored_pipeline
 from hil_service.offline.field.report import field_section
 from hil_service.offline.identify import has_estimates, identify_offline
 from hil_service.offline.plots import UNITS, prediction_figure, tracking_figure
@@ -77,14 +82,9 @@ OFFLINE_NOTE = (
 )
 
 
-def _burn_in(stored: dict[str, Any]) -> int:
-    """The burn-in the service ran with, from the log's stored configuration."""
-    try:
-        config = ServiceConfig.from_stored(stored)
-    except (TypeError, ValueError, KeyError, AttributeError):  # unreadable: the default
-        config = None
-    value = DEFAULT_BURN_IN if config is None else config.pipeline.burn_in
-    return value if isinstance(value, int) and value >= 0 else DEFAULT_BURN_IN
+def _burn_in(config: ServiceConfig | None) -> int:
+    """The burn-in the service ran with (the default for a log that stores no configuration)."""
+    return DEFAULT_BURN_IN if config is None else config.pipeline.burn_in
 
 
 @dataclass(frozen=True)
@@ -141,8 +141,8 @@ def multistep_from_log(
     The model is rebuilt from the stored pipeline settings (same seed and options as the
     service's), on the applied inputs (telemetry) and the outputs the identifier saw.
     """
-    stored = (config.get("service") or {}).get("pipeline")
-    if not isinstance(stored, dict):
+    stored = stored_pipeline(config)
+    if stored is None:
         return None
     try:
         settings = PipelineSettings.from_json(stored)
@@ -395,8 +395,9 @@ def _segment_lines(vehicle: VehicleSeries) -> list[str]:
     return lines
 
 
-def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[Path]) -> str:
-    burn_in = _burn_in(series.config)
+def markdown(
+    series: LogSeries, summaries: list[ChannelSummary], figures: list[Path], burn_in: int
+) -> str:
     read = series.read
     lines = [
         f"# Glider HIL report: `{series.path.name}`",
@@ -413,7 +414,7 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
     ]
     if series.skipped:
         lines.append(f"- {series.skipped} publications could not be read and were skipped")
-    if not (series.config.get("service") or {}).get("pipeline") and not has_estimates(series):
+    if stored_pipeline(series.config) is None and not has_estimates(series):
         lines.append(
             "- fit % and k-step NMSE `–`: the log stores no service configuration to rebuild "
             "the model from"
@@ -448,18 +449,24 @@ def markdown(series: LogSeries, summaries: list[ChannelSummary], figures: list[P
 
 
 def write_report(log: str | Path, out: str | Path) -> Report:
+    """The report of ``log`` in ``out``; nothing is written when the log holds nothing to
+    report (no estimates, none identified offline, not a field import). StoredConfigError
+    when the log's stored configuration cannot be read."""
     series = load_series(log)
+    config = ServiceConfig.from_stored(series.config, log)
     offline = False
     if not has_estimates(series):
         identified = identify_offline(log, series)
         if identified is not None and has_estimates(identified):
             series, offline = identified, True
     directory = Path(out)
-    directory.mkdir(parents=True, exist_ok=True)
-    burn_in = _burn_in(series.config)
-    fit_config = series.config
-    defaults = offline and not (series.config.get("service") or {}).get("pipeline")
     field_import = isinstance(series.config.get("field"), dict)
+    if not has_estimates(series) and not field_import:
+        return Report(directory / "report.md", [], [], offline)
+    directory.mkdir(parents=True, exist_ok=True)
+    burn_in = _burn_in(config)
+    fit_config = series.config
+    defaults = offline and stored_pipeline(series.config) is None
     if defaults and not field_import:  # the default settings the offline replay ran with
         fit_config = {**series.config, "service": ServiceConfig().stored()["service"]}
     summaries: list[ChannelSummary] = []
@@ -471,7 +478,7 @@ def write_report(log: str | Path, out: str | Path) -> Report:
             summaries.append(summarise(vehicle, channel, burn_in, fit_config))
             figures += _figures(vehicle, channel, directory, summaries[-1])
     path = directory / "report.md"
-    text = markdown(series, summaries, figures)
+    text = markdown(series, summaries, figures, burn_in)
     if offline:
         lines = text.split("\n")
         at = next((i for i, line in enumerate(lines) if line.startswith("- log:")), 1)

@@ -8,6 +8,10 @@ A vehicle that reboots starts its clock again, so telemetry times repeat across 
 a restart is a telemetry time at or before the previous one, and each estimate and command
 is tied to the telemetry record of its own sample by position in the log (``index``), never
 by its time alone.
+
+A publication that cannot be used is counted (``LogSeries.skipped``) and skipped, none of it
+kept: not JSON, not an object, a field missing or of the wrong JSON type (a time that is not
+a finite number, a value that is neither a number nor null, the null a NaN is recorded as).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import numpy as np
 from hil_service.mcap.reader import LogReader, ReadReport
 from protocols import keys
 from protocols.keys import CHANNELS
+from protocols.payload_json import is_finite_number
 
 _SERIES_KINDS = frozenset({keys.TELEMETRY, keys.UMODEL, keys.COMMAND_BALLAST, keys.HEALTH})
 
@@ -137,10 +142,37 @@ def load_series(path: str | Path) -> LogSeries:
     return LogSeries(Path(path), reader.report, reader.config(), vehicles, skipped)
 
 
-def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[str, Any]) -> None:
+def _time(payload: dict[str, Any]) -> float:
+    """A publication's ``t``: a finite number (ValueError otherwise)."""
+    value = payload["t"]
+    if not is_finite_number(value):
+        raise ValueError(f"t: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _reading(value: Any, name: str) -> float:
+    """A value of a publication: a number, or null (a NaN, recorded as null) as NaN;
+    ValueError for anything else."""
+    if value is None:
+        return math.nan
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name}: expected a number or null, got {value!r}")
+    return float(value)
+
+
+def _object(value: Any, name: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise ValueError(f"{name}: expected an object, got {value!r}")
+    return value
+
+
+def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: Any) -> None:
+    """One publication into ``vehicle``'s series, read whole before any of it is kept (a
+    ValueError, TypeError or KeyError leaves the series as they were)."""
+    payload = _object(payload, kind)
     if kind == keys.TELEMETRY:
-        t = _number(payload["t"])
-        applied = {ch: _number(payload[f"u_{ch}"]) for ch in CHANNELS}
+        t = _time(payload)
+        applied = {ch: _reading(payload[f"u_{ch}"], f"u_{ch}") for ch in CHANNELS}
         if not vehicle.telemetry_t or not t > vehicle.telemetry_t[-1]:
             vehicle.segment_starts.append(len(vehicle.telemetry_t))
             vehicle._in_segment.clear()
@@ -152,20 +184,26 @@ def _add(vehicle: VehicleSeries, kind: str, channel: str | None, payload: dict[s
         vehicle.last_health = dict(payload)
     elif kind == keys.COMMAND_BALLAST:
         commands = vehicle.commands
-        t = _number(payload["t"])
-        setpoints = payload.get("setpoints") or {}
-        values = {ch: payload.get(f"u_{ch}") for ch in CHANNELS}
+        t = _time(payload)
+        stored = payload.get("setpoints")
+        setpoints = {} if stored is None else _object(stored, "setpoints")
+        values = {ch: _reading(payload.get(f"u_{ch}"), f"u_{ch}") for ch in CHANNELS}
+        wanted = {ch: _reading(setpoints.get(ch), f"setpoints.{ch}") for ch in CHANNELS}
         commands.t.append(t)
         commands.index.append(vehicle.sample_index(t))
         for ch in CHANNELS:
-            commands.u[ch].append(_number(values[ch]))
-            commands.setpoint[ch].append(_number(setpoints.get(ch)))
+            commands.u[ch].append(values[ch])
+            commands.setpoint[ch].append(wanted[ch])
         commands.saturated += bool(payload.get("saturated"))
     elif channel is not None:
         series = vehicle.channels[channel]
-        alpha = [float(a) for a in payload.get("alpha", [])]
-        t, y, y_hat = (_number(payload[k]) for k in ("t", "y", "y_hat"))
-        baseline = _number(payload.get("baseline_y_hat"))
+        stored_alpha = payload.get("alpha", [])
+        if not isinstance(stored_alpha, list):
+            raise ValueError(f"alpha: expected a list, got {stored_alpha!r}")
+        alpha = [_reading(a, "alpha") for a in stored_alpha]
+        t = _time(payload)
+        y, y_hat = _reading(payload["y"], "y"), _reading(payload["y_hat"], "y_hat")
+        baseline = _reading(payload.get("baseline_y_hat"), "baseline_y_hat")
         series.t.append(t)
         series.index.append(vehicle.sample_index(t))
         series.y.append(y)

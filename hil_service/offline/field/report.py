@@ -5,7 +5,9 @@ Reads the grid samples (``glider/{id}/telemetry``) and the segments the import s
 a table per channel (one-step skill, free-run fit per held-out dive, k-step NMSE, for
 persistence, RLS-ARX, the U-model, the two-input U-model of depth and the
 first-principles baseline), whether the input was excited enough, and a figure per model of
-predicted vs actual over one held-out dive.
+predicted vs actual over one held-out dive. A stored ``field`` part that cannot be read (an
+``issues`` or ``grid`` that is not an object, a grid period that is not a number) is named
+in the section, and the identification is not computed.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from hil_service.config import stored_pipeline
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.field.evaluate import (
     GLIDE_U,
@@ -30,6 +33,7 @@ from hil_service.offline.field.evaluate import (
 from hil_service.offline.series import telemetry_columns
 from hil_service.pipeline import PipelineSettings
 from protocols import keys
+from protocols.payload_json import is_finite_number
 
 UNITS = {"depth": "m", "pitch": "rad"}
 
@@ -60,10 +64,8 @@ def field_results(
     """The grid samples of a field import and ``identify_dives`` on them with the log's
     pipeline settings (the model, its options, the seed)."""
     arrays = field_arrays(log, config["field"], system_id)
-    stored = (config.get("service") or {}).get("pipeline")
-    settings = (
-        PipelineSettings.from_json(stored) if isinstance(stored, dict) else PipelineSettings()
-    )
+    stored = stored_pipeline(config)
+    settings = PipelineSettings() if stored is None else PipelineSettings.from_json(stored)
     options = {ch: settings.options_for(ch) for ch in keys.CHANNELS}
     return arrays, identify_dives(arrays, settings.model, options, seed=settings.seed, split=split)
 
@@ -133,24 +135,32 @@ def field_section(
     field = config.get("field")
     if not isinstance(field, dict):
         return [], [], []
+    heading = ["", f"## Field identification ({field.get('format')} {field.get('vehicle', '')})"]
+    unreadable = _unreadable(field)
+    if unreadable:
+        return (
+            [*heading, "", f"Not computed: the log's stored {unreadable} ({log})."],
+            [],
+            [],
+        )
     grid = field.get("grid") or {}
     issues = field.get("issues") or {}
     period = float(grid.get("period_s") or 0)
     spacing = f"grid {period:g} s" if period > 0 else "as recorded (no grid)"
     lines = [
+        *heading,
         "",
-        f"## Field identification ({field.get('format')} {field.get('vehicle', '')})",
-        "",
-        f"- {len(field.get('files', []))} file(s); {issues.get('rows', '–')} rows; "
+        f"- {_count(field.get('files', []))} file(s); "
+        f"{issues.get('rows', '–')} rows; "
         f"{issues.get('out_of_order', 0)} out of order, {issues.get('repeated_time', 0)} "
         f"repeated timestamps, {issues.get('nan_rows', 0)} NaN rows, "
         f"{issues.get('unparsable_rows', 0)} unparsable, {issues.get('filled_inputs', 0)} "
         f"inputs held, {issues.get('surface_rows', 0)} at the surface; missing columns: "
         f"{issues.get('missing_columns') or 'none'}",
         f"- {spacing}, segments split at gaps > {grid.get('gap_s')} s: "
-        f"{grid.get('grid_samples')} samples in {len(grid.get('segments', []))} segments; "
+        f"{grid.get('grid_samples')} samples in {_count(grid.get('segments', []))} segments; "
         f"{grid.get('raw_used')} of {grid.get('raw_in_dive')} in-dive samples used "
-        f"({100 * float(grid.get('used_fraction', 0)):.1f} %); {grid.get('interpolated')} grid "
+        f"({_percent(grid.get('used_fraction', 0))} %); {grid.get('interpolated')} grid "
         f"samples interpolated (linear, at most {grid.get('max_distance_s')} s from a raw "
         f"sample); not used: {grid.get('lost') or 'none'}",
     ]
@@ -180,6 +190,26 @@ def field_section(
                 figures.append(path)
                 lines.append(f"![{result.channel} {model.model}]({name})")
     return lines, figures, results
+
+
+def _unreadable(field: dict[str, Any]) -> str:
+    """What of a field import's stored ``field`` the section cannot read ("" when it can)."""
+    for name in ("grid", "issues"):
+        value = field.get(name)
+        if value is not None and not isinstance(value, dict):
+            return f"field.{name} is not an object"
+    period = (field.get("grid") or {}).get("period_s")
+    if period is not None and not is_finite_number(period):
+        return "field.grid.period_s is not a number"
+    return ""
+
+
+def _count(items: Any) -> str:
+    return str(len(items)) if isinstance(items, list) else "–"
+
+
+def _percent(fraction: Any) -> str:
+    return f"{100 * fraction:.1f}" if is_finite_number(fraction) else "–"
 
 
 def _channel_lines(result: ChannelResult, period: float) -> list[str]:
