@@ -18,7 +18,12 @@ from protocols.profiles import MAX_SAMPLE_PERIOD, MIN_SAMPLE_PERIOD, ProfileErro
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", help="an MCAP log written by glider-hil serve")
+    parser.add_argument(
+        "log",
+        nargs="+",
+        help="an MCAP log written by glider-hil serve; or the files of one log that serve "
+        "rotated (--log-max-mb, --log-max-s), in order, replayed as one run",
+    )
     pace = parser.add_mutually_exclusive_group()
     pace.add_argument("--speed", type=float, default=1.0, help="x the recorded pace")
     pace.add_argument("--fast", action="store_true", help="as fast as possible")
@@ -87,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"glider-hil replay: {result.recovered}", file=sys.stderr)
             if result.skipped_inputs:
                 print(
-                    f"glider-hil replay: {args.log}: {result.skipped_inputs} decision-inputs "
+                    f"glider-hil replay: {' '.join(args.log)}: {result.skipped_inputs} "
+                    "decision-inputs "
                     f"record(s) could not be read and were skipped; the first: "
                     f"{result.first_skipped}",
                     file=sys.stderr,

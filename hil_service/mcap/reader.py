@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 
-from hil_service.mcap.recorder import CONFIG_METADATA
+from hil_service.mcap.recorder import CONFIG_METADATA, PART_METADATA
 from hil_service.mcap.records import DamagedChunk, read_records
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
@@ -172,6 +172,18 @@ class LogReader:
                     report.damaged_chunks += 1
                     if not report.first_damage:
                         report.first_damage = f"{record.reason} at byte {record.offset}"
+
+    def part(self) -> tuple[int, str] | None:
+        """Which file of a rotated log this is (read the messages first): its part number
+        (from 1) and the file name of the part before it ("" for the first); None for a log
+        that does not say (written before the record existed, or by another tool)."""
+        stored = self.report.metadata.get(PART_METADATA)
+        if stored is None:
+            return None
+        number = stored.get("part", "")
+        if not number.isdigit() or int(number) < 1:
+            raise LogError(f"{self.path}: its {PART_METADATA} part is {number!r}, not a count")
+        return int(number), stored.get("previous", "")
 
     def config(self) -> dict[str, Any]:
         """The service configuration stored in the log, each value decoded (read the

@@ -48,6 +48,9 @@ RAW_TOPIC = "mavlink/raw/{direction}"
 JSON_TOPIC = "mavlink/json/{direction}/{kind}"
 RAW_ENCODING = "mavlink2"
 CONFIG_METADATA = "glider-hil.config"
+#: Which file of a rotated log this is: ``part`` (from 1) and ``previous`` (the file name of
+#: the part before it; "" for the first).
+PART_METADATA = "glider-hil.part"
 PROFILE = "glider-hil"
 POLL_INTERVAL = 0.02  # s between two looks at the sealed chunks by the writer thread
 CHUNK_BYTES = 1 << 20  # the default chunk_bytes
@@ -380,6 +383,9 @@ class McapRecorder:
         self._file = McapFile(self._stream, compression=self.compression)
         self._file.start(profile=PROFILE, library="glider-hil")
         self._file.add_metadata(CONFIG_METADATA, self.metadata)
+        files = self.status.files
+        previous = Path(files[-1]).name if files else ""
+        self._file.add_metadata(PART_METADATA, {"part": str(len(files) + 1), "previous": previous})
         self._opened_at = self._clock()
         self.status.files.append(str(path))
         self.status.error = ""

@@ -149,23 +149,36 @@ def _kind(key: str) -> str:
 
 
 def replay(
-    path: str | Path, options: ReplayOptions, listeners: Sequence[Any] = ()
+    path: str | Path | Sequence[str | Path],
+    options: ReplayOptions,
+    listeners: Sequence[Any] = (),
 ) -> ReplayResult:
     """One pass over the log: its raw frames through the service, compared if ``check``.
+
+    ``path`` may be the files of one log rotated by ``serve`` (``--log-max-mb``,
+    ``--log-max-s``), in order: they are replayed as one run through one service, each
+    checked to continue the one before it (``LogReader.part``). With ``check`` the first
+    must be the log's first part: the identifiers of a later part start in the ones before.
 
     In file order a sample's decision inputs (and its published estimates and command)
     follow the frame that completed the sample and precede the next sample's frames, as
     the live service logged them. So each raw frame is held until the next one is read:
     by then the inputs it needs are known, and the records to compare with are at hand.
     """
-    return _Replay(Path(path), options, listeners).run()
+    paths = [Path(path)] if isinstance(path, str | Path) else [Path(p) for p in path]
+    if not paths:
+        raise ReplayError("no log to replay")
+    return _Replay(paths, options, listeners).run()
 
 
 class _Replay:
-    def __init__(self, path: Path, options: ReplayOptions, listeners: Sequence[Any]) -> None:
-        self.path = path
+    def __init__(
+        self, paths: list[Path], options: ReplayOptions, listeners: Sequence[Any]
+    ) -> None:
+        self.path = paths[0]
         self.options = options
-        self.reader = LogReader(path)
+        self.readers = [LogReader(path) for path in paths]
+        self.reader = self.readers[0]  # its stored configuration is the run's
         self.inbox = ReplayInbox()
         self.collector = Collector()
         #: The replayed service's listeners: the collector (with ``check``), then the
@@ -180,26 +193,55 @@ class _Replay:
 
     def run(self) -> ReplayResult:
         pending: LogMessage | None = None
-        for message in _messages(self.reader, self.options):
-            topic = message.topic
-            if topic == RAW_IN:
-                if pending is not None and not self._feed(pending):
-                    pending = None
-                    break
-                pending = message
-                continue
-            parsed = keys.parse(topic)
-            if parsed is None:
-                continue
-            if parsed.kind == keys.DECISION_INPUTS:
-                self._add_inputs(parsed.system_id, message)
-            elif self.options.check and parsed.kind in CHECKED_KINDS:
-                self.to_compare.append(message)
+        stopped = False
+        for number, reader in enumerate(self.readers):
+            checked = False
+            for message in _messages(reader, self.options):
+                if not checked:  # its metadata precede its first message
+                    self._check_part(number, reader)
+                    checked = True
+                topic = message.topic
+                if topic == RAW_IN:
+                    if pending is not None and not self._feed(pending):
+                        pending, stopped = None, True
+                        break
+                    pending = message
+                    continue
+                parsed = keys.parse(topic)
+                if parsed is None:
+                    continue
+                if parsed.kind == keys.DECISION_INPUTS:
+                    self._add_inputs(parsed.system_id, message)
+                elif self.options.check and parsed.kind in CHECKED_KINDS:
+                    self.to_compare.append(message)
+            if stopped:
+                break
         if pending is not None:
             self._feed(pending)
         if self.service is None:
             raise ReplayError(f"{self.path}: no {RAW_IN} frames to replay")
         return self._finish()
+
+    def _check_part(self, number: int, reader: LogReader) -> None:
+        """The ``number``-th file given continues the one before it; with ``check`` the first
+        is a first part. A file that does not say which part it is is taken as given."""
+        part = reader.part()
+        if part is None:
+            return
+        index, previous = part
+        if number == 0:
+            if index > 1 and self.options.check:
+                raise ReplayError(
+                    f"{reader.path} is part {index} of a rotated log (it continues {previous}):"
+                    " --check follows a run from its first part; give the parts in order, "
+                    f"from the first, e.g. glider-hil replay --check ... {previous} "
+                    f"{reader.path.name}"
+                )
+            return
+        before = self.readers[number - 1].path.name
+        if previous != before:
+            follows = f"it continues {previous}" if previous else "it is a first part"
+            raise ReplayError(f"{reader.path} does not continue {before} ({follows})")
 
     def _add_inputs(self, system_id: int, message: LogMessage) -> None:
         """A decision-inputs record to the inbox; one that cannot be read is counted and
@@ -282,18 +324,21 @@ class _Replay:
         return float(recorded)
 
     def _finish(self) -> ReplayResult:
-        result, report, service = self.result, self.reader.report, self.service
+        result, service = self.result, self.service
         assert service is not None
+        reports = [reader.report for reader in self.readers]
         result.samples = service.source.samples
-        result.complete = report.complete
-        if report.ended and not report.intact:
-            # Only a read that reached the end can tell a damaged file (--check stops early).
-            result.recovered = report.describe()
+        result.complete = all(report.complete for report in reports)
+        # Only a read that reached the end can tell a damaged file (--check stops early).
+        result.recovered = "; ".join(
+            report.describe() for report in reports if report.ended and not report.intact
+        )
+        intact = all(report.intact for report in reports)
         result.wall_s = time.monotonic() - self.started
         result.summary = service.summary()
         counters = service.codec.counters
         result.bad_frames, result.unknown_frames = counters.bad_frames, counters.unknown_frames
-        if self.options.check and result.mismatch is None and report.intact:
+        if self.options.check and result.mismatch is None and intact:
             # A finished log holds every publication: anything left over was never recorded.
             for key, queue in self.collector.published.items():
                 if queue:
