@@ -342,3 +342,21 @@ def test_a_stored_null_where_the_settings_take_none_is_read(tmp_path, capsys):
     log = _with(tmp_path / "nulls.mcap", change)
     assert main(["replay", "--fast", str(log)]) == 0
     assert f"replayed {SAMPLES} samples" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("stored", "named"),
+    [
+        ({"field": {"format": "seaglider", "grid": {"period_s": "1 s"}}}, "field.grid.period_s"),
+        ({"service": {"pipeline": {"burn_in": "x"}}}, "service.pipeline.burn_in"),
+    ],
+    ids=["grid-period", "pipeline"],
+)
+def test_experiment_on_a_log_names_an_unreadable_stored_value(tmp_path, capsys, stored, named):
+    """``experiment --log`` reads the stored grid and pipeline as replay does: a value of the
+    wrong type is one line naming the stored key, not a traceback."""
+    log = write_log(tmp_path / "odd.mcap", _metadata(stored))
+    code = main(["experiment", "--log", str(log)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert named in err and "Traceback" not in err

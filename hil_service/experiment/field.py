@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from hil_service.config import ServiceConfig, shown_json
 from hil_service.mcap.reader import LogError, LogReader
 from hil_service.offline.field.evaluate import (
     SPLITS,
@@ -40,6 +41,7 @@ from hil_service.offline.series import telemetry_columns
 from hil_service.pipeline import PipelineSettings
 from hil_service.umodel import paper_preset
 from protocols import keys
+from protocols.payload_json import is_finite_number
 
 #: The emulator experiment's models beside the log's own (``dynamic`` by default).
 EXTRA_MODELS = {"paper": paper_preset}
@@ -130,10 +132,18 @@ def run_field_experiment(
         config = reader.config()
     except LogError as error:
         raise ValueError(str(error)) from error
+    service = ServiceConfig.from_stored(config, path)  # StoredConfigError is a ValueError
+    settings = PipelineSettings() if service is None else service.pipeline
     field = config.get("field")
     if isinstance(field, dict):
-        grid = field.get("grid") or {}
-        if not float(grid.get("period_s") or 0) > 0:
+        grid = field.get("grid")
+        period = grid.get("period_s") if isinstance(grid, dict) else None
+        if period is not None and not is_finite_number(period):
+            raise ValueError(
+                f"{log}: stored config field.grid.period_s: expected a number, "
+                f"got {shown_json(period)}"
+            )
+        if not (period or 0) > 0:
             raise ValueError(
                 f"{log}: imported --as-recorded (no uniform grid); the models need the grid "
                 "(import without --as-recorded)"
@@ -143,10 +153,6 @@ def run_field_experiment(
     else:
         arrays = recorded_arrays(path, system_id)
         source = "recorded samples"
-    stored = (config.get("service") or {}).get("pipeline")
-    settings = (
-        PipelineSettings.from_json(stored) if isinstance(stored, dict) else PipelineSettings()
-    )
     options = {ch: settings.options_for(ch) for ch in keys.CHANNELS}
     results = identify_dives(
         arrays,
