@@ -43,7 +43,13 @@ SERVICE_ERROR = "service-error.txt"
 #: Consecutive lockstep timeouts (the service alive) after which a run is given up.
 MAX_CONSECUTIVE_TIMEOUTS = 5
 READY_TIMEOUT = 60.0  # wall s for the forked service to open its link and log
-STOP_TIMEOUT = 30.0  # wall s for it to close its log and exit after SIGTERM
+STOP_TIMEOUT = 30.0  # wall s for it to close its log and exit once told to stop
+#: What the mission process sends its service when the mission is over (it then exits 0).
+MISSION_OVER = signal.SIGUSR1
+#: Signals that interrupt a mission (Ctrl-C, kill, a batch system's stop, the parent-death
+#: signal): a service or mission process stopped by one dies of it after closing its log,
+#: and the mission is not recorded, so that ``--resume`` runs it again.
+INTERRUPTING = (signal.SIGINT, signal.SIGTERM)
 
 
 class ScheduledInbox(Inbox):
@@ -86,12 +92,22 @@ def service_config(mission: Mission) -> ServiceConfig:
 
 
 def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
-    """The forked service: open, say the port on ``ready_fd``, serve until SIGTERM (also
-    when the worker that forked it dies mid-mission: no orphan service)."""
+    """The forked service: open, say the port on ``ready_fd``, serve until ``MISSION_OVER``
+    (0 returned) or an interrupting signal (its number returned), also the SIGTERM it gets
+    when the process that forked it dies mid-mission: no orphan service. SIGINT is left
+    ignored when it is (a campaign started in the background is not one Ctrl-C stops)."""
     set_parent_death_signal(signal.SIGTERM)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    stopped_by: list[int] = []
+
+    def interrupt(signum: int, _frame: object) -> None:
+        stopped_by.append(signum)
+        stop.set()
+
+    signal.signal(MISSION_OVER, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, interrupt)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, interrupt)
     config = service_config(mission)
     recorder = open_recorder(
         config,
@@ -119,7 +135,7 @@ def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
         report = wired.close()
         summary["log"] = report
         (run_dir / SERVICE_SUMMARY).write_text(json.dumps(summary))
-    return 0
+    return stopped_by[0] if stopped_by else 0
 
 
 def _wait_ready(fd: int, timeout: float) -> int | None:
@@ -151,9 +167,15 @@ def _describe(status: int) -> str:
     return f"exited with {os.WEXITSTATUS(status)}"
 
 
-def _stop_service(pid: int, timeout: float = STOP_TIMEOUT) -> int:
-    """SIGTERM, then SIGKILL when it does not exit in time; the wait status."""
-    os.kill(pid, signal.SIGTERM)
+def interrupted(status: int) -> bool:
+    """Whether a wait status is that of a process stopped by an interrupting signal."""
+    return os.WIFSIGNALED(status) and os.WTERMSIG(status) in INTERRUPTING
+
+
+def stop_process(pid: int, signum: int, timeout: float = STOP_TIMEOUT) -> int:
+    """Send ``signum`` to the child ``pid``, SIGKILL it when it does not exit within
+    ``timeout`` s; its wait status."""
+    os.kill(pid, signum)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         status = _exited(pid)
@@ -164,6 +186,15 @@ def _stop_service(pid: int, timeout: float = STOP_TIMEOUT) -> int:
     return os.waitpid(pid, 0)[1]
 
 
+def _stop_if_running(pid: int) -> None:
+    """Interrupt the service and wait for it (its log closed), unless it was reaped."""
+    try:
+        if _exited(pid) is None:
+            stop_process(pid, signal.SIGTERM)
+    except ChildProcessError:  # reaped already
+        pass
+
+
 @dataclass
 class HilOutcome:
     trace: Trace
@@ -172,7 +203,16 @@ class HilOutcome:
     lockstep: dict[str, int] = field(default_factory=dict)
     service: dict[str, Any] = field(default_factory=dict)
     failure: str | None = None
+    #: Why the mission was interrupted (its service stopped by a signal): not a result.
+    interrupted: str | None = None
     log_path: str | None = None
+
+    def end(self, status: int, where: str) -> None:
+        """The service ended early with ``status``: interrupted or failed, said ``where``."""
+        if interrupted(status):
+            self.interrupted = f"service {_describe(status)} {where}"
+        else:
+            self.failure = f"service {_describe(status)} {where}"
 
 
 def run_hil(
@@ -182,9 +222,26 @@ def run_hil(
     kill_service_at: int | None = None,
     log: bool = True,
 ) -> HilOutcome:
-    """The mission in lockstep over loopback; failures are returned, never raised."""
+    """The mission in lockstep over loopback; failures are returned, never raised. An
+    exception (KeyboardInterrupt: the mission process was told to stop) interrupts the
+    service and waits for it before it propagates."""
     run_dir.mkdir(parents=True, exist_ok=True)
     pid, read_fd = _fork_service(mission, run_dir, log)
+    try:
+        return _run_with_service(mission, run_dir, pid, read_fd, timeout, kill_service_at)
+    except BaseException:
+        _stop_if_running(pid)
+        raise
+
+
+def _run_with_service(
+    mission: Mission,
+    run_dir: Path,
+    pid: int,
+    read_fd: int,
+    timeout: float,
+    kill_service_at: int | None,
+) -> HilOutcome:
     started = time.monotonic()
     trace = Trace.empty(mission.steps)
     try:
@@ -192,12 +249,16 @@ def run_hil(
     finally:
         os.close(read_fd)
     if port is None:
+        outcome = HilOutcome(trace, 0.0)
         status = _exited(pid)
-        if status is None:
-            status = _stop_service(pid, 5.0)
-        return HilOutcome(
-            trace, time.monotonic() - started, failure=_service_failure(run_dir, status)
-        )
+        if status is not None and interrupted(status):
+            outcome.end(status, "before it was ready")
+        else:
+            if status is None:  # silent for READY_TIMEOUT s: a failure, not an interruption
+                status = stop_process(pid, signal.SIGTERM, 5.0)
+            outcome.failure = _service_failure(run_dir, status)
+        outcome.wall_s = time.monotonic() - started
+        return outcome
     outcome = HilOutcome(trace, 0.0)
     autopilot, runner, status = _run_emulator(mission, port, pid, timeout, kill_service_at, outcome)
     outcome.wall_s = time.monotonic() - started
@@ -214,7 +275,11 @@ def _fork_service(mission: Mission, run_dir: Path, log: bool) -> tuple[int, int]
         os.close(read_fd)
         code = 1
         try:
-            code = _serve(mission, run_dir, write_fd, log)
+            stopped_by = _serve(mission, run_dir, write_fd, log)
+            code = 0
+            if stopped_by:  # dies of the signal, its log closed: the mission sees why
+                signal.signal(stopped_by, signal.SIG_DFL)
+                os.kill(os.getpid(), stopped_by)
         except BaseException:
             (run_dir / SERVICE_ERROR).write_text(traceback.format_exc())
         finally:
@@ -258,7 +323,7 @@ class _StepWatch:
             status = _exited(self.pid)
             if status is not None:
                 self.status = status
-                self.outcome.failure = f"service {_describe(status)} at step {k}"
+                self.outcome.end(status, f"at step {k}")
                 self.stop.set()
             elif self.consecutive >= MAX_CONSECUTIVE_TIMEOUTS:
                 self.outcome.failure = f"service stopped answering at step {k}"
@@ -297,15 +362,20 @@ def _run_emulator(
 
 
 def _end_service(outcome: HilOutcome, pid: int, status: int | None, run_dir: Path) -> None:
-    """Reap the service (stopping it if it still runs) and fail the outcome if it ended
-    early or not cleanly."""
+    """Reap the service (telling it the mission is over if it still runs) and fail the
+    outcome if it ended early or not cleanly, or mark it interrupted if a signal stopped
+    it."""
     if status is None:
         status = _exited(pid)
+        if status is not None and outcome.failure is None and outcome.interrupted is None:
+            outcome.end(status, "before the end")
     if status is None:
-        status = _stop_service(pid)
-    elif outcome.failure is None:
-        outcome.failure = f"service {_describe(status)} before the end"
-    if outcome.failure is None and not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0):
+        status = stop_process(pid, MISSION_OVER)
+    if outcome.failure is not None or outcome.interrupted is not None:
+        return
+    if interrupted(status):
+        outcome.end(status, "at the end")
+    elif not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0):
         outcome.failure = _service_failure(run_dir, status)
 
 

@@ -5,14 +5,23 @@ writes ``runs/RUN_ID/run.json``; the parent only forks, waits and collects. A wo
 dies, or a mission that fails or diverges, is recorded with its reason and the campaign
 goes on. ``resume`` skips missions whose ``run.json`` is already there and is theirs, in a
 directory made with the same settings (``check_resume``).
+
+A mission stopped by a signal (SIGINT, SIGTERM: ``hil_run.INTERRUPTING``) is interrupted,
+not failed: nothing is recorded for it and ``resume`` runs it again. The workers die with
+the campaign's process, even a SIGKILLed one (their parent-death signal), each stopping its
+service first; while any of them lives the campaign directory stays locked
+(``CampaignLock``), so that no second campaign runs the same missions beside them.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import resource
 import shutil
+import signal
 import sys
 import time
 import traceback
@@ -21,13 +30,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from hil_service.campaign.hil_run import run_hil
+from hil_service.campaign.hil_run import STOP_TIMEOUT, interrupted, run_hil
 from hil_service.campaign.metrics import columns, divergence, score
 from hil_service.campaign.mission import Mission, oracle_trace, reference_only_trace
+from hil_service.cli.processes import set_parent_death_signal
 
 RUN_FILE = "run.json"
 RUNS_DIR = "runs"
 SPEC_FILE = "campaign.json"
+#: The file in ``-o DIR`` a running campaign holds an exclusive lock on (``CampaignLock``).
+LOCK_FILE = ".glider-hil-campaign.lock"
+#: A mission process's exit status when its mission was interrupted (nothing recorded).
+INTERRUPTED_EXIT = 130
 #: Keys every recorded row holds (``execute`` and ``failed_row`` write them all).
 ROW_KEYS = ("scenario", "seed", "steps", "status")
 STATUSES = ("ok", "diverged", "failed")
@@ -38,6 +52,67 @@ RESULT_SETTINGS = {
     "step_every": "--step-every",
     "oracle": "--oracle/--no-oracle",
 }
+
+
+class MissionInterrupted(BaseException):
+    """The mission's service was stopped by a signal: the mission has no result. A
+    BaseException, as KeyboardInterrupt is, so that no ``except Exception`` records it."""
+
+
+class CampaignStopped(Exception):
+    """The campaign ended before every mission was recorded (missions interrupted, its
+    cluster lost). ``rows``: the missions recorded, in mission order, for the tables;
+    ``resume`` runs the rest."""
+
+    def __init__(self, message: str, rows: list[dict[str, Any]]) -> None:
+        super().__init__(message)
+        self.rows = rows
+
+
+class CampaignInUse(ValueError):
+    """Another campaign holds the directory's lock."""
+
+
+class CampaignLock:
+    """An exclusive lock (``flock``) on ``DIR/LOCK_FILE``, made with the directory when it
+    is missing, held until ``release`` or until every process holding it has ended: the
+    forked workers and services inherit it, so a SIGKILLed campaign's directory stays
+    locked until the last of them is gone. OSError when the directory cannot be made or
+    written, ``CampaignInUse`` when another campaign holds it."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self.created = not out.exists()
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / LOCK_FILE
+        self.fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(self.fd, 32, 0).decode(errors="replace").strip()
+            os.close(self.fd)
+            raise CampaignInUse(
+                f"-o {out}: another campaign is running in it"
+                + (f" (started by process {holder})" if holder else "")
+                + ": wait for it to end, or use another -o"
+            ) from None
+        except OSError:
+            os.close(self.fd)
+            raise
+        os.ftruncate(self.fd, 0)
+        os.pwrite(self.fd, f"{os.getpid()}\n".encode(), 0)
+
+    def release(self, remove_if_new: bool = False) -> None:
+        """Unlock; with ``remove_if_new``, remove the directory if this lock made it and
+        nothing else was written there (a campaign that could not start)."""
+        try:
+            if remove_if_new and self.created and os.listdir(self.out) == [LOCK_FILE]:
+                (self.out / LOCK_FILE).unlink()
+                self.out.rmdir()
+        except OSError:
+            pass
+        finally:
+            os.close(self.fd)
 
 
 @dataclass(frozen=True)
@@ -121,6 +196,8 @@ def execute(spec: CampaignSpec, mission: Mission) -> dict[str, Any]:
         vehicle = outcome.service.get("vehicles", {}).get("1", {})
         row["commands_sent"] = vehicle.get("commands_sent")
         row["commands_refused"] = (vehicle.get("acks") or {}).get("refused")
+        if outcome.interrupted is not None:
+            raise MissionInterrupted(outcome.interrupted)
         if outcome.failure is not None:
             row.update(status="failed", reason=outcome.failure)
             return row
@@ -153,7 +230,10 @@ def _cpu_seconds() -> float:
 
 
 def mission_worker(spec: CampaignSpec, mission: Mission) -> None:
-    """The forked worker's body; it leaves with os._exit, never returning to the caller."""
+    """The forked worker's body; it leaves with os._exit, never returning to the caller:
+    0 with its row written, ``INTERRUPTED_EXIT`` (no row) when the mission was interrupted
+    (KeyboardInterrupt, which SIGTERM raises in a worker, or its service stopped by a
+    signal)."""
     code = 1
     try:
         cpu = _cpu_seconds()
@@ -161,8 +241,16 @@ def mission_worker(spec: CampaignSpec, mission: Mission) -> None:
         row["cpu_s"] = round(_cpu_seconds() - cpu, 3)  # the worker's and its service's
         write_row(run_dir(spec, mission), row)
         code = 0
+    except (KeyboardInterrupt, MissionInterrupted):
+        code = INTERRUPTED_EXIT
     finally:
         os._exit(code)
+
+
+def worker_interrupted(status: int) -> bool:
+    """Whether a mission process's wait status says its mission was interrupted."""
+    exited = os.WIFEXITED(status) and os.WEXITSTATUS(status) == INTERRUPTED_EXIT
+    return exited or interrupted(status)
 
 
 def describe_exit(status: int) -> str:
@@ -318,13 +406,57 @@ def prepare(
 
 
 def clear_result(spec: CampaignSpec, mission: Mission) -> None:
-    """Remove a mission's stale ``run.json`` (an earlier, unfinished campaign's, or one
-    that was not usable) before it runs."""
-    stale = run_dir(spec, mission) / RUN_FILE
-    if stale.is_dir() and not stale.is_symlink():
-        shutil.rmtree(stale)
-    elif stale.exists() or stale.is_symlink():
-        stale.unlink()
+    """Empty a mission's run directory before it runs: a stale ``run.json`` (one that was
+    not usable) and what an interrupted attempt left (its log, ``service.json``), so that
+    the directory holds one attempt's files."""
+    directory = run_dir(spec, mission)
+    if directory.is_symlink() or (directory.exists() and not directory.is_dir()):
+        directory.unlink()
+    elif directory.is_dir():
+        shutil.rmtree(directory)
+
+
+def _start_worker(spec: CampaignSpec, mission: Mission) -> int:
+    """Fork the mission's worker; its pid. SIGTERM interrupts the worker as Ctrl-C does,
+    and it gets SIGTERM when the campaign's process ends, however it ends."""
+    pid = os.fork()
+    if pid != 0:
+        return pid
+    try:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+        set_parent_death_signal(signal.SIGTERM)
+    except KeyboardInterrupt:
+        os._exit(INTERRUPTED_EXIT)
+    mission_worker(spec, mission)  # leaves with os._exit
+    raise AssertionError("unreachable")
+
+
+def _stop_workers(running: dict[int, Mission]) -> None:
+    """Interrupt every running worker and reap it (each first waits for its service, its
+    log closed); SIGKILL what is left after ``STOP_TIMEOUT``, or on a second Ctrl-C."""
+    for pid in running:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + STOP_TIMEOUT
+    left = set(running)
+    try:
+        while left and time.monotonic() < deadline:
+            left = {pid for pid in left if not _reaped(pid)}
+            time.sleep(0.01)  # a bounded poll for the workers' exit, not a pacing sleep
+    except KeyboardInterrupt:
+        pass
+    for pid in left:
+        if not _reaped(pid):
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+
+
+def _reaped(pid: int) -> bool:
+    """Reap the child ``pid`` if it has exited; whether it is gone."""
+    try:
+        return os.waitpid(pid, os.WNOHANG)[0] == pid
+    except ChildProcessError:  # reaped already
+        return True
 
 
 def run_campaign(
@@ -334,31 +466,46 @@ def run_campaign(
 
     Waits for any child (``os.waitpid(-1)``): call it from a process whose only children
     are its workers (the ``campaign`` verb's), not from one that runs other subprocesses.
+    An exception here (KeyboardInterrupt) interrupts and reaps the running workers before
+    it propagates; missions interrupted while the campaign went on raise
+    ``CampaignStopped`` at the end, with the rows recorded.
     """
     missions = spec.missions()
     rows, pending = prepare(spec)
     progress = Progress(len(pending))
     running: dict[int, Mission] = {}
+    not_recorded: list[str] = []
     sys.stdout.flush()
     sys.stderr.flush()
-    while pending or running:
-        while pending and len(running) < spec.jobs:
-            mission = pending.pop(0)
-            clear_result(spec, mission)
-            pid = os.fork()
-            if pid == 0:
-                mission_worker(spec, mission)
-            running[pid] = mission
-        pid, status = os.waitpid(-1, 0)
-        mission = running.pop(pid, None)
-        if mission is None:
-            continue
-        row = load_row(run_dir(spec, mission), mission)
-        if row is None:
-            row = failed_row(mission, describe_exit(status))
-            write_row(run_dir(spec, mission), row)
-        rows[mission.run_id] = row
-        progress.update(row)
-        if on_row is not None:
-            on_row(row)
-    return [rows[m.run_id] for m in missions]
+    try:
+        while pending or running:
+            while pending and len(running) < spec.jobs:
+                mission = pending.pop(0)
+                clear_result(spec, mission)
+                running[_start_worker(spec, mission)] = mission
+            pid, status = os.waitpid(-1, 0)
+            mission = running.pop(pid, None)
+            if mission is None:
+                continue
+            row = load_row(run_dir(spec, mission), mission)
+            if row is None and worker_interrupted(status):
+                not_recorded.append(mission.run_id)
+                continue
+            if row is None:
+                row = failed_row(mission, describe_exit(status))
+                write_row(run_dir(spec, mission), row)
+            rows[mission.run_id] = row
+            progress.update(row)
+            if on_row is not None:
+                on_row(row)
+    except BaseException:
+        _stop_workers(running)
+        raise
+    recorded = [rows[m.run_id] for m in missions if m.run_id in rows]
+    if not_recorded:
+        raise CampaignStopped(
+            f"{len(not_recorded)} mission(s) interrupted (a signal stopped the mission or "
+            f"its service), not recorded: {', '.join(not_recorded)}; --resume runs them",
+            recorded,
+        )
+    return recorded

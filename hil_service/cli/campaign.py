@@ -15,16 +15,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from hil_service.campaign import SCENARIOS
 from protocols.flag_types import positive_float, positive_int
 
 if TYPE_CHECKING:
     from hil_service.campaign.runner import CampaignSpec
+
+#: The exit status of a campaign stopped by Ctrl-C or SIGTERM (as a shell reports SIGINT).
+INTERRUPTED = 130
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -134,79 +138,124 @@ def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.action == "compare":
         return _compare(args)
-    from hil_service.campaign.runner import (
-        CampaignSpec,
-        check_resume,
-        parse_seeds,
-        run_campaign,
-    )
-    from hil_service.campaign.summary import write_outputs
-
     try:
-        if args.dirs:
-            raise ValueError(f"unexpected arguments {args.dirs}")
-        if args.out is None:
-            raise ValueError("-o DIR is required")
-        if args.scheduler is None and args.logs != "auto":
-            raise ValueError("--logs needs --scheduler")
-        scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
-        unknown = [s for s in scenarios if s not in SCENARIOS]
-        if unknown:
-            raise ValueError(f"unknown scenarios {unknown}; choose from {SCENARIOS}")
-        kills = {}
-        for item in args.kill_service:
-            run_id, _, step = item.rpartition(":")
-            kills[run_id] = int(step)
-        spec = CampaignSpec(
-            scenarios=scenarios,
-            seeds=parse_seeds(args.seeds),
-            out=Path(args.out),
-            steps=args.steps,
-            jobs=args.jobs,
-            identify=args.identify,
-            step_every=args.step_every,
-            oracle=args.oracle,
-            timeout=args.lockstep_timeout,
-            resume=args.resume,
-            kill_service=kills,
-        )
-        check_mission_segments(spec)
-        if not args.resume and (spec.out / "runs").exists():
-            raise ValueError(f"{spec.out} already holds runs: --resume, or another -o")
-        check_resume(spec)  # before a scheduler is reached or anything is written
+        spec = _campaign_spec(args)
     except ValueError as error:
         print(f"glider-hil campaign: {error}", file=sys.stderr)
         return 2
-    started = time.monotonic()
-    if args.scheduler is None:
-        rows = run_campaign(spec)
-    else:
-        from hil_service.campaign.dask_engine import run_campaign_dask
+    # SIGTERM (kill, a batch system, docker stop) ends a campaign as Ctrl-C does.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        return _run_in_directory(args, spec)
+    except KeyboardInterrupt:
+        print(
+            f"glider-hil campaign: interrupted: the missions recorded in {spec.out} are kept, "
+            "the running ones are not; --resume runs the rest",
+            file=sys.stderr,
+        )
+        return INTERRUPTED
 
-        try:
-            rows = run_campaign_dask(spec, args.scheduler, args.logs, args.scheduler_timeout)
-        except (OSError, TimeoutError) as error:
-            print(
-                f"glider-hil campaign: cannot use the scheduler {args.scheduler}: {error}",
-                file=sys.stderr,
-            )
-            return 2
-    wall = time.monotonic() - started
-    write_outputs(spec.out, rows, spec.to_json(), figures=not args.no_figures, wall_s=wall)
-    counts = {k: sum(r.get("status") == k for r in rows) for k in ("ok", "diverged", "failed")}
-    print(
-        json.dumps(
-            {
-                "campaign": {
-                    "runs": len(rows),
-                    **counts,
-                    "wall_s": round(wall, 1),
-                    "out": str(spec.out),
-                }
-            }
-        ),
-        flush=True,
+
+def _campaign_spec(args: argparse.Namespace) -> CampaignSpec:
+    """The campaign the flags describe; ValueError names a bad flag."""
+    from hil_service.campaign.runner import CampaignSpec, parse_seeds
+
+    if args.dirs:
+        raise ValueError(f"unexpected arguments {args.dirs}")
+    if args.out is None or not args.out.strip():
+        raise ValueError("-o DIR is required")
+    if args.scheduler is None and args.logs != "auto":
+        raise ValueError("--logs needs --scheduler")
+    if args.scheduler is not None:
+        from hil_service.campaign.dask_engine import check_scheduler_address
+
+        check_scheduler_address(args.scheduler)
+    scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
+    unknown = [s for s in scenarios if s not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown scenarios {unknown}; choose from {SCENARIOS}")
+    kills = {}
+    for item in args.kill_service:
+        run_id, _, step = item.rpartition(":")
+        kills[run_id] = int(step)
+    spec = CampaignSpec(
+        scenarios=scenarios,
+        seeds=parse_seeds(args.seeds),
+        out=Path(args.out),
+        steps=args.steps,
+        jobs=args.jobs,
+        identify=args.identify,
+        step_every=args.step_every,
+        oracle=args.oracle,
+        timeout=args.lockstep_timeout,
+        resume=args.resume,
+        kill_service=kills,
     )
+    check_mission_segments(spec)
+    return spec
+
+
+def _run_in_directory(args: argparse.Namespace, spec: CampaignSpec) -> int:
+    """Lock ``-o DIR`` (one campaign at a time in it), check it, run the missions, write
+    the tables; the exit status."""
+    from hil_service.campaign.runner import CampaignInUse, CampaignLock, check_resume
+
+    try:
+        lock = CampaignLock(spec.out)
+    except CampaignInUse as error:
+        print(f"glider-hil campaign: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(
+            f"glider-hil campaign: -o {spec.out}: cannot use it as the campaign directory: "
+            f"{error.strerror or error}",
+            file=sys.stderr,
+        )
+        return 2
+    could_not_start = False
+    try:
+        try:
+            if not args.resume and (spec.out / "runs").exists():
+                raise ValueError(f"{spec.out} already holds runs: --resume, or another -o")
+            check_resume(spec)  # before a scheduler is reached or anything is written
+        except ValueError as error:
+            print(f"glider-hil campaign: {error}", file=sys.stderr)
+            return 2
+        code = _run_missions(args, spec)
+        could_not_start = code == 2  # the scheduler: nothing was written
+        return code
+    finally:
+        lock.release(remove_if_new=could_not_start)
+
+
+def _run_missions(args: argparse.Namespace, spec: CampaignSpec) -> int:
+    """Run the campaign and write its tables: 0, 1 when every mission failed or the
+    campaign stopped before it recorded them all (those it did are written), 2 when the
+    scheduler cannot be used (nothing written)."""
+    from hil_service.campaign.runner import CampaignStopped, run_campaign
+
+    started = time.monotonic()
+    stopped: CampaignStopped | None = None
+    try:
+        if args.scheduler is None:
+            rows = run_campaign(spec)
+        else:
+            from hil_service.campaign.dask_engine import SchedulerUnusable, run_campaign_dask
+
+            try:
+                rows = run_campaign_dask(spec, args.scheduler, args.logs, args.scheduler_timeout)
+            except SchedulerUnusable as error:
+                print(f"glider-hil campaign: {error}", file=sys.stderr)
+                return 2
+    except CampaignStopped as error:
+        stopped, rows = error, error.rows
+    except OSError as error:
+        print(f"glider-hil campaign: {error}", file=sys.stderr)
+        return 1
+    counts = _write_tables(args, spec, rows, time.monotonic() - started)
+    if stopped is not None:
+        print(f"glider-hil campaign: {stopped}", file=sys.stderr)
+        return 1
     if counts["failed"] == len(rows):
         print(
             f"glider-hil campaign: every mission failed (reasons in {spec.out / 'summary.md'})",
@@ -214,6 +263,34 @@ def run(args: argparse.Namespace) -> int:
         )
         return 1
     return 0
+
+
+def _write_tables(
+    args: argparse.Namespace, spec: CampaignSpec, rows: list[dict[str, Any]], wall: float
+) -> dict[str, int]:
+    """runs.csv, runs.json, summary.md and the figure of the recorded rows (none when no
+    row is), and the JSON line on stdout; the count of each status."""
+    from hil_service.campaign.summary import write_outputs
+
+    if rows:
+        write_outputs(spec.out, rows, spec.to_json(), figures=not args.no_figures, wall_s=wall)
+    counts = {k: sum(r.get("status") == k for r in rows) for k in ("ok", "diverged", "failed")}
+    not_recorded = len(spec.missions()) - len(rows)
+    print(
+        json.dumps(
+            {
+                "campaign": {
+                    "runs": len(rows),
+                    **counts,
+                    **({"not_recorded": not_recorded} if not_recorded else {}),
+                    "wall_s": round(wall, 1),
+                    "out": str(spec.out),
+                }
+            }
+        ),
+        flush=True,
+    )
+    return counts
 
 
 def burn_in() -> int:
