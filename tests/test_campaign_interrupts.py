@@ -7,7 +7,6 @@ line on stderr, not a traceback."""
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -31,11 +30,12 @@ from hil_service.campaign.runner import (
 )
 from hil_service.cli import main
 from hil_service.cli.processes import free_port, set_parent_death_signal
+from tests.test_campaign_dask import _end as end_process
+from tests.test_campaign_dask import _start as dask_process
 
 #: Missions far longer than a test: each is stopped partway.
 LONG = ("--steps", "400000", "--identify", "300", "--step-every", "1000")
 SMALL = ("--no-oracle", "--no-figures")
-DASK = str(Path(sys.executable).with_name("dask"))
 
 
 def start_campaign(out: Path, *args: str, ignore_sigint: bool = False) -> subprocess.Popen[str]:
@@ -278,23 +278,6 @@ def test_an_unusable_output_directory_is_refused_in_one_line(
 
 
 # ---- Dask ----------------------------------------------------------------------------------
-def _dask(*args: str, log: Path) -> subprocess.Popen[bytes]:
-    with log.open("wb") as output:
-        return subprocess.Popen(
-            [DASK, *args],
-            stdout=output,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            preexec_fn=set_parent_death_signal,
-        )
-
-
-def _kill_group(process: subprocess.Popen[bytes]) -> None:
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        os.killpg(process.pid, signal.SIGKILL)
-    process.wait(10)
-
-
 class OneWorkerCluster:
     """A ``dask scheduler`` and one one-thread ``dask worker`` on 127.0.0.1."""
 
@@ -302,11 +285,11 @@ class OneWorkerCluster:
         self.address = f"tcp://127.0.0.1:{free_port(socket.SOCK_STREAM)}"
         self.tmp = tmp
         port = self.address.rpartition(":")[2]
-        self.scheduler = _dask(
+        self.scheduler = dask_process(
             "scheduler", "--host", "127.0.0.1", "--port", port, "--no-dashboard",
             log=tmp / "scheduler.log",
         )  # fmt: skip
-        self.nanny = _dask(
+        self.nanny = dask_process(
             "worker", self.address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
             "--host", "127.0.0.1", "--local-directory", str(tmp / "worker"),
             log=tmp / "worker.log",
@@ -318,8 +301,8 @@ class OneWorkerCluster:
         return [m for worker in children(self.nanny.pid) for m in children(worker)]
 
     def stop(self) -> None:
-        _kill_group(self.nanny)
-        _kill_group(self.scheduler)
+        end_process(self.nanny)
+        end_process(self.scheduler)
 
     def logs(self) -> str:
         return "\n".join(p.read_text()[-2000:] for p in sorted(self.tmp.glob("*.log")))
@@ -388,7 +371,7 @@ def test_a_lost_scheduler_is_one_line_with_the_finished_missions_kept(
     try:
         wait_until(lambda: recorded(out) == ["disturbed-s0000"], 60, "seed 0 recorded")
         wait_for_mission(campaign, cluster)
-        _kill_group(cluster.scheduler)
+        end_process(cluster.scheduler)
         stdout, stderr = campaign.communicate(timeout=60)
         wait_until(lambda: not cluster.missions(), 30, "the worker's mission ended")
     finally:
@@ -412,7 +395,7 @@ def test_a_campaign_whose_last_worker_dies_ends_after_the_scheduler_timeout(
     campaign = dask_campaign(cluster, out, "--seeds", "0", *LONG, "--scheduler-timeout", "3")
     try:
         wait_for_mission(campaign, cluster)
-        _kill_group(cluster.nanny)
+        end_process(cluster.nanny)
         stdout, stderr = campaign.communicate(timeout=60)
     finally:
         end(campaign)
