@@ -38,7 +38,7 @@ _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, com
 _U64 = struct.Struct("<Q")
 
 #: Records parsed with the mcap package's classes; every other non-message record is skipped.
-_PARSED: dict[int, type] = {
+_PARSED: dict[int, type[Header] | type[Schema] | type[Channel] | type[Metadata]] = {
     Opcode.HEADER: Header,
     Opcode.SCHEMA: Schema,
     Opcode.CHANNEL: Channel,
@@ -61,7 +61,7 @@ class DamagedChunk(NamedTuple):
 
 def read_records(
     stream: BinaryIO, validate_crcs: bool = True, record_size_limit: int = 1 << 30
-) -> Iterator[McapRecord]:
+) -> Iterator[McapRecord | DamagedChunk]:
     """Header, schemas, channels, metadata, messages (chunked or not) and the footer.
 
     Ends after the footer, or at the end of the data when there is none (a writer that
@@ -112,7 +112,9 @@ def _message(data: bytes, start: int, length: int) -> Message:
     )
 
 
-def _chunk_records(body: bytes, validate_crcs: bool, limit: int) -> Iterator[McapRecord]:
+def _chunk_records(
+    body: bytes, validate_crcs: bool, limit: int
+) -> Iterator[McapRecord | DamagedChunk]:
     try:
         _, _, size, crc, name_length = _CHUNK_HEAD.unpack_from(body)
         position = _CHUNK_HEAD.size
