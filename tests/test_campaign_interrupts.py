@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from hil_service.campaign import hil_run
 from hil_service.campaign.runner import (
     CampaignLock,
     CampaignSpec,
@@ -70,6 +71,11 @@ def alive(pid: int) -> bool:
     except OSError:
         return False
     return stat.rpartition(")")[2].split()[0] != "Z"
+
+
+#: How long a stopped mission may take to be gone: a mission stops its service and waits
+#: for it to close its log (``hil_run.STOP_TIMEOUT``, then SIGKILL), on a loaded machine.
+STOPPED = hil_run.STOP_TIMEOUT + 60.0
 
 
 def wait_until(condition: Callable[[], bool], timeout: float, what: str) -> None:
@@ -122,7 +128,8 @@ def test_a_sigkilled_campaign_takes_its_missions_and_services_with_it(tmp_path: 
         tree = services_running(campaign, out, 2)
         campaign.send_signal(signal.SIGKILL)
         campaign.wait(10)
-        wait_until(lambda: not any(alive(pid) for pid in tree), 20, "workers and services gone")
+        gone = "workers and services gone"
+        wait_until(lambda: not any(alive(pid) for pid in tree), STOPPED, gone)
     finally:
         end(campaign)
     assert recorded(out) == []  # nothing half-done recorded: --resume runs both again
@@ -346,7 +353,7 @@ def test_a_stopped_client_s_mission_stops_and_leaves_nothing_in_runs(
         wait_for_mission(campaign, cluster)
         campaign.send_signal(signum)
         _, stderr = campaign.communicate(timeout=30)
-        wait_until(lambda: not cluster.missions(), 20, "the abandoned mission stopped")
+        wait_until(lambda: not cluster.missions(), STOPPED, "the abandoned mission stopped")
     finally:
         end(campaign)
     assert files_in_runs(out) == []
@@ -373,7 +380,7 @@ def test_a_lost_scheduler_is_one_line_with_the_finished_missions_kept(
         wait_for_mission(campaign, cluster)
         end_process(cluster.scheduler)
         stdout, stderr = campaign.communicate(timeout=60)
-        wait_until(lambda: not cluster.missions(), 30, "the worker's mission ended")
+        wait_until(lambda: not cluster.missions(), STOPPED, "the worker's mission ended")
     finally:
         end(campaign)
     assert campaign.returncode == 1, stderr
