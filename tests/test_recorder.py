@@ -328,3 +328,21 @@ def test_records_after_close_are_counted_as_dropped(tmp_path):
     recorder.close()
     recorder.raw("in", frames(1)[0])
     assert recorder.status.records == 1 and recorder.status.dropped == 1
+
+
+@pytest.mark.parametrize("size", [12, 20])
+def test_a_log_cut_inside_its_header_is_named_as_cut_not_as_another_format(tmp_path, size):
+    """The MCAP magic is there, the header record is not whole: the file is a cut log."""
+    recorder = McapRecorder(tmp_path / "whole", flush_interval=0.05).start()
+    for frame in frames(5):
+        recorder.raw("in", frame)
+    recorder.close()
+    (whole,) = (tmp_path / "whole").glob("*.mcap")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[:size])
+    with pytest.raises(LogError, match=rf"an MCAP file cut short in its header \({size} bytes\)"):
+        read_all(cut)
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x00" * size)
+    with pytest.raises(LogError, match="not an MCAP file"):
+        read_all(junk)

@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 
 from hil_service.mcap.recorder import CONFIG_METADATA, PART_METADATA
-from hil_service.mcap.records import DamagedChunk, read_records
+from hil_service.mcap.records import MAGIC, DamagedChunk, read_records
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
 
@@ -128,7 +128,7 @@ class LogReader:
                     break
                 except Exception as error:  # truncated or corrupted: stop, say where
                     if offset == 0:
-                        raise LogError(f"{self.path}: not an MCAP file ({error})") from error
+                        raise LogError(self._unreadable_start(stream, error)) from error
                     report.error = f"{type(error).__name__}: {error}".strip()
                     report.error_offset = offset  # the start of the first bad record
                     report.ended = True
@@ -172,6 +172,18 @@ class LogReader:
                     report.damaged_chunks += 1
                     if not report.first_damage:
                         report.first_damage = f"{record.reason} at byte {record.offset}"
+
+    def _unreadable_start(self, stream: Any, error: Exception) -> str:
+        """Why a file gave no first record: not MCAP at all, or an MCAP file (its magic
+        is there) cut short before its header record ended."""
+        stream.seek(0)
+        if stream.read(len(MAGIC)) != MAGIC:
+            return f"{self.path}: not an MCAP file ({error})"
+        size = self.report.file_size
+        return (
+            f"{self.path}: an MCAP file cut short in its header ({size} bytes): no record "
+            "to read"
+        )
 
     def part(self) -> tuple[int, str] | None:
         """Which file of a rotated log this is (read the messages first): its part number
