@@ -33,6 +33,7 @@ from hil_service.cli import main
 from hil_service.cli.processes import free_port, set_parent_death_signal
 from tests.test_campaign_dask import _end as end_process
 from tests.test_campaign_dask import _start as dask_process
+from tests.test_campaign_dask import children
 
 #: Missions far longer than a test: each is stopped partway.
 LONG = ("--steps", "400000", "--identify", "300", "--step-every", "1000")
@@ -54,14 +55,6 @@ def start_campaign(out: Path, *args: str, ignore_sigint: bool = False) -> subpro
         text=True,
         preexec_fn=setup,
     )
-
-
-def children(pid: int) -> list[int]:
-    try:
-        paths = Path(f"/proc/{pid}/task").glob("*/children")
-        return [int(c) for path in paths for c in path.read_text().split()]
-    except OSError:
-        return []
 
 
 def alive(pid: int) -> bool:

@@ -9,7 +9,6 @@ companion), so a frame's system id says which vehicle it was for.
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 
 import pytest
@@ -20,39 +19,24 @@ from hil_service.listeners import Listener
 from hil_service.service import HilService
 from protocols.lockstep import lockstep_heartbeat, released_time
 from protocols.mapping import TelemetryMapping
-from protocols.mavlink_io import Link, MavlinkCodec, MavMessage, system_of
+from protocols.mavlink_io import MavlinkCodec, MavMessage, system_of
 from protocols.samples import TelemetrySample
+from tests.test_safety_gate import SentFrames
 
 MAPPING = TelemetryMapping()
 STEPS = 10
 
 
-class SentFrames:
-    """The far end of the service's link: every datagram the service sends."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.setblocking(False)
-        self.link = Link(f"udpout:127.0.0.1:{self.sock.getsockname()[1]}")
-
-    def releases(self) -> dict[int, list[int]]:
-        """The steps released by ``SYSTEM_TIME`` so far, by the vehicle they went to."""
-        codec = MavlinkCodec(255, 0)
-        released: dict[int, list[int]] = {}
-        while True:
-            try:
-                data = self.sock.recv(65536)
-            except BlockingIOError:
-                return released
-            for message in codec.parse(data, datagram=True):
-                step = released_time(message)
-                if step is not None:
-                    released.setdefault(system_of(message), []).append(step)
-
-    def close(self) -> None:
-        self.link.close()
-        self.sock.close()
+def releases(sent: SentFrames) -> dict[int, list[int]]:
+    """The steps released by ``SYSTEM_TIME`` so far, by the vehicle they went to."""
+    codec = MavlinkCodec(255, 0)
+    released: dict[int, list[int]] = {}
+    for data in sent.frames:
+        for message in codec.parse(data, datagram=True):
+            step = released_time(message)
+            if step is not None:
+                released.setdefault(system_of(message), []).append(step)
+    return released
 
 
 @pytest.fixture
@@ -110,7 +94,7 @@ def test_a_strangers_announcement_does_not_lockstep_a_served_vehicle(
     vehicle.step(0)  # vehicle 1 takes its slot first
     Vehicle(service, stranger).announce()
     _stream([vehicle], range(1, STEPS))
-    assert sent.releases() == {}
+    assert releases(sent) == {}
     summary = service.summary()
     assert summary["lockstep"] == {
         "active": False, "announced": False, "releases": 0, "released_by_command": 0,
@@ -128,7 +112,7 @@ def test_of_two_vehicles_only_the_one_that_announced_is_released(sent: SentFrame
     # A refused step (pitch beyond ±π) is released to the vehicle in lockstep only.
     announcing.step(STEPS, pitch=4.0)
     silent.step(STEPS, pitch=4.0)
-    assert sent.releases() == {1: [k * 1000 for k in range(STEPS + 1)]}
+    assert releases(sent) == {1: [k * 1000 for k in range(STEPS + 1)]}
     assert service.health(1)["lockstep"] == {
         "active": True, "announced": True, "releases": STEPS + 1, "released_by_command": 0,
         "released_refused": 1,
@@ -147,7 +131,7 @@ def test_serve_lockstep_releases_every_served_vehicle_without_an_announcement(
     Vehicle(service, 3).announce()  # not served: ignored, counted
     _stream(vehicles, range(STEPS))
     steps = [k * 1000 for k in range(STEPS)]
-    assert sent.releases() == {1: steps, 2: steps}
+    assert releases(sent) == {1: steps, 2: steps}
     for system_id in (1, 2):
         assert service.health(system_id)["lockstep"] == {
             "active": True, "announced": False, "releases": STEPS, "released_by_command": 0,
@@ -173,7 +157,7 @@ def test_announcements_of_systems_that_never_stream_do_not_lockstep_the_service(
     _stream([Vehicle(service, 1), Vehicle(service, 2)], range(STEPS))
     for stranger in range(10, 20):  # their heartbeats go on, the slots taken by now
         Vehicle(service, stranger).announce()
-    assert sent.releases() == {}
+    assert releases(sent) == {}
     assert service.summary()["lockstep"] == {
         "active": False, "announced": False, "releases": 0, "released_by_command": 0,
         "released_refused": 0,

@@ -4,7 +4,6 @@ files name their part and the part before them, ``replay`` takes them in order, 
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import pytest
@@ -17,23 +16,7 @@ from hil_service.mcap.recorder import McapRecorder
 from hil_service.offline.replay import ReplayInbox
 from protocols import keys
 from tests.conftest import DATA
-
-
-class SimulatedClock:
-    """The recorder's clock for ``max_seconds`` rotation, moved by the test."""
-
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-def _wait_until(predicate, timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "the recorder did not rotate"
-        time.sleep(0.01)
+from tests.test_recorder import StoppedClock, wait_until
 
 
 def _rotated_log(directory: Path) -> list[Path]:
@@ -50,7 +33,7 @@ def _rotated_log(directory: Path) -> list[Path]:
             frames.append(message.data)
     config = ServiceConfig.from_stored(reader.config())
     assert config is not None
-    clock = SimulatedClock()
+    clock = StoppedClock()  # the recorder's clock for max_seconds rotation
     recorder = McapRecorder(
         directory, config.to_metadata(), max_seconds=60.0, flush_interval=0.02, clock=clock
     ).start()
@@ -59,7 +42,7 @@ def _rotated_log(directory: Path) -> list[Path]:
     for frame in frames[:half]:
         wired.service.process_datagram(frame)
     clock.now += 61.0  # the first file is now older than max_seconds: the writer ends it
-    _wait_until(lambda: any(p.stat().st_size and _has_footer(p) for p in directory.glob("*.mcap")))
+    assert wait_until(lambda: _one_finished(directory), timeout=20.0), "no rotation"
     for frame in frames[half:]:
         wired.service.process_datagram(frame)
     wired.notifier.stop()
@@ -67,6 +50,11 @@ def _rotated_log(directory: Path) -> list[Path]:
     files = [Path(name) for name in recorder.status.files]
     assert len(files) == 2, files
     return files
+
+
+def _one_finished(directory: Path) -> bool:
+    """A file of ``directory`` has its footer: the recorder has ended it."""
+    return any(path.stat().st_size and _has_footer(path) for path in directory.glob("*.mcap"))
 
 
 def _has_footer(path: Path) -> bool:

@@ -145,12 +145,18 @@ class McapRecorder:
 
     def mavlink(self, direction: str, message: MavMessage, t_ns: int | None = None) -> None:
         """A decoded message, logged as JSON on ``mavlink/json/{direction}/{TYPE}``."""
+        data = self._json_of(message)
+        if data is not None:
+            self._record(("json_mav", direction, type_of(message)), data, _now_if_none(t_ns))
+
+    def _json_of(self, message: MavMessage) -> bytes | None:
+        """The message as JSON; None (dropped and counted) when it cannot be encoded: an
+        unencodable record must not end all logging."""
         try:
-            data = payload_json.encode(message_to_json(message))
-        except Exception as error:  # an unencodable record must not end all logging
+            return payload_json.encode(message_to_json(message))
+        except Exception as error:
             self._drop(error)
-            return
-        self._record(("json_mav", direction, type_of(message)), data, _now_if_none(t_ns))
+            return None
 
     def zenoh(self, key: str, payload: Any, direction: str, t_ns: int | None = None) -> None:
         """A payload on ``key``, encoded here; one that JSON cannot hold (an integer beyond
@@ -180,12 +186,7 @@ class McapRecorder:
         and the message, if any, as JSON; both records under one hold of the lock."""
         if frame is None and message is not None:
             frame = frame_of(message)
-        data = None
-        if message is not None:
-            try:
-                data = payload_json.encode(message_to_json(message))
-            except Exception as error:  # an unencodable record must not end all logging
-                self._drop(error)
+        data = None if message is None else self._json_of(message)
         with self._lock:
             full = frame is not None and self._add_locked(("raw", direction), frame, t_ns)
             if data is not None:
