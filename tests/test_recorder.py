@@ -330,9 +330,10 @@ def test_records_after_close_are_counted_as_dropped(tmp_path):
     assert recorder.status.records == 1 and recorder.status.dropped == 1
 
 
-@pytest.mark.parametrize("size", [12, 20])
+@pytest.mark.parametrize("size", [8, 12, 20])
 def test_a_log_cut_inside_its_header_is_named_as_cut_not_as_another_format(tmp_path, size):
-    """The MCAP magic is there, the header record is not whole: the file is a cut log."""
+    """The MCAP magic is there, the header record is not whole (or not there at all: the
+    magic alone): the file is a cut log."""
     recorder = McapRecorder(tmp_path / "whole", flush_interval=0.05).start()
     for frame in frames(5):
         recorder.raw("in", frame)

@@ -124,6 +124,8 @@ class LogReader:
                 try:
                     record = next(records)
                 except StopIteration:
+                    if offset == 0:  # the magic alone: a log cut before its header record
+                        raise LogError(self._unreadable_start(stream, EOFError())) from None
                     report.ended = True
                     break
                 except Exception as error:  # truncated or corrupted: stop, say where
