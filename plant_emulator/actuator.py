@@ -36,12 +36,21 @@ class BallastActuator:
 
     def apply(self, command: float) -> float:
         """Move toward ``command`` for one step; return the effective input to the dynamics."""
+        position = self.position
         if not math.isfinite(command):
-            command = self.position
-        target = min(max(command, -self.limit), self.limit)
-        delta = min(max(target - self.position, -self.rate_limit), self.rate_limit)
-        self.position += delta
-        return self.effective(self.position)
+            command = position
+        # min(max(x, −l), l) as comparisons, which pick the same value (ties and NaN
+        # included) without the builtins' calls.
+        limit, rate_limit = self.limit, self.rate_limit
+        target = -limit if -limit > command else command
+        target = limit if limit < target else target
+        delta = target - position
+        delta = -rate_limit if -rate_limit > delta else delta
+        delta = rate_limit if rate_limit < delta else delta
+        position += delta
+        self.position = position
+        nonlinearity = self.nonlinearity
+        return nonlinearity(position) if nonlinearity else position
 
     def effective(self, position: float) -> float:
         return self.nonlinearity(position) if self.nonlinearity else position

@@ -479,11 +479,12 @@ class Autopilot:
                 dialect.MAV_SEVERITY_WARNING,
             )
         if self._external_active:
-            held = self.plant.applied_inputs()
-            return (
-                held[0] if math.isnan(self._external["depth"]) else self._external["depth"],
-                held[1] if math.isnan(self._external["pitch"]) else self._external["pitch"],
-            )
+            depth, pitch = self._external["depth"], self._external["pitch"]
+            if math.isnan(depth) or math.isnan(pitch):
+                held = self.plant.applied_inputs()
+                depth = held[0] if math.isnan(depth) else depth
+                pitch = held[1] if math.isnan(pitch) else pitch
+            return depth, pitch
         if self.fallback == "hold" and self._last_command_t is not None:
             return 0.0, 0.0
         if not self.armed:
@@ -504,8 +505,12 @@ class Autopilot:
 
     def step(self) -> TelemetrySample:
         sample = self.plant.step(*self._inputs_for_step())
-        for message in self.step_messages(sample):
-            self._send(message)
+        # As ``send`` does for each message, with the lookups made once per step.
+        messages = self.step_messages(sample)
+        pack, send = self.codec.pack, self.link.send
+        for message in messages:
+            send(pack(message))
+        self.stats.frames_sent += len(messages)
         self.navigation.advance(sample, self.plant.config.period)
         self.stats.steps += 1
         self.stats.last_sample = sample

@@ -123,12 +123,19 @@ class ClosedLoopChannel:
 
     def output(self, reference: float) -> float:
         """Output for the current state if ``reference`` is applied now."""
-        return float(self.c_cl @ self.state + self.d_cl * reference)
+        return float(self.c_cl.dot(self.state) + self.d_cl * reference)
 
     def step(self, reference: float) -> float:
-        """Apply ``reference`` for one period; return the output at the start of the period."""
-        y = self.output(reference)
-        self.state = self.a_cl @ self.state + self.b_cl * reference
+        """Apply ``reference`` for one period; return the output at the start of the period.
+
+        The same numpy products (BLAS, with fused multiply-adds) and sums as ``c @ x + d·r``
+        and ``A @ x + b·r``, in fewer numpy calls: the new state is summed in place.
+        """
+        state = self.state
+        y = float(self.c_cl.dot(state) + self.d_cl * reference)
+        state = self.a_cl.dot(state)
+        state += self.b_cl * reference
+        self.state = state
         return y
 
     def spectral_radius(self) -> float:

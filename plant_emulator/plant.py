@@ -67,33 +67,36 @@ class GliderPlant:
         limiting), so an identifier sees y(t) together with u(t) and uses u(t−1) from the
         previous sample.
         """
-        t = self.t
-        outputs = {}
-        applied = {}
-        for ch, command in (("depth", u_depth), ("pitch", u_pitch)):
-            actuator = self.actuators[ch]
-            effective = actuator.apply(command)
-            applied[ch] = actuator.position
-            y = self.loops[ch].step(effective)
-            outputs[ch] = y + self.disturbances[ch].sample(t)
-        depth = self.config.trim_depth + outputs["depth"]
-        pitch = outputs["pitch"]
-        period = self.config.period
-        climb = 0.0 if self._last_depth is None else -(depth - self._last_depth) / period
-        pitch_rate = 0.0 if self._last_pitch is None else (pitch - self._last_pitch) / period
+        config = self.config
+        period = config.period
+        t = self.k * period
+        actuators, loops, disturbances = self.actuators, self.loops, self.disturbances
+        # Depth, then pitch: each channel's actuator, loop and disturbance in this order.
+        actuator = actuators["depth"]
+        effective = actuator.apply(u_depth)
+        u_depth_applied = actuator.position
+        depth_out = loops["depth"].step(effective) + disturbances["depth"].sample(t)
+        actuator = actuators["pitch"]
+        effective = actuator.apply(u_pitch)
+        u_pitch_applied = actuator.position
+        pitch = loops["pitch"].step(effective) + disturbances["pitch"].sample(t)
+        depth = config.trim_depth + depth_out
+        last_depth, last_pitch = self._last_depth, self._last_pitch
+        climb = 0.0 if last_depth is None else -(depth - last_depth) / period
+        pitch_rate = 0.0 if last_pitch is None else (pitch - last_pitch) / period
         self._last_depth, self._last_pitch = depth, pitch
-        sample = TelemetrySample(
-            system_id=self.system_id,
-            time_boot_ms=round(t * 1000.0),
-            depth=depth,
-            pitch=pitch,
-            u_depth=applied["depth"],
-            u_pitch=applied["pitch"],
-            pitch_rate=pitch_rate,
-            climb=climb,
-        )
         self.k += 1
-        return sample
+        # Positional, in TelemetrySample's field order (keywords cost more per step).
+        return TelemetrySample(
+            self.system_id,
+            round(t * 1000.0),
+            depth,
+            pitch,
+            u_depth_applied,
+            u_pitch_applied,
+            pitch_rate,
+            climb,
+        )
 
     def applied_inputs(self) -> tuple[float, float]:
         return self.actuators["depth"].position, self.actuators["pitch"].position

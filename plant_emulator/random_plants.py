@@ -241,19 +241,24 @@ class RandomVehicle:
 
     def step(self, u_depth: float, u_pitch: float) -> TelemetrySample:
         """Apply the commanded inputs for one period (see ``GliderPlant.step``)."""
-        outputs, applied = {}, {}
-        for ch, command in (("depth", u_depth), ("pitch", u_pitch)):
-            actuator = self.actuators[ch]
-            effective = actuator.apply(command)
-            applied[ch] = actuator.position
-            outputs[ch] = self.loops[ch].step(effective)
-        t = self.k * self.config.period
+        actuators, loops = self.actuators, self.loops
+        actuator = actuators["depth"]
+        effective = actuator.apply(u_depth)
+        u_depth_applied = actuator.position
+        depth_out = loops["depth"].step(effective)
+        actuator = actuators["pitch"]
+        effective = actuator.apply(u_pitch)
+        u_pitch_applied = actuator.position
+        pitch = loops["pitch"].step(effective)
+        config = self.config
+        t = self.k * config.period
         self.k += 1
+        # Positional, in TelemetrySample's field order (keywords cost more per step).
         return TelemetrySample(
-            system_id=self.system_id,
-            time_boot_ms=round(t * 1000.0),
-            depth=self.config.trim_depth + outputs["depth"],
-            pitch=outputs["pitch"],
-            u_depth=applied["depth"],
-            u_pitch=applied["pitch"],
+            self.system_id,
+            round(t * 1000.0),
+            config.trim_depth + depth_out,
+            pitch,
+            u_depth_applied,
+            u_pitch_applied,
         )

@@ -183,10 +183,15 @@ class Trace:
         )
 
     def record(self, k: int, sample: TelemetrySample) -> None:
-        if 0 <= k < self.y["depth"].size:
-            for ch in CHANNELS:
-                self.y[ch][k] = sample.output(ch)
-                self.u[ch][k] = sample.input(ch)
+        # Once per step of each of a mission's three runs: the fields, not a loop over
+        # channels with ``sample.output``/``input`` calls.
+        y, u = self.y, self.u
+        y_depth = y["depth"]
+        if 0 <= k < y_depth.size:
+            y_depth[k] = sample.depth
+            y["pitch"][k] = sample.pitch
+            u["depth"][k] = sample.u_depth
+            u["pitch"][k] = sample.u_pitch
 
 
 def reference_only_trace(mission: Mission) -> Trace:
