@@ -147,17 +147,20 @@ class WaveOrbital:
     periods: tuple[float, ...] = (60.0, 23.0, 11.0)
     seed: int = 0
     _phases: tuple[float, ...] = field(init=False, repr=False)
+    #: (amplitude, period, phase) of each component, zipped once.
+    _terms: tuple[tuple[float, float, float], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if len(self.amplitudes) != len(self.periods):
             raise ValueError("amplitudes and periods must have the same length")
         rng = np.random.default_rng(self.seed)
         self._phases = tuple(float(p) for p in rng.uniform(0, 2 * math.pi, len(self.periods)))
+        self._terms = tuple(zip(self.amplitudes, self.periods, self._phases, strict=True))
 
     def sample(self, t: float) -> float:
         total = 0.0
         w = 2 * math.pi * t  # the same for every component
-        for a, p, ph in zip(self.amplitudes, self.periods, self._phases, strict=True):
+        for a, p, ph in self._terms:
             total += a * math.sin(w / p + ph)
         return total
 

@@ -57,6 +57,8 @@ class LockstepRunner:
         self.stats = LockstepStats()
         self._waiting: int | None = None  # the step time awaiting its release
         self._released = False
+        #: The link ``BatchedLink`` holds the sends for: waiting and receiving go to it.
+        self._inner = autopilot.link
         self.link = BatchedLink(autopilot.link)  # type: ignore[arg-type]
         autopilot.link = self.link  # type: ignore[assignment]
         autopilot.lockstep = self
@@ -94,28 +96,32 @@ class LockstepRunner:
             if duration is None
             else math.floor(duration / autopilot.plant.config.period + 1e-9)
         )
-        while not stop.is_set():
-            if total_steps is not None and autopilot.stats.steps >= total_steps:
+        # Looked up once: every step calls them.
+        stopped, clock, timeout = stop.is_set, self.clock, self.timeout
+        wait, recv, handle_bytes = self._inner.wait, self._inner.recv, autopilot.handle_bytes
+        stats = autopilot.stats
+        while not stopped():
+            if total_steps is not None and stats.steps >= total_steps:
                 break
             # The heartbeat (1 Hz wall clock, as always; it carries the flag), and with it
             # the ground-station streams.
-            autopilot.send_periodic(self.clock())
+            autopilot.send_periodic(clock())
             sample = autopilot.step()
             link.flush()
             self._waiting = step_time(sample.time_boot_ms)
             self._released = False
-            deadline = self.clock() + self.timeout
-            while not self._released and not stop.is_set():
-                remaining = deadline - self.clock()
+            deadline = clock() + timeout
+            while not self._released and not stopped():
+                remaining = deadline - clock()
                 if remaining <= 0:
                     self.stats.timeouts += 1
                     break
-                if link.wait(min(remaining, 0.2)):
-                    data = link.recv()
+                if wait(remaining if remaining < 0.2 else 0.2):
+                    data = recv()
                     if data:
                         # Its acknowledgement goes with the next step's telemetry: the same
                         # order, one datagram (and one wake-up of the service) less per step.
-                        autopilot.handle_bytes(data)
+                        handle_bytes(data)
             self._waiting = None
         link.flush()
         return autopilot.stats

@@ -60,11 +60,14 @@ class Navigation:
         self.east = 0.0
         self.t = 0.0  # simulated s of the last step
         self.sample: TelemetrySample | None = None
+        # m/s north and east along the configured course, for every step's advance.
+        heading = math.radians(self.config.heading)
+        self._north_speed = self.config.speed * math.cos(heading)
+        self._east_speed = self.config.speed * math.sin(heading)
 
     def advance(self, sample: TelemetrySample, period: float) -> None:
-        heading = math.radians(self.config.heading)
-        self.north += self.config.speed * math.cos(heading) * period
-        self.east += self.config.speed * math.sin(heading) * period
+        self.north += self._north_speed * period
+        self.east += self._east_speed * period
         self.t = sample.time_boot_ms / 1000.0
         self.sample = sample
 
