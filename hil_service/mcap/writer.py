@@ -3,8 +3,10 @@
 Why not ``mcap.writer.Writer``: the recorder logs about a dozen records per plant step and
 must keep up with 10,000 steps/s. The library's writer builds a dataclass per message and
 writes each field with its own ``struct.pack`` and seek, about 4 µs per message (more than
-the rest of the per-sample path together). Here a message record is packed in one call into
-the open chunk's ``bytearray``, and its index entry is one list append.
+the rest of the per-sample path together). Here a message record's fields are written
+straight into the open chunk, a ``librt.strings.BytesWriter`` (mypyc's runtime library:
+compiled, each little-endian write is a C call, no ``struct`` call and no intermediate
+bytes), and its index entry is two list appends.
 
 Why two halves: :class:`ChunkBuilder` is in-memory work cheap enough for the thread that
 produces the records, and :class:`McapFile` does what may block or take long (compression,
@@ -28,6 +30,7 @@ from typing import BinaryIO
 
 import lz4.frame
 import zstandard
+from librt.strings import BytesWriter, write_i32_le, write_i64_le
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.records import (
@@ -50,9 +53,10 @@ from mcap.writer import CompressionType
 #: member from compiled code goes through the enum class's attribute hook every time.
 _MESSAGE_OPCODE = int(Opcode.MESSAGE)
 _MESSAGE_INDEX_OPCODE = int(Opcode.MESSAGE_INDEX)
-#: opcode, record length, channel id, sequence, log time, publish time (then the data).
-_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
-_MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # bytes of the record body before the data
+#: A message record (``mcap.records.Message``): opcode (u8), record length (u64), then the
+#: body: channel id (u16), sequence (u32), log time, publish time (u64 each), the data.
+_MESSAGE_FIXED = 2 + 4 + 8 + 8  # bytes of the body before the data
+_TIME_LIMIT = 1 << 63  # log times are written as i64, the same bytes as u64 below this
 #: opcode, record length, channel id, byte length of the (log time, offset) pairs.
 _INDEX_HEAD = struct.Struct("<BQHI")
 
@@ -63,10 +67,14 @@ ZSTD_LEVEL = 1
 
 
 def _message_index(channel_id: int, pairs: list[int]) -> bytes:
-    """A MessageIndex record (layout of ``mcap.records.MessageIndex``) in two packs."""
-    body = struct.pack(f"<{len(pairs)}Q", *pairs)
-    head = _INDEX_HEAD.pack(_MESSAGE_INDEX_OPCODE, 6 + len(body), channel_id, len(body))
-    return head + body
+    """A MessageIndex record (layout of ``mcap.records.MessageIndex``): its head, then the
+    pairs as u64 (times and offsets are below 2**63, so their i64 bytes are the same)."""
+    body_length = 8 * len(pairs)
+    out = BytesWriter()
+    out.write(_INDEX_HEAD.pack(_MESSAGE_INDEX_OPCODE, 6 + body_length, channel_id, body_length))
+    for value in pairs:
+        write_i64_le(out, value)
+    return out.getvalue()
 
 
 def _record_bytes(*records: object) -> bytes:
@@ -97,9 +105,13 @@ class ChunkBuilder:
     def __init__(self) -> None:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
-        self._chunk = bytearray()
+        self._chunk = BytesWriter()
         self._index: dict[int, list[int]] = {}
         self.messages = 0  # in the open chunk
+        # The open chunk's earliest and latest log time (valid once it holds a message),
+        # kept per message: compiled, two comparisons of machine integers.
+        self._start_time = 0
+        self._end_time = 0
 
     @property
     def size(self) -> int:
@@ -110,7 +122,7 @@ class ChunkBuilder:
         schema_id = len(self.schemas) + 1
         schema = Schema(id=schema_id, name=name, encoding=encoding, data=data)
         self.schemas[schema_id] = schema
-        self._chunk += _record_bytes(schema)
+        self._chunk.write(_record_bytes(schema))
         return schema_id
 
     def register_channel(
@@ -129,20 +141,37 @@ class ChunkBuilder:
             metadata=dict(metadata or {}),
         )
         self.channels[channel_id] = channel
-        self._chunk += _record_bytes(channel)
+        self._chunk.write(_record_bytes(channel))
         return channel_id
 
     def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
-        """One message on a registered channel; publish time is the log time."""
+        """One message on a registered channel; publish time is the log time.
+
+        The fields' bytes are those ``struct.pack("<BQHIQQ", …)`` makes: the channel id as
+        two bytes, the sequence 0, the record length and the times through the signed
+        writers, whose bytes are the unsigned ones below 2**63 (a log time, ns since 1970,
+        is below that until 2262). A channel id beyond u16 or a log time outside
+        [0, 2**63) is refused before anything is written."""
+        if not (0 <= log_time < _TIME_LIMIT and 0 <= channel_id <= 0xFFFF):
+            raise ValueError(f"channel {channel_id} or log time {log_time} out of range")
         chunk = self._chunk
         index = self._index.get(channel_id)
         if index is None:
             index = self._index[channel_id] = []
-        index += (log_time, len(chunk))
-        chunk += _MESSAGE_HEAD.pack(
-            _MESSAGE_OPCODE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
-        )
-        chunk += data
+        index.append(log_time)
+        index.append(len(chunk))
+        if not self.messages or log_time < self._start_time:
+            self._start_time = log_time
+        if not self.messages or log_time > self._end_time:
+            self._end_time = log_time
+        chunk.append(_MESSAGE_OPCODE)
+        write_i64_le(chunk, _MESSAGE_FIXED + len(data))
+        chunk.append(channel_id & 0xFF)
+        chunk.append(channel_id >> 8)
+        write_i32_le(chunk, 0)
+        write_i64_le(chunk, log_time)
+        write_i64_le(chunk, log_time)
+        chunk.write(data)
         self.messages += 1
 
     def seal(self) -> SealedChunk | None:
@@ -152,17 +181,14 @@ class ChunkBuilder:
         """
         if not self.messages:
             return None
-        # The index holds every message's log time: the chunk's time range comes from it
-        # once per chunk, not from a comparison per message.
-        times = [pairs[0::2] for pairs in self._index.values()]
         sealed = SealedChunk(
-            bytes(self._chunk),
+            self._chunk.getvalue(),
             self._index,
-            min(min(t) for t in times),
-            max(max(t) for t in times),
+            self._start_time,
+            self._end_time,
             self.messages,
         )
-        self._chunk = bytearray()
+        self._chunk = BytesWriter()
         self._index = {}
         self.messages = 0
         return sealed
