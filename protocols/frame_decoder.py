@@ -19,11 +19,12 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import Any, Final
 
 MavMessage = Any  # an instance of one of the dialect's generated message classes
 
 _HEADER = struct.Struct("<BBBBBBBHB")  # magic, len, incompat, compat, seq, sys, comp, id lo/hi
+_HEADER_SIZE: Final = _HEADER.size
 
 
 @dataclass(frozen=True)
@@ -76,13 +77,15 @@ class FrameDecoder:
     def __init__(self, dialect: ModuleType) -> None:
         self._dialect = dialect
         self._plans: dict[int, _Plan | None] = {}
-        # pymavlink's own CRC-16/MCRF4XX: fastcrc's C function when installed (one call,
-        # not an object), its pure-Python class otherwise.
-        fast_crc = getattr(dialect, "mcrf4xx", None)
-        if fast_crc is not None:
-            self._crc = lambda data: fast_crc(data, 0xFFFF)
-        else:
-            self._crc = lambda data: dialect.x25crc(data).crc
+        # The dialect's constants and header class, read once: a module attribute read
+        # from compiled code is a dictionary lookup each time.
+        self._signed_flag: int = dialect.MAVLINK_IFLAG_SIGNED
+        self._signature_length: int = dialect.MAVLINK_SIGNATURE_BLOCK_LEN
+        self._header_class: Any = dialect.MAVLink_header
+        # pymavlink's own CRC-16/MCRF4XX: fastcrc's C function when installed (called
+        # directly, with the initial value), its pure-Python class otherwise.
+        self._fast_crc: Any = getattr(dialect, "mcrf4xx", None)
+        self._crc = lambda data: dialect.x25crc(data).crc
 
     def _plan(self, message_id: int) -> _Plan | None:
         try:
@@ -95,32 +98,37 @@ class FrameDecoder:
 
     def decode(self, frame: bytes) -> MavMessage | None:
         """pymavlink's message for ``frame``, or None where pymavlink must decide."""
-        try:
-            _, length, incompat, compat, seq, system, component, low, high = _HEADER.unpack_from(
-                frame
-            )
-        except struct.error:
+        if len(frame) < _HEADER_SIZE:
             return None
-        message_id = low | high << 16
+        # The header's fields, as _HEADER unpacks them, read as single bytes (compiled, a
+        # byte read is a C index, not a call and a tuple).
+        length = frame[1]
+        incompat = frame[2]
+        compat = frame[3]
+        seq = frame[4]
+        system = frame[5]
+        component = frame[6]
+        message_id = frame[7] | frame[8] << 8 | frame[9] << 16
         plan = self._plan(message_id)
         if plan is None:
             return None
-        dialect = self._dialect
-        signature = (
-            dialect.MAVLINK_SIGNATURE_BLOCK_LEN if incompat & dialect.MAVLINK_IFLAG_SIGNED else 0
-        )
-        end = _HEADER.size + length
+        signature = self._signature_length if incompat & self._signed_flag else 0
+        end = _HEADER_SIZE + length
         if len(frame) != end + 2 + signature:
             return None
         crc = frame[end] | frame[end + 1] << 8
-        if self._crc(frame[1:end] + plan.crc_extra) != crc:
+        checked = frame[1:end] + plan.crc_extra
+        fast_crc = self._fast_crc
+        if (self._crc(checked) if fast_crc is None else fast_crc(checked, 0xFFFF)) != crc:
             return None
-        payload = frame[_HEADER.size : end]
-        size = plan.unpacker.size
+        unpacker = plan.unpacker
+        size = unpacker.size
         if length < size:
-            payload += bytes(size - length)  # MAVLink 2 drops trailing zero bytes
+            # MAVLink 2 drops trailing zero bytes
+            unpacked = unpacker.unpack(frame[_HEADER_SIZE:end] + bytes(size - length))
+        else:
+            unpacked = unpacker.unpack_from(frame, _HEADER_SIZE)
         attributes = plan.prototype.copy()
-        unpacked = plan.unpacker.unpack(payload[:size])
         # The fields in declared order (the prototype already holds every key, so the
         # order of the attributes is pymavlink's).
         fields = plan.fields
@@ -134,7 +142,7 @@ class FrameDecoder:
         attributes["_crc"] = crc
         # pymavlink's MAVLink_header, its attributes in the order of its __init__; a whole
         # dict set at once costs less than seven attribute writes, or a Python call.
-        header_class = dialect.MAVLink_header
+        header_class = self._header_class
         header = header_class.__new__(header_class)
         header.__dict__ = {
             "mlen": length,

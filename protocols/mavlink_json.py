@@ -16,13 +16,21 @@ _INTEGER_TYPES = {"int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32
                   "int64_t", "uint64_t", "uint8_t_mavlink_version"}  # fmt: skip
 
 
-@cache
-def _char_fields(message_class: Any) -> tuple[str, ...]:
-    return tuple(
-        name
-        for name, ftype in zip(message_class.fieldnames, message_class.fieldtypes, strict=True)
-        if ftype == "char"
-    )
+#: Per message class: its field names in declared order, and those of its text fields.
+_FIELDS: dict[type, tuple[tuple[str, ...], tuple[str, ...]]] = {}
+
+
+def _fields_of(message_class: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    fields = _FIELDS.get(message_class)
+    if fields is None:
+        names = tuple(message_class.fieldnames)
+        text = tuple(
+            name
+            for name, ftype in zip(names, message_class.fieldtypes, strict=True)
+            if ftype == "char"
+        )
+        fields = _FIELDS[message_class] = (names, text)
+    return fields
 
 
 def message_to_json(message: MavMessage) -> dict[str, Any]:
@@ -32,8 +40,16 @@ def message_to_json(message: MavMessage) -> dict[str, Any]:
     ``null``. pymavlink's decoder gives text fields as ``str``; a message built another way
     may hold ``bytes``, which are decoded with replacement so that it can still be encoded.
     """
-    payload = {name: getattr(message, name) for name in message.fieldnames}
-    for name in _char_fields(message.__class__):
+    names, text = _fields_of(type(message))
+    # The fields are instance attributes (pymavlink's __init__ and FrameDecoder set them
+    # so): read from the instance's dict, without an attribute lookup through the class
+    # for each; a field found elsewhere is read as an attribute.
+    values = message.__dict__
+    try:
+        payload = {name: values[name] for name in names}
+    except KeyError:
+        payload = {name: getattr(message, name) for name in names}
+    for name in text:
         if isinstance(payload[name], bytes):
             payload[name] = payload[name].decode("utf-8", "replace")
     header = header_of(message)
