@@ -307,11 +307,21 @@ class StepContinuity:
         self.period_ms = ordered[(len(ordered) - 1) // 2]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Decision:
     command: BallastCommand | None
     payload: dict[str, Any] | None
     reason: str
+
+    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
+    # Python even where this class is compiled, a frame per sample; ``object.__setattr__``
+    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    def __init__(
+        self, command: BallastCommand | None, payload: dict[str, Any] | None, reason: str
+    ) -> None:
+        object.__setattr__(self, "command", command)
+        object.__setattr__(self, "payload", payload)
+        object.__setattr__(self, "reason", reason)
 
 
 class ChannelPipeline:

@@ -128,16 +128,28 @@ class Ballast:
         return self.depth_output if channel == "depth" else self.pitch_output
 
     def readback_wire(self, message: MavMessage, channel: str) -> float:
-        n = self.output(channel)
+        return self._wire(message, self.output(channel))
+
+    def _wire(self, message: MavMessage, n: int) -> float:
+        """Output ``n``'s value in a readback message, on the wire's −1..1."""
         if self.readback == "SERVO_OUTPUT_RAW":
             return self.pwm.to_wire(getattr(message, f"servo{n}_raw"))
         return float(message.actuator[n - 1])
 
     def applied(self, message: MavMessage) -> tuple[float, float]:
-        """The applied inputs (model units) in a readback message."""
+        """The applied inputs (model units) in a readback message: ``readback_wire`` of
+        each channel times ``full_scale``. Asked for every telemetry step from compiled
+        code, where each Python call is a frame: the actuator readback is read here in one."""
+        scale = self.full_scale
+        if self.readback == "SERVO_OUTPUT_RAW":
+            return (
+                self._wire(message, self.depth_output) * scale,
+                self._wire(message, self.pitch_output) * scale,
+            )
+        actuator = message.actuator
         return (
-            self.readback_wire(message, "depth") * self.full_scale,
-            self.readback_wire(message, "pitch") * self.full_scale,
+            float(actuator[self.depth_output - 1]) * scale,
+            float(actuator[self.pitch_output - 1]) * scale,
         )
 
 

@@ -76,9 +76,16 @@ def is_plausible(sample: TelemetrySample, full_scale: float) -> bool:
     )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class BallastCommand:
     """A ballast command in model units; NaN leaves that channel unchanged."""
 
     u_depth: float
     u_pitch: float
+
+    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
+    # Python even where this class is compiled, a frame per command decided; ``object.__setattr__``
+    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    def __init__(self, u_depth: float, u_pitch: float) -> None:
+        object.__setattr__(self, "u_depth", u_depth)
+        object.__setattr__(self, "u_pitch", u_pitch)

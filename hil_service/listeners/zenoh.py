@@ -26,6 +26,7 @@ from zenoh.handlers import Callback
 
 from hil_service.inputs import Inbox
 from hil_service.listeners import Listener
+from hil_service.listeners.notifier import PublisherTable
 from protocols import keys, payload_json
 
 #: Where a received input goes besides the inbox: (key, payload, direction).
@@ -55,7 +56,12 @@ class ZenohPublisher(Listener):
         self.record = record
         self.warn = warn
         self.program = program  # names the warning's sender
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        # The publications go through a compiled table (notifier.PublisherTable): this
+        # instance's ``on_publish`` is the table's, which the notifier calls for every
+        # publication without a Python frame; the class's method below does the same.
+        self._table = PublisherTable(self._declare)
+        self._publishers: dict[str, zenoh.Publisher] = self._table.publishers
+        self.on_publish = self._table.on_publish  # type: ignore[method-assign]
         self._declared: dict[int, list[Any]] = {}
         # Vehicles whose token another service held, and those whose question has had
         # every answer: written on Zenoh threads, read by the service (under the lock).

@@ -37,7 +37,7 @@ InversePath = Literal["newton", "fallback"]
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class InverseResult:
     """``u`` in range; ``residual`` = f(u) − v; ``iterations`` = Newton updates (newton path)
     or golden-section iterations (fallback path); ``saturated`` = u sits on a range bound
@@ -48,6 +48,18 @@ class InverseResult:
     iterations: int
     residual: float
     saturated: bool
+
+    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
+    # Python even where this class is compiled, a frame per inverse solved; ``object.__setattr__``
+    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    def __init__(
+        self, u: float, path: InversePath, iterations: int, residual: float, saturated: bool
+    ) -> None:
+        object.__setattr__(self, "u", u)
+        object.__setattr__(self, "path", path)
+        object.__setattr__(self, "iterations", iterations)
+        object.__setattr__(self, "residual", residual)
+        object.__setattr__(self, "saturated", saturated)
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
@@ -351,7 +363,7 @@ def solve_inverse(
     return _fallback(f, df, v, start, u_min, u_max, tol_abs, grid_points, refine_iter)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class ShapedCommand:
     """``saturated``: the request lay outside [u_min, u_max]; ``rate_limited``: the change
     was clipped to ``max_rate``."""
@@ -359,6 +371,14 @@ class ShapedCommand:
     u: float
     saturated: bool
     rate_limited: bool
+
+    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
+    # Python even where this class is compiled, a frame per command shaped; ``object.__setattr__``
+    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    def __init__(self, u: float, saturated: bool, rate_limited: bool) -> None:
+        object.__setattr__(self, "u", u)
+        object.__setattr__(self, "saturated", saturated)
+        object.__setattr__(self, "rate_limited", rate_limited)
 
 
 class CommandShaper:
