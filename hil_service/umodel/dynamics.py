@@ -16,6 +16,9 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from librt.vecs import append, vec
+from mypy_extensions import i64
+
 from .rbf import GaussianRBF
 
 __all__ = ["ModelDynamics", "StaticMap"]
@@ -233,20 +236,48 @@ class ModelDynamics:
         """ŷ(start + 1 … end) run freely from the measured ``outputs`` up to ``start`` on the
         recorded ``inputs`` (``inputs[j]``: the input one step before ``outputs[j]``): the
         sums of ``advance``, in its order, from a snapshot whose histories are those
-        records at ``start``. Needs start ≥ max(na, nb) − 1."""
+        records at ``start``. Needs start ≥ max(na, nb) − 1.
+
+        ``lag_value``'s Horner sums are written out here, on unboxed copies of the AR
+        coefficients, the lags' polynomials, the inputs the run reads and the run itself
+        (``vec[float]``): the horizon test runs segments of hundreds of steps, each reading
+        every lag's coefficients and nb inputs; the arithmetic and its order are
+        ``lag_value``'s and ``advance``'s."""
         ar = self.ar
-        na, nb = len(ar), len(self.lag_polys)
-        run = outputs[start - na + 1 : start + 1] if na else []  # oldest first, ŷ appended
+        lag_polys = self.lag_polys
+        na: i64 = len(ar)
+        nb: i64 = len(lag_polys)
+        first: i64 = start
+        last_step: i64 = end
+        if first < max(na, nb) - 1:
+            raise ValueError(f"a free run from {start} needs {max(na, nb) - 1} earlier samples")
+        a = vec[float](ar)
+        polys = [vec[float](poly) for poly in lag_polys]
+        oldest: i64 = first + 2 - nb  # the oldest input the run reads
+        us = vec[float](inputs[oldest : last_step + 1])
+        run = vec[float](outputs[first - na + 1 : first + 1])  # oldest first, ŷ appended
+        bias = self.bias
+        scale = self.poly_scale
+        rbf = self.rbf
         predictions: list[float] = []
-        for j in range(start + 1, end + 1):
-            acc = self.bias
+        for j in range(first + 1, last_step + 1):
+            acc = bias
             last = len(run) - 1
             for i in range(na):
-                acc += ar[i] * run[last - i]
+                acc += a[i] * run[last - i]
             for lag in range(1, nb + 1):
-                acc += self.lag_value(lag, inputs[j - lag + 1])
+                u = us[j - lag + 1 - oldest]
+                x = u * scale
+                poly = polys[lag - 1]
+                q = 0.0
+                for k in range(len(poly) - 1, -1, -1):
+                    q = q * x + poly[k]
+                value = q * x
+                if lag == 1 and rbf is not None:
+                    value += rbf.weighted(u, self.rbf_weights)[0]
+                acc += value
             if na:
-                run.append(acc)
+                run = append(run, acc)
             predictions.append(acc)
         return predictions
 

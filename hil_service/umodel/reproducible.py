@@ -83,6 +83,14 @@ def dot(a: Iterable[float], b: Iterable[float]) -> float:
     loop is what ``sum`` did before 3.12, and is no slower on 3.11.
     """
     total = 0.0
+    if isinstance(a, list) and isinstance(b, list):
+        # The identifiers' vectors: indexed (compiled, a C loop over the two lists), the
+        # same products added in the same order as the loop below.
+        xs: list[float] = a
+        ys: list[float] = b
+        for i in range(min(len(xs), len(ys))):
+            total += xs[i] * ys[i]
+        return total
     for x, y in zip(a, b):  # noqa: B905 - the shorter length, as map(mul, a, b) had
         total += x * y
     return total
