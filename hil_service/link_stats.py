@@ -49,15 +49,17 @@ class SequenceTracker:
     """
 
     _systems: dict[int, LinkCounts] = field(default_factory=dict)
-    _last: dict[tuple[int, int], int] = field(default_factory=dict)
-    _missing: dict[tuple[int, int], set[int]] = field(default_factory=dict)
+    #: Per sender, keyed system_id · 256 + component_id (both are bytes on the wire): an
+    #: int key, not a tuple built and hashed for every frame.
+    _last: dict[int, int] = field(default_factory=dict)
+    _missing: dict[int, set[int]] = field(default_factory=dict)
 
     def observe(self, system_id: int, component_id: int, seq: int) -> None:
         counts = self._systems.get(system_id)
         if counts is None:
             counts = self._systems[system_id] = LinkCounts()
         counts.received += 1
-        key = (system_id, component_id)
+        key = system_id * 256 + component_id
         last = self._last.get(key)
         if last is None:
             self._last[key] = seq

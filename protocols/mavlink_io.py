@@ -14,7 +14,7 @@ import select
 import socket
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 # mavutil picks its own dialect from the environment at import time; we never use its
 # parser, but pin MAVLink 2 so it does not print or negotiate version 1 on our links.
@@ -29,6 +29,11 @@ from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
 V2_MIN_FRAME = dialect.HEADER_LEN_V2 + 2  # header and checksum, empty payload
+#: The dialect's framing constants, as final ints: compiled, a module attribute of the
+#: dialect is a dictionary lookup on every read.
+_MARKER_V2: Final[int] = dialect.PROTOCOL_MARKER_V2
+_SIGNED: Final[int] = dialect.MAVLINK_IFLAG_SIGNED
+_SIGNATURE_LENGTH: Final[int] = dialect.MAVLINK_SIGNATURE_BLOCK_LEN
 MAVLINK_VERSION = 2
 
 MavMessage = Any  # pymavlink generates one class per message; they share MAVLink_message
@@ -191,24 +196,24 @@ class MavlinkCodec:
         end = len(data)
         position = 0
         while position < end:
-            if end - position < V2_MIN_FRAME or data[position] != dialect.PROTOCOL_MARKER_V2:
+            if end - position < V2_MIN_FRAME or data[position] != _MARKER_V2:
                 return None
             flags = data[position + 2]
-            if flags & ~dialect.MAVLINK_IFLAG_SIGNED:
+            if flags & ~_SIGNED:
                 return None  # pymavlink's parser refuses unknown incompat flags
-            signature = dialect.MAVLINK_SIGNATURE_BLOCK_LEN if flags else 0
+            signature = _SIGNATURE_LENGTH if flags else 0
             size = V2_MIN_FRAME + data[position + 1] + signature
             if position + size > end:
                 return None
             frames.append(data[position : position + size])
             position += size
-        fast, decode = self._frames.decode, self._mav.decode
+        decoder = self._frames
         messages = []
         for frame in frames:
-            message = fast(frame)
+            message = decoder.decode(frame)
             if message is None:  # a type with text fields, or something wrong with it
                 try:
-                    message = decode(bytearray(frame))
+                    message = self._mav.decode(bytearray(frame))
                 except Exception:  # CRC or length error: let the general path count it
                     return None
                 if type_of(message).startswith("UNKNOWN_"):

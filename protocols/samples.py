@@ -59,6 +59,26 @@ class TelemetrySample(NamedTuple):
         return self._asdict()
 
 
+def new_sample(
+    system_id: int,
+    time_boot_ms: int,
+    depth: float,
+    pitch: float,
+    u_depth: float,
+    u_pitch: float,
+    pitch_rate: float = 0.0,
+    climb: float = 0.0,
+    restarted: bool = False,
+) -> TelemetrySample:
+    """``TelemetrySample(...)``, the same tuple, made by ``tuple.__new__``: the named
+    tuple's own ``__new__`` is a Python function, a frame for every sample an assembler
+    compiled with mypyc builds."""
+    return tuple.__new__(
+        TelemetrySample,
+        (system_id, time_boot_ms, depth, pitch, u_depth, u_pitch, pitch_rate, climb, restarted),
+    )
+
+
 #: Depths a sample may report, m: above the surface by a wave crest .. the deepest trench.
 DEPTH_RANGE = (-50.0, 11_000.0)
 

@@ -34,7 +34,7 @@ from protocols.keys import is_vehicle_id
 from protocols.mavlink_io import MavMessage, system_of, type_of
 from protocols.profiles import DEFAULT_PROFILE, Profile, clock_of, load_profile
 from protocols.readings import MessageReader
-from protocols.samples import TelemetrySample, is_plausible
+from protocols.samples import TelemetrySample, is_plausible, new_sample
 
 MAX_PENDING_STEPS = 4
 REBOOT_STEPS = 3
@@ -277,7 +277,7 @@ class SampleAssembler:
                     held = values.get(signal)
                     if held is None or rank < held[0]:
                         values[signal] = (rank, value)
-            sample = TelemetrySample(
+            sample = new_sample(
                 system_id=system_id,
                 time_boot_ms=stamp,
                 depth=values["depth"][1],
