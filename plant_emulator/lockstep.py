@@ -57,8 +57,6 @@ class LockstepRunner:
         self.stats = LockstepStats()
         self._waiting: int | None = None  # the step time awaiting its release
         self._released = False
-        #: The link ``BatchedLink`` holds the sends for: waiting and receiving go to it.
-        self._inner = autopilot.link
         self.link = BatchedLink(autopilot.link)  # type: ignore[arg-type]
         autopilot.link = self.link  # type: ignore[assignment]
         autopilot.lockstep = self
@@ -98,7 +96,7 @@ class LockstepRunner:
         )
         # Looked up once: every step calls them.
         stopped, clock, timeout = stop.is_set, self.clock, self.timeout
-        wait, recv, handle_bytes = self._inner.wait, self._inner.recv, autopilot.handle_bytes
+        wait, recv, handle_bytes = link.wait, link.recv, autopilot.handle_bytes
         stats = autopilot.stats
         while not stopped():
             if total_steps is not None and stats.steps >= total_steps:
