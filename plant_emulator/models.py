@@ -128,8 +128,9 @@ class ClosedLoopChannel:
     def step(self, reference: float) -> float:
         """Apply ``reference`` for one period; return the output at the start of the period.
 
-        The same numpy products (BLAS, with fused multiply-adds) and sums as ``c @ x + d·r``
-        and ``A @ x + b·r``, in fewer numpy calls: the new state is summed in place.
+        The same products (BLAS, with fused multiply-adds) and sums as ``c @ x + d·r`` and
+        ``A @ x + b·r``: ``ndarray.dot`` calls the same routines as ``@`` with less dispatch,
+        and the new state is summed in place.
         """
         state = self.state
         y = float(self.c_cl.dot(state) + self.d_cl * reference)
