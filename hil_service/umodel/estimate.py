@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Literal, NamedTuple
 
-__all__ = ["STATUSES", "Estimate", "Status"]
+__all__ = ["STATUSES", "Estimate", "Status", "new_estimate"]
 
 Status = Literal["ok", "rejected", "diverged", "frozen"]
 STATUSES: tuple[str, ...] = ("ok", "rejected", "diverged", "frozen")
@@ -31,3 +31,18 @@ class Estimate(NamedTuple):
     error: float
     alpha: tuple[float, ...]
     weights: tuple[float, ...]
+
+
+def new_estimate(
+    model: str,
+    status: Status,
+    y: float,
+    y_hat: float,
+    error: float,
+    alpha: tuple[float, ...],
+    weights: tuple[float, ...],
+) -> Estimate:
+    """``Estimate(...)``, the same tuple, made by ``tuple.__new__``: the named tuple's own
+    ``__new__`` is a Python function, a frame for each of the four estimates a sample
+    makes from compiled code."""
+    return tuple.__new__(Estimate, (model, status, y, y_hat, error, alpha, weights))

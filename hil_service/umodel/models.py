@@ -38,7 +38,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .dynamics import ModelDynamics
-from .estimate import STATUSES, Estimate, Status
+from .estimate import STATUSES, Estimate, Status, new_estimate
 from .guards import DivergenceMonitor, GuardConfig
 from .interface import OneStepModel
 from .lag_prior import smooth_lag_prior
@@ -184,7 +184,7 @@ class _ModelBase:
             self._n_rejected += 1
             y_hat = self.predict(u_prev if u_ok else self._u_last)
             alpha, weights = self._coefficients(u_prev if u_ok else self._u_last, y_hat)
-            return Estimate(
+            return new_estimate(
                 self.name, "rejected", y if _isfinite(y) else y_hat, y_hat, 0.0, alpha, weights
             )
 
@@ -261,7 +261,7 @@ class _ModelBase:
         self._y_last = y
         self._u_last = u
         self._n_accepted += 1
-        return Estimate(self.name, status, y, y_hat, error, alpha, weights)
+        return new_estimate(self.name, status, y, y_hat, error, alpha, weights)
 
     def _diverged(self) -> None:
         mon = self._monitor

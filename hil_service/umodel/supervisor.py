@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from itertools import islice
 
 from .dynamics import ModelDynamics
 
@@ -265,8 +266,14 @@ class HorizonTest:
         if self.steps < min(horizon, self.minimum):
             return False
         horizon = self.steps
-        # Lists, not the deques: a deque's item access walks its blocks.
-        ys, us, measured = list(self._outputs), list(self._inputs), list(self._measured)
+        # Lists, not the deques (a deque's item access walks its blocks), of the part the
+        # segments read: from ``history - 1`` samples before the first segment's start.
+        skip = first - (history - 1)
+        ys = list(islice(self._outputs, skip, None))
+        us = list(islice(self._inputs, skip, None))
+        measured = list(islice(self._measured, skip, None))
+        n -= skip
+        first -= skip
         na = len(dyn.ar)
         sum_m = sum_h = sum_y = sum_y2 = 0.0
         reference = ys[n - 1]
