@@ -13,7 +13,7 @@ from hil_service.cli import main
 from hil_service.cli.processes import last_json
 from hil_service.mcap.reader import LogReader
 from hil_service.sources.lockstep_responder import LockstepResponder
-from plant_emulator.autopilot import Autopilot, AutopilotConfig
+from plant_emulator.autopilot import GCS_RATES_HZ, Autopilot, AutopilotConfig
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.lockstep import LockstepRunner
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -39,15 +39,21 @@ def test_wire_messages_are_the_standard_ones() -> None:
     assert released_time(lockstep_heartbeat()) is None
 
 
+#: Topics paced by the wall clock: the health, and the heartbeats of both sides with the
+#: ground-station streams a lockstep vehicle sends beside its own (1 Hz wall clock), so
+#: that how many there are depends on how long the run took.
+WALL_CLOCK_TOPICS = ("/health", "/HEARTBEAT", *(f"/{name}" for name in GCS_RATES_HZ))
+
+
 def _payloads(path: str) -> dict[str, list[object]]:
-    """What a run decided, by channel, without wall-clock content: every payload but the
-    health (wall clock) and the heartbeats of both sides (1 Hz wall clock), and without the
-    MAVLink sequence numbers (they count those heartbeats). Raw frames carry the sequence
-    number and a checksum over it, so the frames are compared decoded (every field)."""
+    """What a run decided, by channel, without wall-clock content (``WALL_CLOCK_TOPICS``)
+    and without the MAVLink sequence numbers (they count the wall-clock messages). Raw
+    frames carry the sequence number and a checksum over it, so the frames are compared
+    decoded (every field)."""
     channels: dict[str, list[object]] = {}
     for message in LogReader(path).messages():
         topic = message.topic
-        if topic.endswith(("/health", "/HEARTBEAT")) or topic.startswith("mavlink/raw/"):
+        if topic.endswith(WALL_CLOCK_TOPICS) or topic.startswith("mavlink/raw/"):
             continue
         if topic.startswith("mavlink/json/"):
             payload = json.loads(message.data)
