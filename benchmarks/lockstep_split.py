@@ -38,10 +38,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hil_service.builder import open_recorder, wire  # noqa: E402
 from hil_service.campaign import hil_run  # noqa: E402
 from hil_service.campaign.mission import Mission  # noqa: E402
-from hil_service.config import LogOptions  # noqa: E402
 from plant_emulator.autopilot import Autopilot, AutopilotConfig  # noqa: E402
 from plant_emulator.lockstep import LockstepRunner  # noqa: E402
 from protocols import lockstep as lockstep_protocol  # noqa: E402
@@ -141,12 +139,9 @@ def warm_service(mission: Mission, datagrams: list[bytes]) -> float:
     log's writer thread included: ``process_time`` counts every thread)."""
     sink = _sink()
     source = sink.getsockname()
-    config = hil_run.service_config(mission)
     with tempfile.TemporaryDirectory() as directory:
-        recorder = open_recorder(config, LogOptions(directory=directory))
         link = Link("udpin:127.0.0.1:0", source_system=255, source_component=191)
-        inbox = hil_run.ScheduledInbox(mission.schedule(), mission.period)
-        wired = wire(config, link=link, recorder=recorder, inbox=inbox)
+        wired = hil_run.wire_mission_service(mission, link, Path(directory))
         service = wired.service
         started = time.process_time()
         for data in datagrams:

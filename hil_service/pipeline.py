@@ -313,9 +313,7 @@ class Decision:
     payload: dict[str, Any] | None
     reason: str
 
-    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
-    # Python even where this class is compiled, a frame per sample; ``object.__setattr__``
-    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    # Written out, not generated (``init=False``): docs/compiled.md.
     def __init__(
         self, command: BallastCommand | None, payload: dict[str, Any] | None, reason: str
     ) -> None:

@@ -15,7 +15,7 @@ from plant_emulator.family import INPUT_LIMIT as FAMILY_INPUT_LIMIT
 from plant_emulator.family import FamilyPlantSpec, FamilyVehicle, draw_vehicle
 from plant_emulator.models import CHANNELS, ClosedLoopChannel, design_closed_loop
 from plant_emulator.scenarios import build_actuator, build_disturbance, check_scenario
-from protocols.samples import DEPTH_RANGE, TelemetrySample
+from protocols.samples import DEPTH_RANGE, TelemetrySample, new_sample
 
 
 @dataclass(frozen=True)
@@ -86,8 +86,7 @@ class GliderPlant:
         pitch_rate = 0.0 if last_pitch is None else (pitch - last_pitch) / period
         self._last_depth, self._last_pitch = depth, pitch
         self.k += 1
-        # Positional, in TelemetrySample's field order (keywords cost more per step).
-        return TelemetrySample(
+        return new_sample(
             self.system_id,
             round(t * 1000.0),
             depth,

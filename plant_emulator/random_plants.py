@@ -33,7 +33,7 @@ import numpy as np
 
 from plant_emulator.actuator import BallastActuator, PumpNonlinearity
 from plant_emulator.models import CHANNELS, ClosedLoopChannel
-from protocols.samples import TelemetrySample
+from protocols.samples import TelemetrySample, new_sample
 
 POLE_RANGE = (0.5, 0.995)
 DC_GAIN_RANGE = (0.2, 5.0)
@@ -253,8 +253,7 @@ class RandomVehicle:
         config = self.config
         t = self.k * config.period
         self.k += 1
-        # Positional, in TelemetrySample's field order (keywords cost more per step).
-        return TelemetrySample(
+        return new_sample(
             self.system_id,
             round(t * 1000.0),
             config.trim_depth + depth_out,

@@ -103,9 +103,7 @@ class BallastCommand:
     u_depth: float
     u_pitch: float
 
-    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
-    # Python even where this class is compiled, a frame per command decided; ``object.__setattr__``
-    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    # Written out, not generated (``init=False``): docs/compiled.md.
     def __init__(self, u_depth: float, u_pitch: float) -> None:
         object.__setattr__(self, "u_depth", u_depth)
         object.__setattr__(self, "u_pitch", u_pitch)

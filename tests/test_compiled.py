@@ -7,6 +7,7 @@ builds are held to the same bits.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.machinery
 import os
 import subprocess
@@ -14,7 +15,10 @@ import sys
 
 import pytest
 
+from hil_service.pipeline import Decision
+from hil_service.umodel.inverse import InverseResult, ShapedCommand
 from protocols import compiled
+from protocols.samples import BallastCommand
 from tests.conftest import DATA, ROOT
 
 
@@ -99,3 +103,25 @@ def test_make_build_deletes_compiled_modules_that_are_not_on_the_list(tmp_path):
 
 def test_a_checkout_built_from_its_sources_has_no_orphan():
     assert compiled.orphan_binaries(ROOT) == []
+
+
+@pytest.mark.parametrize(
+    "cls, args",
+    [
+        (Decision, (None, None, "blocked")),
+        (BallastCommand, (0.25, -0.5)),
+        (InverseResult, (0.5, "newton", 3, 1e-9, False)),
+        (ShapedCommand, (0.5, True, False)),
+    ],
+)
+def test_a_written_out_dataclass_init_sets_exactly_its_fields(cls, args):
+    """The frozen dataclasses whose ``__init__`` is written out (docs/compiled.md) take
+    their fields in declared order and set every one of them: a field added to the class
+    and not to its ``__init__`` fails here, not in ``eq``, ``replace`` or a later read."""
+    names = [f.name for f in dataclasses.fields(cls)]
+    made = cls(*args)
+    assert [getattr(made, name) for name in names] == list(args)
+    assert made == cls(*args) and hash(made) == hash(cls(*args))
+    assert dataclasses.replace(made) == made
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        setattr(made, names[0], args[0])

@@ -61,3 +61,18 @@ def test_an_object_that_listens_to_nothing_is_refused():
 
     with pytest.raises(TypeError, match="listens to nothing"):
         Notifier([OldBus()])
+
+
+def test_a_handler_set_on_the_instance_is_heard():
+    """A listener may hand the notifier a handler of its own (a compiled one, as the Zenoh
+    publisher does) by setting it on the instance rather than overriding the method."""
+    heard: list[str] = []
+
+    class Handed(Listener):
+        def __init__(self) -> None:
+            self.on_publish = lambda key, payload, data, reliable: heard.append(key)
+
+    notifier = Notifier([Handed(), PublicationsOnly()])
+    notifier.publish("glider/1/telemetry", {"t": 0.0})
+    assert heard == ["glider/1/telemetry"]
+    notifier.mavlink("in", None, b"", 0)  # the events it did not hand over stay unheard

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from hil_service.builder import open_recorder, wire
+from hil_service.builder import Wired, open_recorder, wire
 from hil_service.campaign.mission import Mission, Trace
 from hil_service.cli.processes import set_parent_death_signal
 from hil_service.config import LogOptions, ServiceConfig
@@ -91,6 +91,20 @@ def service_config(mission: Mission) -> ServiceConfig:
     )
 
 
+def wire_mission_service(mission: Mission, link: Link, log_dir: Path | None) -> Wired:
+    """The mission's service on ``link``, as ``serve`` wires it but with the mission's
+    scheduled setpoints and no Zenoh (module docstring); its MCAP log in ``log_dir``
+    (None: no log)."""
+    config = service_config(mission)
+    recorder = open_recorder(
+        config,
+        LogOptions(directory=None if log_dir is None else str(log_dir)),
+        extra={"campaign.mission": json.dumps(mission.__dict__)},
+    )
+    inbox = ScheduledInbox(mission.schedule(), mission.period)
+    return wire(config, link=link, recorder=recorder, inbox=inbox)
+
+
 def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
     """The forked service: open, say the port on ``ready_fd``, serve until ``MISSION_OVER``
     (0 returned) or an interrupting signal (its number returned), also the SIGTERM it gets
@@ -108,17 +122,10 @@ def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
     signal.signal(signal.SIGTERM, interrupt)
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, interrupt)
-    config = service_config(mission)
-    recorder = open_recorder(
-        config,
-        LogOptions(directory=str(run_dir) if log else None),
-        extra={"campaign.mission": json.dumps(mission.__dict__)},
-    )
     link = Link("udpin:127.0.0.1:0", source_system=255, source_component=191)
     with socket.socket(fileno=os.dup(link.fileno())) as bound:
         port = bound.getsockname()[1]
-    inbox = ScheduledInbox(mission.schedule(), mission.period)
-    wired = wire(config, link=link, recorder=recorder, inbox=inbox)
+    wired = wire_mission_service(mission, link, run_dir if log else None)
     os.write(ready_fd, f"{port}\n".encode())
     os.close(ready_fd)
     try:

@@ -35,9 +35,13 @@ class Listener:
 
 
 def handler_of(listener: Any, event: str) -> Callable[..., None] | None:
-    """The listener's bound ``event`` method, or None when it does not consume that event."""
+    """The listener's ``event`` handler, or None when it does not consume that event: its
+    bound method where its class overrides ``Listener``'s, or a callable set on the instance
+    itself (a compiled handler it hands the notifier, as ``ZenohPublisher`` does)."""
     method = getattr(listener, event, None)
     if method is None:
         return None
+    if event in getattr(listener, "__dict__", ()):
+        return method
     function = getattr(type(listener), event, None)
     return None if function is getattr(Listener, event) else method

@@ -58,7 +58,7 @@ class ZenohPublisher(Listener):
         self.program = program  # names the warning's sender
         # The publications go through a compiled table (notifier.PublisherTable): this
         # instance's ``on_publish`` is the table's, which the notifier calls for every
-        # publication without a Python frame; the class's method below does the same.
+        # publication without a Python frame (``handler_of`` takes it from the instance).
         self._table = PublisherTable(self._declare)
         self._publishers: dict[str, zenoh.Publisher] = self._table.publishers
         self.on_publish = self._table.on_publish  # type: ignore[method-assign]
@@ -86,12 +86,6 @@ class ZenohPublisher(Listener):
             self.record(keys.rejected_inputs(), refused, "in")
         else:
             self.record(key, json.loads(raw), "in")
-
-    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
-        publisher = self._publishers.get(key)
-        if publisher is None:
-            publisher = self._declare(key, reliable)
-        publisher.put(data)
 
     def _declare(self, key: str, reliable: bool) -> zenoh.Publisher:
         congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP

@@ -49,9 +49,7 @@ class InverseResult:
     residual: float
     saturated: bool
 
-    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
-    # Python even where this class is compiled, a frame per inverse solved; ``object.__setattr__``
-    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    # Written out, not generated (``init=False``): docs/compiled.md.
     def __init__(
         self, u: float, path: InversePath, iterations: int, residual: float, saturated: bool
     ) -> None:
@@ -372,9 +370,7 @@ class ShapedCommand:
     saturated: bool
     rate_limited: bool
 
-    # Written out (``init=False``): the dataclass's generated ``__init__`` is interpreted
-    # Python even where this class is compiled, a frame per command shaped; ``object.__setattr__``
-    # is how a frozen dataclass sets its fields, and compiled it is a native store.
+    # Written out, not generated (``init=False``): docs/compiled.md.
     def __init__(self, u: float, saturated: bool, rate_limited: bool) -> None:
         object.__setattr__(self, "u", u)
         object.__setattr__(self, "saturated", saturated)
