@@ -25,7 +25,12 @@ chooses them from its record, as ``serve`` does; ``--nb 4`` is the model's own f
 the plant's *true* input delay, which no deployed identifier knows: an upper bound on what
 choosing the lags from the data could give, not a controller. ``--lag-smoothing-gain K``
 sets the smoothness prior on the input lags (0: none; docs/control.md, "A smoothness prior
-on the input lags").
+on the input lags"). ``--control NAME=VALUE`` sets any numeric ``ControlSettings`` constant
+(e.g. ``move_weight=0.1``; repeatable) and ``--degree M`` the identifier's input polynomial
+degree. ``--best-of SHIPPED A.pkl B.pkl …`` compares saved runs of the same plants: each
+one's count, its geometric mean ratio and the plants it moved against the first, and how
+many plants stay above the limit when each keeps its lowest ratio over the runs (docs/
+control.md, "One constant at a time, and the best of them plant by plant").
 """
 
 from __future__ import annotations
@@ -189,20 +194,24 @@ def what_if(
     nb_from_true_delay: int | None,
     mean_fit: float | None = None,
     lag_smoothing_gain: float | None = None,
+    control_changes: dict[str, float] | None = None,
+    degree: int | None = None,
 ) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
     """The pipeline settings of a what-if run (None: the defaults; a negative ``mean_fit``
-    asks for no test against the mean)."""
-    chosen = (horizon_fit, nb, nb_from_true_delay, mean_fit, lag_smoothing_gain)
-    if all(v is None for v in chosen):
+    asks for no test against the mean). ``control_changes``: other ``ControlSettings``
+    fields; ``degree``: the identifier's input polynomial degree."""
+    chosen = (horizon_fit, nb, nb_from_true_delay, mean_fit, lag_smoothing_gain, degree)
+    if all(v is None for v in chosen) and not control_changes:
         return lambda seed, depth, pitch: None
 
     def lags(spec: FamilyPlantSpec) -> dict[str, int]:
+        options = {} if degree is None else {"degree": degree}
         if nb_from_true_delay is not None:
-            return {"nb": max(4, spec.delay + nb_from_true_delay)}
-        return {"nb": nb} if nb is not None else {}
+            return {**options, "nb": max(4, spec.delay + nb_from_true_delay)}
+        return {**options, "nb": nb} if nb is not None else options
 
     def settings(seed: int, depth: FamilyPlantSpec, pitch: FamilyPlantSpec) -> PipelineSettings:
-        control = ControlSettings()
+        control = dataclasses.replace(ControlSettings(), **(control_changes or {}))
         if horizon_fit is not None:
             control = dataclasses.replace(control, horizon_fit=horizon_fit)
         if mean_fit is not None:
@@ -214,6 +223,58 @@ def what_if(
         return settings
 
     return settings
+
+
+def control_change(text: str) -> tuple[str, float]:
+    """``--control NAME=VALUE``: a numeric ``ControlSettings`` field and its value."""
+    name, sep, value = text.partition("=")
+    # The field types are classes where ControlSettings is compiled, strings where not.
+    types = {
+        f.name: getattr(f.type, "__name__", f.type) for f in dataclasses.fields(ControlSettings)
+    }
+    numeric = {n for n, t in types.items() if t in ("int", "float")}
+    if not sep or name not in numeric:
+        raise argparse.ArgumentTypeError(
+            f"expected NAME=VALUE with NAME one of {', '.join(sorted(numeric))}, got {text!r}"
+        )
+    try:
+        number = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{name}: not a number: {value!r}") from None
+    return name, int(number) if types[name] == "int" else number
+
+
+def best_of(paths: list[str], semantics: str = "hold") -> None:
+    """Each saved run's plants above the limit, and how many stay above it when each plant
+    keeps the lowest of its ratios over the runs: a bound on choosing among these runs'
+    settings plant by plant (no deployed pipeline knows which to choose)."""
+    runs = []
+    for path in paths:
+        with open(path, "rb") as f:
+            found = pickle.load(f)[semantics]
+        runs.append({row.name(): row.reference_ratio or 0.0 for row in found})
+    names = sorted(set(runs[0]).intersection(*runs[1:]))
+    first = runs[0]
+    for path, ratios in zip(paths, runs, strict=True):
+        above = sum(ratios[n] > HARM_LIMIT for n in names)
+        line = f"{path}: {above} of {len(names)} above {HARM_LIMIT}x reference-only"
+        if ratios is not first:
+            # Against the first run: the geometric mean of the plants' ratios, and how many
+            # moved by more than 1 % either way (plants whose ratio is 0 left out).
+            pairs = [(ratios[n], first[n]) for n in names if ratios[n] > 0 and first[n] > 0]
+            change = [a / b for a, b in pairs]
+            mean = float(np.exp(np.mean(np.log(change)))) if change else float("nan")
+            better = sum(c < 0.99 for c in change)
+            worse = sum(c > 1.01 for c in change)
+            line += (
+                f"; against the first: geometric mean {mean:.4f}, better {better}, worse {worse}"
+            )
+        print(line)
+    lowest = {n: min(r[n] for r in runs) for n in names}
+    left = sorted((n for n in names if lowest[n] > HARM_LIMIT), key=lambda n: -lowest[n])
+    print(f"the best of the {len(paths)} runs, plant by plant: {len(left)} above")
+    for name in left:
+        print(f"  {lowest[name]:.3f}  {name}")
 
 
 def main() -> None:
@@ -246,9 +307,27 @@ def main() -> None:
         help="the smoothness prior's gain on the input lags (0: none), as serve's flag",
     )
     parser.add_argument(
+        "--control",
+        type=control_change,
+        action="append",
+        metavar="NAME=VALUE",
+        help="a ControlSettings constant (e.g. move_weight=0.1); may be repeated",
+    )
+    parser.add_argument("--degree", type=int, help="the identifier's input polynomial degree")
+    parser.add_argument(
         "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
     )
+    parser.add_argument(
+        "--best-of",
+        nargs="+",
+        metavar="FILE",
+        help="saved runs of the same plants: how many stay above the limit on the best of "
+        "them, plant by plant (hold semantics)",
+    )
     args = parser.parse_args()
+    if args.best_of:
+        best_of(args.best_of)
+        return
     if args.combine:
         rows: dict[str, list[FamilyRow]] = {}
         for path in args.combine:
@@ -273,6 +352,8 @@ def main() -> None:
             args.nb_from_true_delay,
             args.mean_fit,
             args.lag_smoothing_gain,
+            dict(args.control or []),
+            args.degree,
         ),
     )
     print(
