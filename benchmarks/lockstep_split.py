@@ -113,17 +113,22 @@ def _sink() -> socket.socket:
     return sink
 
 
-def warm_emulator(mission: Mission, replies: list[bytes]) -> float:
-    """CPU µs per step of the emulator alone: step, flush, handle the recorded reply."""
-    sink = _sink()
-    link = Link(f"udpout:127.0.0.1:{sink.getsockname()[1]}", source_system=1, source_component=1)
+def _vehicle(mission: Mission, port: int) -> tuple[Link, Autopilot, LockstepRunner]:
+    """The mission's vehicle as the campaign runs it, sending to ``port`` on loopback."""
+    link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
     autopilot = Autopilot(
         mission.plant(),  # type: ignore[arg-type]
         link,
         mission.excitations(),
         AutopilotConfig(system_id=1, duration=mission.steps * mission.period),
     )
-    runner = LockstepRunner(autopilot, 1.0)
+    return link, autopilot, LockstepRunner(autopilot, 1.0)
+
+
+def warm_emulator(mission: Mission, replies: list[bytes]) -> float:
+    """CPU µs per step of the emulator alone: step, flush, handle the recorded reply."""
+    sink = _sink()
+    link, autopilot, runner = _vehicle(mission, sink.getsockname()[1])
     batched = runner.link
     steps = min(mission.steps, len(replies))
     started = time.process_time()
@@ -165,14 +170,7 @@ def inline_mission(mission: Mission) -> dict[str, float]:
             port = bound.getsockname()[1]
         wired = hil_run.wire_mission_service(mission, link, Path(directory))
         service = wired.service
-        vehicle_link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
-        autopilot = Autopilot(
-            mission.plant(),  # type: ignore[arg-type]
-            vehicle_link,
-            mission.excitations(),
-            AutopilotConfig(system_id=1, duration=mission.steps * mission.period),
-        )
-        runner = LockstepRunner(autopilot, 1.0)
+        vehicle_link, _, runner = _vehicle(mission, port)
         batched = runner.link
         flush = batched.flush
 
