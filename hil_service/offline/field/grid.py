@@ -97,14 +97,15 @@ class GridResult:
 
 def default_period(data: FieldData) -> float:
     """The median step between in-dive samples of a dive (s) to two significant digits
-    (a clock's jitter does not set the grid), at least 0.1 s."""
+    (a clock's jitter does not set the grid), at least ``MIN_SAMPLE_PERIOD`` (the log
+    stamps whole ms)."""
     mask = data.in_dive
     steps = np.diff(data.t)
     same = (data.dive[1:] == data.dive[:-1]) & mask[1:] & mask[:-1]
     good = steps[same & (steps > 0)]
     if not good.size:
         return 10.0
-    return max(0.1, float(f"{float(np.median(good)):.2g}"))  # 10.002 s → 10 s
+    return max(MIN_SAMPLE_PERIOD, float(f"{float(np.median(good)):.2g}"))  # 10.002 s → 10 s
 
 
 def check_period(period: float) -> float:

@@ -3,7 +3,9 @@
 The mapping says which column is the time, the depth (or the pressure), the pitch, the
 buoyancy input and the pitch input, their units and the inputs' full scale; its format and
 an example are in docs/field-data.md. A mapping with an unknown table or key, a unit not
-listed, or a column the file lacks is an error naming the file and the line.
+listed, or a column the file lacks is an error naming the file and the line; so is a
+header naming twice a column the mapping uses. A row the CSV parser refuses (a field over
+its size limit) is counted unparsable, as a row with a field that is no number.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from hil_service.offline.field.table import (
     Issues,
     is_log_time,
     no_log_time,
+    whole_dive,
 )
 from protocols.payload_json import is_finite_number
 
@@ -101,6 +104,8 @@ def load_mapping(path: str | Path) -> Mapping:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as error:
         raise FieldError(f"{origin}: cannot be read ({error})") from error
+    except UnicodeDecodeError as error:
+        raise FieldError(f"{origin}: not UTF-8 text, as TOML must be ({error})") from error
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
@@ -196,8 +201,11 @@ def _check_file(mapping: Mapping) -> None:
         )
 
 
-def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
-    """(the header's line, the header, (line, row) of every later line) of a file."""
+def _rows(
+    path: Path, mapping: Mapping
+) -> tuple[int, list[str], list[tuple[int, list[str] | None]]]:
+    """(the header's line, the header, (line, row) of every later line) of a file; the row
+    is None where the CSV parser refuses the line."""
     kind = mapping.get("file", "kind", "parquet" if path.suffix == ".parquet" else "csv")
     if kind == "parquet":
         return _parquet_rows(path)
@@ -216,12 +224,23 @@ def _rows(path: Path, mapping: Mapping) -> tuple[int, list[str], list[tuple[int,
         raise FieldError(f"{path}:1: empty file (no header)")
     # One line, one row (a quoted field spanning lines is not supported): line numbers stay
     # the file's own, for the errors.
-    parsed = [(n, next(csv.reader([line], delimiter=delimiter))) for n, line in numbered]
+    parsed = [(n, _csv_row(line, delimiter)) for n, line in numbered]
     (header_line, header), body = parsed[0], parsed[1:]
+    if header is None:
+        raise FieldError(f"{path}:{header_line}: a header the CSV parser refuses")
     return header_line, [h.strip() for h in header], body
 
 
-def _parquet_rows(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+def _csv_row(line: str, delimiter: str) -> list[str] | None:
+    """One line's fields; None for a line the parser refuses (a field longer than
+    ``csv.field_size_limit()``, 128 kB)."""
+    try:
+        return next(csv.reader([line], delimiter=delimiter))
+    except csv.Error:
+        return None
+
+
+def _parquet_rows(path: Path) -> tuple[int, list[str], list[tuple[int, list[str] | None]]]:
     """A Parquet file as the CSV path's rows: row k (from 1 after the header) is "line"
     k + 1, each cell as text (a null cell empty), so both kinds are parsed and counted by
     the same code."""
@@ -239,7 +258,9 @@ def _parquet_rows(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]
     header = [str(name) for name in table.column_names]
     columns = [table.column(name).to_pylist() for name in table.column_names]
     records = zip(*columns, strict=True) if columns else iter(())
-    body = [(k + 2, ["" if v is None else str(v) for v in r]) for k, r in enumerate(records)]
+    body: list[tuple[int, list[str] | None]] = [
+        (k + 2, ["" if v is None else str(v) for v in r]) for k, r in enumerate(records)
+    ]
     return 1, header, body
 
 
@@ -249,6 +270,11 @@ def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
     columns = Columns()
     for number, path in enumerate(paths):
         _read_file(path, number, mapping, columns, issues)
+    if not columns.t and issues.unparsable_rows:
+        raise FieldError(
+            f"{', '.join(map(str, paths))}: every row unparsable ({issues.unparsable_rows}; "
+            f"the first: {issues.notes[0]})"
+        )
     data = mapping.data
     depth_table = "depth" if "depth" in data else "pressure"
     conversions = [
@@ -307,6 +333,13 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
     absent = [c for c in optional.values() if c not in index]
     dive_column = mapping.get("dive", "column")
     surface_column = mapping.get("surface", "column")
+    used = [*needed.values(), *optional.values(), dive_column, surface_column]
+    twice = sorted({c for c in used if c is not None and header.count(c) > 1})
+    if twice:
+        raise FieldError(
+            f"{path}:{header_line}: the header names column(s) {', '.join(map(repr, twice))} "
+            "more than once: which one the mapping means is unknown"
+        )
     surface_values = {str(v) for v in mapping.get("surface", "values", [])}
     for column in (dive_column, surface_column):
         if column is not None and column not in index:
@@ -319,9 +352,11 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
     surface_offset = float(mapping.get("pressure", "surface", 0.0))
     first_row = len(columns.t)
     for line_no, row in rows:
-        if not any(cell.strip() for cell in row):
+        if row is not None and not any(cell.strip() for cell in row):
             continue
         try:
+            if row is None:
+                raise ValueError("a line the CSV parser refuses")
             if len(row) != len(header):  # a row cut short (or run together): not a sample
                 raise ValueError("not as many fields as the header")
             t = _time(row[index[needed["time"]]], time_unit, time_format)
@@ -330,7 +365,7 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
             inputs = {
                 q: _float(row[index[c]]) if c in index else math.nan for q, c in optional.items()
             }
-            dive = int(_float(row[index[dive_column]])) if dive_column in index else number
+            dive = whole_dive(_float(row[index[dive_column]])) if dive_column in index else number
         except (ValueError, IndexError, OverflowError):  # int(inf): OverflowError
             issues.unparsable_rows += 1
             if issues.unparsable_rows <= 5:

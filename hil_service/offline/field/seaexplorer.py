@@ -7,9 +7,11 @@ Which column becomes what (docs/field-data.md):
 * buoyancy input: ``BallastPos`` cc (the measured ballast volume; ``BallastCmd`` when the
   position is absent), pitch input: ``LinPos`` mm (the moving mass; ``LinCmd`` else);
 * ``NavState``: 116 (at the surface) and 115 (surfacing: GPS, transmitting) and 105 (not
-  navigating) are surface rows, kept in the log and not identified.
+  navigating) are surface rows, kept in the log and not identified; a NaN ``NavState`` is
+  a row without one (in-dive), a column all NaN a missing column.
 
-Files are taken by their number N; each file is one dive number.
+Files are taken by their number N; each file is one dive number. Files of two gliders (the
+name before the first dot) are refused.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import time
 from pathlib import Path
 
 from hil_service.offline.field.table import (
+    DIVE_LIMIT,
     Columns,
     Conversion,
     FieldData,
@@ -51,17 +54,30 @@ def is_seaexplorer(path: Path) -> bool:
 
 def _number(path: Path) -> int:
     match = _NAME.search(path.name)
-    return int(match.group(2)) if match else 0
+    if not match:
+        return 0
+    number = int(match.group(2))
+    if number >= DIVE_LIMIT:
+        raise FieldError(f"{path}: file number {number} beyond int64, as a dive number is stored")
+    return number
 
 
 def read_seaexplorer(paths: list[Path]) -> FieldData:
     issues = Issues()
     ordered = sorted(paths, key=lambda p: (_number(p), p.name))
     columns = Columns()
-    vehicle = ""
+    vehicles: dict[str, Path] = {}
+    for path in ordered:
+        vehicles.setdefault(path.name.split(".")[0].upper(), path)
+    if len(vehicles) > 1:
+        (first, one), (second, other) = list(vehicles.items())[:2]
+        raise FieldError(
+            f"files of two gliders: {one} is {first}, {other} is {second}; import one glider "
+            "at a time"
+        )
+    vehicle = next(iter(vehicles), "")
     for path in ordered:
         _read_file(path, columns, issues)
-        vehicle = vehicle or path.name.split(".")[0].upper()
     return FieldData.from_columns(
         "seaexplorer", [str(p) for p in ordered], columns, CONVERSIONS, SCALING, issues, vehicle
     )
@@ -107,6 +123,8 @@ def _read_file(path: Path, columns: Columns, issues: Issues) -> None:
         issues.missing_columns[str(path)] = missing
     number = _number(path)
     nav = position.get("NavState")
+    first_row = len(columns.t)
+    states = 0  # rows with a NavState value
     for line_no, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
@@ -118,12 +136,14 @@ def _read_file(path: Path, columns: Columns, issues: Issues) -> None:
             depth = _float(fields[position["Depth"]])
             pitch = math.radians(_float(fields[position["Pitch"]]))
             inputs = {q: math.nan if i is None else _float(fields[i]) for q, i in chosen.items()}
-            state = None if nav is None else int(_float(fields[nav]))
+            value = math.nan if nav is None else _float(fields[nav])
+            state = None if math.isnan(value) else int(value)
         except (ValueError, IndexError, OverflowError):  # int(inf): OverflowError
             issues.unparsable_rows += 1
             if issues.unparsable_rows <= 5:
                 issues.notes.append(f"{path}:{line_no}: unparsable row dropped")
             continue
+        states += state is not None
         surface = state in SURFACE_STATES
         columns.t.append(t)
         columns.depth.append(depth)
@@ -132,6 +152,8 @@ def _read_file(path: Path, columns: Columns, issues: Issues) -> None:
         columns.pitch_input.append(inputs["pitch_input"])
         columns.dive.append(number)
         columns.in_dive.append(not surface)
+    if nav is not None and states == 0 and len(columns.t) > first_row:
+        issues.missing_columns.setdefault(str(path), []).append("NavState (all NaN)")
 
 
 def _float(text: str) -> float:

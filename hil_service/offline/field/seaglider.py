@@ -3,14 +3,17 @@
 Read with ``scipy.io.netcdf_file`` (netCDF3 classic and 64-bit offset). Which variable
 becomes what (docs/field-data.md):
 
-* time: ``time`` s since 1970 (``eng_elaps_t`` + the ``start_time`` attribute when absent);
-* depth: ``eng_depth`` cm → m (÷ 100);
-* pitch: ``eng_pitchAng`` ° (+ nose up) → rad;
+* time: ``time`` s since 1970 (``eng_elaps_t`` + the ``start_time`` attribute when absent;
+  neither: an error, no absolute time);
+* depth: ``eng_depth`` cm → m (÷ 100), or m when its ``units`` attribute says so;
+* pitch: ``eng_pitchAng`` ° (+ nose up) → rad, or rad when its ``units`` attribute says so
+  (any other ``units`` of either is an error naming the file);
 * buoyancy input: ``eng_vbdCC`` cc (the VBD's volume: + more buoyant);
 * pitch input: ``eng_pitchCtl`` cm (the pitch mass position, + aft: nose up).
 
 Each file is one dive, numbered by its ``dive_number`` attribute (else its name); the files
 are taken in dive order and the surface intervals between dives are not sampled: gaps.
+Files whose ``glider`` attributes differ are refused (one glider per import).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from hil_service.offline.field.table import (
     FieldError,
     InputScaling,
     Issues,
+    whole_dive,
 )
 
 SUFFIXES = (".nc",)
@@ -39,6 +43,19 @@ TIME, ELAPSED, DEPTH, PITCH, VBD, PITCH_CTL = (
     "eng_vbdCC",
     "eng_pitchCtl",
 )
+#: The ``units`` attribute of depth and pitch (lower case) → (unit, factor to m or rad);
+#: without the attribute depth is in cm and pitch in degrees, as the basestation writes.
+UNITS = {
+    DEPTH: {
+        **dict.fromkeys(("cm", "centimeter", "centimeters", "centimetre"), ("cm", 0.01)),
+        **dict.fromkeys(("m", "meter", "meters", "metre", "metres"), ("m", 1.0)),
+    },
+    PITCH: {
+        **dict.fromkeys(("degrees", "degree", "deg"), ("deg", math.pi / 180.0)),
+        **dict.fromkeys(("radians", "radian", "rad"), ("rad", 1.0)),
+    },
+}
+DEFAULT_UNITS = {DEPTH: ("cm", 0.01), PITCH: ("deg", math.pi / 180.0)}
 CONVERSIONS = [
     Conversion("t", TIME, "s since 1970-01-01", "s", 1.0),
     Conversion("depth", DEPTH, "cm", "m", 0.01),
@@ -59,20 +76,47 @@ def read_seaglider(paths: list[Path]) -> FieldData:
     issues = Issues()
     dives = sorted((_dive_number(p), p) for p in paths)
     columns = Columns()
-    glider = ""
+    gliders: dict[str, Path] = {}
+    conversions: list[Conversion] = []
     for number, path in dives:
-        read = _read_dive(path, number, issues)
+        read, units = _read_dive(path, number, issues)
         columns.extend(**read)
-        glider = glider or _glider(path)
+        glider = _glider(path)
+        if glider:
+            gliders.setdefault(glider, path)
+        if len(gliders) > 1:
+            (first, one), (second, other) = list(gliders.items())[:2]
+            raise FieldError(
+                f"files of two gliders: {one} is {first}, {other} is {second}; import one "
+                "glider at a time"
+            )
+        if not conversions:
+            conversions = _conversions(units)
+        elif _conversions(units) != conversions:
+            issues.notes.append(
+                f"{path}: {DEPTH} in {units[DEPTH][0]}, {PITCH} in {units[PITCH][0]} "
+                "(its units attributes), unlike the first file's"
+            )
     return FieldData.from_columns(
         "seaglider",
         [str(p) for _, p in dives],
         columns,
-        CONVERSIONS,
+        conversions or CONVERSIONS,
         SCALING,
         issues,
-        vehicle=glider,
+        vehicle=next(iter(gliders), ""),
     )
+
+
+def _conversions(units: dict[str, tuple[str, float]]) -> list[Conversion]:
+    """``CONVERSIONS`` with the depth and pitch units a file's attributes gave."""
+    depth, pitch = units[DEPTH], units[PITCH]
+    return [
+        CONVERSIONS[0],
+        Conversion("depth", DEPTH, depth[0], "m", depth[1]),
+        Conversion("pitch", PITCH, pitch[0], "rad", pitch[1]),
+        *CONVERSIONS[3:],
+    ]
 
 
 def _open(path: Path):
@@ -93,10 +137,14 @@ def _dive_number(path: Path) -> int:
     try:
         with _open(path) as nc:
             value = nc._attributes.get("dive_number")
-            if value is not None:
-                return int(np.asarray(value).ravel()[0])
     except FieldError:
-        pass  # named below; reading it reports the damage
+        value = None  # named when the dive is read; reading it reports the damage
+    if value is not None:
+        number = _attribute(path, "dive_number", value)
+        try:
+            return whole_dive(number)
+        except ValueError as error:
+            raise FieldError(f"{path}: dive_number attribute: {error}") from error
     if match:
         return int(match.group(1))
     return 0
@@ -105,12 +153,50 @@ def _dive_number(path: Path) -> int:
 def _glider(path: Path) -> str:
     with _open(path) as nc:
         value = nc._attributes.get("glider")
-    return "" if value is None else f"SG{int(np.asarray(value).ravel()[0]):03d}"
+    if value is None:
+        return ""
+    number = _attribute(path, "glider", value)
+    if not (math.isfinite(number) and number == int(number) and 0 <= number < 1e6):
+        raise FieldError(f"{path}: glider attribute {number!r} is not a glider number")
+    return f"SG{int(number):03d}"
 
 
-def _read_dive(path: Path, number: int, issues: Issues) -> dict[str, list]:
+def _attribute(path: Path, name: str, value: object) -> float:
+    """A numeric global attribute's (first) value; a text or empty one is an error naming
+    the file."""
+    try:
+        first = np.asarray(value).ravel()[0]
+        if isinstance(first, bytes):
+            first = first.decode("ascii")
+        return float(first)
+    except (ValueError, TypeError, IndexError, UnicodeDecodeError) as error:
+        raise FieldError(f"{path}: {name} attribute {value!r} is not a number") from error
+
+
+def _units(path: Path, variables: dict, name: str) -> tuple[str, float]:
+    """(unit, factor to SI) of depth or pitch, by the variable's ``units`` attribute."""
+    if name not in variables:
+        return DEFAULT_UNITS[name]
+    given = getattr(variables[name], "units", None)
+    if given is None:
+        return DEFAULT_UNITS[name]
+    text = given.decode("latin-1") if isinstance(given, bytes) else str(given)
+    unit = UNITS[name].get(text.strip().lower())
+    if unit is None:
+        known = sorted({u for u, _ in UNITS[name].values()})
+        raise FieldError(
+            f"{path}: {name} has units {text!r}; the import reads {' or '.join(known)}"
+        )
+    return unit
+
+
+def _read_dive(
+    path: Path, number: int, issues: Issues
+) -> tuple[dict[str, list], dict[str, tuple[str, float]]]:
+    """The dive's rows and the (unit, factor) its depth and pitch were read in."""
     with _open(path) as nc:
         variables = nc.variables
+        units = {name: _units(path, variables, name) for name in (DEPTH, PITCH)}
         missing = [v for v in (DEPTH, PITCH, VBD, PITCH_CTL) if v not in variables]
         if TIME not in variables and ELAPSED not in variables:
             missing.insert(0, f"{TIME} (or {ELAPSED})")
@@ -129,15 +215,19 @@ def _read_dive(path: Path, number: int, issues: Issues) -> dict[str, list]:
             t = column(TIME)
         elif ELAPSED in variables:
             start = nc._attributes.get("start_time")
-            base = float(np.asarray(start).ravel()[0]) if start is not None else 0.0
-            t = column(ELAPSED) + base
+            if start is None:
+                raise FieldError(
+                    f"{path}: no absolute time: no {TIME} variable and no start_time "
+                    f"attribute ({ELAPSED} counts from the dive's start)"
+                )
+            t = column(ELAPSED) + _attribute(path, "start_time", start)
         else:
             size = next((variables[v].data.size for v in (DEPTH, PITCH) if v in variables), 0)
             t = np.full(size, np.nan)
         n = t.size
         values = {
-            "depth": column(DEPTH, n) * 0.01,
-            "pitch": np.radians(column(PITCH, n)),
+            "depth": column(DEPTH, n) * units[DEPTH][1],
+            "pitch": column(PITCH, n) * units[PITCH][1],
             "buoyancy": column(VBD, n),
             "pitch_input": column(PITCH_CTL, n),
         }
@@ -149,4 +239,4 @@ def _read_dive(path: Path, number: int, issues: Issues) -> dict[str, list]:
         **{k: v.tolist() for k, v in values.items()},
         "dive": [number] * n,
         "in_dive": [True] * n,
-    }
+    }, units

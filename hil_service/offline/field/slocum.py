@@ -1,9 +1,11 @@
 """Slocum binary logs (``.dbd .sbd .tbd .ebd .mbd .nbd``, any case) through ``dbdreader``.
 
 A Slocum file names its sensor list by a cache id; unless the file carries the list itself
-(then dbdreader writes it to the cache), the list must be in ``--cache-dir`` as
-``<id>.cac`` (copied from the glider's or the dockserver's ``state/cache``). Which sensor
-becomes what (docs/field-data.md):
+(then it is copied into the cache once the file has been read whole), the list must be in
+``--cache-dir`` as ``<id>.cac`` (copied from the glider's or the dockserver's
+``state/cache``). The ASCII header is checked complete before dbdreader sees the file (it
+reads a header cut short forever), and whatever dbdreader raises on a damaged file is an
+error naming it. Which sensor becomes what (docs/field-data.md):
 
 * time: the time base of ``m_depth`` (s since 1970); depth: ``m_depth`` m;
 * pitch: ``m_pitch`` rad (+ nose up), interpolated by ``dbdreader.get_sync`` onto the
@@ -11,11 +13,16 @@ becomes what (docs/field-data.md):
 * buoyancy input: ``m_de_oil_vol`` cc (deep glider), else ``m_ballast_pumped`` cc;
 * pitch input: ``m_battpos`` in (the pitch battery position).
 
-Each file is one dive number (the files in name order: a Slocum name sorts in time).
+Each file is one dive number (the files in name order: a Slocum name sorts in time). The
+glider is the name that leads the header's ``full_filename``; files of two are refused.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +45,8 @@ CONVERSIONS = [
     Conversion("buoyancy", "m_de_oil_vol | m_ballast_pumped", "cc", "cc"),
     Conversion("pitch_input", "m_battpos", "in", "in"),
 ]
+#: Bytes of a file searched for its ASCII header (a real one is 14 short lines, < 1 kB).
+HEADER_BYTES = 1 << 16
 #: Oil/ballast ±500 cc and the pitch battery ±1.5 in are model units ±full scale.
 SCALING = {"buoyancy": InputScaling(0.0, 500.0), "pitch_input": InputScaling(0.0, 1.5)}
 
@@ -62,15 +71,40 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
     issues = Issues()
     columns = Columns()
     ordered = sorted(paths, key=lambda p: p.name.lower())
+    headers = {path: _header(path, dbdreader) for path in ordered}
+    vehicles: dict[str, Path] = {}
+    for path, header in headers.items():
+        # The glider's name leads the header's full_filename (an 8.3 name does not hold it).
+        full = header.get("full_filename") or path.name
+        vehicles.setdefault(full.split("-")[0], path)
+    if len(vehicles) > 1:
+        (first, one), (second, other) = list(vehicles.items())[:2]
+        raise FieldError(
+            f"files of two gliders: {one} is {first}, {other} is {second}; import one glider "
+            "at a time"
+        )
     for number, path in enumerate(ordered):
-        try:
-            dbd = dbdreader.DBD(str(path), cacheDir=str(cache))
-        except dbdreader.DbdError as error:
-            raise FieldError(_explain(path, cache, error, dbdreader)) from error
-        try:
-            _read(dbd, path, number, columns, issues)
-        finally:
-            dbd.close()
+        header = headers[path]
+        with tempfile.TemporaryDirectory(prefix="glider-hil-cac-") as scratch:
+            # A file that carries its sensor list has dbdreader write it into the cache
+            # given; a scratch directory keeps a list cut short out of the user's cache.
+            carries = header.get("sensor_list_factored", "").strip() == "0"
+            given = Path(scratch) if carries else cache
+            try:
+                dbd = dbdreader.DBD(str(path), cacheDir=str(given))
+            except dbdreader.DbdError as error:
+                raise FieldError(_explain(path, cache, error, dbdreader)) from error
+            except Exception as error:  # KeyError, IndexError, ValueError, … on a damaged file
+                raise FieldError(
+                    f"{path}: not a readable Slocum file ({type(error).__name__}: {error}); a "
+                    "file cut short in transfer reads like this"
+                ) from error
+            try:
+                _read(dbd, path, number, columns, issues)
+            finally:
+                dbd.close()
+            if carries:
+                _keep_sensor_list(Path(scratch), cache, str(dbd.cacheID))
     return FieldData.from_columns(
         "slocum",
         [str(p) for p in ordered],
@@ -78,8 +112,63 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
         CONVERSIONS,
         SCALING,
         issues,
-        vehicle=ordered[0].name.split("-")[0],
+        vehicle=next(iter(vehicles), ""),
     )
+
+
+def _header(path: Path, dbdreader: object) -> dict[str, str]:
+    """The file's ASCII header tags, checked complete as dbdreader reads it: a first line
+    ``dbd_label``, then lines up to the ``num_ascii_tags``-th, each ended by a newline;
+    else an error naming the file."""
+    decompress = getattr(dbdreader, "decompress", None)
+    try:
+        if decompress is not None and decompress.is_compressed(str(path)):
+            with decompress.Decompressor(str(path)) as packed:
+                head = b"".join(packed.decompressed_blocks(2))[:HEADER_BYTES]
+        else:
+            with path.open("rb") as fp:
+                head = fp.read(HEADER_BYTES)
+    except Exception as error:  # OSError, lz4's errors on a damaged compressed file
+        raise FieldError(f"{path}: cannot be read ({type(error).__name__}: {error})") from error
+    tags: dict[str, str] = {}
+    complete = head.split(b"\n")[:-1]  # the piece after the last newline is cut short
+    for number, line in enumerate(complete, start=1):
+        key, _, value = line.decode("latin-1").partition(":")
+        if number == 1 and key != "dbd_label":
+            raise FieldError(f"{path}: not a Slocum file (its first line is no dbd_label)")
+        tags.setdefault(key, value.strip())
+        count = tags.get("num_ascii_tags")
+        if count is None:
+            continue
+        if not count.isdigit() or int(count) < number:
+            raise FieldError(
+                f"{path}: not a readable Slocum file (num_ascii_tags {count!r} on line {number})"
+            )
+        if int(count) == number:
+            return tags
+    expected = tags.get("num_ascii_tags", "?")
+    raise FieldError(
+        f"{path}: cut short in its ASCII header ({len(complete)} complete lines of "
+        f"num_ascii_tags {expected}); a file cut short in transfer reads like this"
+    )
+
+
+def _keep_sensor_list(scratch: Path, cache: Path, cache_id: str) -> None:
+    """The sensor list a file carried, from the scratch cache into ``cache`` (unless one
+    is there already), after the file was read whole: written under a temporary name and
+    renamed, so the cache never holds a partial list."""
+    source = scratch / f"{cache_id.lower()}.cac"
+    target = cache / source.name
+    if target.exists() or not source.is_file():
+        return
+    part = cache / f".{source.name}.part"
+    try:
+        shutil.copyfile(source, part)
+        os.replace(part, target)
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            part.unlink(missing_ok=True)
+        raise FieldError(f"--cache-dir {cache}: cannot write {target.name} ({error})") from error
 
 
 def _explain(path: Path, cache: Path, error: Exception, dbdreader: object) -> str:

@@ -33,6 +33,18 @@ RANGE_NOTE = (
 )
 
 
+#: Dive numbers are stored as int64: a number read from a file must lie within ±2⁶³.
+DIVE_LIMIT = 2.0**63
+
+
+def whole_dive(value: float) -> int:
+    """A number read from a file as a dive number (truncated to a whole one); ValueError
+    when it is not finite or not within int64."""
+    if not (math.isfinite(value) and abs(value) < DIVE_LIMIT):
+        raise ValueError(f"dive number {value!r} is not a finite number within ±2^63")
+    return int(value)
+
+
 class FieldError(ValueError):
     """A file that cannot be read: the message names the file (and the line when known)."""
 
@@ -174,7 +186,7 @@ class FieldData:
             "pitch": np.asarray(columns.pitch, dtype=float),
             "buoyancy": np.asarray(columns.buoyancy, dtype=float),
             "pitch_input": np.asarray(columns.pitch_input, dtype=float),
-            "dive": np.asarray(columns.dive, dtype=int),
+            "dive": _dives(fmt, files, columns.dive),
             "in_dive": np.asarray(columns.in_dive, dtype=bool),
         }
         sizes = {t.size, *(a.size for a in data.values())}
@@ -223,6 +235,15 @@ class FieldData:
             issues,
             vehicle,
         )
+
+
+def _dives(fmt: str, files: list[str], dive: list[int]) -> np.ndarray:
+    """The dive column as int64; a number beyond it is an error naming the files (each
+    reader checks its own numbers first, to name the one file)."""
+    try:
+        return np.asarray(dive, dtype=np.int64)
+    except OverflowError as error:
+        raise FieldError(f"{', '.join(files)}: a dive number beyond int64 ({fmt})") from error
 
 
 def is_log_time(t: np.ndarray) -> np.ndarray:
