@@ -1,13 +1,21 @@
-"""What ``emulate``'s flags configure, built once for the single vehicle and the fleet alike."""
+"""What ``emulate``'s flags configure, built once for the single vehicle and the fleet alike,
+and the checks that refuse a bad flag, naming it, before any link opens."""
 
 from __future__ import annotations
 
 import argparse
+import os
+from collections.abc import Callable, Iterable
 
 from plant_emulator.autopilot import AutopilotConfig
+from plant_emulator.plant import PlantConfig
 from protocols.mapping import TelemetryMapping
+from protocols.mavlink_io import ACCEPTED_LINKS
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
+
+#: Connection schemes ``Link`` opens as a live link, each followed by HOST:PORT.
+LINK_SCHEMES = ("udpin", "udpout", "udpbcast", "udp", "tcp", "tcpin")
 
 
 def autopilot_config(args: argparse.Namespace, system_id: int) -> AutopilotConfig:
@@ -25,8 +33,84 @@ def autopilot_config(args: argparse.Namespace, system_id: int) -> AutopilotConfi
 
 def telemetry_mapping(args: argparse.Namespace) -> TelemetryMapping:
     """How telemetry is encoded: the water and surface pressure of the depth conversion and
-    the inputs' full scale."""
+    the inputs' full scale (a flag not given: the default of ``protocols.units``)."""
+    pressure = PressureDepth()
     return TelemetryMapping(
-        pressure=PressureDepth(args.water_density, args.surface_pressure),
-        inputs=InputScale(args.full_scale),
+        pressure=PressureDepth(
+            pressure.water_density if args.water_density is None else args.water_density,
+            pressure.surface_hpa if args.surface_pressure is None else args.surface_pressure,
+        ),
+        inputs=InputScale() if args.full_scale is None else InputScale(args.full_scale),
     )
+
+
+def unit_flags_given(args: argparse.Namespace) -> list[str]:
+    """The unit flags given on the command line (a periodic profile gives its own units)."""
+    given = (
+        ("--full-scale", args.full_scale),
+        ("--water-density", args.water_density),
+        ("--surface-pressure", args.surface_pressure),
+    )
+    return [flag for flag, value in given if value is not None]
+
+
+def check_value_flags(args: argparse.Namespace) -> None:
+    """Raise ValueError, naming the flag, for a plant step, trim depth or unit outside the
+    bounds of the dataclass it configures (``PlantConfig``, ``protocols.units``)."""
+    checks: list[tuple[str, Callable[[], object]]] = [
+        ("--trim-depth", lambda: PlantConfig(trim_depth=args.trim_depth))
+    ]
+    if args.period is not None:
+        checks.append(("--period", lambda: PlantConfig(period=args.period)))
+    if args.full_scale is not None:
+        checks.append(("--full-scale", lambda: InputScale(args.full_scale)))
+    if args.water_density is not None:
+        checks.append(("--water-density", lambda: PressureDepth(water_density=args.water_density)))
+    if args.surface_pressure is not None:
+        checks.append(
+            ("--surface-pressure", lambda: PressureDepth(surface_hpa=args.surface_pressure))
+        )
+    check_flags(checks)
+
+
+def check_flags(checks: Iterable[tuple[str, Callable[[], object]]]) -> None:
+    """Call each check (a dataclass built from one flag's value: its own checks); the first
+    ValueError is raised again with the flag's name in front."""
+    for flag, check in checks:
+        try:
+            check()
+        except ValueError as error:
+            raise ValueError(f"{flag}: {error}") from None
+
+
+def connection_problem(connection: str) -> str:
+    """Why ``connection`` cannot be opened as a link, or "" when it can be tried: a scheme
+    of ``LINK_SCHEMES`` with HOST:PORT (PORT 1..65535), or a serial device that exists.
+
+    pymavlink would raise ValueError for an unknown scheme or a missing port, a serial
+    error for an empty name, and take a port beyond 65535 until the first send fails."""
+    name = connection.strip()
+    if not name:
+        return f"is empty; it takes {ACCEPTED_LINKS}"
+    scheme, colon, rest = name.partition(":")
+    if colon and "/" not in scheme:
+        if scheme.lower() not in LINK_SCHEMES:
+            return f"{connection!r}: unknown scheme {scheme!r}; it takes {ACCEPTED_LINKS}"
+        host, colon, port = rest.partition(":")
+        if not host or not colon or ":" in port:
+            return f"{connection!r}: {scheme}: wants HOST:PORT; it takes {ACCEPTED_LINKS}"
+        if not (port.isdigit() and 1 <= int(port) <= 65535):
+            return f"{connection!r}: port must be an integer 1..65535, got {port!r}"
+        return ""
+    if not os.path.exists(name):
+        return f"{connection!r}: no such serial device; it takes {ACCEPTED_LINKS}"
+    if os.path.isfile(name):
+        return f"{connection!r} is a file, not a link; it takes {ACCEPTED_LINKS}"
+    return ""
+
+
+def check_connection(flag: str, connection: str) -> None:
+    """Raise ValueError naming ``flag`` when ``connection`` cannot be a link."""
+    problem = connection_problem(connection)
+    if problem:
+        raise ValueError(f"{flag} {problem}")

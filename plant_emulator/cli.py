@@ -4,13 +4,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from plant_emulator.arguments import autopilot_config, telemetry_mapping
+from plant_emulator.arguments import (
+    autopilot_config,
+    check_connection,
+    check_flags,
+    check_value_flags,
+    telemetry_mapping,
+    unit_flags_given,
+)
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
@@ -19,13 +27,19 @@ from plant_emulator.models import CHANNELS
 from plant_emulator.plant import FamilyPlant, GliderPlant, PlantConfig, wire_bounds
 from plant_emulator.reboot import RebootAt
 from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
-from plant_emulator.streams import DEFAULT_RATES_HZ, ArduSubAutopilot, StreamConfig
+from plant_emulator.streams import DEFAULT_RATES_HZ, MAX_UPTIME, ArduSubAutopilot, StreamConfig
 from protocols.flag_types import non_negative_float, non_negative_int, positive_float
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, ProfileError, load_profile
-from protocols.samples import TelemetrySample
-from protocols.units import InputScale, PressureDepth
+from protocols.samples import DEPTH_RANGE, TelemetrySample
+from protocols.units import (
+    FULL_SCALE_RANGE,
+    SURFACE_PRESSURE_RANGE,
+    WATER_DENSITY_RANGE,
+    InputScale,
+    PressureDepth,
+)
 
 # The one home of each default: the dataclasses the options configure.
 _PLANT = PlantConfig()
@@ -89,8 +103,9 @@ def _add_time_arguments(parser: argparse.ArgumentParser) -> None:
         "--uptime",
         type=float,
         default=_STREAMS.uptime,
-        help="periodic profiles: simulated s since boot at start (4290: the uint32 µs clock "
-        "of SERVO_OUTPUT_RAW wraps 5 s in)",
+        help="periodic profiles: simulated s since boot at start, under "
+        f"{MAX_UPTIME:g} (the uint32 ms clock's wrap; 4290: the uint32 µs clock of "
+        "SERVO_OUTPUT_RAW wraps 5 s in)",
     )
     group.add_argument(
         "--jitter",
@@ -126,7 +141,7 @@ def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
         "--trim-depth",
         type=non_negative_float,
         default=_PLANT.trim_depth,
-        help="m below the surface (default %(default)s)",
+        help=f"m below the surface, at most {DEPTH_RANGE[1]:g} (default %(default)s)",
     )
     group.add_argument(
         "--rate-limit",
@@ -189,30 +204,39 @@ def _add_event_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--change-channel", choices=CHANNELS, default="pitch")
     group.add_argument(
-        "--change-at", type=non_negative_int, default=0, metavar="STEP", help="plant step"
+        "--change-at",
+        type=non_negative_int,
+        default=None,
+        metavar="STEP",
+        help="with --change: the plant step (from 0) it changes at, within --duration (default 0)",
     )
 
 
 def _add_units_arguments(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("units")
+    # None: not given, the default below (a periodic profile gives its own units).
+    group = parser.add_argument_group("units (the glider profile; a periodic one gives its own)")
     group.add_argument(
         "--full-scale",
         type=float,
-        default=_INPUTS.full_scale,
-        help="model units at wire 1.0 (default %(default)s)",
+        default=None,
+        help=f"model units at wire 1.0, {_span(FULL_SCALE_RANGE)} (default {_INPUTS.full_scale:g})",
     )
     group.add_argument(
         "--water-density",
         type=float,
-        default=_PRESSURE.water_density,
-        help="kg/m³ (default %(default)s)",
+        default=None,
+        help=f"kg/m³, {_span(WATER_DENSITY_RANGE)} (default {_PRESSURE.water_density:g})",
     )
     group.add_argument(
         "--surface-pressure",
         type=float,
-        default=_PRESSURE.surface_hpa,
-        help="hPa (default %(default)s)",
+        default=None,
+        help=f"hPa, {_span(SURFACE_PRESSURE_RANGE)} (default {_PRESSURE.surface_hpa:g})",
     )
+
+
+def _span(bounds: tuple[float, float]) -> str:
+    return f"{bounds[0]:g}..{bounds[1]:g}"
 
 
 def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
@@ -248,14 +272,30 @@ class _Vehicle:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.vehicles != 1 or args.fleet_connect:
-        return _run_fleet(args)
+    fleet = args.vehicles != 1 or bool(args.fleet_connect)
     try:
+        _check_common_flags(args, fleet)
+        if fleet:
+            return _run_fleet(args)
         vehicle = _vehicle_from_args(args)
     except (ValueError, ProfileError) as error:
         print(f"glider-hil emulate: {error}", file=sys.stderr)
         return 2
     return _emulate(args, vehicle)
+
+
+def _check_common_flags(args: argparse.Namespace, fleet: bool) -> None:
+    """Raise ValueError, naming the flag, for what neither one vehicle nor a fleet takes:
+    a connection string that cannot be a link (the ones the run would open), a trim depth
+    or unit out of bounds, ``--change-at`` without ``--change``."""
+    if fleet and args.fleet_connect:
+        for connection in args.fleet_connect:
+            check_connection("--fleet-connect", connection)
+    else:
+        check_connection("--connect", args.connect)
+    check_value_flags(args)
+    if args.change_at is not None and args.change is None:
+        raise ValueError("--change-at needs --change (the plant change it times)")
 
 
 def _run_fleet(args: argparse.Namespace) -> int:
@@ -280,6 +320,7 @@ def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
     profile = load_profile(args.profile)
     periodic = profile.sampling.mode == "periodic"
     _check_single_vehicle_flags(args, periodic)
+    check_flags([("--uptime", lambda: StreamConfig(uptime=args.uptime))])
     streams = StreamConfig(
         uptime=args.uptime,
         jitter=args.jitter,
@@ -287,6 +328,7 @@ def _vehicle_from_args(args: argparse.Namespace) -> _Vehicle:
         seed=args.seed,
     )
     plant = _plant_from_args(args, profile)
+    _check_steps_within_run(args, plant.config.period)
     config = autopilot_config(args, args.sysid)
     mapping = telemetry_mapping(args)
     return _Vehicle(profile, plant, config, mapping, streams)
@@ -303,6 +345,25 @@ def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> Non
         raise ValueError("--reboot-at needs a periodic profile (the vehicle's own clock)")
     if args.reboot_at is not None and args.reboot_at < 1:
         raise ValueError(f"--reboot-at must be a plant step ≥ 1, got {args.reboot_at}")
+    given = unit_flags_given(args)
+    if periodic and given:
+        raise ValueError(
+            f"{', '.join(given)}: the profile {args.profile} is periodic and gives its own "
+            "units ([units] and [ballast] full_scale, docs/profiles.md): set them there"
+        )
+
+
+def _check_steps_within_run(args: argparse.Namespace, period: float) -> None:
+    """With ``--duration`` the run's plant steps are known: ``--reboot-at`` (after step
+    1..N) and ``--change-at`` (step 0..N−1) must fall within them."""
+    if args.duration is None:
+        return
+    steps = math.floor(args.duration / period + 1e-9)  # as Autopilot.run counts them
+    run = f"the run has {steps} plant steps (--duration {args.duration:g} s, period {period:g} s)"
+    if args.reboot_at is not None and args.reboot_at > steps:
+        raise ValueError(f"--reboot-at {args.reboot_at} is beyond the run: {run}")
+    if args.change_at is not None and args.change_at >= steps:
+        raise ValueError(f"--change-at {args.change_at} is beyond the run: {run}, numbered from 0")
 
 
 def _plant_from_args(args: argparse.Namespace, profile: Profile) -> GliderPlant | FamilyPlant:
@@ -330,7 +391,8 @@ def _plant_from_args(args: argparse.Namespace, profile: Profile) -> GliderPlant 
         )
     if args.change is not None:
         actuator = plant.actuators[args.change_channel]
-        changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], args.change_at)
+        at = 0 if args.change_at is None else args.change_at
+        changing = ChangingActuator(actuator, PLANT_CHANGES[args.change], at)
         plant.actuators[args.change_channel] = changing  # type: ignore[assignment]
     return plant
 

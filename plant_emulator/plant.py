@@ -31,6 +31,11 @@ class PlantConfig:
         check_scenario(self.scenario)
         if not (self.period > 0 and math.isfinite(self.period)):
             raise ValueError(f"period must be positive, got {self.period}")
+        if not 0 <= self.trim_depth <= DEPTH_RANGE[1]:  # the deepest ocean
+            raise ValueError(
+                f"trim depth must be 0..{DEPTH_RANGE[1]:g} m below the surface, got "
+                f"{self.trim_depth!r}"
+            )
 
 
 class GliderPlant:

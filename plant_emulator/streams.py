@@ -56,6 +56,10 @@ PWM_LIMITS = (500, 2500)  # µs a DO_SET_SERVO may ask for at all
 MOTOR1_FUNCTION = 33  # SRV_Channel::k_motor1; thruster n is motor n
 #: SERVOn_FUNCTION values ArduPilot lets DO_SET_SERVO drive: disabled, RCPassThru, RCIN1..16.
 FREE_FUNCTIONS = frozenset({0, 1, *range(51, 67)})
+#: Simulated s since boot the clock may start at: under the wrap of ``time_boot_ms``, a
+#: uint32 of ms (2^32 ms ≈ 49.7 days); later starts would only wrap it, and a start far
+#: beyond it leaves no float resolution for the clock to advance.
+MAX_UPTIME = (1 << 32) / 1000.0
 
 
 @dataclass(frozen=True)
@@ -66,8 +70,11 @@ class StreamConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.uptime) and self.uptime >= 0):
-            raise ValueError(f"uptime must be ≥ 0, got {self.uptime}")
+        if not 0 <= self.uptime < MAX_UPTIME:
+            raise ValueError(
+                f"uptime must be 0..{MAX_UPTIME:g} s (time_boot_ms is a uint32 of ms), got "
+                f"{self.uptime!r}"
+            )
         if not 0 <= self.jitter < 1:
             raise ValueError(f"jitter must be 0..1, got {self.jitter}")
 
@@ -109,7 +116,13 @@ class ArduSubAutopilot(Autopilot):
         #: PWM a DO_SET_SERVO set on a servo that is not ballast (shown in SERVO_OUTPUT_RAW).
         self._servo_pwm: dict[int, int] = {}
         super().__init__(
-            plant, link, excitations, config, mapping, on_step=on_step, identity=ARDUPILOT,
+            plant,
+            link,
+            excitations,
+            config,
+            mapping,
+            on_step=on_step,
+            identity=ARDUPILOT,
             **kwargs,
         )
         self._uptime = uptime
@@ -299,9 +312,7 @@ class ArduSubAutopilot(Autopilot):
         if name == "VFR_HUD":
             return dialect.MAVLink_vfr_hud_message(0.0, 0.0, 0, 0, -sample.depth, sample.climb)
         ballast = self.profile.ballast
-        servos = [
-            1500 if n in THRUSTER_SERVOS else self._servo_pwm.get(n, 0) for n in SERVOS
-        ]
+        servos = [1500 if n in THRUSTER_SERVOS else self._servo_pwm.get(n, 0) for n in SERVOS]
         for channel, u in (("depth", sample.u_depth), ("pitch", sample.u_pitch)):
             servos[ballast.output(channel) - 1] = ballast.pwm.from_wire(u / ballast.full_scale)
         return dialect.MAVLink_servo_output_raw_message(int(sim * 1e6) & 0xFFFFFFFF, 0, *servos)

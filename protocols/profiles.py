@@ -25,7 +25,14 @@ from typing import Any, NamedTuple, NoReturn
 
 from protocols.mavlink_io import MavMessage, dialect
 from protocols.readings import MessageReader
-from protocols.units import InputScale, PressureDepth
+from protocols.units import (
+    FULL_SCALE_RANGE,
+    SURFACE_PRESSURE_RANGE,
+    WATER_DENSITY_RANGE,
+    InputScale,
+    PressureDepth,
+    range_problem,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -52,6 +59,9 @@ MIN_SAMPLE_PERIOD = 1e-3
 #: candidate nearest the last stamp, and ``MAV_CMD_SET_MESSAGE_INTERVAL`` asks for a
 #: stream's interval as an int32 of µs. Every staleness limit (twice a period) stays finite.
 MAX_SAMPLE_PERIOD = 2000.0
+#: The largest magnitude of any number in a profile (a scale, an offset, an interval):
+#: far beyond any real one, and a value read or sent with it stays a finite float32.
+MAX_NUMBER = 1e9
 
 
 class ProfileError(ValueError):
@@ -338,7 +348,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
             "nor a file"
         )
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark, as editors write
     except (OSError, UnicodeDecodeError) as error:
         raise ProfileError(f"{path}: cannot read: {error}") from error
     return parse_profile(text, str(path))
@@ -347,14 +357,25 @@ def load_profile(name_or_path: str | Path) -> Profile:
 def parse_profile(text: str, origin: str = "<profile>") -> Profile:
     try:
         data = tomllib.loads(text)
+        return _Parser(text, origin).profile(data)
     except tomllib.TOMLDecodeError as error:
         raise ProfileError(f"{origin}: not valid TOML: {error}") from error
-    return _Parser(text, origin).profile(data)
+    except RecursionError:  # tomllib reads nested arrays and tables recursively
+        raise ProfileError(
+            f"{origin}: arrays or tables nested too deeply to read (no profile field nests)"
+        ) from None
 
 
 #: The parser's defaults are the dataclasses' own (the units': ``protocols.units``).
 _PRESSURE = PressureDepth()
 _INPUTS = InputScale()
+
+
+def _shown(value: Any) -> str:
+    """``value`` for an error message: its repr, cut short (an array may be long)."""
+    text = repr(value)
+    return text if len(text) <= 60 else f"{text[:57]}..."
+
 
 _HEADER = re.compile(r"^\s*\[\[?\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_\-\"']+)\s*=")
@@ -419,14 +440,26 @@ class _Parser:
         default: Any,
         occurrence: int = 0,
         positive: bool = False,
+        bounds: tuple[float, float] | None = None,
+        unit: str = "",
     ) -> Any:
+        """A number of at most ``MAX_NUMBER`` in magnitude (``positive``: > 0), within
+        ``bounds`` (in ``unit``) if given; None if absent and without a default."""
         value = table.get(key, default)
         if value is None:
             return None
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            self.fail(f"must be a number, got {value!r}", name, key, occurrence)
+            self.fail(f"must be a number, got {_shown(value)}", name, key, occurrence)
         if not math.isfinite(value) or (positive and value <= 0):
             self.fail(f"must be a positive finite number, got {value!r}", name, key, occurrence)
+        if bounds is not None:
+            problem = range_problem(value, bounds, unit)
+            if problem:
+                self.fail(problem, name, key, occurrence)
+        elif abs(value) > MAX_NUMBER:
+            self.fail(
+                f"must be at most {MAX_NUMBER:g} in magnitude, got {value!r}", name, key, occurrence
+            )
         return float(value)
 
     def _string(
@@ -465,17 +498,25 @@ class _Parser:
         description = self._string(head, "profile", "description", "")
         sampling = self._sampling(self._table(data, "sampling", {"mode", "period", "delay"}))
         units = self._table(data, "units", {"water_density", "surface_pressure_hpa"})
-        try:
-            pressure = PressureDepth(
-                self._number(
-                    units, "units", "water_density", _PRESSURE.water_density, positive=True
-                ),
-                self._number(
-                    units, "units", "surface_pressure_hpa", _PRESSURE.surface_hpa, positive=True
-                ),
-            )
-        except ValueError as error:
-            self.fail(str(error), "units")
+        # Checked here against PressureDepth's bounds, so that a bad value names its line.
+        pressure = PressureDepth(
+            self._number(
+                units,
+                "units",
+                "water_density",
+                _PRESSURE.water_density,
+                bounds=WATER_DENSITY_RANGE,
+                unit="kg/m³",
+            ),
+            self._number(
+                units,
+                "units",
+                "surface_pressure_hpa",
+                _PRESSURE.surface_hpa,
+                bounds=SURFACE_PRESSURE_RANGE,
+                unit="hPa",
+            ),
+        )
         signals = self._signals(data.get("signals", {}))
         ballast = self._ballast(data.get("ballast", {}))
         profile = Profile(name, description, sampling, pressure, signals, ballast, self.text)
@@ -492,7 +533,10 @@ class _Parser:
 
     def _sampling(self, table: dict) -> Sampling:
         mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)
-        period = self._number(table, "sampling", "period", None, positive=True)
+        # Bounded by sample_period_problem, which says why.
+        period = self._number(
+            table, "sampling", "period", None, positive=True, bounds=(0.0, math.inf)
+        )
         problem = "" if period is None else sample_period_problem(period)
         if problem:
             self.fail(problem, "sampling", "period")
@@ -631,7 +675,12 @@ class _Parser:
             readback=readback,
             command=command,
             full_scale=self._number(
-                table, "ballast", "full_scale", _INPUTS.full_scale, positive=True
+                table,
+                "ballast",
+                "full_scale",
+                _INPUTS.full_scale,
+                bounds=FULL_SCALE_RANGE,
+                unit="model units",
             ),
             pwm=pwm,
             depth_output=outputs[0],

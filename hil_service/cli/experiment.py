@@ -179,6 +179,9 @@ def _field(args: argparse.Namespace) -> int:
         raise ValueError("--log runs the identification experiment (no --closed-loop, --bench)")
     splits = ("first", "alternate") if args.split == "both" else (args.split,)
     results: list[FieldExperiment] = [run_field_experiment(args.log, split) for split in splits]
+    # As replay and report say it: a log cut short or damaged is used as far as it reads.
+    for recovery in dict.fromkeys(r.recovery for r in results if r.recovery):
+        print(f"glider-hil experiment: {recovery}", file=sys.stderr)
     _emit(results, args.json, field_table)
     return 0
 
@@ -480,6 +483,8 @@ def _settled_after(
 
 # ---- speed -------------------------------------------------------------------------------
 def _bench(args: argparse.Namespace) -> int:
+    if args.samples < 1:
+        raise ValueError(f"--samples must be at least 1, got {args.samples}")
     scenario = "paper" if args.scenario == "all" else args.scenario
     figures = measure_all(args.samples, scenario, args.seed)
     modules = compiled.summary()

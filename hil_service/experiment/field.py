@@ -15,6 +15,9 @@ field models (the two-input ``glide-u``, the steady-glide flight model and its
 buoyancy-only form for depth, the static moment balance for pitch) is trained on the
 training part, frozen, and scored on each scored part: one-step skill against persistence,
 free-run fit % and k-step NMSE (k = ``horizon_s`` of samples, 300 s by default).
+
+A log that was cut short or damaged is used as far as it can be read; what the reader
+found (``ReadReport.describe``) is kept as the experiment's ``recovery``.
 """
 
 from __future__ import annotations
@@ -57,8 +60,11 @@ class FieldExperiment:
     period: float
     runs: int
     results: list[ChannelResult]
+    #: What reading the log found when it was not finished or lost chunks ("": intact).
+    recovery: str = ""
 
     def as_json(self) -> dict[str, Any]:
+        recovery = {"recovery": self.recovery} if self.recovery else {}
         return {
             "log": self.log,
             "source": self.source,
@@ -86,6 +92,7 @@ class FieldExperiment:
                 }
                 for r in self.results
             },
+            **recovery,
         }
 
 
@@ -121,6 +128,8 @@ def run_field_experiment(
     log: str | Path, split: str = "first", horizon_s: float = 300.0, system_id: int = 1
 ) -> FieldExperiment:
     path = Path(log)
+    if path.is_dir():
+        raise ValueError(f"{log}: a directory, not a log")
     if not path.is_file():
         raise ValueError(f"{log}: no such log")
     if split not in SPLITS:
@@ -132,6 +141,8 @@ def run_field_experiment(
         config = reader.config()
     except LogError as error:
         raise ValueError(str(error)) from error
+    report = reader.report
+    recovery = "" if report.intact else report.describe()
     service = ServiceConfig.from_stored(config, path)  # StoredConfigError is a ValueError
     settings = PipelineSettings() if service is None else service.pipeline
     field = config.get("field")
@@ -171,6 +182,7 @@ def run_field_experiment(
         arrays.period,
         len(arrays.segments),
         results,
+        recovery,
     )
 
 

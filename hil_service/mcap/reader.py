@@ -4,24 +4,34 @@ A complete file is read through its records like any other; a file with no summa
 (the writer was killed) is read up to its last complete chunk, and a truncated or corrupted
 file stops at the first bad record with the byte offset reported, never an exception. A
 chunk whose contents are damaged but whose record is whole is skipped and counted, and
-reading goes on after it; messages on a channel that only such a chunk defined are counted
-as lost.
+reading goes on after it. A message on a channel no record read so far defined (its
+definition was in such a chunk) takes its channel, and that channel's schema, from the
+file's summary section, which repeats every Schema and Channel record; only when the file
+has no readable summary (a writer that was killed, a damaged footer or summary) is it
+counted as lost.
 """
 
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, BinaryIO, NamedTuple
 
+from mcap.opcode import Opcode
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 
 from hil_service.mcap.recorder import CONFIG_METADATA, PART_METADATA
 from hil_service.mcap.records import MAGIC, DamagedChunk, read_records
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
+#: The footer record at the end of a finished file, before the closing magic: opcode,
+#: length (20), summary start, summary offset start, summary CRC.
+_FOOTER = struct.Struct("<BQQQI")
 
 
 class LogError(Exception):
@@ -76,8 +86,12 @@ class ReadReport:
     damaged_chunks: int = 0
     first_damage: str = ""
     #: Messages on a channel no readable record defined (its definition was in a damaged
-    #: chunk): skipped.
+    #: chunk, and the file has no readable summary section to repeat it): skipped.
     lost_messages: int = 0
+    #: Channels defined only by the summary section (their data-section record was in a
+    #: damaged chunk), and the messages read on them.
+    summary_channels: int = 0
+    summary_messages: int = 0
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -90,10 +104,15 @@ class ReadReport:
         damage = ""
         if self.damaged_chunks:
             damage = (
-                f"; {self.damaged_chunks} damaged chunk(s) skipped (the first: "
-                f"{self.first_damage}), {self.lost_messages} messages on channels they "
-                "defined lost"
+                f"; {self.damaged_chunks} damaged chunk(s) skipped, their messages lost (the "
+                f"first: {self.first_damage}), {self.lost_messages} messages on channels "
+                "they defined lost"
             )
+            if self.summary_channels:
+                damage += (
+                    f", {self.summary_messages} read on {self.summary_channels} channel(s) "
+                    "defined from the summary section"
+                )
         if self.complete:
             return f"{self.path}: complete, {self.messages} messages{damage}"
         return (
@@ -117,6 +136,9 @@ class LogReader:
         report.file_size = self.path.stat().st_size
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}
+        #: The summary section's Schema and Channel records, read when first needed.
+        summary: tuple[dict[int, Schema], dict[int, Channel]] | None = None
+        from_summary: set[int] = set()
         with open(self.path, "rb") as stream:
             records = read_records(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT)
             while True:
@@ -140,24 +162,25 @@ class LogReader:
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels[record.id] = record
-                    schema = schemas.get(record.schema_id)
-                    report.channels.setdefault(
-                        record.topic,
-                        {
-                            "encoding": record.message_encoding,
-                            "schema": schema.name if schema else None,
-                            "schema_encoding": schema.encoding if schema else None,
-                            "metadata": dict(record.metadata),
-                            "count": 0,
-                        },
-                    )
+                    self._add_channel(record, schemas.get(record.schema_id))
                 elif isinstance(record, Metadata):
                     report.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Message):
                     channel = channels.get(record.channel_id)
                     if channel is None:
-                        report.lost_messages += 1
-                        continue
+                        if summary is None:
+                            summary = self._summary(stream)
+                        channel = summary[1].get(record.channel_id)
+                        if channel is None:
+                            report.lost_messages += 1
+                            continue
+                        channels[channel.id] = channel
+                        from_summary.add(channel.id)
+                        report.summary_channels += 1
+                        schema = schemas.get(channel.schema_id, summary[0].get(channel.schema_id))
+                        self._add_channel(channel, schema)
+                    if from_summary and record.channel_id in from_summary:
+                        report.summary_messages += 1
                     report.messages += 1
                     report.channels[channel.topic]["count"] += 1
                     if topics is None or channel.topic in topics:
@@ -175,6 +198,56 @@ class LogReader:
                     if not report.first_damage:
                         report.first_damage = f"{record.reason} at byte {record.offset}"
 
+    def _add_channel(self, channel: Channel, schema: Schema | None) -> None:
+        self.report.channels.setdefault(
+            channel.topic,
+            {
+                "encoding": channel.message_encoding,
+                "schema": schema.name if schema else None,
+                "schema_encoding": schema.encoding if schema else None,
+                "metadata": dict(channel.metadata),
+                "count": 0,
+            },
+        )
+
+    def _summary(self, stream: BinaryIO) -> tuple[dict[int, Schema], dict[int, Channel]]:
+        """The Schema and Channel records of the file's summary section, found through its
+        footer (the file's last record), its CRC checked where the writer gave one; none
+        when the file has no footer, no summary or a damaged one. ``stream`` is left where
+        it was."""
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        position = stream.tell()
+        footer_start = self.report.file_size - len(MAGIC) - _FOOTER.size
+        try:
+            if footer_start <= len(MAGIC):
+                return schemas, channels
+            stream.seek(footer_start)
+            tail = stream.read(_FOOTER.size + len(MAGIC))
+            opcode, length, start, _, crc = _FOOTER.unpack_from(tail)
+            if opcode != Opcode.FOOTER or length != 20 or tail[_FOOTER.size :] != MAGIC:
+                return schemas, channels
+            if not len(MAGIC) <= start < footer_start:
+                return schemas, channels  # 0: no summary section
+            stream.seek(start)
+            section = stream.read(footer_start - start)
+            # The CRC covers the summary and the footer up to (not with) the CRC itself.
+            if crc and zlib.crc32(section + tail[: _FOOTER.size - 4]) != crc:
+                return schemas, channels
+            records = read_records(
+                BytesIO(MAGIC + section), validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT
+            )
+            for record in records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+        except Exception:  # a damaged summary, whatever the record parser makes of it
+            return {}, {}
+        finally:
+            stream.seek(position)
+        return schemas, channels
+
     def _unreadable_start(self, stream: Any, error: Exception) -> str:
         """Why a file gave no first record: not MCAP at all, or an MCAP file (its magic
         is there) cut short before its header record ended."""
@@ -183,8 +256,7 @@ class LogReader:
             return f"{self.path}: not an MCAP file ({error})"
         size = self.report.file_size
         return (
-            f"{self.path}: an MCAP file cut short in its header ({size} bytes): no record "
-            "to read"
+            f"{self.path}: an MCAP file cut short in its header ({size} bytes): no record to read"
         )
 
     def part(self) -> tuple[int, str] | None:
