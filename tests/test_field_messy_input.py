@@ -18,6 +18,7 @@ from scipy.io import netcdf_file
 from hil_service.offline.field import FieldError, read_field
 from hil_service.offline.field.grid import resample
 from hil_service.offline.field.mapped import load_mapping
+from hil_service.offline.field.table import EARLY_TIME_NOTE
 from tests.test_field_import import MAPPING
 
 DATA = Path(__file__).parent / "data" / "field"
@@ -325,3 +326,13 @@ def test_a_mapping_that_is_not_utf8_names_the_file(tmp_path: Path) -> None:
     mapping.write_bytes(MAPPING.replace('"vbd"', '"v\xe9b"').encode("latin-1"))
     with pytest.raises(FieldError, match=r"map\.toml: not UTF-8"):
         load_mapping(mapping)
+
+
+def test_times_that_all_fall_before_1980_are_noted(tmp_path: Path) -> None:
+    """Seconds read as milliseconds put a 2001 record in January 1970, 1,000-fold
+    compressed: the import goes on (relative times are data too) but says so."""
+    path, mapping = _mapped(tmp_path, _csv_rows())
+    assert EARLY_TIME_NOTE not in read_field([path], "csv", mapping).issues.notes
+    shrunk = [f"{float(r.split(',', 1)[0]) / 1000:.6f},{r.split(',', 1)[1]}" for r in _csv_rows()]
+    path, mapping = _mapped(tmp_path, shrunk)
+    assert EARLY_TIME_NOTE in read_field([path], "csv", mapping).issues.notes

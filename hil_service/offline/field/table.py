@@ -33,6 +33,15 @@ RANGE_NOTE = (
 )
 
 
+#: Before 1980-01-01 (s since 1970) no glider logged: data that ends there either has
+#: times relative to its start, or was read in too small a unit (seconds read as ms land
+#: in January 1970).
+EARLIEST_GLIDER_TIME = 315_532_800.0
+EARLY_TIME_NOTE = (
+    "every time falls before 1980, when no glider logged: times relative to the start, or "
+    "a time unit too small (seconds read as milliseconds compress the record 1,000-fold)?"
+)
+
 #: Dive numbers are stored as int64: a number read from a file must lie within ±2⁶³.
 DIVE_LIMIT = 2.0**63
 
@@ -205,6 +214,8 @@ class FieldData:
             issues.notes.append(RANGE_NOTE)
         t = t[plausible]
         data = {k: v[plausible] for k, v in data.items()}
+        if t.size and float(np.max(t)) < EARLIEST_GLIDER_TIME:
+            issues.notes.append(EARLY_TIME_NOTE)
         if t.size > 1:
             issues.out_of_order += int(np.count_nonzero(np.diff(t) < 0))
         order = np.argsort(t, kind="stable")
