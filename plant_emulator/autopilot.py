@@ -80,6 +80,12 @@ class MessageGate(Protocol):
         ...
 
 
+def run_steps(duration: float | None, period: float) -> int | None:
+    """The plant steps a run of ``duration`` simulated s takes (None: no end); a duration
+    a rounding error short of a whole number of periods still counts the last one."""
+    return None if duration is None else math.floor(duration / period + 1e-9)
+
+
 @dataclass(frozen=True)
 class AutopilotConfig:
     system_id: int = 1
@@ -546,11 +552,7 @@ class Autopilot:
         wall_period = self.plant.config.period / speed
         start = self._start = self.clock()
         self._next_heartbeat = start
-        total_steps = (
-            None
-            if self.config.duration is None
-            else math.floor(self.config.duration / self.plant.config.period + 1e-9)
-        )
+        total_steps = run_steps(self.config.duration, self.plant.config.period)
         while not stop.is_set():
             if total_steps is not None and self.stats.steps >= total_steps:
                 break

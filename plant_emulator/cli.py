@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 import threading
@@ -19,7 +18,7 @@ from plant_emulator.arguments import (
     telemetry_mapping,
     unit_flags_given,
 )
-from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig
+from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig, run_steps
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
 from plant_emulator.fleet import add_fleet_arguments, run_fleet
 from plant_emulator.lockstep import DEFAULT_TIMEOUT, LockstepRunner
@@ -356,9 +355,9 @@ def _check_single_vehicle_flags(args: argparse.Namespace, periodic: bool) -> Non
 def _check_steps_within_run(args: argparse.Namespace, period: float) -> None:
     """With ``--duration`` the run's plant steps are known: ``--reboot-at`` (after step
     1..N) and ``--change-at`` (step 0..N−1) must fall within them."""
-    if args.duration is None:
+    steps = run_steps(args.duration, period)
+    if steps is None:
         return
-    steps = math.floor(args.duration / period + 1e-9)  # as Autopilot.run counts them
     run = f"the run has {steps} plant steps (--duration {args.duration:g} s, period {period:g} s)"
     if args.reboot_at is not None and args.reboot_at > steps:
         raise ValueError(f"--reboot-at {args.reboot_at} is beyond the run: {run}")

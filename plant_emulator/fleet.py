@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import heapq
 import json
-import math
 import os
 import select
 import signal
@@ -43,7 +42,7 @@ from collections.abc import Callable
 from typing import Any
 
 from plant_emulator.arguments import autopilot_config, telemetry_mapping
-from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot
+from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, run_steps
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.gcs import count_heartbeat
 from plant_emulator.plant import GliderPlant, PlantConfig
@@ -175,10 +174,7 @@ class FleetScheduler:
         self.late_steps = 0  # steps started more than one period after their deadline
 
     def _total_steps(self, autopilot: Autopilot) -> int | None:
-        duration = autopilot.config.duration
-        if duration is None:
-            return None
-        return math.floor(duration / autopilot.plant.config.period + 1e-9)
+        return run_steps(autopilot.config.duration, autopilot.plant.config.period)
 
     def run(self, stop: threading.Event) -> None:
         clock = self.clock

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-from plant_emulator.autopilot import Autopilot, AutopilotStats
+from plant_emulator.autopilot import Autopilot, AutopilotStats, run_steps
 from protocols.lockstep import LOCKSTEP_FLAG, BatchedLink, released_time, step_time
 from protocols.mapping import command_target_system, is_ballast_command
 from protocols.mavlink_io import MavMessage
@@ -88,12 +88,7 @@ class LockstepRunner:
         stop = stop or threading.Event()
         autopilot = self.autopilot
         link = self.link
-        duration = autopilot.config.duration
-        total_steps = (
-            None
-            if duration is None
-            else math.floor(duration / autopilot.plant.config.period + 1e-9)
-        )
+        total_steps = run_steps(autopilot.config.duration, autopilot.plant.config.period)
         # Looked up once: every step calls them.
         stopped, clock, timeout = stop.is_set, self.clock, self.timeout
         wait, recv, handle_bytes = link.wait, link.recv, autopilot.handle_bytes

@@ -55,7 +55,7 @@ UNITS = {
         **dict.fromkeys(("radians", "radian", "rad"), ("rad", 1.0)),
     },
 }
-DEFAULT_UNITS = {DEPTH: ("cm", 0.01), PITCH: ("deg", math.pi / 180.0)}
+DEFAULT_UNITS = {DEPTH: UNITS[DEPTH]["cm"], PITCH: UNITS[PITCH]["deg"]}
 CONVERSIONS = [
     Conversion("t", TIME, "s since 1970-01-01", "s", 1.0),
     Conversion("depth", DEPTH, "cm", "m", 0.01),
@@ -79,9 +79,8 @@ def read_seaglider(paths: list[Path]) -> FieldData:
     gliders: dict[str, Path] = {}
     conversions: list[Conversion] = []
     for number, path in dives:
-        read, units = _read_dive(path, number, issues)
+        read, units, glider = _read_dive(path, number, issues)
         columns.extend(**read)
-        glider = _glider(path)
         if glider:
             gliders.setdefault(glider, path)
         if len(gliders) > 1:
@@ -150,9 +149,9 @@ def _dive_number(path: Path) -> int:
     return 0
 
 
-def _glider(path: Path) -> str:
-    with _open(path) as nc:
-        value = nc._attributes.get("glider")
+def _glider(path: Path, attributes: dict) -> str:
+    """The glider's name from a file's ``glider`` attribute ("" without one)."""
+    value = attributes.get("glider")
     if value is None:
         return ""
     number = _attribute(path, "glider", value)
@@ -192,9 +191,11 @@ def _units(path: Path, variables: dict, name: str) -> tuple[str, float]:
 
 def _read_dive(
     path: Path, number: int, issues: Issues
-) -> tuple[dict[str, list], dict[str, tuple[str, float]]]:
-    """The dive's rows and the (unit, factor) its depth and pitch were read in."""
+) -> tuple[dict[str, list], dict[str, tuple[str, float]], str]:
+    """The dive's rows, the (unit, factor) its depth and pitch were read in, and the
+    glider's name."""
     with _open(path) as nc:
+        glider = _glider(path, nc._attributes)
         variables = nc.variables
         units = {name: _units(path, variables, name) for name in (DEPTH, PITCH)}
         missing = [v for v in (DEPTH, PITCH, VBD, PITCH_CTL) if v not in variables]
@@ -234,9 +235,13 @@ def _read_dive(
     sizes = {n, *(v.size for v in values.values())}
     if len(sizes) != 1:
         raise FieldError(f"{path}: the engineering variables differ in length {sorted(sizes)}")
-    return {
-        "t": t.tolist(),
-        **{k: v.tolist() for k, v in values.items()},
-        "dive": [number] * n,
-        "in_dive": [True] * n,
-    }, units
+    return (
+        {
+            "t": t.tolist(),
+            **{k: v.tolist() for k, v in values.items()},
+            "dive": [number] * n,
+            "in_dive": [True] * n,
+        },
+        units,
+        glider,
+    )
