@@ -7,6 +7,11 @@
 
        taskset -c 0 .venv/bin/python benchmarks/bench_lockstep.py --steps 3600
 
+   ``--two-cores E,S --spin-wait US``: the same lockstep missions again in the same run,
+   the emulator on core E and the service on core S, each link polling US µs before it
+   sleeps (docs/lockstep.md, "Two cores"). ``steady_steps_per_s``: the steps alone,
+   without the service's start-up and the plant's build.
+
 2. ``--campaign N``: wall time of a campaign of N seeds x the scenarios (default
    disturbed,nonlinear) with ``--jobs``, start-up included (the ``glider-hil campaign``
    process, as a user runs it):
@@ -39,9 +44,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hil_service.campaign.hil_run import run_hil  # noqa: E402
+from hil_service.campaign.hil_run import SHARED_CORES, Placement, run_hil  # noqa: E402
 from hil_service.campaign.mission import Mission, oracle_trace  # noqa: E402
 from hil_service.experiment.closed_loop import inverse_run  # noqa: E402
+from protocols.flag_types import spin_wait_us  # noqa: E402
 
 
 def cpu_seconds() -> float:
@@ -61,16 +67,20 @@ def in_process_rate(mission: Mission) -> dict[str, float]:
             "steps_per_cpu_s": round(mission.steps / used)}  # fmt: skip
 
 
-def lockstep_rate(mission: Mission, log: bool) -> dict[str, object]:
+def lockstep_rate(
+    mission: Mission, log: bool, placement: Placement = SHARED_CORES
+) -> dict[str, object]:
     cpu = cpu_seconds()
     with tempfile.TemporaryDirectory() as directory:
-        outcome = run_hil(mission, Path(directory), log=log)
+        outcome = run_hil(mission, Path(directory), log=log, placement=placement)
     used = cpu_seconds() - cpu
     if outcome.failure is not None:
         raise RuntimeError(outcome.failure)
     commands = outcome.service["vehicles"]["1"]["commands_sent"]
     return {
         "steps_per_s": round(mission.steps / outcome.wall_s),
+        # The steps alone, without the service's start-up and the plant's build.
+        "steady_steps_per_s": round(mission.steps / outcome.steps_wall_s),
         # Both processes' CPU time: what the loop costs, whatever else the machine runs.
         "steps_per_cpu_s": round(mission.steps / used),
         "wall_s": round(outcome.wall_s, 3),
@@ -143,7 +153,12 @@ def main() -> int:
                         help="--campaign: with the known-model oracle (default, as campaign)")
     parser.add_argument("--scheduler", default=None, help="--campaign: on this Dask scheduler")
     parser.add_argument("--oracle-cpu", type=int, default=0, metavar="SEEDS",
-                        help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1")  # fmt: skip
+                        help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1")
+    parser.add_argument("--two-cores", default=None, metavar="E,S",
+                        help="also run the lockstep missions with the emulator on core E and "
+                             "the service on core S, each polling --spin-wait µs")
+    parser.add_argument("--spin-wait", type=spin_wait_us, default=0.0, metavar="US",
+                        help="with --two-cores: each side's poll before it sleeps")  # fmt: skip
     args = parser.parse_args()
     if args.campaign:
         print(json.dumps({"campaign": campaign_wall(args.campaign, args.scenarios, args.steps,
@@ -158,20 +173,39 @@ def main() -> int:
     logged = [lockstep_rate(mission, log=True) for _ in range(args.repeats)]
     unlogged = [lockstep_rate(mission, log=False) for _ in range(args.repeats)]
     affinity = sorted(os.sched_getaffinity(0))
-    print(
-        json.dumps(
-            {
-                "cores": affinity,
-                "steps": args.steps,
-                "scenario": args.scenario,
-                "load_average_1min": round(os.getloadavg()[0], 2),
-                "in_process": max(in_process, key=lambda r: r["steps_per_s"]),
-                "lockstep_udp_logged": max(logged, key=lambda r: r["steps_per_s"]),
-                "lockstep_udp_no_log": max(unlogged, key=lambda r: r["steps_per_s"]),
-            }
-        )
-    )
+    figures = {
+        "cores": affinity,
+        "steps": args.steps,
+        "scenario": args.scenario,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "in_process": max(in_process, key=lambda r: r["steps_per_s"]),
+        "lockstep_udp_logged": max(logged, key=lambda r: r["steps_per_s"]),
+        "lockstep_udp_no_log": max(unlogged, key=lambda r: r["steps_per_s"]),
+    }
+    if args.two_cores:
+        figures.update(two_cores(mission, args.two_cores, args.spin_wait, args.repeats))
+    print(json.dumps(figures))
     return 0
+
+
+def two_cores(mission: Mission, cores: str, spin_wait: float, repeats: int) -> dict[str, object]:
+    """The lockstep missions again with a core each (docs/lockstep.md, "Two cores"): this
+    process (the emulator) on core E, the service on core S, both polling ``spin_wait`` s."""
+    emulator_core, service_core = (int(core) for core in cores.split(","))
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {emulator_core})
+    placement = Placement(spin_wait, frozenset({service_core}))
+    try:
+        logged = [lockstep_rate(mission, True, placement) for _ in range(repeats)]
+        unlogged = [lockstep_rate(mission, False, placement) for _ in range(repeats)]
+    finally:
+        os.sched_setaffinity(0, before)
+    return {
+        "two_cores": {"emulator": emulator_core, "service": service_core,
+                      "spin_wait_us": round(spin_wait * 1e6)},
+        "lockstep_two_cores_logged": max(logged, key=lambda r: r["steps_per_s"]),
+        "lockstep_two_cores_no_log": max(unlogged, key=lambda r: r["steps_per_s"]),
+    }  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -491,6 +491,9 @@ class ServeConfig:
     foxglove: LiveAddress | None = None  # the live view's address (None: no live view)
     #: Further links (``serve --mavlink`` given again): links 2, 3, … (``LinkSet``).
     more_mavlink: tuple[str, ...] = ()
+    #: Seconds the links poll before they sleep (``serve --spin-wait``; docs/lockstep.md,
+    #: "Two cores"). Live only: not stored (replay reads no link).
+    spin_wait: float = 0.0
 
 
 def parse_system_ids(text: str) -> tuple[int, ...]:

@@ -94,6 +94,10 @@ class HilService:
         self.profile = config.vehicle_profile()
         self.clock = clock
         self.send_commands = send_commands and link is not None
+        #: What a datagram makes the service send goes out before the listeners hear of the
+        #: datagram (``Notifier.hold``) when the link spins: the vehicle is then on a core
+        #: of its own, and works on its next step while the service logs this one.
+        self.answer_first = link is not None and link.spin_wait > 0.0
         #: What the service sends to a vehicle is framed as that vehicle's companion (its
         #: system id, component 191), one codec (sequence, signing stream) per vehicle.
         self._senders: dict[int, MavlinkCodec] = {}
@@ -142,18 +146,23 @@ class HilService:
         samples = []
         messages = self.codec.parse(data, datagram=datagram)
         notifier = self.notifier
-        # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
-        for frame in self.codec.last_rejected:
-            notifier.mavlink("rejected", None, frame, now_ns)
-        identity = self.identity
-        if identity is not None:
-            identity.admit(messages, source)
-        if source is not None:
+        if self.answer_first:
+            notifier.hold()
+        try:
+            # Refused frames are kept apart: replaying mavlink/raw/in must see what we saw.
+            for frame in self.codec.last_rejected:
+                notifier.mavlink("rejected", None, frame, now_ns)
+            identity = self.identity
+            if identity is not None:
+                identity.admit(messages, source)
+            if source is not None:
+                for message in messages:
+                    self._heard(header_of(message), source)
             for message in messages:
-                self._heard(header_of(message), source)
-        for message in messages:
-            notifier.mavlink("in", message, None, now_ns)
-            samples.extend(self.process_message(message))
+                notifier.mavlink("in", message, None, now_ns)
+                samples.extend(self.process_message(message))
+        finally:
+            notifier.release()
         return samples
 
     def _heard(self, header: Any, source: Address) -> None:

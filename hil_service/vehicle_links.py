@@ -18,11 +18,10 @@ How vehicles are told apart (``serve --vehicle-ids``, docs/fleet.md):
 
 from __future__ import annotations
 
-import select
 from collections.abc import Sequence
 
 from protocols import keys
-from protocols.mavlink_io import Address, Link, MavMessage
+from protocols.mavlink_io import Address, Link, MavMessage, readable
 
 
 class LinkSet:
@@ -34,14 +33,15 @@ class LinkSet:
     datagram = True
 
     def __init__(self, connections: Sequence[str], source_system: int = 255,
-                 source_component: int = 0):  # fmt: skip
+                 source_component: int = 0, spin_wait: float = 0.0):  # fmt: skip
         if not 1 <= len(connections) <= keys.MAX_LINKS:
             raise ValueError(f"--mavlink: 1..{keys.MAX_LINKS} links, got {len(connections)}")
         self.connection = ", ".join(connections)
+        self.spin_wait = spin_wait
         self.links: list[Link] = []
         try:
             for connection in connections:
-                link = Link(connection, source_system, source_component)
+                link = Link(connection, source_system, source_component, spin_wait)
                 self.links.append(link)
                 if not link.datagram:
                     raise ValueError(
@@ -62,7 +62,7 @@ class LinkSet:
         if self._ready:
             return True
         try:
-            ready, _, _ = select.select(self._fds, [], [], max(timeout, 0.0))
+            ready = readable(self._fds, timeout, self.spin_wait)
         except (OSError, ValueError):
             return False
         self._ready = [self._index_of[fd] for fd in ready]

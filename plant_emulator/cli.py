@@ -27,7 +27,12 @@ from plant_emulator.plant import FamilyPlant, GliderPlant, PlantConfig, wire_bou
 from plant_emulator.reboot import RebootAt
 from plant_emulator.scenarios import PLANT_CHANGES, SCENARIOS, ChangingActuator
 from plant_emulator.streams import DEFAULT_RATES_HZ, MAX_UPTIME, ArduSubAutopilot, StreamConfig
-from protocols.flag_types import non_negative_float, non_negative_int, positive_float
+from protocols.flag_types import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    spin_wait_us,
+)
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link
 from protocols.profiles import DEFAULT_PROFILE, Profile, ProfileError, load_profile
@@ -253,6 +258,15 @@ def _add_lockstep_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="wall s a step waits for the service before going on, counted (default %(default)s)",
     )
+    group.add_argument(
+        "--spin-wait",
+        type=spin_wait_us,
+        default=0.0,
+        metavar="US",
+        help="poll the link up to US µs before sleeping: faster lockstep when the emulator "
+        'and the service each have a core of their own (docs/lockstep.md, "Two cores"); '
+        "slower on a shared core (default 0)",
+    )
 
 
 @dataclass
@@ -300,8 +314,9 @@ def _check_common_flags(args: argparse.Namespace, fleet: bool) -> None:
 def _run_fleet(args: argparse.Namespace) -> int:
     """``--vehicles N`` or ``--fleet-connect``: refuse what only one vehicle does, then
     ``run_fleet``."""
-    if args.lockstep:
-        print("glider-hil emulate: --lockstep runs one vehicle", file=sys.stderr)
+    if args.lockstep or args.spin_wait:
+        flag = "--lockstep" if args.lockstep else "--spin-wait"
+        print(f"glider-hil emulate: {flag} runs one vehicle", file=sys.stderr)
         return 2
     if args.profile != DEFAULT_PROFILE:
         print("glider-hil emulate: --vehicles runs the glider profile only", file=sys.stderr)
@@ -399,7 +414,9 @@ def _plant_from_args(args: argparse.Namespace, profile: Profile) -> GliderPlant 
 def _emulate(args: argparse.Namespace, vehicle: _Vehicle) -> int:
     """Run the vehicle on its link until SIGINT/SIGTERM or ``--duration``; print the
     summary as JSON."""
-    link = Link(args.connect, source_system=args.sysid, source_component=1)
+    link = Link(
+        args.connect, source_system=args.sysid, source_component=1, spin_wait=args.spin_wait
+    )
     stop = threading.Event()
 
     def request_stop(signum: int, frame: object) -> None:

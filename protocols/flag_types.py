@@ -52,3 +52,14 @@ def non_negative_int(text: str) -> int:
     """An integer ≥ 0: a seed (numpy's generators take no negative one), a plant step, an
     every-Nth where 0 means never."""
     return _checked(text, int, "an integer >= 0", lambda v: v >= 0)
+
+
+#: The longest a link polls before it sleeps, µs (``protocols.mavlink_io.readable``): a peer
+#: that answers within a lockstep step answers well within this; longer only burns a core.
+MAX_SPIN_WAIT_US = 10_000
+
+
+def spin_wait_us(text: str) -> float:
+    """``--spin-wait US``: 0..``MAX_SPIN_WAIT_US`` µs, returned in seconds."""
+    wanted = f"0..{MAX_SPIN_WAIT_US} µs"
+    return _checked(text, float, wanted, lambda v: 0 <= v <= MAX_SPIN_WAIT_US) * 1e-6

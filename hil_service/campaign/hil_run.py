@@ -52,6 +52,24 @@ MISSION_OVER = signal.SIGUSR1
 INTERRUPTING = (signal.SIGINT, signal.SIGTERM)
 
 
+@dataclass(frozen=True)
+class Placement:
+    """Where a mission's two processes run and how they wait for each other.
+
+    By default both sleep in ``select`` and the kernel places them: what a campaign wants,
+    its jobs sharing the cores. With a core each (``service_cpus`` for the service, the
+    caller's affinity for the emulator) and ``spin_wait`` s of polling, each side stays warm
+    on its core and is woken without the scheduler (docs/lockstep.md, "Two cores"): a faster
+    mission that burns both cores."""
+
+    spin_wait: float = 0.0
+    service_cpus: frozenset[int] | None = None
+
+
+#: Both processes where the kernel puts them, sleeping while they wait: a campaign's.
+SHARED_CORES = Placement()
+
+
 class ScheduledInbox(Inbox):
     """Setpoints from the mission's schedule at the sample's own step: deterministic.
 
@@ -105,12 +123,16 @@ def wire_mission_service(mission: Mission, link: Link, log_dir: Path | None) -> 
     return wire(config, link=link, recorder=recorder, inbox=inbox)
 
 
-def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
+def _serve(
+    mission: Mission, run_dir: Path, ready_fd: int, log: bool, placement: Placement
+) -> int:
     """The forked service: open, say the port on ``ready_fd``, serve until ``MISSION_OVER``
     (0 returned) or an interrupting signal (its number returned), also the SIGTERM it gets
     when the process that forked it dies mid-mission: no orphan service. SIGINT is left
     ignored when it is (a campaign started in the background is not one Ctrl-C stops)."""
     set_parent_death_signal(signal.SIGTERM)
+    if placement.service_cpus is not None:
+        os.sched_setaffinity(0, placement.service_cpus)
     stop = threading.Event()
     stopped_by: list[int] = []
 
@@ -122,7 +144,7 @@ def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool) -> int:
     signal.signal(signal.SIGTERM, interrupt)
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, interrupt)
-    link = Link("udpin:127.0.0.1:0", source_system=255, source_component=191)
+    link = Link("udpin:127.0.0.1:0", 255, 191, spin_wait=placement.spin_wait)
     with socket.socket(fileno=os.dup(link.fileno())) as bound:
         port = bound.getsockname()[1]
     wired = wire_mission_service(mission, link, run_dir if log else None)
@@ -206,6 +228,9 @@ def _stop_if_running(pid: int) -> None:
 class HilOutcome:
     trace: Trace
     wall_s: float
+    #: Wall s of the lockstep steps alone, first to last: the mission without its start-up
+    #: (the service's readiness, the plant's build).
+    steps_wall_s: float = 0.0
     emulator: dict[str, Any] = field(default_factory=dict)
     lockstep: dict[str, int] = field(default_factory=dict)
     service: dict[str, Any] = field(default_factory=dict)
@@ -228,14 +253,17 @@ def run_hil(
     timeout: float = 1.0,
     kill_service_at: int | None = None,
     log: bool = True,
+    placement: Placement = SHARED_CORES,
 ) -> HilOutcome:
     """The mission in lockstep over loopback; failures are returned, never raised. An
     exception (KeyboardInterrupt: the mission process was told to stop) interrupts the
     service and waits for it before it propagates."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    pid, read_fd = _fork_service(mission, run_dir, log)
+    pid, read_fd = _fork_service(mission, run_dir, log, placement)
     try:
-        return _run_with_service(mission, run_dir, pid, read_fd, timeout, kill_service_at)
+        return _run_with_service(
+            mission, run_dir, pid, read_fd, timeout, kill_service_at, placement.spin_wait
+        )
     except BaseException:
         _stop_if_running(pid)
         raise
@@ -248,6 +276,7 @@ def _run_with_service(
     read_fd: int,
     timeout: float,
     kill_service_at: int | None,
+    spin_wait: float,
 ) -> HilOutcome:
     started = time.monotonic()
     trace = Trace.empty(mission.steps)
@@ -267,14 +296,18 @@ def _run_with_service(
         outcome.wall_s = time.monotonic() - started
         return outcome
     outcome = HilOutcome(trace, 0.0)
-    autopilot, runner, status = _run_emulator(mission, port, pid, timeout, kill_service_at, outcome)
+    autopilot, runner, status = _run_emulator(
+        mission, port, pid, timeout, kill_service_at, outcome, spin_wait
+    )
     outcome.wall_s = time.monotonic() - started
     _end_service(outcome, pid, status, run_dir)
     _collect(outcome, autopilot, runner, run_dir)
     return outcome
 
 
-def _fork_service(mission: Mission, run_dir: Path, log: bool) -> tuple[int, int]:
+def _fork_service(
+    mission: Mission, run_dir: Path, log: bool, placement: Placement
+) -> tuple[int, int]:
     """Fork the service (``_serve``): its pid, and the pipe end it writes its port to."""
     read_fd, write_fd = os.pipe()
     pid = os.fork()
@@ -282,7 +315,7 @@ def _fork_service(mission: Mission, run_dir: Path, log: bool) -> tuple[int, int]
         os.close(read_fd)
         code = 1
         try:
-            stopped_by = _serve(mission, run_dir, write_fd, log)
+            stopped_by = _serve(mission, run_dir, write_fd, log, placement)
             code = 0
             if stopped_by:  # dies of the signal, its log closed: the mission sees why
                 signal.signal(stopped_by, signal.SIG_DFL)
@@ -346,10 +379,11 @@ def _run_emulator(
     timeout: float,
     kill_service_at: int | None,
     outcome: HilOutcome,
+    spin_wait: float,
 ) -> tuple[Autopilot, LockstepRunner, int | None]:
     """The mission's vehicle in lockstep with the service on ``port``, to its last step or
     until ``_StepWatch`` stops it; the service's wait status if the watch saw it exit."""
-    link = Link(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    link = Link(f"udpout:127.0.0.1:{port}", 1, 1, spin_wait=spin_wait)
     stop = threading.Event()
     plant = mission.plant()
     autopilot = Autopilot(
@@ -361,9 +395,11 @@ def _run_emulator(
     runner = LockstepRunner(autopilot, timeout)
     watch = _StepWatch(autopilot, runner, pid, kill_service_at, outcome, stop)
     autopilot.on_step = watch
+    started = time.monotonic()
     try:
         runner.run(stop)
     finally:
+        outcome.steps_wall_s = time.monotonic() - started
         link.close()
     return autopilot, runner, watch.status
 

@@ -35,6 +35,7 @@ from hil_service.pipeline import PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
 from hil_service.vehicle_links import LinkSet
+from protocols.flag_types import spin_wait_us
 from protocols.mavlink_io import Link
 from protocols.profiles import (
     DEFAULT_PROFILE,
@@ -99,6 +100,15 @@ def _add_link_arguments(parser: argparse.ArgumentParser) -> None:
         help="without --sysid: serve the first N vehicles heard, 1..255 (--vehicle-ids link: "
         "255 per link) (default %(default)s; stored in the log's configuration; a --sysid "
         "list is served whole)",
+    )
+    group.add_argument(
+        "--spin-wait",
+        type=spin_wait_us,
+        default=0.0,
+        metavar="US",
+        help="poll the links up to US µs before sleeping: faster lockstep when the service "
+        'and the vehicle each have a core of their own (docs/lockstep.md, "Two cores"); '
+        "slower on a shared core (default 0)",
     )
 
 
@@ -333,6 +343,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         args.duration,
         foxglove_from_args(args),
         more_mavlink=tuple(links[1:]),
+        spin_wait=args.spin_wait,
     )
 
 
@@ -380,9 +391,9 @@ def main(config: ServeConfig) -> int:
         link: Link | LinkSet
         if len(connections) > 1 or config.service.vehicle_ids == "link":
             # Replies carry the link number (LinkSet): each vehicle's go back on its own.
-            link = LinkSet(connections, source_system=255, source_component=191)
+            link = LinkSet(connections, 255, 191, spin_wait=config.spin_wait)
         else:
-            link = Link(config.mavlink, source_system=255, source_component=191)
+            link = Link(config.mavlink, 255, 191, spin_wait=config.spin_wait)
     except Exception as error:  # pymavlink raises many kinds for a bad connection string
         print(f"glider-hil serve: cannot open {', '.join(connections)}: {error}", file=sys.stderr)
         if recorder is not None:

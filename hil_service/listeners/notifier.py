@@ -5,11 +5,17 @@ compiled: the service tells it about every frame and publication of the per-samp
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, Final
 
 from hil_service.listeners.base import EVENTS, Listener, handler_of
 from protocols import payload_json
 from protocols.mavlink_io import MavMessage
+
+#: What a held event is (``Notifier.hold``).
+_MAVLINK: Final = 0
+_PUBLISH: Final = 1
+_RECORD: Final = 2
+_VEHICLE: Final = 3
 
 
 class Notifier:
@@ -21,6 +27,8 @@ class Notifier:
         self._publish: list[Callable[..., None]] = []
         self._record: list[Callable[..., None]] = []
         self._vehicle: list[Callable[..., None]] = []
+        #: Events queued while ``hold`` is in force, in their order (``release``).
+        self._held: list[tuple[int, Any, Any, Any, Any]] | None = None
         for listener in listeners:
             self.add_listener(listener)
 
@@ -45,10 +53,49 @@ class Notifier:
                     handlers.append(handler)
         self._mavlink, self._publish, self._record, self._vehicle = lists
 
+    # ---- holding events back ---------------------------------------------------------
+    def hold(self) -> None:
+        """Queue every event until ``release``.
+
+        A service whose link spins (docs/lockstep.md, "Two cores") holds its listeners back
+        while it handles a datagram, so that what it sends the vehicle (a command, a
+        lockstep release) goes before the log and Zenoh get the datagram's events: the
+        vehicle, on a core of its own, then computes its next step while the service logs
+        and publishes this one. Listeners see
+        the same events in the same order; a frame keeps the time it was received or sent,
+        and what a listener stamps itself (the log's publications) is stamped on release."""
+        if self._held is None:
+            self._held = []
+
+    def release(self) -> None:
+        """Hand the events queued since ``hold`` to the listeners, in order; stop holding."""
+        held = self._held
+        self._held = None
+        if held is None:
+            return
+        for kind, first, second, third, fourth in held:
+            if kind == _MAVLINK:
+                for handler in self._mavlink:
+                    handler(first, second, third, fourth)
+            elif kind == _PUBLISH:
+                data = payload_json.encode(second)
+                for handler in self._publish:
+                    handler(first, second, data, fourth)
+            elif kind == _RECORD:
+                for handler in self._record:
+                    handler(first, second, fourth)
+            else:
+                for handler in self._vehicle:
+                    handler(first, second)
+
     # ---- the events -----------------------------------------------------------------
     def mavlink(
         self, direction: str, message: MavMessage | None, frame: bytes | None, t_ns: int
     ) -> None:
+        held = self._held
+        if held is not None:
+            held.append((_MAVLINK, direction, message, frame, t_ns))
+            return
         for handler in self._mavlink:
             handler(direction, message, frame, t_ns)
 
@@ -56,15 +103,27 @@ class Notifier:
         handlers = self._publish
         if not handlers:
             return
+        held = self._held
+        if held is not None:
+            held.append((_PUBLISH, key, payload, None, reliable))
+            return
         data = payload_json.encode(payload)
         for handler in handlers:
             handler(key, payload, data, reliable)
 
     def record(self, key: str, payload: Any, direction: str) -> None:
+        held = self._held
+        if held is not None:
+            held.append((_RECORD, key, payload, None, direction))
+            return
         for handler in self._record:
             handler(key, payload, direction)
 
     def declare_vehicle(self, system_id: int, state: Callable[[], dict[str, Any]]) -> None:
+        held = self._held
+        if held is not None:
+            held.append((_VEHICLE, system_id, state, None, None))
+            return
         for handler in self._vehicle:
             handler(system_id, state)
 
