@@ -22,7 +22,10 @@
    ``--scheduler tcp://HOST:PORT``: the same campaign on a Dask cluster (docs/cluster.md);
    the median CPU s per mission (``cpu_s`` of runs.csv: worker, service, scoring) either way.
 
-3. ``--oracle-cpu N``: the known-model oracle's CPU s per mission alone, seeds 0..N-1 of the
+3. ``--mission-cpu N``: a mission's CPU s by part (emulator, service, reference-only, oracle,
+   scoring), the median of seeds 0..N-1 of each scenario; run it on one core.
+
+4. ``--oracle-cpu N``: the known-model oracle's CPU s per mission alone, seeds 0..N-1 of the
    scenarios (``oracle_trace``, as the campaign runs it).
 
 Prints one JSON object.
@@ -45,7 +48,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from hil_service.campaign.hil_run import SHARED_CORES, Placement, run_hil  # noqa: E402
-from hil_service.campaign.mission import Mission, oracle_trace  # noqa: E402
+from hil_service.campaign.metrics import score  # noqa: E402
+from hil_service.campaign.mission import Mission, oracle_trace, reference_only_trace  # noqa: E402
 from hil_service.experiment.closed_loop import inverse_run  # noqa: E402
 from protocols.flag_types import spin_wait_us  # noqa: E402
 
@@ -141,6 +145,46 @@ def oracle_cpu(seeds: int, scenarios: str, steps: int) -> dict[str, object]:
     }
 
 
+def _own_and_children() -> tuple[float, float]:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
+
+
+def mission_cpu(seeds: int, scenarios: str, steps: int) -> dict[str, object]:
+    """A campaign mission's CPU s by part, median over seeds 0..N-1 per scenario, each part
+    as the campaign's worker runs it (``runner.execute``): the lockstep run's emulator (this
+    process) and service (its forked child), reference-only, the oracle, the scoring."""
+    per: dict[str, dict[str, list[float]]] = {}
+    for scenario in scenarios.split(","):
+        parts = per.setdefault(scenario, {})
+        for seed in range(seeds):
+            mission = Mission(scenario, seed, steps)
+            own, children = _own_and_children()
+            with tempfile.TemporaryDirectory() as directory:
+                outcome = run_hil(mission, Path(directory))
+            if outcome.failure is not None:
+                raise RuntimeError(outcome.failure)
+            after_own, after_children = _own_and_children()
+            timed = {"emulator": after_own - own, "service": after_children - children}
+            started = time.process_time()
+            reference = reference_only_trace(mission)
+            timed["reference_only"] = time.process_time() - started
+            started = time.process_time()
+            oracle, _ = oracle_trace(mission)
+            timed["oracle"] = time.process_time() - started
+            started = time.process_time()
+            score(mission, outcome.trace, reference, oracle, {})
+            timed["scoring"] = time.process_time() - started
+            timed["total"] = sum(timed.values())
+            for part, seconds in timed.items():
+                parts.setdefault(part, []).append(seconds)
+    return {
+        scenario: {part: round(statistics.median(values), 3) for part, values in parts.items()}
+        for scenario, parts in per.items()
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, default=3600)
@@ -154,6 +198,8 @@ def main() -> int:
     parser.add_argument("--scheduler", default=None, help="--campaign: on this Dask scheduler")
     parser.add_argument("--oracle-cpu", type=int, default=0, metavar="SEEDS",
                         help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1")
+    parser.add_argument("--mission-cpu", type=int, default=0, metavar="SEEDS",
+                        help="a mission's CPU s by part, median of seeds 0..SEEDS-1")  # fmt: skip
     parser.add_argument("--two-cores", default=None, metavar="E,S",
                         help="also run the lockstep missions with the emulator on core E and "
                              "the service on core S, each polling --spin-wait µs")
@@ -164,6 +210,10 @@ def main() -> int:
         print(json.dumps({"campaign": campaign_wall(args.campaign, args.scenarios, args.steps,
                                                     args.jobs, args.oracle,
                                                     args.scheduler)}))  # fmt: skip
+        return 0
+    if args.mission_cpu:
+        figures = mission_cpu(args.mission_cpu, args.scenarios, args.steps)
+        print(json.dumps({"mission_cpu_s": figures}))
         return 0
     if args.oracle_cpu:
         print(json.dumps({"oracle_cpu": oracle_cpu(args.oracle_cpu, args.scenarios, args.steps)}))
