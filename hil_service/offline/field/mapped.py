@@ -32,6 +32,7 @@ from hil_service.offline.field.table import (
     whole_dive,
 )
 from protocols.payload_json import is_finite_number
+from protocols.units import SURFACE_PRESSURE_RANGE, WATER_DENSITY_RANGE, range_problem
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -61,6 +62,18 @@ TEXT_KEYS = frozenset({"column", "unit", "format", "kind", "delimiter", "comment
 NUMBER_KEYS = frozenset({"centre", "full_scale", "water_density", "surface"})
 #: Keys whose number must be > 0: a scale or a density divides.
 POSITIVE_KEYS = frozenset({"full_scale", "water_density"})
+#: An input's centre and full scale are in its own unit (cc, mm, in, m³, counts): ±1e12
+#: holds any actuator's reading (a 32-bit counter's 4.3e9 with room) and 1e-9 is below a
+#: 1 cc engine's full scale in m³ (1e-6); beyond them the number is a typo, and 1e308 would
+#: overflow the scaling. The water density is the service's own range (protocols.units).
+NUMBER_BOUNDS: dict[str, tuple[float, float, str]] = {
+    "centre": (-1e12, 1e12, "in the column's unit"),
+    "full_scale": (1e-9, 1e12, "in the column's unit"),
+    "water_density": (*WATER_DENSITY_RANGE, "kg/m³"),
+}
+#: Pa: the pressure a ``[pressure] surface`` offset may take at most either way, the
+#: 10,000 hPa of a pressurised tank that bounds the service's surface pressure.
+SURFACE_LIMIT_PA = SURFACE_PRESSURE_RANGE[1] * 100.0
 FILE_KINDS = ("csv", "parquet")
 
 
@@ -97,8 +110,8 @@ def _lines(text: str) -> dict[str, int]:
 
 def load_mapping(path: str | Path) -> Mapping:
     """The mapping file, checked: every value is of its key's type and makes sense (a
-    finite number, a scale > 0, one delimiter character, …); else an error naming the
-    file, line, table and key."""
+    finite number within its bounds, a scale > 0, one delimiter character, …); else an
+    error naming the file, line, table and key."""
     origin = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -114,6 +127,7 @@ def load_mapping(path: str | Path) -> Mapping:
     _check_keys(mapping)
     _check_tables(mapping)
     _check_units(mapping)
+    _check_surface(mapping)
     _check_file(mapping)
     return mapping
 
@@ -145,6 +159,11 @@ def _check_value(mapping: Mapping, table: str, key: str, value: Any) -> None:
             raise mapping.error(table, key, f"must be a finite number, got {value!r}")
         if key in POSITIVE_KEYS and not value > 0:
             raise mapping.error(table, key, f"must be > 0, got {value!r}")
+        if key in NUMBER_BOUNDS:
+            low, high, unit = NUMBER_BOUNDS[key]
+            problem = range_problem(value, (low, high), unit)
+            if problem:
+                raise mapping.error(table, key, problem)
     if key == "values" and not (
         isinstance(value, list)
         and all(isinstance(v, (str, int, float)) and not isinstance(v, bool) for v in value)
@@ -188,6 +207,22 @@ def _check_units(mapping: Mapping) -> None:
                 f"{mapping.where(table, 'unit')}: unit {unit!r} of [{table}] is not one of "
                 f"{', '.join(units)}"
             )
+
+
+def _check_surface(mapping: Mapping) -> None:
+    """A ``[pressure] surface`` offset within ±``SURFACE_LIMIT_PA``, in the column's unit."""
+    surface = mapping.get("pressure", "surface")
+    if surface is None:
+        return
+    unit = mapping.data["pressure"]["unit"]
+    limit = SURFACE_LIMIT_PA / PRESSURE_UNITS[unit]
+    if not abs(surface) <= limit:
+        raise mapping.error(
+            "pressure",
+            "surface",
+            f"must be within ±{limit:g} {unit} ({SURFACE_PRESSURE_RANGE[1]:,.0f} hPa, a "
+            f"pressurised tank's), got {surface!r}",
+        )
 
 
 def _check_file(mapping: Mapping) -> None:

@@ -257,11 +257,25 @@ def _channel_lines(result: ChannelResult, period: float) -> list[str]:
         ]
         choice = glide.parameters.get("structure_choice")
         if isinstance(choice, dict):
-            scores = ", ".join(
-                f"{k} {_fmt(v, '.1f')}" for k, v in (choice.get("median_fit") or {}).items()
-            )
-            lines.append(
-                f"Structure chosen on the training dives only ({choice.get('why')}; "
-                f"held out in turn: {choice.get('folds')}); median free-run fit %: {scores}."
-            )
+            lines.append(_structure_line(choice))
     return lines
+
+
+def _structure_line(choice: dict[str, Any]) -> str:
+    """How the glide-u structure was chosen and each candidate's median fit; when no
+    training dive validated any candidate (too few dives long enough, or no fit), that and
+    why, in place of a list of empty fits."""
+    fits = choice.get("median_fit")
+    fits = fits if isinstance(fits, dict) else {}
+    folds = choice.get("folds") or []
+    held = f"; held out in turn: {folds}" if folds else ""
+    if not any(is_finite_number(v) for v in fits.values()):
+        return (
+            f"Structure not validated: no training dive validated a candidate "
+            f"({choice.get('why')}{held}); median free-run fit %: none."
+        )
+    scores = ", ".join(f"{k} {_fmt(v, '.1f')}" for k, v in fits.items())
+    return (
+        f"Structure chosen on the training dives only ({choice.get('why')}{held}); "
+        f"median free-run fit %: {scores}."
+    )

@@ -5,7 +5,9 @@ A Slocum file names its sensor list by a cache id; unless the file carries the l
 ``--cache-dir`` as ``<id>.cac`` (copied from the glider's or the dockserver's
 ``state/cache``). The ASCII header is checked complete before dbdreader sees the file (it
 reads a header cut short forever), and whatever dbdreader raises on a damaged file is an
-error naming it. Which sensor becomes what (docs/field-data.md):
+error naming it. A file whose data part ends partway through a record (cut short in
+transfer) is read up to its last whole record, with a note naming it: dbdreader would read
+the cut record from stale bytes. Which sensor becomes what (docs/field-data.md):
 
 * time: the time base of ``m_depth`` (s since 1970); depth: ``m_depth`` m;
 * pitch: ``m_pitch`` rad (+ nose up), interpolated by ``dbdreader.get_sync`` onto the
@@ -23,7 +25,10 @@ import contextlib
 import os
 import shutil
 import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +54,85 @@ CONVERSIONS = [
 HEADER_BYTES = 1 << 16
 #: Oil/ballast ±500 cc and the pitch battery ±1.5 in are model units ±full scale.
 SCALING = {"buoyancy": InputScaling(0.0, 500.0), "pitch_input": InputScaling(0.0, 1.5)}
+#: The data part of a Slocum file opens with 16 known bytes ('s', a byte, 0x1234, 123.456 as
+#: a float, 123456789.12345 as a double: the byte order); then come the records, each a tag
+#: 'd', the state bytes (2 bits a sensor, 4 a byte: 2 = a new value follows) and the new
+#: values in sensor order. The glider ends the file with a tag 'X'; a file sent compressed
+#: ends after its last record without one.
+KNOWN_BYTES = 16
+RECORD_TAG = ord("d")
+UPDATED = 2
+#: The name the whole records of a cut file are read under, in the scratch directory.
+WHOLE_RECORDS = "whole-records.dbd"
+
+
+@dataclass(frozen=True)
+class CutRecord:
+    """Where a file's data part ends partway through: record ``number`` (from 1; 0 for the
+    known bytes before the first) starts at byte ``at``, the bytes before it are whole
+    records; ``missing`` of its ``length`` bytes are not in the file (None: its state bytes
+    are cut, so its length is unknown)."""
+
+    number: int
+    at: int
+    missing: int | None
+    length: int | None
+
+    def note(self, path: Path) -> str:
+        """The import's note, naming the file."""
+        return f"{path}: {self.text()}"
+
+    def text(self) -> str:
+        """Where the file ends, and what of it is read."""
+        if self.number == 0:
+            where = f"within the {KNOWN_BYTES} bytes that open it, before any record"
+        elif self.missing is None:
+            where = f"in the state bytes of record {self.number} (its length unknown)"
+        else:
+            where = f"in record {self.number}, {self.missing} of its {self.length} bytes missing"
+        whole = self.number - 1
+        read = (
+            f"the {whole} whole record(s) before it are read, the cut one is left out"
+            if whole > 0
+            else "no whole record precedes it"
+        )
+        return (
+            f"ends partway through its data, {where}; {read}; whatever followed is not in the "
+            "file (cut short in transfer?)"
+        )
+
+
+def find_cut(raw: bytes, start: int, state_bytes: int, sizes: Sequence[int]) -> CutRecord | None:
+    """Where the data part of a Slocum file (``raw``, its data from byte ``start``) ends
+    partway through a record, walking it record by record as dbdreader reads it; None when
+    it ends after a whole record (or at a tag other than 'd': the end tag 'X', or bytes this
+    walk does not know)."""
+    if len(raw) < start + KNOWN_BYTES:
+        return CutRecord(0, start, start + KNOWN_BYTES - len(raw), KNOWN_BYTES)
+    lengths = _new_value_bytes(state_bytes, sizes)
+    rows = np.arange(state_bytes) * 256
+    data = np.frombuffer(raw, dtype=np.uint8)
+    at, number = start + KNOWN_BYTES, 0
+    while at < len(raw) and raw[at] == RECORD_TAG:
+        number += 1
+        body = at + 1
+        if body + state_bytes > len(raw):
+            return CutRecord(number, at, None, None)
+        length = 1 + state_bytes + int(lengths[rows + data[body : body + state_bytes]].sum())
+        if at + length > len(raw):
+            return CutRecord(number, at, at + length - len(raw), length)
+        at += length
+    return None
+
+
+def _new_value_bytes(state_bytes: int, sizes: Sequence[int]) -> np.ndarray:
+    """Entry 256·i + b: the bytes of new values that state byte i announces when it is b."""
+    table = np.zeros((state_bytes, 256), dtype=np.int64)
+    values = np.arange(256)
+    for sensor, size in enumerate(sizes[: 4 * state_bytes]):
+        byte, slot = divmod(sensor, 4)
+        table[byte] += np.where((values >> (6 - 2 * slot)) & 3 == UPDATED, size, 0)
+    return table.ravel()
 
 
 def is_slocum(path: Path) -> bool:
@@ -90,17 +174,14 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
             # given; a scratch directory keeps a list cut short out of the user's cache.
             carries = header.get("sensor_list_factored", "").strip() == "0"
             given = Path(scratch) if carries else cache
+            dbd = _open(path, path, given, cache, dbdreader)
             try:
-                dbd = dbdreader.DBD(str(path), cacheDir=str(given))
-            except dbdreader.DbdError as error:
-                raise FieldError(_explain(path, cache, error, dbdreader)) from error
-            except Exception as error:  # KeyError, IndexError, ValueError, … on a damaged file
-                raise FieldError(
-                    f"{path}: not a readable Slocum file ({type(error).__name__}: {error}); a "
-                    "file cut short in transfer reads like this"
-                ) from error
-            try:
-                _read(dbd, path, number, columns, issues)
+                cut = _whole_records(path, dbd, Path(scratch), dbdreader)
+                if cut is not None:
+                    dbd.close()
+                    dbd = _open(Path(scratch) / WHOLE_RECORDS, path, given, cache, dbdreader)
+                    issues.notes.append(cut.note(path))
+                _read(dbd, path, number, columns, issues, cut)
             finally:
                 dbd.close()
             if carries:
@@ -114,6 +195,50 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
         issues,
         vehicle=next(iter(vehicles), ""),
     )
+
+
+def _open(file: Path, path: Path, given: Path, cache: Path, dbdreader: Any) -> Any:
+    """dbdreader's reader of ``file`` (``path`` or its whole records), its sensor list
+    looked up in ``given``; what it raises is an error naming ``path``."""
+    try:
+        return dbdreader.DBD(str(file), cacheDir=str(given))
+    except dbdreader.DbdError as error:
+        raise FieldError(_explain(path, cache, error, dbdreader)) from error
+    except Exception as error:  # KeyError, IndexError, ValueError, … on a damaged file
+        raise FieldError(
+            f"{path}: not a readable Slocum file ({type(error).__name__}: {error}); a "
+            "file cut short in transfer reads like this"
+        ) from error
+
+
+def _whole_records(path: Path, dbd: Any, scratch: Path, dbdreader: object) -> CutRecord | None:
+    """Where ``path`` is cut partway through a record, with its whole records written to
+    ``scratch / WHOLE_RECORDS`` (decompressed) for dbdreader to read instead: dbdreader
+    would take the cut record's missing bytes from the record before it. None when the
+    file ends after a whole record, or its bytes cannot be decompressed (dbdreader then
+    says so)."""
+    try:
+        raw = _data_bytes(path, dbdreader)
+    except Exception:  # lz4's errors on a damaged compressed file: dbdreader names them
+        return None
+    cut = find_cut(
+        raw,
+        int(dbd.fp_binary_start),
+        int(dbd.n_state_bytes),
+        tuple(dbd.byteSizes),
+    )
+    if cut is not None:
+        (scratch / WHOLE_RECORDS).write_bytes(raw[: cut.at])
+    return cut
+
+
+def _data_bytes(path: Path, dbdreader: object) -> bytes:
+    """The file's bytes, decompressed when it is a compressed one (``.dcd`` …)."""
+    decompress = getattr(dbdreader, "decompress", None)
+    if decompress is not None and decompress.is_compressed(str(path)):
+        with decompress.Decompressor(str(path)) as packed:
+            return bytes(packed.decompress())
+    return path.read_bytes()
 
 
 def _header(path: Path, dbdreader: object) -> dict[str, str]:
@@ -184,7 +309,14 @@ def _explain(path: Path, cache: Path, error: Exception, dbdreader: object) -> st
     return f"{path}: not a readable Slocum file ({str(error).strip()})"
 
 
-def _read(dbd: object, path: Path, number: int, columns: Columns, issues: Issues) -> None:
+def _read(
+    dbd: object,
+    path: Path,
+    number: int,
+    columns: Columns,
+    issues: Issues,
+    cut: CutRecord | None = None,
+) -> None:
     names = set(dbd.parameterNames)  # type: ignore[attr-defined]
     buoyancy = next((b for b in BUOYANCY if b in names), None)
     missing = [n for n in ("m_depth", "m_pitch", "m_battpos") if n not in names]
@@ -199,7 +331,8 @@ def _read(dbd: object, path: Path, number: int, columns: Columns, issues: Issues
     try:
         values = dbd.get_sync(*wanted)  # type: ignore[attr-defined]
     except Exception as error:  # dbdreader raises its own and numpy's errors on bad data
-        raise FieldError(f"{path}: sensors unreadable ({error})") from error
+        why = f"; it {cut.text()}" if cut is not None else ""
+        raise FieldError(f"{path}: sensors unreadable ({error}){why}") from error
     t, depth, pitch, *rest = (np.asarray(v, dtype=float) for v in values)
     given = dict(zip(wanted[2:], rest, strict=True))
     nan = np.full(t.size, np.nan)

@@ -150,7 +150,11 @@ class InputScaling:
     half_range: float
 
     def to_model(self, x: np.ndarray, full_scale: float) -> np.ndarray:
-        return full_scale * (np.asarray(x, dtype=float) - self.centre) / self.half_range
+        """Model units of native values; one whose model value lies beyond float range
+        (a damaged 1e308 in a file) is ±inf, which the writer clips to full scale and
+        counts, without numpy's overflow warning."""
+        with np.errstate(over="ignore"):
+            return full_scale * (np.asarray(x, dtype=float) - self.centre) / self.half_range
 
     def as_dict(self) -> dict[str, float]:
         return {"centre": self.centre, "half_range": self.half_range}

@@ -1,0 +1,227 @@
+"""Field import and report on lesser bad input: a Slocum file cut in its data is read up to
+its last whole record and says so; absurd mapping numbers are refused naming the key, and a
+huge input value is clipped without a numpy warning; a report whose training dives validate
+no structure says so instead of printing an empty list of fits.
+
+The Slocum inputs are cut copies of the sample file dbdreader's wheel ships.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_service.cli import main
+from hil_service.mcap.reader import LogReader
+from hil_service.offline.field import FieldError, read_field
+from tests.test_field_import import MAPPING
+
+MBD = "ammonite-2008-028-01-000.mbd"
+#: The sample .mbd's data part starts here (after its ASCII header and sensor list).
+DATA_START = 59_858
+
+
+def _run(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """The CLI's exit code, stdout and stderr, and no traceback."""
+    try:
+        code = main(list(args))
+    except SystemExit as stop:
+        code = int(stop.code or 0)
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return code, out, err
+
+
+def _mbd(tmp_path: Path, size: int | None = None, name: str = "cut") -> Path:
+    """The sample .mbd, its first ``size`` bytes (all of it: None), in its own folder."""
+    dbdreader = pytest.importorskip("dbdreader")
+    raw = (Path(dbdreader.__file__).parent / "data" / MBD).read_bytes()
+    folder = tmp_path / name
+    folder.mkdir()
+    path = folder / MBD
+    path.write_bytes(raw if size is None else raw[:size])
+    return path
+
+
+def _notes(log: Path) -> list[str]:
+    reader = LogReader(log)
+    for _ in reader.messages({"glider/1/telemetry"}):
+        pass
+    return reader.config()["field"]["issues"]["notes"]
+
+
+# ---- a Slocum file cut partway through its data ------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("size", "where", "rows"),
+    [
+        (201_928, "in record 856, 99 of its 170 bytes missing; the 855 whole record(s)", 854),
+        (200_000, "in the state bytes of record 845 (its length unknown); the 844 whole", 843),
+    ],
+)
+def test_a_slocum_file_cut_in_its_data_says_so_and_keeps_its_whole_records(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], size: int, where: str, rows: int
+) -> None:
+    cut = _mbd(tmp_path, size)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    log = tmp_path / "cut.mcap"
+    code, out, err = _run(capsys, "import", str(cut), "--cache-dir", str(cache), "-o", str(log))
+    assert code == 0, err
+    note = f"{cut}: ends partway through its data, {where}"
+    assert note in out
+    assert any(n.startswith(note) for n in _notes(log))  # stored with the log's issues
+    # The rows read are the whole file's first ones: the cut record is not read from
+    # stale bytes (dbdreader alone gives a last depth of 60.5 m where the file has 604.3).
+    data = read_field([cut], cache_dir=cache)
+    whole = read_field([_mbd(tmp_path, name="whole")], cache_dir=cache)
+    assert data.size == rows < whole.size
+    for name in ("t", "depth", "pitch", "buoyancy", "pitch_input"):
+        np.testing.assert_array_equal(getattr(data, name), getattr(whole, name)[:rows])
+
+
+def test_a_slocum_file_ending_after_a_whole_record_has_no_cut_note(tmp_path: Path) -> None:
+    """The whole file, and the file without its end tag 'X' (as a file sent compressed
+    ends), read alike and without a note."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    whole = _mbd(tmp_path, name="whole")
+    untagged = _mbd(tmp_path, whole.stat().st_size - 1, name="untagged")
+    read = [read_field([path], cache_dir=cache) for path in (whole, untagged)]
+    for data in read:
+        assert not [n for n in data.issues.notes if "partway" in n]
+    np.testing.assert_array_equal(read[0].depth, read[1].depth)
+
+
+def test_a_slocum_file_cut_before_a_whole_record_is_an_error_naming_the_cut(
+    tmp_path: Path,
+) -> None:
+    cut = _mbd(tmp_path, DATA_START + 300)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with pytest.raises(FieldError) as caught:
+        read_field([cut], cache_dir=cache)
+    message = str(caught.value)
+    assert message.startswith(f"{cut}: sensors unreadable")
+    assert "ends partway through its data, in record 1, 164 of its 448 bytes missing" in message
+
+
+# ---- mapping numbers ---------------------------------------------------------------------
+
+
+def _csv(tmp_path: Path, rows: list[str] | None = None) -> Path:
+    """A one-dive CSV of the mapping's columns (``rows`` replaces the default body)."""
+    body = rows or [
+        f"{1.6e9 + 10 * k!r},{2.0 * k},-20,{100 + k},{55 + k % 10},1" for k in range(30)
+    ]
+    path = tmp_path / "d.csv"
+    path.write_text("\n".join(["time_s,p_dbar,pitch_deg,vbd,mass,dive", *body]) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        ("centre = 60", "centre = 1e308", r"\[pitch_input\] centre must be -1e\+12\.\.1e\+12"),
+        ("centre = 60", "centre = -1e308", r"\[pitch_input\] centre must be -1e\+12\.\.1e\+12"),
+        ("full_scale = 500", "full_scale = 1e308", r"\[buoyancy\] full_scale must be 1e-09\.\."),
+        ("full_scale = 500", "full_scale = 1e-308", r"\[buoyancy\] full_scale must be 1e-09\.\."),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nwater_density = 1e308',
+            r"\[pressure\] water_density must be 500\.\.2000",
+        ),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nwater_density = 1.025',
+            r"\[pressure\] water_density must be 500\.\.2000",
+        ),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nsurface = 1e308',
+            r"\[pressure\] surface must be within ±100 dbar",
+        ),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nsurface = -1e308',
+            r"\[pressure\] surface must be within ±100 dbar",
+        ),
+    ],
+)
+def test_an_absurd_mapping_number_is_refused_naming_its_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], old: str, new: str, message: str
+) -> None:
+    mapping = tmp_path / "map.toml"
+    assert old in MAPPING
+    mapping.write_text(MAPPING.replace(old, new, 1))
+    log = tmp_path / "o.mcap"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, _, err = _run(
+            capsys, "import", str(_csv(tmp_path)), "--mapping", str(mapping), "-o", str(log)
+        )
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1
+    assert re.match(rf"glider-hil import: {re.escape(str(mapping))}:\d+: {message}", err), err
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert not log.exists()
+
+
+def test_an_input_value_beyond_float_range_is_clipped_without_a_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rows = [f"{1.6e9 + 10 * k!r},{2.0 * k},-20,100,60,1" for k in range(30)]
+    rows[10] = f"{1.6e9 + 100!r},20,-20,1.7e308,60,1"  # model value 2·1.7e308/500: beyond
+    mapping = tmp_path / "map.toml"
+    mapping.write_text(MAPPING)
+    log = tmp_path / "o.mcap"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, out, err = _run(
+            capsys, "import", str(_csv(tmp_path, rows)), "--mapping", str(mapping), "-o", str(log)
+        )
+    assert code == 0, err
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert "clipped to full scale: {'buoyancy': 1, 'pitch_input': 0}" in out
+    reader = LogReader(log)
+    u = [m.json()["u_depth"] for m in reader.messages({"glider/1/telemetry"})]
+    assert max(u) == 2.0 and all(np.isfinite(u))
+
+
+# ---- the report when no training dive validates ------------------------------------------
+
+
+def test_the_report_says_no_training_dive_validated_instead_of_empty_fits(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Three dives of 24 samples (10 s): none as long as the L + 1 + k (k = 300 s) samples
+    the structure's validation needs."""
+    rows = []
+    for dive in (1, 2, 3):
+        for k in range(24):
+            t = 1.6e9 + dive * 10_000 + 10 * k
+            down = k < 12
+            rows.append(
+                f"{t!r},{2.0 + 3.0 * min(k, 24 - k)},{-20 if down else 20},"
+                f"{-200 if down else 200},{50 + k % 3},{dive}"
+            )
+    mapping = tmp_path / "map.toml"
+    mapping.write_text(MAPPING)
+    log = tmp_path / "short.mcap"
+    data = str(_csv(tmp_path, rows))
+    code, _, err = _run(capsys, "import", data, "--mapping", str(mapping), "-o", str(log))
+    assert code == 0, err
+    code, _, err = _run(capsys, "report", str(log), "-o", str(tmp_path / "report"))
+    assert code == 0, err
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert (
+        "Structure not validated: no training dive validated a candidate (0 training dive(s) "
+        "long enough to validate on, 2 needed: the default steady-glide input, M=1); median "
+        "free-run fit %: none." in text
+    )
+    assert not re.search(r"median free-run fit %: *\.", text)
