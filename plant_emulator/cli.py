@@ -20,7 +20,7 @@ from plant_emulator.arguments import (
 )
 from plant_emulator.autopilot import FALLBACKS, Autopilot, AutopilotConfig, run_steps
 from plant_emulator.excitation import EXCITATIONS, build_channel_excitations
-from plant_emulator.fleet import add_fleet_arguments, run_fleet
+from plant_emulator.fleet import add_fleet_arguments, check_links, run_fleet
 from plant_emulator.lockstep import DEFAULT_TIMEOUT, LockstepRunner
 from plant_emulator.models import CHANNELS
 from plant_emulator.plant import FamilyPlant, GliderPlant, PlantConfig, wire_bounds
@@ -299,11 +299,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _check_common_flags(args: argparse.Namespace, fleet: bool) -> None:
     """Raise ValueError, naming the flag, for what neither one vehicle nor a fleet takes:
-    a connection string that cannot be a link (the ones the run would open), a trim depth
-    or unit out of bounds, ``--change-at`` without ``--change``."""
+    a connection string that cannot be a link (the ones the run would open), a
+    ``--fleet-connect`` no vehicle would use, a trim depth or unit out of bounds,
+    ``--change-at`` without ``--change``."""
     if fleet and args.fleet_connect:
         for connection in args.fleet_connect:
             check_connection("--fleet-connect", connection)
+        check_links(args.vehicles, args.fleet_connect)
     else:
         check_connection("--connect", args.connect)
     check_value_flags(args)

@@ -19,7 +19,8 @@ measures telemetry → command latency (``TimedAutopilot``: from sending a step'
 telemetry datagram to the arrival of the datagram holding the command; printed at the end
 with the per-vehicle statistics).
 ``--fleet-connect`` (repeatable) splits the vehicles in contiguous, equal blocks over several
-links, e.g. one per service; without it every vehicle uses ``--connect``.
+links, e.g. one per service; without it every vehicle uses ``--connect``. More links than
+vehicles, or one link given twice, are refused (``check_links``): a link would carry none.
 ``--sysid-per-link`` numbers each link's block from ``--sysid`` again, as a fleet of more than
 255 gliders is numbered: each gateway (a link) has a system-id space of its own, and a
 service with ``--vehicle-ids link`` tells its vehicles apart by (link, system id). Such a
@@ -238,6 +239,25 @@ def _merged(counts: list[dict[str, int]]) -> dict[str, int]:
         for key, value in count.items():
             merged[key] = merged.get(key, 0) + value
     return merged
+
+
+def check_links(vehicles: int, connections: list[str]) -> None:
+    """Raise ValueError, naming ``--fleet-connect``, for links a fleet would leave unused:
+    more links than vehicles (the blocks of ``connection_for`` give each link a vehicle only
+    while there are at least as many vehicles), or one link given twice (``_open_fleet``
+    opens a socket per string and keys them by it: both blocks would go out on the last,
+    the other left open and unused). ``vehicles`` < 1 is ``run_fleet``'s to refuse."""
+    if vehicles >= 1 and len(connections) > vehicles:
+        raise ValueError(
+            f"--fleet-connect gives {len(connections)} links for --vehicles {vehicles}: "
+            f"{len(connections) - vehicles} would carry no vehicle (each link needs one)"
+        )
+    for connection in dict.fromkeys(connections):
+        if connections.count(connection) > 1:
+            raise ValueError(
+                f"--fleet-connect {connection} is given more than once: each link is one "
+                "socket with one block of vehicles"
+            )
 
 
 def connection_for(index: int, vehicles: int, connections: list[str]) -> str:

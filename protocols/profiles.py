@@ -62,6 +62,12 @@ MAX_SAMPLE_PERIOD = 2000.0
 #: The largest magnitude of any number in a profile (a scale, an offset, an interval):
 #: far beyond any real one, and a value read or sent with it stays a finite float32.
 MAX_NUMBER = 1e9
+#: The longest a periodic sample waits for late messages (``[sampling] delay``), in the
+#: shortest of the sample period and the intervals the profile asks for: the sampler
+#: (``hil_service.sources.sampler``) keeps the last 16 values of each source, 15 intervals
+#: back, and takes a stamp more than max(2 s, 10 periods) behind the newest for a clock
+#: step, not a late message. A sample waiting longer finds the values of its time gone.
+MAX_DELAY_INTERVALS = 10
 
 
 class ProfileError(ValueError):
@@ -214,6 +220,12 @@ class Profile:
         limits["u_depth"] = ballast
         limits["u_pitch"] = ballast
         return limits
+
+    def delay_limit(self, sample_period: float) -> float:
+        """The longest ``[sampling] delay`` (s) sampling at ``sample_period`` can use:
+        ``MAX_DELAY_INTERVALS`` times the shortest of it and the intervals asked for."""
+        shortest = min(sample_period, *self.intervals(sample_period).values())
+        return MAX_DELAY_INTERVALS * shortest
 
     def step_messages(self) -> tuple[str, ...]:
         """The messages a lockstep step needs, all stamped with the step's time: the
@@ -495,6 +507,8 @@ class _Parser:
                 )
         head = self._table(data, "profile", {"name", "description"})
         name = self._string(head, "profile", "name", None)
+        if not name.strip():
+            self.fail("must not be empty: logs store the profile by its name", "profile", "name")
         description = self._string(head, "profile", "description", "")
         sampling = self._sampling(self._table(data, "sampling", {"mode", "period", "delay"}))
         units = self._table(data, "units", {"water_density", "surface_pressure_hpa"})
@@ -520,6 +534,7 @@ class _Parser:
         signals = self._signals(data.get("signals", {}))
         ballast = self._ballast(data.get("ballast", {}))
         profile = Profile(name, description, sampling, pressure, signals, ballast, self.text)
+        self._check_delay(profile)
         if sampling.mode == "lockstep":
             for message in profile.step_messages():
                 if clock_of(message) is None:
@@ -530,6 +545,29 @@ class _Parser:
                         "mode",
                     )
         return profile
+
+    def _check_delay(self, profile: Profile) -> None:
+        """``[sampling] delay`` is for periodic sampling, and at most ``delay_limit``."""
+        sampling = profile.sampling
+        if sampling.delay is None:
+            return
+        if sampling.mode != "periodic" or sampling.period is None:
+            self.fail(
+                "is for periodic sampling (lockstep waits for no late message)",
+                "sampling",
+                "delay",
+            )
+        limit = profile.delay_limit(sampling.period)
+        # The limit is computed in binary: it may fall a rounding short of the decimal
+        # a file states for it.
+        if sampling.delay > limit * (1 + 1e-9):
+            self.fail(
+                f"must be at most {limit:g} s, {MAX_DELAY_INTERVALS} times the shortest of the "
+                f"period and the intervals asked for ({limit / MAX_DELAY_INTERVALS:g} s): a "
+                f"sample waiting longer finds the values of its time gone, got {sampling.delay!r}",
+                "sampling",
+                "delay",
+            )
 
     def _sampling(self, table: dict) -> Sampling:
         mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)
@@ -623,12 +661,20 @@ class _Parser:
         optional = entry.get("optional", False)
         if not isinstance(optional, bool):
             self.fail("must be true or false", name, "optional", occurrence)
+        scale = self._number(entry, name, "scale", Source.scale, occurrence)
+        if scale == 0:
+            self.fail(
+                "must not be 0: every reading would be the offset, whatever the vehicle sends",
+                name,
+                "scale",
+                occurrence,
+            )
         return Source(
             message=message,
             field=field_name,
             index=index,
             convert=self._string(entry, name, "convert", Source.convert, CONVERSIONS, occurrence),
-            scale=self._number(entry, name, "scale", Source.scale, occurrence),
+            scale=scale,
             offset=self._number(entry, name, "offset", Source.offset, occurrence),
             interval=self._number(entry, name, "interval", None, occurrence, positive=True),
             stale_after=self._number(entry, name, "stale_after", None, occurrence, positive=True),

@@ -9,7 +9,9 @@ with the oracle, a known-model constrained controller (``experiment/oracle.py``)
 ``--scenario random`` runs it on a seeded family of plants it was not tuned on.
 ``--bench`` prints how many samples per second one channel identifies and inverts on one
 core. ``--log FILE.mcap`` runs the identification experiment on a log's recorded samples
-instead of the emulator (a field import by its dives, ``experiment/field.py``).
+instead of the emulator (a field import by its dives, ``experiment/field.py``). A flag
+typed for an experiment that does not use it is refused (``USED_BY``), as are ``--samples``
+beyond ``MAX_SAMPLES`` and a typed ``--step-every`` with no second setpoint step in the run.
 """
 
 from __future__ import annotations
@@ -46,8 +48,70 @@ from plant_emulator.scenarios import SCENARIOS
 from protocols import compiled
 from protocols.flag_types import non_negative_int
 
+#: The most plant steps a run takes: the identification experiment holds about 0.9 kB per
+#: sample at its peak (measured: 0.86 kB; ``--scenario all --channel all`` 1.7 kB, the
+#: closed loop 0.15 kB), so the largest run stays near 1 GB. The documented runs take 20,000.
+MAX_SAMPLES = 1_000_000
+
+#: The experiments, each named by the flag that chooses it (``IDENTIFICATION``: none).
+IDENTIFICATION = "the identification experiment"
+CLOSED_LOOP = "--closed-loop"
+BENCH = "--bench"
+LOG = "--log"
+
+#: The experiments each flag is for; ``--json`` and the flags choosing an experiment are
+#: for every one. A flag typed for an experiment that does not use it is refused.
+USED_BY: dict[str, tuple[str, ...]] = {
+    "--scenario": (IDENTIFICATION, CLOSED_LOOP, BENCH),
+    "--channel": (IDENTIFICATION,),
+    "--samples": (IDENTIFICATION, CLOSED_LOOP, BENCH),
+    "--seed": (IDENTIFICATION, CLOSED_LOOP, BENCH),
+    "--burn-in": (IDENTIFICATION,),
+    "--excitation": (IDENTIFICATION, CLOSED_LOOP),
+    "--plots": (IDENTIFICATION, CLOSED_LOOP),
+    "--identify": (CLOSED_LOOP,),
+    "--step-every": (CLOSED_LOOP,),
+    "--no-oracle": (CLOSED_LOOP,),
+    "--plants": (CLOSED_LOOP,),
+    "--input-lags": (CLOSED_LOOP,),
+    "--fit-split": (IDENTIFICATION,),
+    "--horizon": (IDENTIFICATION,),
+    "--split": (LOG,),
+}
+#: Closed-loop scenarios of a seeded family of plants: ``--plants`` is for them alone, and
+#: they draw no figures.
+FAMILY_SCENARIOS = ("random", "family")
+#: Where ``_Typed`` notes the flags typed on the command line.
+TYPED = "typed_flags"
+#: The switches of ``USED_BY`` (flag → attribute): typed exactly when true.
+SWITCHES = {"--no-oracle": "no_oracle"}
+
+
+class _Typed(argparse.Action):
+    """argparse's ``store``, which also notes the flag in ``namespace.typed_flags``: a flag
+    the user typed, whatever its value, and never one left at its default."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        setattr(namespace, self.dest, values)
+        typed = getattr(namespace, TYPED, frozenset())
+        setattr(namespace, TYPED, typed | {self.option_strings[0]})
+
+
+def _figure_directory(text: str) -> Path:
+    """``--plots DIR``: a directory named; an empty one would be the current directory."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a directory, got '' (the current one is .)")
+    return Path(text)
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.set_defaults(**{TYPED: frozenset()})
     _add_plant_arguments(parser)
     _add_output_arguments(parser)
     _add_mode_arguments(parser)
@@ -59,18 +123,35 @@ def _add_plant_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("plant and samples")
     group.add_argument(
         "--scenario",
+        action=_Typed,
         choices=(*SCENARIOS, "random", "family", "all"),
         default="paper",
         help="'random': a seeded family of plants; 'family': the do-no-harm benchmark's "
         "family (plant_emulator/family.py; closed loop only)",
     )
-    group.add_argument("--channel", choices=(*CHANNELS, "all"), default="depth")
-    group.add_argument("--samples", type=int, default=5000, help="plant steps (default 5000)")
-    group.add_argument("--seed", type=non_negative_int, default=0)
     group.add_argument(
-        "--burn-in", type=int, default=None, help="samples not scored (default: a fifth)"
+        "--channel",
+        action=_Typed,
+        choices=(*CHANNELS, "all"),
+        default="depth",
+        help="identification: the channel (the closed loop and --bench run both)",
     )
-    group.add_argument("--excitation", choices=EXCITATIONS, default="steps")
+    group.add_argument(
+        "--samples",
+        action=_Typed,
+        type=int,
+        default=5000,
+        help=f"plant steps, at most {MAX_SAMPLES:,} (about 1 kB each; default 5000)",
+    )
+    group.add_argument("--seed", action=_Typed, type=non_negative_int, default=0)
+    group.add_argument(
+        "--burn-in",
+        action=_Typed,
+        type=int,
+        default=None,
+        help="identification: samples not scored (default: a fifth)",
+    )
+    group.add_argument("--excitation", action=_Typed, choices=EXCITATIONS, default="steps")
 
 
 def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,7 +161,13 @@ def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="print JSON: one object, or a list of objects for 'all'",
     )
-    group.add_argument("--plots", type=Path, metavar="DIR", help="write PNG figures here")
+    group.add_argument(
+        "--plots",
+        action=_Typed,
+        type=_figure_directory,
+        metavar="DIR",
+        help="write PNG figures here (identification; closed loop on paper, disturbed, nonlinear)",
+    )
 
 
 def _add_mode_arguments(parser: argparse.ArgumentParser) -> None:
@@ -100,12 +187,18 @@ def _add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("closed loop")
     group.add_argument(
         "--identify",
+        action=_Typed,
         type=int,
         default=1500,
         help="closed loop: open-loop samples before control starts (default 1500)",
     )
     group.add_argument(
-        "--step-every", type=int, default=800, help="closed loop: samples between setpoint steps"
+        "--step-every",
+        action=_Typed,
+        type=int,
+        default=800,
+        help="closed loop: samples between setpoint steps (default 800; given, less than "
+        "--samples minus --identify, so that a second step comes)",
     )
     group.add_argument(
         "--no-oracle",
@@ -114,12 +207,14 @@ def _add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--plants",
+        action=_Typed,
         type=int,
         default=DEFAULT_PLANTS,
         help=f"scenarios random and family: plants per run (default {DEFAULT_PLANTS})",
     )
     group.add_argument(
         "--input-lags",
+        action=_Typed,
         default=None,
         metavar="N|auto",
         help="closed loop: the identifier's input lags in samples or auto, as serve "
@@ -131,12 +226,14 @@ def _add_identification_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("identification")
     group.add_argument(
         "--fit-split",
+        action=_Typed,
         type=int,
         default=None,
         help="identification: free-run fit and k-step NMSE after this sample (default: half)",
     )
     group.add_argument(
         "--log",
+        action=_Typed,
         type=Path,
         metavar="FILE.mcap",
         help="identification on a log's recorded samples (a field import by its dives) "
@@ -144,6 +241,7 @@ def _add_identification_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--split",
+        action=_Typed,
         choices=("first", "alternate", "both"),
         default="first",
         help="--log of a field import: the first half of the dives trains, every other "
@@ -151,6 +249,7 @@ def _add_identification_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--horizon",
+        action=_Typed,
         type=int,
         default=None,
         help="identification: k of the k-step NMSE (default: the horizon the predictive "
@@ -160,6 +259,7 @@ def _add_identification_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        check_flags(args)
         if args.log is not None:
             return _field(args)
         if args.bench:
@@ -174,9 +274,81 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
 
-def _field(args: argparse.Namespace) -> int:
-    if args.closed_loop or args.bench:
+def check_flags(args: argparse.Namespace) -> None:
+    """Raise ValueError, naming the flag, for flags the chosen experiment would ignore or
+    that it cannot run with: one typed for another experiment, ``--samples`` beyond
+    ``MAX_SAMPLES``, a ``--step-every`` no second setpoint step would come within."""
+    experiment = _experiment(args)
+    if experiment == LOG and (args.closed_loop or args.bench):
         raise ValueError("--log runs the identification experiment (no --closed-loop, --bench)")
+    typed = typed_flags(args)
+    for flag in sorted(typed, key=list(USED_BY).index):
+        problem = _unused_problem(flag, experiment, args.scenario)
+        if problem:
+            raise ValueError(problem)
+    if args.samples > MAX_SAMPLES:
+        raise ValueError(
+            f"--samples must be at most {MAX_SAMPLES:,} (a run holds about 1 kB per "
+            f"sample), got {args.samples}"
+        )
+    if "--step-every" in typed:
+        _check_step_every(args)
+
+
+def typed_flags(args: argparse.Namespace) -> frozenset[str]:
+    """The flags of ``USED_BY`` the user typed: switches that are on, and value flags
+    ``_Typed`` noted (a value equal to its default included, a default never)."""
+    typed = set(getattr(args, TYPED, frozenset()))
+    typed.update(flag for flag, dest in SWITCHES.items() if getattr(args, dest, False))
+    return frozenset(flag for flag in typed if flag in USED_BY)
+
+
+def _experiment(args: argparse.Namespace) -> str:
+    if args.log is not None:
+        return LOG
+    if args.bench:
+        return BENCH
+    return CLOSED_LOOP if args.closed_loop else IDENTIFICATION
+
+
+def _unused_problem(flag: str, experiment: str, scenario: str) -> str:
+    """Why ``flag`` does nothing in ``experiment`` on ``scenario``, or "" when it is used."""
+    used_by = USED_BY[flag]
+    if experiment not in used_by:
+        return f"{flag} does not apply to {experiment}: it is for {_either(used_by)}"
+    family = scenario in FAMILY_SCENARIOS
+    if experiment == CLOSED_LOOP and flag == "--plants" and not family:
+        return (
+            f"--plants does not apply to --scenario {scenario}: it is for the closed loop's "
+            f"--scenario {' and '.join(FAMILY_SCENARIOS)}"
+        )
+    if experiment == CLOSED_LOOP and flag == "--plots" and family:
+        return (
+            f"--plots: the closed loop's --scenario {scenario} draws no figures (paper, "
+            "disturbed and nonlinear do)"
+        )
+    return ""
+
+
+def _either(names: tuple[str, ...]) -> str:
+    """``a``, ``a or b``, ``a, b or c``."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} or {names[-1]}"
+
+
+def _check_step_every(args: argparse.Namespace) -> None:
+    """``--step-every`` as typed: a second setpoint (at sample ``identify + step_every``)
+    must come before the run ends, else any value that large runs the same. A run with
+    nothing to control is left to ``ClosedLoopSettings``, which names ``identify``."""
+    controlled = args.samples - args.identify
+    if args.identify >= 1 and controlled > 1 and args.step_every >= controlled:
+        raise ValueError(
+            f"--step-every {args.step_every} leaves one setpoint: the run controls "
+            f"{controlled} samples (--samples {args.samples} minus --identify "
+            f"{args.identify}), and a second step needs --step-every below {controlled}"
+        )
+
+
+def _field(args: argparse.Namespace) -> int:
     splits = ("first", "alternate") if args.split == "both" else (args.split,)
     results: list[FieldExperiment] = [run_field_experiment(args.log, split) for split in splits]
     # As replay and report say it: a log cut short or damaged is used as far as it reads.

@@ -1,0 +1,308 @@
+"""Bad input that once ran without a word is refused at first contact, naming the flag or
+key (exit 2, one line, no traceback), and what is right still runs:
+
+1. a vehicle profile with a signal's ``scale = 0``, a ``[sampling] delay`` longer than the
+   sampler can serve (or one in a lockstep profile, which waits for nothing), an empty name;
+2. ``experiment`` flags typed for an experiment that does not use them, ``--step-every``
+   with no second setpoint step within the run, ``--plots ""``, ``--samples`` beyond
+   ``MAX_SAMPLES``; no default and no documented invocation is refused;
+3. ``emulate`` with more ``--fleet-connect`` links than ``--vehicles``, or one link twice.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import pytest
+
+import hil_service.cli.experiment as experiment_cli
+import plant_emulator.cli as emulate_cli
+from hil_service.cli import main
+from hil_service.sources.sampler import SamplerConfig, StreamSampler
+from protocols.profiles import (
+    BUILTIN,
+    MAX_DELAY_INTERVALS,
+    builtin_text,
+    load_profile,
+    parse_profile,
+)
+from tests.refused_flags import must_not_run, refused_by_argparse
+
+#: A run short enough to end by itself, should a refused flag get through (it cannot: the
+#: run itself is replaced by ``must_not_run``). Port 9 (discard) sends nowhere that listens.
+SHORT = ("--connect", "udpout:127.0.0.1:9", "--duration", "3", "--speed", "100", "--period", "0.5")
+LINK = "udpout:127.0.0.1:{}"
+PAPER_LOG = Path(__file__).parent / "data" / "paper.mcap"
+
+
+def _refused(capsys: pytest.CaptureFixture[str], verb: str, *argv: str) -> str:
+    """``glider-hil VERB ARGV`` in this process exits 2 with one line on stderr; the line."""
+    code = main([verb, *argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"glider-hil {verb}: ")
+    return line
+
+
+@pytest.fixture
+def no_emulation(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An ``emulate`` that gets past its checks fails the test instead of running."""
+    monkeypatch.setattr(emulate_cli, "_emulate", must_not_run)
+    monkeypatch.setattr(emulate_cli, "run_fleet", must_not_run)
+
+
+#: What ``experiment`` runs once its flags passed, one per experiment and scenario kind.
+RUNNERS = (
+    "run_identification",
+    "run_closed_loop",
+    "run_random_closed_loop",
+    "run_family_closed_loop",
+    "measure_all",
+    "run_field_experiment",
+)
+
+
+class _Started(Exception):
+    """An experiment started: every check of its flags passed."""
+
+
+def _started(*_: object, **__: object) -> None:
+    raise _Started
+
+
+@pytest.fixture
+def no_experiment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An ``experiment`` that gets past its checks fails the test instead of running."""
+    for name in RUNNERS:
+        monkeypatch.setattr(experiment_cli, name, must_not_run)
+
+
+@pytest.fixture
+def stops_at_the_start(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """An ``experiment`` whose flags pass raises ``_Started`` instead of running (in a
+    scratch directory, where a ``--plots`` directory is made)."""
+    monkeypatch.chdir(tmp_path)
+    for name in RUNNERS:
+        monkeypatch.setattr(experiment_cli, name, _started)
+
+
+# ---- 1. vehicle profiles ---------------------------------------------------------------------
+def _ardusub_with(old: str, new: str) -> str:
+    """The built-in ardusub profile with the one line ``old`` replaced by ``new``."""
+    text, replaced = re.subn(rf"(?m)^{re.escape(old)}$", new, builtin_text("ardusub"))
+    assert replaced == 1
+    return text
+
+
+def _refused_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str) -> str:
+    """``emulate --profile FILE`` with ``text`` as FILE: the line it is refused with."""
+    path = tmp_path / "vehicle.toml"
+    path.write_text(text, encoding="utf-8")
+    line = _refused(capsys, "emulate", *SHORT, "--profile", str(path))
+    assert str(path) in line
+    return line
+
+
+@pytest.mark.parametrize("zero", ["0", "0.0", "-0.0"])
+def test_a_profile_refuses_a_zero_scale(tmp_path, capsys, no_emulation, zero) -> None:
+    line = _refused_profile(tmp_path, capsys, _ardusub_with("scale = -1.0", f"scale = {zero}"))
+    assert re.search(r"line \d+: \[signals\.depth\] scale: must not be 0", line), line
+
+
+@pytest.mark.parametrize("name", ['""', '"   "'])
+def test_a_profile_refuses_an_empty_name(tmp_path, capsys, no_emulation, name) -> None:
+    line = _refused_profile(tmp_path, capsys, _ardusub_with('name = "ardusub"', f"name = {name}"))
+    assert re.search(r"line 4: \[profile\] name: must not be empty", line), line
+
+
+@pytest.mark.parametrize(
+    ("delay", "interval", "limit"),
+    [
+        ("1e9", None, "1 s"),  # within the 1e9 every number keeps to
+        ("50", None, "1 s"),
+        ("1.5", None, "1 s"),  # 15 intervals of 10 Hz streams: every sample lost
+        ("0.5", "0.02", "0.2 s"),  # ATTITUDE asked for at 50 Hz: 16 values span 0.3 s
+    ],
+)
+def test_a_profile_refuses_a_delay_the_sampler_cannot_serve(
+    tmp_path, capsys, no_emulation, delay, interval, limit
+) -> None:
+    text = _ardusub_with("period = 0.1", f"period = 0.1\ndelay = {delay}")
+    if interval is not None:
+        text = text.replace('field = "pitch"\n', f'field = "pitch"\ninterval = {interval}\n')
+    line = _refused_profile(tmp_path, capsys, text)
+    assert re.search(rf"line 10: \[sampling\] delay: must be at most {limit}\b", line), line
+
+
+def test_a_lockstep_profile_refuses_a_delay(tmp_path, capsys, no_emulation) -> None:
+    text = builtin_text("glider").replace("[sampling]", "[sampling]\ndelay = 0.5")
+    assert "delay = 0.5" in text
+    line = _refused_profile(tmp_path, capsys, text)
+    assert re.search(r"line \d+: \[sampling\] delay: is for periodic sampling", line), line
+
+
+def test_the_builtins_and_a_delay_at_its_limit_load() -> None:
+    for name in BUILTIN:
+        assert load_profile(name).name == name
+    at_limit = parse_profile(_ardusub_with("period = 0.1", "period = 0.1\ndelay = 1.0"))
+    assert at_limit.sampling.delay == at_limit.delay_limit(0.1) == MAX_DELAY_INTERVALS * 0.1
+    # A limit computed in binary (10 × 0.011 is 0.10999999999999999) takes its decimal.
+    odd = parse_profile(_ardusub_with("period = 0.1", "period = 0.011\ndelay = 0.11"))
+    assert odd.sampling.delay == 0.11
+
+
+@pytest.mark.parametrize(("delay", "formed"), [(1.0, True), (1.5, False)])
+def test_the_delay_limit_is_what_the_sampler_can_serve(delay: float, formed: bool) -> None:
+    """The reason for the limit: 10 Hz streams sampled every 0.1 s form their samples with
+    a delay of 10 periods, and none with 15 (the values of a sample's time are gone)."""
+    profile = load_profile("ardusub")
+    sampler = StreamSampler(
+        SamplerConfig(period=0.1, staleness={"depth": (0.2,), "pitch": (0.2,)}, delay=delay)
+    )
+    for k in range(1, 201):
+        sampler.observe([("depth", 0, 15.0)], ("ms32", 100 * k))
+        sampler.observe([("pitch", 0, 0.1)], ("ms32", 100 * k + 3))
+    assert (delay <= profile.delay_limit(0.1)) is formed
+    assert (sampler.counters.samples > 150) is formed, sampler.counters.as_dict()
+
+
+# ---- 2. experiment ---------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--closed-loop", "--fit-split", "100"],
+         "--fit-split does not apply to --closed-loop: it is for the identification experiment"),
+        (["--closed-loop", "--channel", "depth"],  # the default's value, typed
+         "--channel does not apply to --closed-loop"),
+        (["--closed-loop", "--horizon", "7"], "--horizon does not apply to --closed-loop"),
+        (["--closed-loop", "--burn-in", "100"], "--burn-in does not apply to --closed-loop"),
+        (["--no-oracle"],
+         "--no-oracle does not apply to the identification experiment: it is for --closed-loop"),
+        (["--step-every", "100"], "--step-every does not apply to the identification"),
+        (["--identify", "100"], "--identify does not apply to the identification"),
+        (["--input-lags", "4"], "--input-lags does not apply to the identification"),
+        (["--split", "first"], "--split does not apply to the identification experiment: "
+         "it is for --log"),
+        (["--bench", "--excitation", "prbs"], "--excitation does not apply to --bench: it is "
+         "for the identification experiment or --closed-loop"),
+        (["--bench", "--channel", "pitch"], "--channel does not apply to --bench"),
+        (["--bench", "--plots", "figures"], "--plots does not apply to --bench"),
+        (["--log", str(PAPER_LOG), "--seed", "1"], "--seed does not apply to --log: it is for "
+         "the identification experiment, --closed-loop or --bench"),
+        (["--log", str(PAPER_LOG), "--samples", "100"], "--samples does not apply to --log"),
+        (["--log", str(PAPER_LOG), "--scenario", "paper"], "--scenario does not apply to --log"),
+        (["--log", str(PAPER_LOG), "--plots", "figures"], "--plots does not apply to --log"),
+        (["--closed-loop", "--plants", "3"], "--plants does not apply to --scenario paper"),
+        (["--closed-loop", "--scenario", "all", "--plants", "3"],
+         "--plants does not apply to --scenario all"),
+        (["--closed-loop", "--scenario", "random", "--plots", "figures"],
+         "--plots: the closed loop's --scenario random draws no figures"),
+    ],
+)  # fmt: skip
+def test_experiment_refuses_a_flag_its_experiment_does_not_use(
+    capsys, no_experiment, tmp_path, monkeypatch, argv, says
+) -> None:
+    monkeypatch.chdir(tmp_path)  # a --plots directory, were one made, goes here
+    line = _refused(capsys, "experiment", *argv)
+    assert says in line, line
+    assert not (tmp_path / "figures").exists()
+
+
+@pytest.mark.parametrize("samples", ["1000001", "1000000000"])
+def test_experiment_bounds_the_samples(capsys, no_experiment, samples) -> None:
+    for mode in ([], ["--closed-loop"], ["--bench"]):
+        line = _refused(capsys, "experiment", *mode, "--samples", samples)
+        assert f"--samples must be at most 1,000,000 (a run holds about 1 kB per sample), " \
+            f"got {samples}" in line  # fmt: skip
+
+
+@pytest.mark.parametrize("step_every", ["400", "1000"])
+def test_experiment_refuses_a_step_every_with_no_second_step(
+    capsys, no_experiment, step_every
+) -> None:
+    line = _refused(
+        capsys, "experiment", "--closed-loop", "--samples", "900", "--identify", "500",
+        "--step-every", step_every,
+    )  # fmt: skip
+    assert (
+        f"--step-every {step_every} leaves one setpoint: the run controls 400 samples "
+        "(--samples 900 minus --identify 500), and a second step needs --step-every below 400"
+    ) in line
+
+
+def test_experiment_refuses_an_empty_plots_directory(capsys, no_experiment) -> None:
+    err = refused_by_argparse(capsys, ["experiment", "--samples", "300", "--plots", ""])
+    assert "argument --plots: expected a directory, got ''" in err
+
+
+def _starts(argv: list[str]) -> None:
+    """``glider-hil experiment ARGV`` gets past every check of its flags."""
+    with pytest.raises(_Started):
+        main(["experiment", *argv])
+
+
+#: The defaults and every invocation README.md, docs/ and tests/ make (values as documented).
+DOCUMENTED = [
+    [],
+    ["--scenario", "all", "--channel", "all"],
+    ["--scenario", "nonlinear", "--channel", "pitch", "--samples", "400", "--json"],
+    ["--samples", "400", "--horizon", "7"],
+    ["--samples", "300", "--plots", "figures"],
+    ["--closed-loop"],
+    ["--closed-loop", "--samples", "20000", "--seed", "0", "--scenario", "disturbed", "--json"],
+    ["--closed-loop", "--scenario", "paper", "--samples", "5000", "--seed", "0", "--no-oracle"],
+    ["--closed-loop", "--input-lags", "4"],
+    ["--closed-loop", "--scenario", "paper", "--samples", "900", "--identify", "500",
+     "--step-every", "200", "--json", "--plots", "figures"],
+    ["--closed-loop", "--scenario", "random", "--seed", "29", "--plants", "1", "--samples",
+     "3600", "--identify", "1200", "--step-every", "600"],
+    ["--closed-loop", "--scenario", "family", "--plants", "200", "--seed", "3", "--samples",
+     "2000", "--identify", "800", "--step-every", "300"],
+    ["--closed-loop", "--samples", "2000"],  # one setpoint: --step-every not typed
+    ["--bench"],
+    ["--bench", "--samples", "5000"],
+    ["--log", "sea035.mcap", "--split", "both", "--json"],
+    ["--log", "sea035.mcap"],
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("argv", DOCUMENTED, ids=" ".join)
+def test_experiment_defaults_and_documented_invocations_start(stops_at_the_start, argv) -> None:
+    _starts(argv)
+
+
+def test_experiment_accepts_the_bounds_themselves(stops_at_the_start) -> None:
+    _starts(["--samples", "1000000"])
+    _starts(["--closed-loop", "--samples", "900", "--identify", "500", "--step-every", "399"])
+
+
+# ---- 3. emulate --fleet-connect --------------------------------------------------------------
+def _links(*ports: int) -> list[str]:
+    return [arg for port in ports for arg in ("--fleet-connect", LINK.format(port))]
+
+
+@pytest.mark.parametrize(("vehicles", "ports"), [(2, (9, 10, 11)), (None, (9, 10))])
+def test_emulate_refuses_more_links_than_vehicles(capsys, no_emulation, vehicles, ports) -> None:
+    count = [] if vehicles is None else ["--vehicles", str(vehicles)]
+    line = _refused(capsys, "emulate", *SHORT, *count, *_links(*ports))
+    given = 1 if vehicles is None else vehicles
+    assert (
+        f"--fleet-connect gives {len(ports)} links for --vehicles {given}: "
+        f"{len(ports) - given} would carry no vehicle"
+    ) in line
+
+
+def test_emulate_refuses_a_link_given_twice(capsys, no_emulation) -> None:
+    line = _refused(capsys, "emulate", *SHORT, "--vehicles", "4", *_links(9, 10, 9))
+    assert f"--fleet-connect {LINK.format(9)} is given more than once" in line
+
+
+def test_emulate_runs_a_fleet_with_a_vehicle_on_every_link(capsys, monkeypatch) -> None:
+    started: list[argparse.Namespace] = []
+    monkeypatch.setattr(emulate_cli, "run_fleet", lambda args: started.append(args) or 0)
+    assert main(["emulate", *SHORT, "--vehicles", "3", *_links(9, 10, 11)]) == 0
+    assert len(started) == 1, capsys.readouterr().err
