@@ -173,6 +173,15 @@ class ServiceConfig:
         )
         if period_problem:
             raise ValueError(f"--sample-period {period_problem}")
+        if self.sample_period is not None and self.periodic:
+            # A profile's delay is checked against its own period; a shorter period asked
+            # for here shortens what the sampler can wait.
+            delay_problem = self.profile.delay_problem(self.sample_period)
+            if delay_problem:
+                raise ValueError(
+                    f"--sample-period {self.sample_period:g}: the profile's [sampling] delay "
+                    f"{delay_problem}"
+                )
         if self.vehicle_ids not in VEHICLE_ID_MODES:
             raise ValueError(
                 f"--vehicle-ids must be one of {', '.join(VEHICLE_ID_MODES)}, "

@@ -227,6 +227,23 @@ class Profile:
         shortest = min(sample_period, *self.intervals(sample_period).values())
         return MAX_DELAY_INTERVALS * shortest
 
+    def delay_problem(self, sample_period: float) -> str:
+        """Why ``[sampling] delay`` cannot serve sampling at ``sample_period`` (beyond
+        ``delay_limit``), or "" when it can or the profile gives none."""
+        delay = self.sampling.delay
+        if delay is None:
+            return ""
+        limit = self.delay_limit(sample_period)
+        # The limit is computed in binary: it may fall a rounding short of the decimal
+        # a file states for it.
+        if delay > limit * (1 + 1e-9):
+            return (
+                f"must be at most {limit:g} s, {MAX_DELAY_INTERVALS} times the shortest of the "
+                f"period and the intervals asked for ({limit / MAX_DELAY_INTERVALS:g} s): a "
+                f"sample waiting longer finds the values of its time gone, got {delay!r}"
+            )
+        return ""
+
     def step_messages(self) -> tuple[str, ...]:
         """The messages a lockstep step needs, all stamped with the step's time: the
         preferred source of every signal that is not optional, and the ballast readback."""
@@ -557,17 +574,9 @@ class _Parser:
                 "sampling",
                 "delay",
             )
-        limit = profile.delay_limit(sampling.period)
-        # The limit is computed in binary: it may fall a rounding short of the decimal
-        # a file states for it.
-        if sampling.delay > limit * (1 + 1e-9):
-            self.fail(
-                f"must be at most {limit:g} s, {MAX_DELAY_INTERVALS} times the shortest of the "
-                f"period and the intervals asked for ({limit / MAX_DELAY_INTERVALS:g} s): a "
-                f"sample waiting longer finds the values of its time gone, got {sampling.delay!r}",
-                "sampling",
-                "delay",
-            )
+        problem = profile.delay_problem(sampling.period)
+        if problem:
+            self.fail(problem, "sampling", "delay")
 
     def _sampling(self, table: dict) -> Sampling:
         mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)

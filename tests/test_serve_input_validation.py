@@ -207,3 +207,22 @@ def test_replay_refuses_a_sample_period_for_a_lockstep_log(tmp_path, capsys):
     log = _periodic_log(tmp_path, recorded_period=0.1)
     assert main(["replay", "--fast", str(log), "--profile", "glider", "--sample-period", "1"]) == 2
     assert "--sample-period needs a periodic profile; glider is not" in capsys.readouterr().err
+
+
+def test_serve_refuses_a_sample_period_the_profiles_delay_is_too_long_for(
+    tmp_path, capsys, monkeypatch
+):
+    """A delay within its profile's own period can be too long for a shorter period asked
+    for on the command line: the sampler keeps the same 16 values a source."""
+    profile = tmp_path / "slow.toml"
+    profile.write_text(
+        builtin_text("ardusub").replace("period = 0.1\n", "period = 0.1\ndelay = 1.0\n"),
+        encoding="utf-8",
+    )
+    assert load_profile(str(profile)).sampling.delay == 1.0  # its own period allows it
+    line = _refused(
+        tmp_path, capsys, monkeypatch, "--profile", str(profile), "--sample-period", "0.01"
+    )
+    assert "--sample-period 0.01: the profile's [sampling] delay must be at most 0.1 s" in line
+    config = ServiceConfig(profile=load_profile(str(profile)), sample_period=0.1)
+    assert config.sample_period == 0.1  # at the profile's own period it serves
