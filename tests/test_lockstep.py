@@ -94,14 +94,17 @@ def test_two_lockstep_runs_with_the_same_seed_are_the_same_bit_for_bit(tmp_path:
     assert [p["pitch"] for p in telemetry] == pytest.approx(list(first.trace.y["pitch"]), abs=1e-6)
 
 
-def test_emulate_lockstep_with_serve_announced_automatically(processes, tmp_path) -> None:
+@pytest.mark.parametrize(
+    "spin", [(), ("--spin-wait", "200")], ids=["sleeping", "spinning"]
+)  # docs/lockstep.md, "Two cores"
+def test_emulate_lockstep_with_serve_announced_automatically(processes, spin) -> None:
     udp, zport = free_udp_port(), free_tcp_port()
     service = processes.start_service(
         "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
-        "--no-log",
+        "--no-log", *spin,
     )  # fmt: skip
     emulator = processes.start(
-        "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--lockstep",
+        "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--lockstep", *spin,
         "--duration", "300", "--scenario", "disturbed", "--lockstep-timeout", "30",
     )  # fmt: skip
     out, err = emulator.communicate(timeout=120)

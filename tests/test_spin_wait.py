@@ -15,7 +15,6 @@ import pytest
 from hil_service.campaign.hil_run import Placement, run_hil
 from hil_service.campaign.mission import Mission
 from hil_service.cli import main
-from hil_service.cli.processes import last_json
 from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.listeners import Listener, Notifier
@@ -23,7 +22,7 @@ from hil_service.service import HilService
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, readable
-from tests.conftest import free_tcp_port, free_udp_port
+from tests.conftest import free_udp_port
 from tests.test_lockstep import _payloads
 
 MISSION = Mission("disturbed", seed=2, steps=600, identify=350, step_every=80)
@@ -169,23 +168,3 @@ def test_a_mission_with_a_core_each_and_spinning_links_is_the_same_run(tmp_path:
     for channel in ("depth", "pitch"):
         assert (spun.trace.y[channel] == slept.trace.y[channel]).all()
 
-
-def test_emulate_and_serve_in_lockstep_with_spinning_links(processes) -> None:
-    udp, zport = free_udp_port(), free_tcp_port()
-    service = processes.start_service(
-        "--mavlink", f"udpin:127.0.0.1:{udp}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
-        "--no-log", "--spin-wait", "200",
-    )  # fmt: skip
-    emulator = processes.start(
-        "emulate", "--connect", f"udpout:127.0.0.1:{udp}", "--lockstep", "--spin-wait", "200",
-        "--duration", "300", "--scenario", "disturbed", "--lockstep-timeout", "30",
-    )  # fmt: skip
-    out, err = emulator.communicate(timeout=120)
-    assert emulator.returncode == 0, err
-    emulated = last_json(out, "emulator")
-    assert emulated["steps"] == 300
-    assert emulated["lockstep"] == {
-        "released": 300, "released_by_command": 0, "timeouts": 0, "stale_releases": 0,
-    }  # fmt: skip
-    served = last_json(processes.stop(service)[0], "service")
-    assert served["lockstep"]["releases"] == 300
