@@ -173,15 +173,6 @@ class ServiceConfig:
         )
         if period_problem:
             raise ValueError(f"--sample-period {period_problem}")
-        if self.sample_period is not None and self.periodic:
-            # A profile's delay is checked against its own period; a shorter period asked
-            # for here shortens what the sampler can wait.
-            delay_problem = self.profile.delay_problem(self.sample_period)
-            if delay_problem:
-                raise ValueError(
-                    f"--sample-period {self.sample_period:g}: the profile's [sampling] delay "
-                    f"{delay_problem}"
-                )
         if self.vehicle_ids not in VEHICLE_ID_MODES:
             raise ValueError(
                 f"--vehicle-ids must be one of {', '.join(VEHICLE_ID_MODES)}, "
@@ -303,6 +294,16 @@ class ServiceConfig:
             raise _flag_as_stored_key(error) from None
 
 
+def sample_period_delay_problem(profile: Profile, sample_period: float) -> str:
+    """Why ``--sample-period`` cannot sample with ``profile``'s ``[sampling] delay``, or "":
+    a profile's delay is checked against its own period, and a shorter period asked for on
+    the command line shortens what the sampler can wait."""
+    problem = profile.delay_problem(sample_period)
+    if not problem:
+        return ""
+    return f"--sample-period {sample_period:g}: the profile's [sampling] delay {problem}"
+
+
 def stored_profile(stored: dict[str, Any], log: str | Path | None = None) -> Profile | None:
     """The vehicle profile a log stores (``serve --profile`` and ``import`` store theirs), or
     None when it stores none; StoredConfigError, naming ``log``, when it cannot be read."""
@@ -312,7 +313,7 @@ def stored_profile(stored: dict[str, Any], log: str | Path | None = None) -> Pro
     key = f"{PROFILE_KEY}.text"
     try:
         text = _typed(_object(entry, PROFILE_KEY).get("text"), str, key, nullable=True)
-        return parse_profile(text, "TOML") if text else None
+        return parse_profile(text, "TOML", stored=True) if text else None
     except ProfileError as error:
         raise _naming(StoredConfigError(key, str(error)), log) from None
     except StoredConfigError as error:

@@ -383,10 +383,16 @@ def load_profile(name_or_path: str | Path) -> Profile:
     return parse_profile(text, str(path))
 
 
-def parse_profile(text: str, origin: str = "<profile>") -> Profile:
+def parse_profile(text: str, origin: str = "<profile>", stored: bool = False) -> Profile:
+    """The profile ``text`` describes; ProfileError naming ``origin`` and the line.
+
+    ``stored``: the text a log stores, read back to replay it. The log ran with that
+    profile, so what is refused only as advice to whoever writes a profile (a key the run
+    ignores, a delay the sampler cannot serve, a zero scale, an empty name) is let through;
+    what the service cannot run with is refused as always."""
     try:
         data = tomllib.loads(text)
-        return _Parser(text, origin).profile(data)
+        return _Parser(text, origin, stored).profile(data)
     except tomllib.TOMLDecodeError as error:
         raise ProfileError(f"{origin}: not valid TOML: {error}") from error
     except RecursionError:  # tomllib reads nested arrays and tables recursively
@@ -413,10 +419,19 @@ _KEY = re.compile(r"^\s*([A-Za-z0-9_\-\"']+)\s*=")
 class _Parser:
     """Checks a decoded TOML document field by field, naming the line of what is wrong."""
 
-    def __init__(self, text: str, origin: str):
+    def __init__(self, text: str, origin: str, stored: bool = False):
         self.lines = text.splitlines()
         self.origin = origin
         self.text = text
+        #: Read back from a log (``parse_profile``): the advice below is not given.
+        self.stored = stored
+
+    def advise(self, message: str, table: str, key: str, occurrence: int = 0) -> None:
+        """Refuse what a profile a user writes should not say (a key the run would ignore,
+        a value that makes the signal useless), unless the profile is read back from a
+        log, which ran with it."""
+        if not self.stored:
+            self.fail(message, table, key, occurrence)
 
     # -- locating lines --
     def _line(self, table: str, key: str | None = None, occurrence: int = 0) -> int | None:
@@ -525,7 +540,7 @@ class _Parser:
         head = self._table(data, "profile", {"name", "description"})
         name = self._string(head, "profile", "name", None)
         if not name.strip():
-            self.fail("must not be empty: logs store the profile by its name", "profile", "name")
+            self.advise("must not be empty: logs store the profile by its name", "profile", "name")
         description = self._string(head, "profile", "description", "")
         sampling = self._sampling(self._table(data, "sampling", {"mode", "period", "delay"}))
         units = self._table(data, "units", {"water_density", "surface_pressure_hpa"})
@@ -569,14 +584,15 @@ class _Parser:
         if sampling.delay is None:
             return
         if sampling.mode != "periodic" or sampling.period is None:
-            self.fail(
+            self.advise(
                 "is for periodic sampling (lockstep waits for no late message)",
                 "sampling",
                 "delay",
             )
+            return
         problem = profile.delay_problem(sampling.period)
         if problem:
-            self.fail(problem, "sampling", "delay")
+            self.advise(problem, "sampling", "delay")
 
     def _sampling(self, table: dict) -> Sampling:
         mode = self._string(table, "sampling", "mode", Sampling.mode, MODES)
@@ -592,6 +608,13 @@ class _Parser:
             self.fail(f"must be ≥ 0, got {delay!r}", "sampling", "delay")
         if mode == "periodic" and period is None:
             self.fail("periodic sampling needs a period (s)", "sampling", "mode")
+        if mode == "lockstep" and period is not None:
+            self.advise(
+                "is for periodic sampling (lockstep takes one sample per plant step, at the "
+                "timestamp its messages share)",
+                "sampling",
+                "period",
+            )
         return Sampling(mode, period, delay)
 
     def _signals(self, table: Any) -> dict[str, tuple[Source, ...]]:
@@ -670,9 +693,12 @@ class _Parser:
         optional = entry.get("optional", False)
         if not isinstance(optional, bool):
             self.fail("must be true or false", name, "optional", occurrence)
+        convert = self._string(entry, name, "convert", Source.convert, CONVERSIONS, occurrence)
+        if convert == "pressure_to_depth":
+            self._refuse_linear_terms(entry, name, occurrence)
         scale = self._number(entry, name, "scale", Source.scale, occurrence)
         if scale == 0:
-            self.fail(
+            self.advise(
                 "must not be 0: every reading would be the offset, whatever the vehicle sends",
                 name,
                 "scale",
@@ -682,13 +708,26 @@ class _Parser:
             message=message,
             field=field_name,
             index=index,
-            convert=self._string(entry, name, "convert", Source.convert, CONVERSIONS, occurrence),
+            convert=convert,
             scale=scale,
             offset=self._number(entry, name, "offset", Source.offset, occurrence),
             interval=self._number(entry, name, "interval", None, occurrence, positive=True),
             stale_after=self._number(entry, name, "stale_after", None, occurrence, positive=True),
             optional=optional,
         )
+
+    def _refuse_linear_terms(self, entry: dict, name: str, occurrence: int) -> None:
+        """``scale`` and ``offset`` are the linear conversion's: ``pressure_to_depth`` reads
+        depth from pressure with the ``[units]`` alone, and would drop them unread."""
+        for key in ("scale", "offset"):
+            if key in entry:
+                self.advise(
+                    'is for convert = "linear": pressure_to_depth converts hPa to depth with '
+                    "[units] water_density and surface_pressure_hpa alone",
+                    name,
+                    key,
+                    occurrence,
+                )
 
     def _ballast(self, table: Any) -> Ballast:
         allowed = {

@@ -2,10 +2,13 @@
 key (exit 2, one line, no traceback), and what is right still runs:
 
 1. a vehicle profile with a signal's ``scale = 0``, a ``[sampling] delay`` longer than the
-   sampler can serve (or one in a lockstep profile, which waits for nothing), an empty name;
+   sampler can serve (or one in a lockstep profile, which waits for nothing), an empty name,
+   a ``[sampling] period`` in a lockstep profile (one sample per plant step), a ``scale`` or
+   ``offset`` on a ``pressure_to_depth`` source (which converts with ``[units]`` alone);
 2. ``experiment`` flags typed for an experiment that does not use them, ``--step-every``
    with no second setpoint step within the run, ``--plots ""``, ``--samples`` beyond
-   ``MAX_SAMPLES``; no default and no documented invocation is refused;
+   ``MAX_SAMPLES``, ``--bench`` with a ``--scenario`` it does not time (``all``, ``random``,
+   ``family``); no default and no documented invocation is refused;
 3. ``emulate`` with more ``--fleet-connect`` links than ``--vehicles``, or one link twice.
 """
 
@@ -20,10 +23,12 @@ import pytest
 import hil_service.cli.experiment as experiment_cli
 import plant_emulator.cli as emulate_cli
 from hil_service.cli import main
+from hil_service.config import StoredConfigError, stored_profile
 from hil_service.sources.sampler import SamplerConfig, StreamSampler
 from protocols.profiles import (
     BUILTIN,
     MAX_DELAY_INTERVALS,
+    ProfileError,
     builtin_text,
     load_profile,
     parse_profile,
@@ -98,6 +103,13 @@ def _ardusub_with(old: str, new: str) -> str:
     return text
 
 
+def _glider_with(old: str, new: str) -> str:
+    """The built-in glider profile with the one line ``old`` replaced by ``new``."""
+    text, replaced = re.subn(rf"(?m)^{re.escape(old)}$", new, builtin_text("glider"))
+    assert replaced == 1
+    return text
+
+
 def _refused_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str) -> str:
     """``emulate --profile FILE`` with ``text`` as FILE: the line it is refused with."""
     path = tmp_path / "vehicle.toml"
@@ -143,6 +155,40 @@ def test_a_lockstep_profile_refuses_a_delay(tmp_path, capsys, no_emulation) -> N
     assert "delay = 0.5" in text
     line = _refused_profile(tmp_path, capsys, text)
     assert re.search(r"line \d+: \[sampling\] delay: is for periodic sampling", line), line
+
+
+@pytest.mark.parametrize("period", ["0.1", "1.0"])  # 1.0: the glider's plant step
+def test_a_lockstep_profile_refuses_a_period(tmp_path, capsys, no_emulation, period) -> None:
+    """Lockstep takes one sample per plant step, whatever period the profile names."""
+    text = _glider_with('mode = "lockstep"', f'mode = "lockstep"\nperiod = {period}')
+    line = _refused_profile(tmp_path, capsys, text)
+    assert re.search(
+        r"line 10: \[sampling\] period: is for periodic sampling \(lockstep takes one sample "
+        r"per plant step",
+        line,
+    ), line
+
+
+@pytest.mark.parametrize(("key", "value"), [("scale", "2.0"), ("scale", "1.0"), ("offset", "-3")])
+def test_a_pressure_to_depth_source_refuses_a_scale_or_offset(
+    tmp_path, capsys, no_emulation, key, value
+) -> None:
+    text = _glider_with(
+        'convert = "pressure_to_depth"', f'convert = "pressure_to_depth"\n{key} = {value}'
+    )
+    line = _refused_profile(tmp_path, capsys, text)
+    assert re.search(
+        rf'line 19: \[signals\.depth\] {key}: is for convert = "linear": pressure_to_depth '
+        r"converts hPa to depth with \[units\] water_density and surface_pressure_hpa",
+        line,
+    ), line
+
+
+def test_a_linear_source_keeps_its_scale_and_offset() -> None:
+    """``scale`` and ``offset`` are refused only where they would go unread."""
+    text = _glider_with('convert = "pressure_to_depth"', "scale = 0.01\noffset = -10.13")
+    source = parse_profile(text).signals["depth"][0]
+    assert (source.convert, source.scale, source.offset) == ("linear", 0.01, -10.13)
 
 
 def test_the_builtins_and_a_delay_at_its_limit_load() -> None:
@@ -201,6 +247,10 @@ def test_the_delay_limit_is_what_the_sampler_can_serve(delay: float, formed: boo
          "--plants does not apply to --scenario all"),
         (["--closed-loop", "--scenario", "random", "--plots", "figures"],
          "--plots: the closed loop's --scenario random draws no figures"),
+        (["--bench", "--scenario", "all"], "--scenario all does not apply to --bench: it "
+         "times one plant scenario, paper, disturbed or nonlinear (default paper)"),
+        (["--bench", "--scenario", "random"], "--scenario random does not apply to --bench"),
+        (["--bench", "--scenario", "family"], "--scenario family does not apply to --bench"),
     ],
 )  # fmt: skip
 def test_experiment_refuses_a_flag_its_experiment_does_not_use(
@@ -275,6 +325,21 @@ def test_experiment_defaults_and_documented_invocations_start(stops_at_the_start
     _starts(argv)
 
 
+@pytest.mark.parametrize("scenario", ["paper", "disturbed", "nonlinear"])
+def test_experiment_bench_times_the_scenario_asked_for(
+    stops_at_the_start, monkeypatch, scenario
+) -> None:
+    timed: list[str] = []
+
+    def measure(samples: int, asked: str, seed: int) -> None:
+        timed.append(asked)
+        raise _Started
+
+    monkeypatch.setattr(experiment_cli, "measure_all", measure)
+    _starts(["--bench", "--scenario", scenario])
+    assert timed == [scenario]
+
+
 def test_experiment_accepts_the_bounds_themselves(stops_at_the_start) -> None:
     _starts(["--samples", "1000000"])
     _starts(["--closed-loop", "--samples", "900", "--identify", "500", "--step-every", "399"])
@@ -306,3 +371,32 @@ def test_emulate_runs_a_fleet_with_a_vehicle_on_every_link(capsys, monkeypatch) 
     monkeypatch.setattr(emulate_cli, "run_fleet", lambda args: started.append(args) or 0)
     assert main(["emulate", *SHORT, "--vehicles", "3", *_links(9, 10, 11)]) == 0
     assert len(started) == 1, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        builtin_text("glider").replace('mode = "lockstep"', 'mode = "lockstep"\nperiod = 0.1'),
+        builtin_text("glider").replace('mode = "lockstep"', 'mode = "lockstep"\ndelay = 0.5'),
+        _ardusub_with("period = 0.1", "period = 0.1\ndelay = 50"),
+        _ardusub_with("scale = -1.0", "scale = 0"),
+        _ardusub_with('name = "ardusub"', 'name = ""'),
+        builtin_text("glider").replace(
+            'convert = "pressure_to_depth"', 'convert = "pressure_to_depth"\nscale = 2.0'
+        ),
+    ],
+    ids=["lockstep-period", "lockstep-delay", "long-delay", "zero-scale", "no-name", "p2d-scale"],
+)
+def test_a_profile_a_log_stores_replays_without_the_advice(text: str) -> None:
+    """A log ran with its profile, so reading it back to replay (``stored_profile``) lets
+    through what is refused only as advice to whoever writes a profile."""
+    with pytest.raises(ProfileError):
+        parse_profile(text)
+    profile = stored_profile({"profile": {"name": "stored", "text": text}})
+    assert profile is not None and profile.text == text
+
+
+def test_a_stored_profile_the_service_cannot_run_is_still_refused() -> None:
+    text = builtin_text("ardusub").replace('mode = "periodic"', 'mode = "sometimes"')
+    with pytest.raises(StoredConfigError, match=r"profile\.text.*\[sampling\] mode"):
+        stored_profile({"profile": {"name": "stored", "text": text}})

@@ -226,3 +226,16 @@ def test_serve_refuses_a_sample_period_the_profiles_delay_is_too_long_for(
     assert "--sample-period 0.01: the profile's [sampling] delay must be at most 0.1 s" in line
     config = ServiceConfig(profile=load_profile(str(profile)), sample_period=0.1)
     assert config.sample_period == 0.1  # at the profile's own period it serves
+
+
+def test_replay_refuses_a_sample_period_the_profiles_delay_is_too_long_for(tmp_path, capsys):
+    log = _periodic_log(tmp_path, recorded_period=0.1)
+    waiting = tmp_path / "waiting.toml"
+    text = builtin_text("ardusub").replace("period = 0.1\n", "period = 0.1\ndelay = 1.0\n")
+    waiting.write_text(text)
+    assert _replayed_samples(capsys, log, "--profile", str(waiting)) > 0  # its own period
+    flags = ["--profile", str(waiting), "--sample-period", "0.01"]
+    assert main(["replay", "--fast", str(log), *flags]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert "--sample-period 0.01: the profile's [sampling] delay must be at most 0.1 s" in err

@@ -316,6 +316,11 @@ def _unused_problem(flag: str, experiment: str, scenario: str) -> str:
     used_by = USED_BY[flag]
     if experiment not in used_by:
         return f"{flag} does not apply to {experiment}: it is for {_either(used_by)}"
+    if experiment == BENCH and flag == "--scenario" and scenario not in SCENARIOS:
+        return (
+            f"--scenario {scenario} does not apply to --bench: it times one plant scenario, "
+            f"{_either(SCENARIOS)} (default paper)"
+        )
     family = scenario in FAMILY_SCENARIOS
     if experiment == CLOSED_LOOP and flag == "--plants" and not family:
         return (
@@ -657,7 +662,7 @@ def _settled_after(
 def _bench(args: argparse.Namespace) -> int:
     if args.samples < 1:
         raise ValueError(f"--samples must be at least 1, got {args.samples}")
-    scenario = "paper" if args.scenario == "all" else args.scenario
+    scenario = args.scenario  # one of SCENARIOS: check_flags refuses the others
     figures = measure_all(args.samples, scenario, args.seed)
     modules = compiled.summary()
     if args.json:

@@ -27,6 +27,7 @@ from hil_service.config import (
     ServiceConfig,
     Units,
     parse_system_ids,
+    sample_period_delay_problem,
 )
 from hil_service.inputs import SetpointLimits
 from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
@@ -305,6 +306,10 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
     periodic = profile.sampling.mode == "periodic"
     if args.sample_period is not None and not periodic:
         raise ValueError(f"--sample-period needs a periodic profile; {profile.name} is not")
+    if args.sample_period is not None:
+        problem = sample_period_delay_problem(profile, args.sample_period)
+        if problem:
+            raise ValueError(problem)
     system_ids = [i for text in args.sysid for i in parse_system_ids(str(text))]
     if args.lockstep and periodic:
         raise ValueError(f"--lockstep needs a lockstep profile; {profile.name} is periodic")

@@ -24,7 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from hil_service.builder import wire
-from hil_service.config import ServiceConfig, shown_json, stored_profile
+from hil_service.config import (
+    ServiceConfig,
+    sample_period_delay_problem,
+    shown_json,
+    stored_profile,
+)
 from hil_service.inputs import ControlInputs, Inbox
 from hil_service.listeners import Listener
 from hil_service.mcap.reader import LogMessage, LogReader
@@ -317,6 +322,9 @@ class _Replay:
                 )
             return None
         if given is not None:
+            problem = sample_period_delay_problem(profile, given)
+            if problem:
+                raise ReplayError(problem)
             return given
         recorded = ((stored.get("service") or {}).get("profile") or {}).get("sample_period")
         if self.options.profile is not None or recorded is None:

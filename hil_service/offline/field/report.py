@@ -5,9 +5,11 @@ Reads the grid samples (``glider/{id}/telemetry``) and the segments the import s
 a table per channel (one-step skill, free-run fit per held-out dive, k-step NMSE, for
 persistence, RLS-ARX, the U-model, the two-input U-model of depth and the
 first-principles baseline), whether the input was excited enough, and a figure per model of
-predicted vs actual over one held-out dive. A stored ``field`` part that cannot be read (an
-``issues`` or ``grid`` that is not an object, a grid period that is not a number) is named
-in the section, and the identification is not computed.
+predicted vs actual over one held-out dive. The import's counts and its notes (a file cut
+short, times before 1980, rows dropped: ``field.issues.notes``) head the section. A
+stored ``field`` part that cannot be read (an ``issues`` or ``grid`` that is not an object,
+a grid period that is not a number) is named in the section, and the identification is not
+computed.
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ from protocols import keys
 from protocols.payload_json import is_finite_number
 
 UNITS = {"depth": "m", "pitch": "rad"}
+#: The most import notes the report lists: an import notes every row it drops, and the
+#: rest stay in the log's stored ``field.issues.notes``.
+MAX_NOTES = 20
 
 
 def field_arrays(log: str | Path, field: dict[str, Any], system_id: int = 1) -> Arrays:
@@ -163,6 +168,7 @@ def field_section(
         f"({_percent(grid.get('used_fraction', 0))} %); {grid.get('interpolated')} grid "
         f"samples interpolated (linear, at most {grid.get('max_distance_s')} s from a raw "
         f"sample); not used: {grid.get('lost') or 'none'}",
+        *_note_lines(issues.get("notes"), log),
     ]
     if not period > 0:
         return (
@@ -202,6 +208,21 @@ def _unreadable(field: dict[str, Any]) -> str:
     if period is not None and not is_finite_number(period):
         return "field.grid.period_s is not a number"
     return ""
+
+
+def _note_lines(notes: Any, log: str | Path) -> list[str]:
+    """The import's notes (a file cut short, times before 1980, a row dropped, ...) as an
+    "Import notes" list, the first ``MAX_NOTES`` of them; nothing when there are none."""
+    if not isinstance(notes, list) or not notes:
+        return []
+    lines = ["", "Import notes:", ""]
+    lines += [f"- {note}" for note in notes[:MAX_NOTES]]
+    if len(notes) > MAX_NOTES:
+        lines.append(
+            f"- ... and {len(notes) - MAX_NOTES} more (all in `glider-hil info {log}`, "
+            "field.issues.notes)"
+        )
+    return lines
 
 
 def _count(items: Any) -> str:
