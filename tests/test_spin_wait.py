@@ -19,6 +19,7 @@ from hil_service.config import ServiceConfig
 from hil_service.inputs import Inbox
 from hil_service.listeners import Listener, Notifier
 from hil_service.service import HilService
+from hil_service.vehicle_links import LinkSet
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, readable
@@ -168,3 +169,21 @@ def test_a_mission_with_a_core_each_and_spinning_links_is_the_same_run(tmp_path:
     for channel in ("depth", "pitch"):
         assert (spun.trace.y[channel] == slept.trace.y[channel]).all()
 
+
+
+def test_several_links_spin_too(pair) -> None:
+    """``serve --mavlink A --mavlink B --spin-wait US``: the links' wait polls all of them."""
+    first, second = free_udp_port(), free_udp_port()
+    links = LinkSet(
+        [f"udpin:127.0.0.1:{first}", f"udpin:127.0.0.1:{second}"], 255, 191, spin_wait=1e-3
+    )
+    try:
+        assert links.spin_wait == 1e-3
+        assert not links.wait(0.002)
+        sender, _ = pair
+        sender.sendto(b"\xfd", ("127.0.0.1", second))
+        assert links.wait(1.0)
+        data, (link_number, _) = links.recv_from()
+        assert (data, link_number) == (b"\xfd", 2)
+    finally:
+        links.close()
