@@ -61,9 +61,9 @@ class Notifier:
         while it handles a datagram, so that what it sends the vehicle (a command, a
         lockstep release) goes before the log and Zenoh get the datagram's events: the
         vehicle, on a core of its own, then computes its next step while the service logs
-        and publishes this one. Listeners see
-        the same events in the same order; a frame keeps the time it was received or sent,
-        and what a listener stamps itself (the log's publications) is stamped on release."""
+        and publishes this one. Listeners see the same events in the same order; a frame
+        keeps the time it was received or sent, and what a listener stamps itself (the
+        log's publications) is stamped on release."""
         if self._held is None:
             self._held = []
 
