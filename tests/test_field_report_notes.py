@@ -79,3 +79,14 @@ def test_the_report_lists_the_first_notes_and_counts_the_rest(tmp_path: Path) ->
     listed = lines[at + 2 : at + 2 + MAX_NOTES + 1]
     assert listed[:-1] == [f"- {note}" for note in notes[:MAX_NOTES]]
     assert listed[-1] == "- ... and 5 more (all in `glider-hil info x.mcap`, field.issues.notes)"
+
+
+def test_the_section_names_a_vehicleless_import_and_counts_rows_out_of_range(
+    tmp_path: Path,
+) -> None:
+    """A CSV import stores no vehicle name: the heading is its format alone; and the rows
+    dropped as out of range are counted beside the other dropped rows."""
+    field = {"format": "csv", "issues": {"rows": 9, "out_of_range": 3}, "grid": {"period_s": 0}}
+    lines, _, _ = field_section("x.mcap", {"field": field}, tmp_path)
+    assert "## Field identification (csv)" in lines
+    assert any("3 out of range" in line for line in lines), lines

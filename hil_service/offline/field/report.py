@@ -140,7 +140,8 @@ def field_section(
     field = config.get("field")
     if not isinstance(field, dict):
         return [], [], []
-    heading = ["", f"## Field identification ({field.get('format')} {field.get('vehicle', '')})"]
+    what = " ".join(str(part) for part in (field.get("format"), field.get("vehicle")) if part)
+    heading = ["", f"## Field identification ({what or 'format not stored'})"]
     unreadable = _unreadable(field)
     if unreadable:
         return (
@@ -159,7 +160,8 @@ def field_section(
         f"{issues.get('rows', '–')} rows; "
         f"{issues.get('out_of_order', 0)} out of order, {issues.get('repeated_time', 0)} "
         f"repeated timestamps, {issues.get('nan_rows', 0)} NaN rows, "
-        f"{issues.get('unparsable_rows', 0)} unparsable, {issues.get('filled_inputs', 0)} "
+        f"{issues.get('unparsable_rows', 0)} unparsable, {issues.get('out_of_range', 0)} out "
+        f"of range, {issues.get('filled_inputs', 0)} "
         f"inputs held, {issues.get('surface_rows', 0)} at the surface; missing columns: "
         f"{issues.get('missing_columns') or 'none'}",
         f"- {spacing}, segments split at gaps > {grid.get('gap_s')} s: "
