@@ -22,3 +22,14 @@ def refused_by_argparse(capsys: pytest.CaptureFixture[str], argv: list[str]) -> 
     assert exit_info.value.code == 2, err
     assert "Traceback" not in err
     return err
+
+
+def refused_line(capsys: pytest.CaptureFixture[str], verb: str, *argv: str) -> str:
+    """``glider-hil VERB ARGV`` in this process exits 2 with one line on stderr; the line."""
+    code = main([verb, *argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"glider-hil {verb}: ")
+    return line

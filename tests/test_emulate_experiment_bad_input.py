@@ -19,7 +19,7 @@ import hil_service.cli.experiment as experiment_cli
 import plant_emulator.cli as emulate_cli
 from hil_service.cli import main
 from protocols.profiles import ProfileError, builtin_text, load_profile
-from tests.refused_flags import must_not_run
+from tests.refused_flags import must_not_run, refused_line
 
 #: A run short enough to end by itself, should a refused flag get through (it cannot: the
 #: run itself is replaced by ``must_not_run``). Port 9 (discard) sends nowhere that listens.
@@ -32,17 +32,6 @@ def no_run(monkeypatch: pytest.MonkeyPatch) -> None:
     """A flag that gets past ``emulate``'s checks fails the test instead of running."""
     monkeypatch.setattr(emulate_cli, "_emulate", must_not_run)
     monkeypatch.setattr(emulate_cli, "run_fleet", must_not_run)
-
-
-def _refused(capsys: pytest.CaptureFixture[str], verb: str, *argv: str) -> str:
-    """``glider-hil VERB ARGV`` in this process exits 2 with one line on stderr; the line."""
-    code = main([verb, *argv])
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err
-    (line,) = err.strip().splitlines()
-    assert line.startswith(f"glider-hil {verb}: ")
-    return line
 
 
 def _profile(tmp_path: Path, text: str, name: str = "vehicle.toml") -> str:
@@ -66,7 +55,7 @@ def _profile(tmp_path: Path, text: str, name: str = "vehicle.toml") -> str:
     ],
 )
 def test_emulate_refuses_a_value_beyond_any_vehicle(capsys, no_run, flags, named) -> None:
-    line = _refused(capsys, "emulate", *SHORT, *flags)
+    line = refused_line(capsys, "emulate", *SHORT, *flags)
     assert named in line and "must be" in line and flags[-1] in line.replace("+", "")
 
 
@@ -89,7 +78,7 @@ def test_a_profile_refuses_a_unit_beyond_any_vehicle(tmp_path, capsys, no_run, t
     path = _profile(tmp_path, _ardusub_with(key, value))
     with pytest.raises(ProfileError, match=rf"line \d+: \[{table}\] {key}: must be"):
         load_profile(path)
-    refused = _refused(capsys, "emulate", *SHORT, "--profile", path)
+    refused = refused_line(capsys, "emulate", *SHORT, "--profile", path)
     assert path in refused and key in refused
 
 
@@ -111,10 +100,10 @@ def test_the_units_bounds_take_every_real_vehicle(capsys, monkeypatch) -> None:
 
 
 # ---- 2. a profile nested too deeply ---------------------------------------------------------
-def test_a_deeply_nested_profile_is_refused(tmp_path, capsys, no_run) -> None:
+def test_a_deeply_nested_profile_isrefused_line(tmp_path, capsys, no_run) -> None:
     deep = "[" * 5000 + "]" * 5000
     path = _profile(tmp_path, f'[profile]\nname = "deep"\n[units]\nwater_density = {deep}\n')
-    line = _refused(capsys, "emulate", *SHORT, "--profile", path)
+    line = refused_line(capsys, "emulate", *SHORT, "--profile", path)
     assert path in line and "nested too deeply" in line
 
 
@@ -132,20 +121,20 @@ def test_a_deeply_nested_profile_is_refused(tmp_path, capsys, no_run) -> None:
     ],
 )
 def test_emulate_refuses_a_connection_that_cannot_be_a_link(capsys, no_run, connection, says):
-    line = _refused(capsys, "emulate", *SHORT, "--connect", connection)
+    line = refused_line(capsys, "emulate", *SHORT, "--connect", connection)
     assert line.startswith("glider-hil emulate: --connect ") and says in line
 
 
 def test_emulate_refuses_a_regular_file_as_a_serial_device(tmp_path, capsys, no_run) -> None:
     afile = tmp_path / "ttyUSB0"
     afile.write_bytes(b"")
-    line = _refused(capsys, "emulate", *SHORT, "--connect", str(afile))
+    line = refused_line(capsys, "emulate", *SHORT, "--connect", str(afile))
     assert "--connect" in line and "is a file, not a link" in line
 
 
 @pytest.mark.parametrize("connection", ["udpout:127.0.0.1:99999", "bogus:xyz"])
 def test_a_fleet_names_its_bad_connection(capsys, no_run, connection) -> None:
-    line = _refused(
+    line = refused_line(
         capsys, "emulate", *SHORT, "--vehicles", "2", "--fleet-connect", "udpout:127.0.0.1:9",
         "--fleet-connect", connection,
     )  # fmt: skip
@@ -156,7 +145,7 @@ def test_a_fleet_names_its_bad_connection(capsys, no_run, connection) -> None:
 @pytest.mark.parametrize("samples", ["0", "-1"])
 def test_bench_refuses_no_samples(capsys, monkeypatch, samples) -> None:
     monkeypatch.setattr(experiment_cli, "measure_all", must_not_run)
-    line = _refused(capsys, "experiment", "--bench", "--samples", samples)
+    line = refused_line(capsys, "experiment", "--bench", "--samples", samples)
     assert "--samples must be at least 1" in line and samples in line
 
 
@@ -190,7 +179,7 @@ def test_experiment_of_an_intact_log_says_nothing_of_recovery(capsys) -> None:
 # ---- 6. --uptime -------------------------------------------------------------------------------
 @pytest.mark.parametrize("uptime", ["1e30", "4294967.296", "nan", "-1"])
 def test_emulate_refuses_an_uptime_past_the_clock(capsys, no_run, uptime) -> None:
-    line = _refused(capsys, "emulate", *SHORT, "--profile", "ardusub", "--uptime", uptime)
+    line = refused_line(capsys, "emulate", *SHORT, "--profile", "ardusub", "--uptime", uptime)
     assert "--uptime" in line and "uint32 of ms" in line
 
 
@@ -207,13 +196,13 @@ def test_an_uptime_near_the_wrap_is_taken(capsys, monkeypatch) -> None:
     [("--full-scale", "7"), ("--water-density", "1000"), ("--surface-pressure", "1000")],
 )
 def test_a_periodic_profile_refuses_unit_flags(capsys, no_run, flag, value) -> None:
-    line = _refused(capsys, "emulate", *SHORT, "--profile", "ardusub", flag, value)
+    line = refused_line(capsys, "emulate", *SHORT, "--profile", "ardusub", flag, value)
     assert flag in line and "gives its own units" in line
 
 
 # ---- 8. --change-at and --reboot-at -------------------------------------------------------------
 def test_change_at_needs_change(capsys, no_run) -> None:
-    line = _refused(capsys, "emulate", *SHORT, "--change-at", "3")
+    line = refused_line(capsys, "emulate", *SHORT, "--change-at", "3")
     assert "--change-at needs --change" in line
 
 
@@ -224,8 +213,8 @@ def test_change_at_needs_change(capsys, no_run) -> None:
         (("--profile", "ardusub", "--reboot-at", "7"), "--reboot-at 7"),
     ],
 )
-def test_an_event_beyond_the_run_is_refused(capsys, no_run, flags, named) -> None:
-    line = _refused(capsys, "emulate", *SHORT, *flags)
+def test_an_event_beyond_the_run_isrefused_line(capsys, no_run, flags, named) -> None:
+    line = refused_line(capsys, "emulate", *SHORT, *flags)
     assert named in line and "beyond the run" in line and "6 plant steps" in line
 
 
@@ -246,18 +235,18 @@ def test_an_event_within_the_run_is_taken(capsys, monkeypatch, flags) -> None:
 # ---- 9. messages ------------------------------------------------------------------------------
 def test_a_bad_unit_in_a_profile_names_its_file_once(tmp_path, capsys, no_run) -> None:
     path = _profile(tmp_path, _ardusub_with("water_density", "nan"))
-    line = _refused(capsys, "emulate", *SHORT, "--profile", path)
+    line = refused_line(capsys, "emulate", *SHORT, "--profile", path)
     assert line.count(path) == 1 and "[units] water_density: must be" in line
 
 
 def test_a_bad_period_is_blamed_on_period_not_family(capsys, no_run) -> None:
-    line = _refused(capsys, "emulate", "--connect", "udpout:127.0.0.1:9", "--duration", "3",
+    line = refused_line(capsys, "emulate", "--connect", "udpout:127.0.0.1:9", "--duration", "3",
                     "--family", "1:2", "--period", "nan")  # fmt: skip
     assert "--period" in line and "--family" not in line
 
 
 def test_experiment_log_names_a_directory(tmp_path, capsys) -> None:
-    line = _refused(capsys, "experiment", "--log", str(tmp_path))
+    line = refused_line(capsys, "experiment", "--log", str(tmp_path))
     assert "a directory, not a log" in line
 
 

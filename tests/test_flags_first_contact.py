@@ -33,24 +33,13 @@ from protocols.profiles import (
     load_profile,
     parse_profile,
 )
-from tests.refused_flags import must_not_run, refused_by_argparse
+from tests.refused_flags import must_not_run, refused_by_argparse, refused_line
 
 #: A run short enough to end by itself, should a refused flag get through (it cannot: the
 #: run itself is replaced by ``must_not_run``). Port 9 (discard) sends nowhere that listens.
 SHORT = ("--connect", "udpout:127.0.0.1:9", "--duration", "3", "--speed", "100", "--period", "0.5")
 LINK = "udpout:127.0.0.1:{}"
 PAPER_LOG = Path(__file__).parent / "data" / "paper.mcap"
-
-
-def _refused(capsys: pytest.CaptureFixture[str], verb: str, *argv: str) -> str:
-    """``glider-hil VERB ARGV`` in this process exits 2 with one line on stderr; the line."""
-    code = main([verb, *argv])
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err
-    (line,) = err.strip().splitlines()
-    assert line.startswith(f"glider-hil {verb}: ")
-    return line
 
 
 @pytest.fixture
@@ -114,7 +103,7 @@ def _refused_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str], text: s
     """``emulate --profile FILE`` with ``text`` as FILE: the line it is refused with."""
     path = tmp_path / "vehicle.toml"
     path.write_text(text, encoding="utf-8")
-    line = _refused(capsys, "emulate", *SHORT, "--profile", str(path))
+    line = refused_line(capsys, "emulate", *SHORT, "--profile", str(path))
     assert str(path) in line
     return line
 
@@ -257,7 +246,7 @@ def test_experiment_refuses_a_flag_its_experiment_does_not_use(
     capsys, no_experiment, tmp_path, monkeypatch, argv, says
 ) -> None:
     monkeypatch.chdir(tmp_path)  # a --plots directory, were one made, goes here
-    line = _refused(capsys, "experiment", *argv)
+    line = refused_line(capsys, "experiment", *argv)
     assert says in line, line
     assert not (tmp_path / "figures").exists()
 
@@ -265,7 +254,7 @@ def test_experiment_refuses_a_flag_its_experiment_does_not_use(
 @pytest.mark.parametrize("samples", ["1000001", "1000000000"])
 def test_experiment_bounds_the_samples(capsys, no_experiment, samples) -> None:
     for mode in ([], ["--closed-loop"], ["--bench"]):
-        line = _refused(capsys, "experiment", *mode, "--samples", samples)
+        line = refused_line(capsys, "experiment", *mode, "--samples", samples)
         assert f"--samples must be at most 1,000,000 (a run holds about 1 kB per sample), " \
             f"got {samples}" in line  # fmt: skip
 
@@ -274,7 +263,7 @@ def test_experiment_bounds_the_samples(capsys, no_experiment, samples) -> None:
 def test_experiment_refuses_a_step_every_with_no_second_step(
     capsys, no_experiment, step_every
 ) -> None:
-    line = _refused(
+    line = refused_line(
         capsys, "experiment", "--closed-loop", "--samples", "900", "--identify", "500",
         "--step-every", step_every,
     )  # fmt: skip
@@ -353,7 +342,7 @@ def _links(*ports: int) -> list[str]:
 @pytest.mark.parametrize(("vehicles", "ports"), [(2, (9, 10, 11)), (None, (9, 10))])
 def test_emulate_refuses_more_links_than_vehicles(capsys, no_emulation, vehicles, ports) -> None:
     count = [] if vehicles is None else ["--vehicles", str(vehicles)]
-    line = _refused(capsys, "emulate", *SHORT, *count, *_links(*ports))
+    line = refused_line(capsys, "emulate", *SHORT, *count, *_links(*ports))
     given = 1 if vehicles is None else vehicles
     assert (
         f"--fleet-connect gives {len(ports)} links for --vehicles {given}: "
@@ -362,7 +351,7 @@ def test_emulate_refuses_more_links_than_vehicles(capsys, no_emulation, vehicles
 
 
 def test_emulate_refuses_a_link_given_twice(capsys, no_emulation) -> None:
-    line = _refused(capsys, "emulate", *SHORT, "--vehicles", "4", *_links(9, 10, 9))
+    line = refused_line(capsys, "emulate", *SHORT, "--vehicles", "4", *_links(9, 10, 9))
     assert f"--fleet-connect {LINK.format(9)} is given more than once" in line
 
 
@@ -396,7 +385,7 @@ def test_a_profile_a_log_stores_replays_without_the_advice(text: str) -> None:
     assert profile is not None and profile.text == text
 
 
-def test_a_stored_profile_the_service_cannot_run_is_still_refused() -> None:
+def test_a_stored_profile_the_service_cannot_run_is_stillrefused_line() -> None:
     text = builtin_text("ardusub").replace('mode = "periodic"', 'mode = "sometimes"')
     with pytest.raises(StoredConfigError, match=r"profile\.text.*\[sampling\] mode"):
         stored_profile({"profile": {"name": "stored", "text": text}})
