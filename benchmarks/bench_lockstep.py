@@ -56,9 +56,14 @@ from protocols.flag_types import spin_wait_us  # noqa: E402
 
 def cpu_seconds() -> float:
     """CPU time of this process and of its reaped children (the forked service)."""
+    return sum(_own_and_children())
+
+
+def _own_and_children() -> tuple[float, float]:
+    """CPU time of this process, and of its reaped children."""
     own = resource.getrusage(resource.RUSAGE_SELF)
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
 def in_process_rate(mission: Mission) -> dict[str, float]:
@@ -143,12 +148,6 @@ def oracle_cpu(seeds: int, scenarios: str, steps: int) -> dict[str, object]:
         }
         for scenario, values in per.items()
     }
-
-
-def _own_and_children() -> tuple[float, float]:
-    own = resource.getrusage(resource.RUSAGE_SELF)
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
 def mission_cpu(seeds: int, scenarios: str, steps: int) -> dict[str, object]:

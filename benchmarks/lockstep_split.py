@@ -19,6 +19,10 @@ step costs on one core").
    by the emulator as in lockstep). No context switch at all: what a step costs when the
    two sides' work alternates on one core with nothing but the caches between them.
 
+``--round-trips E,S [--spin-wait US]`` prints only the bare round trips: on core E, across
+cores E and S with both processes asleep in ``select``, and across them polling (docs/
+lockstep.md, "Two cores").
+
 Run it on one core, as ``bench_lockstep.py``:
 
     taskset -c 0 .venv/bin/python benchmarks/lockstep_split.py [--steps 3600] [--repeats 3]
@@ -32,7 +36,6 @@ import argparse
 import json
 import os
 import resource
-import select
 import socket
 import sys
 import tempfile
@@ -47,7 +50,8 @@ from hil_service.campaign.mission import Mission  # noqa: E402
 from plant_emulator.autopilot import Autopilot, AutopilotConfig  # noqa: E402
 from plant_emulator.lockstep import LockstepRunner  # noqa: E402
 from protocols import lockstep as lockstep_protocol  # noqa: E402
-from protocols.mavlink_io import Link  # noqa: E402
+from protocols.flag_types import spin_wait_us  # noqa: E402
+from protocols.mavlink_io import Link, readable  # noqa: E402
 
 
 def _children_cpu() -> float:
@@ -198,36 +202,58 @@ def inline_mission(mission: Mission) -> dict[str, float]:
     }
 
 
-def bare_round_trip(count: int = 20_000) -> float:
-    """µs per round trip of a datagram between two processes that wait with ``select``."""
+def bare_round_trip(
+    count: int = 20_000, cores: tuple[int, int] | None = None, spin: float = 0.0
+) -> float:
+    """µs per round trip of a datagram between two processes that wait as lockstep's two
+    sides do (``protocols.mavlink_io.readable``: ``select``, polled first for ``spin`` s);
+    ``cores``: this process on the first, the bouncing one on the second."""
     a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     a.bind(("127.0.0.1", 0))
     b.bind(("127.0.0.1", 0))
     telemetry, reply = b"t" * 200, b"c" * 40  # about a step's datagram and its answer
+    affinity = os.sched_getaffinity(0)
     pid = os.fork()
     if pid == 0:
         code = 1
         try:
+            if cores is not None:
+                os.sched_setaffinity(0, {cores[1]})
             for _ in range(count):
-                if not select.select([b], [], [], 5.0)[0]:
+                if not readable([b.fileno()], 5.0, spin):
                     break
                 b.recvfrom(65536)
                 b.sendto(reply, a.getsockname())
             code = 0
         finally:
             os._exit(code)
-    started = time.perf_counter()
-    for _ in range(count):
-        a.sendto(telemetry, b.getsockname())
-        if not select.select([a], [], [], 5.0)[0]:
-            raise RuntimeError("the bouncing process stopped answering")
-        a.recvfrom(65536)
-    elapsed = time.perf_counter() - started
-    os.waitpid(pid, 0)
-    a.close()
-    b.close()
+    if cores is not None:
+        os.sched_setaffinity(0, {cores[0]})
+    try:
+        started = time.perf_counter()
+        for _ in range(count):
+            a.sendto(telemetry, b.getsockname())
+            if not readable([a.fileno()], 5.0, spin):
+                raise RuntimeError("the bouncing process stopped answering")
+            a.recvfrom(65536)
+        elapsed = time.perf_counter() - started
+    finally:
+        os.sched_setaffinity(0, affinity)
+        os.waitpid(pid, 0)
+        a.close()
+        b.close()
     return 1e6 * elapsed / count
+
+
+def round_trips(cores: tuple[int, int], spin: float) -> dict[str, float]:
+    """The bare round trip on one core, across ``cores`` asleep, and across them polling
+    ``spin`` s (docs/lockstep.md, "Two cores")."""
+    return {
+        "round_trip_one_core_us": round(bare_round_trip(cores=(cores[0], cores[0])), 1),
+        "round_trip_two_cores_asleep_us": round(bare_round_trip(cores=cores), 1),
+        "round_trip_two_cores_polling_us": round(bare_round_trip(cores=cores, spin=spin), 1),
+    }
 
 
 def main() -> int:
@@ -235,7 +261,19 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=3600)
     parser.add_argument("--scenario", default="disturbed")
     parser.add_argument("--repeats", type=int, default=3, help="best of N (a shared machine)")
+    parser.add_argument(
+        "--round-trips",
+        default=None,
+        metavar="E,S",
+        help="only the bare round trips: on core E, across cores E and S asleep, and across "
+        "them polling --spin-wait µs",
+    )
+    parser.add_argument("--spin-wait", type=spin_wait_us, default=300e-6, metavar="US")
     args = parser.parse_args()
+    if args.round_trips:
+        first, second = (int(core) for core in args.round_trips.split(","))
+        print(json.dumps(round_trips((first, second), args.spin_wait)))
+        return 0
     mission = Mission(args.scenario, 0, args.steps)
     runs = []
     for _ in range(args.repeats):

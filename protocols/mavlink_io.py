@@ -296,8 +296,8 @@ def readable(fds: list[int], timeout: float, spin: float = 0.0) -> list[int]:
 
     With ``spin`` > 0 the first ``spin`` s are polled without sleeping. A process that
     sleeps in ``select`` is woken by the scheduler when its datagram arrives; on another
-    core that wake-up costs tens of µs (75 µs a round trip on a 2-core virtual machine,
-    against 10 µs polled), which is most of a lockstep step when the emulator and the
+    core that wake-up costs tens of µs (64–68 µs a round trip on a 2-core virtual machine,
+    against 14 µs polled), which is most of a lockstep step when the emulator and the
     service each have a core of their own (docs/lockstep.md, "Two cores"). On a shared
     core a spin only delays the peer it waits for: leave it at 0 there."""
     timeout = max(timeout, 0.0)
