@@ -203,19 +203,24 @@ def test_the_warm_started_lp_finds_the_optimum_linprog_finds_from_scratch(scenar
     solve = controller._lp.solve
     checked = []
 
-    def checking(b_ub, col_index, lower, upper):
-        x = solve(b_ub, col_index, lower, upper)
+    def checking(row_lower, row_upper, col_index, lower, upper):
+        x = solve(row_lower, row_upper, col_index, lower, upper)
         cols = controller._cost.size
         bounds = [(float(lo), float(hi)) for lo, hi in zip(lower, upper, strict=True)]
         bounds += [(0.0, None)] * (cols - nb)
+        # The same LP in linprog's A_ub x ≤ b_ub form: each finite row bound a row.
+        a = controller._a
+        has_upper, has_lower = np.isfinite(row_upper), np.isfinite(row_lower)
         reference = linprog(
-            controller._cost, A_ub=controller._a_ub, b_ub=b_ub.copy(), bounds=bounds,
-            method="highs",
+            controller._cost,
+            A_ub=np.vstack((a[has_upper], -a[has_lower])),
+            b_ub=np.concatenate((row_upper[has_upper], -row_lower[has_lower])),
+            bounds=bounds, method="highs",
             options={"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10},
         )  # fmt: skip
         assert reference.status == 0 and x is not None
         assert float(controller._cost @ x) == pytest.approx(reference.fun, rel=1e-6, abs=1e-6)
-        assert np.all(controller._a_ub @ x <= b_ub + 1e-7)
+        assert np.all(a @ x <= row_upper + 1e-7) and np.all(a @ x >= row_lower - 1e-7)
         checked.append(reference.fun)
         return x
 
@@ -256,7 +261,8 @@ def test_the_last_optimums_basis_answers_a_nearby_lp_with_linprogs_optimum():
     from hil_service.experiment.oracle import _LpModel
 
     a_ub, cost, lower, upper, forced, nv, rng = _random_lp(3)
-    model = _LpModel(cost, a_ub, lower, upper)
+    no_lower = np.full(a_ub.shape[0], -np.inf)
+    model = _LpModel(cost, a_ub, no_lower, np.zeros(a_ub.shape[0]), lower, upper)
     blocks = np.arange(nv, dtype=np.int32)
     gap = forced @ rng.uniform(-0.5, 0.5, nv) + 0.1 * rng.normal(size=forced.shape[0])
     answered = []
@@ -264,7 +270,7 @@ def test_the_last_optimums_basis_answers_a_nearby_lp_with_linprogs_optimum():
         g = gap + scale * rng.normal(size=gap.size)
         b_ub = np.concatenate((g, -g))
         before = model.reused
-        x = model.solve(b_ub, blocks, np.full(nv, -1.0), np.full(nv, 1.0))
+        x = model.solve(no_lower, b_ub, blocks, np.full(nv, -1.0), np.full(nv, 1.0))
         answered.append(model.reused > before)
         bounds = [(-1.0, 1.0)] * nv + [(0.0, None)] * forced.shape[0]
         reference = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs")
@@ -283,21 +289,24 @@ def test_bounds_set_on_a_solve_the_basis_answered_reach_the_solver_later():
     from hil_service.experiment.oracle import _LpModel
 
     a_ub, cost, lower, upper, forced, nv, rng = _random_lp(5)
-    model = _LpModel(cost, a_ub, lower, upper)
+    no_lower = np.full(a_ub.shape[0], -np.inf)
+    model = _LpModel(cost, a_ub, no_lower, np.zeros(a_ub.shape[0]), lower, upper)
     gap = forced @ rng.uniform(-0.5, 0.5, nv)
     b_ub = np.concatenate((gap, -gap))
     blocks = np.arange(nv, dtype=np.int32)
-    x = model.solve(b_ub, blocks, np.full(nv, -1.0), np.full(nv, 1.0))
+    x = model.solve(no_lower, b_ub, blocks, np.full(nv, -1.0), np.full(nv, 1.0))
     # Column 0's upper bound moved just above its optimum: the same basis answers.
     first = np.array([0], dtype=np.int32)
     reused = model.reused
-    x = model.solve(b_ub, first, np.array([-1.0]), np.array([x[0] + 1e-3]))
+    x = model.solve(no_lower, b_ub, first, np.array([-1.0]), np.array([x[0] + 1e-3]))
     assert model.reused == reused + 1
     ceiling = float(x[0]) + 1e-3
     # A large change of b, with only column 1's bounds given: HiGHS runs.
     far = forced @ np.full(nv, 0.9)
     b_far = np.concatenate((far, -far))
-    x = model.solve(b_far, np.array([1], dtype=np.int32), np.array([-1.0]), np.array([1.0]))
+    x = model.solve(
+        no_lower, b_far, np.array([1], dtype=np.int32), np.array([-1.0]), np.array([1.0])
+    )
     bounds = [(-1.0, ceiling)] + [(-1.0, 1.0)] * (nv - 1) + [(0.0, None)] * forced.shape[0]
     reference = linprog(cost, A_ub=a_ub, b_ub=b_far, bounds=bounds, method="highs")
     assert x is not None and reference.status == 0
@@ -308,24 +317,58 @@ def test_bounds_set_on_a_solve_the_basis_answered_reach_the_solver_later():
 def test_a_basis_that_is_not_square_or_is_singular_is_refused():
     from hil_service.experiment.lp_basis import OptimalBasis
 
-    a_ub = np.array([[1.0, 1.0], [2.0, 2.0], [1.0, -1.0]])
+    a = np.array([[1.0, 1.0], [2.0, 2.0], [1.0, -1.0]])
     at_upper = np.zeros(2, dtype=bool)
+    row_at_upper = np.ones(3, dtype=bool)
     with pytest.raises(ValueError, match="not a basis"):
-        OptimalBasis(a_ub, np.array([True, True]), at_upper, np.array([True, False, False]))
+        OptimalBasis(
+            a, np.array([True, True]), at_upper, np.array([True, False, False]), row_at_upper
+        )
     with pytest.raises(ValueError, match=r"singular|ill-conditioned"):
-        OptimalBasis(a_ub, np.array([True, True]), at_upper, np.array([True, True, False]))
-    basis = OptimalBasis(a_ub, np.array([True, True]), at_upper, np.array([True, False, True]))
-    # x = (1, 1) from rows 0 and 2 at b = (2, ·, 0); row 1 (2x + 2y = 4) must hold ≤ b_1.
+        OptimalBasis(
+            a, np.array([True, True]), at_upper, np.array([True, True, False]), row_at_upper
+        )
+    basis = OptimalBasis(
+        a, np.array([True, True]), at_upper, np.array([True, False, True]), row_at_upper
+    )
+    # x = (1, 1) from rows 0 and 2 at their upper bounds (2, 0); row 1 (2x + 2y = 4) must
+    # lie within its own bounds.
     lower, upper = np.full(2, -5.0), np.full(2, 5.0)
-    x = basis.primal(np.array([2.0, 4.0, 0.0]), lower, upper, 1e-10)
+    no_lower = np.full(3, -np.inf)
+    x = basis.primal(no_lower, np.array([2.0, 4.0, 0.0]), lower, upper, 1e-10)
     assert x is not None and np.allclose(x, [1.0, 1.0])
-    assert basis.primal(np.array([2.0, 3.9, 0.0]), lower, upper, 1e-10) is None  # row 1
-    assert basis.primal(np.array([2.0, 4.0, 0.0]), lower, np.full(2, 0.5), 1e-10) is None
-    assert basis.primal(np.array([np.nan, 4.0, 0.0]), lower, upper, 1e-10) is None
+    assert basis.primal(no_lower, np.array([2.0, 3.9, 0.0]), lower, upper, 1e-10) is None
+    assert (
+        basis.primal(
+            np.array([-np.inf, 4.1, -np.inf]), np.array([2.0, 9.0, 0.0]), lower, upper, 1e-10
+        )
+        is None
+    )  # row 1 below its lower bound
+    assert basis.primal(no_lower, np.array([2.0, 4.0, 0.0]), lower, np.full(2, 0.5), 1e-10) is None
+    assert basis.primal(no_lower, np.array([np.nan, 4.0, 0.0]), lower, upper, 1e-10) is None
     # A singleton column whose one entry is tiny beside the rest: refused, not divided by.
     tiny = np.array([[1e-15, 1.0], [0.0, 1.0]])
     with pytest.raises(ValueError, match="ill-conditioned"):
-        OptimalBasis(tiny, np.array([True, True]), at_upper, np.array([True, True]))
+        OptimalBasis(
+            tiny, np.array([True, True]), at_upper, np.array([True, True]), row_at_upper[:2]
+        )
+
+
+def test_an_active_row_takes_the_bound_it_sits_at():
+    """A ranged row active at its lower bound gives the basis its lower bound's value, an
+    equality row its one value: the primal values follow the bound each active row is at."""
+    from hil_service.experiment.lp_basis import from_basic_variables
+
+    # Rows: x + y ∈ [1, 3] (active at 1), x − y = 0.2 (an equality); both columns basic.
+    a = np.array([[1.0, 1.0], [1.0, -1.0]])
+    lower, upper = np.full(2, -5.0), np.full(2, 5.0)
+    x_opt = np.array([0.6, 0.4])
+    basis = from_basic_variables(
+        a, np.array([0, 1], dtype=np.int32), x_opt, lower, upper,
+        np.array([1.0, 0.2]), np.array([3.0, 0.2]),
+    )  # fmt: skip
+    x = basis.primal(np.array([1.5, -0.1]), np.array([3.0, -0.1]), lower, upper, 1e-10)
+    assert x is not None and np.allclose(x, [0.7, 0.8])
 
 
 def test_a_reset_oracle_commands_as_a_fresh_one():
@@ -440,7 +483,9 @@ def test_the_error_is_costed_on_every_sample_before_stride_from():
     dense = OracleController(plant, OracleSettings(horizon=20, blocks=(1,) * 4 + (8,),
                                                    cost_stride=4, stride_from=6))  # fmt: skip
     assert list(dense._ahead - 1) == [1, 2, 3, 4, 5, 6, 10, 14, 18]
-    assert list(dense._cost[dense._nb :]) == [1.0] * 5 + [4.0] * 4
+    # Each costed sample's weight, on its error's positive and its negative part.
+    weights = [1.0] * 5 + [4.0] * 4
+    assert list(dense._cost[dense._nb :]) == weights + weights
     plain = OracleController(plant, OracleSettings(horizon=20, blocks=(1,) * 4 + (8,),
                                                    cost_stride=4))  # fmt: skip
     assert list(plain._ahead - 1) == [1, 5, 9, 13, 17]

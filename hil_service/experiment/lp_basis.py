@@ -1,13 +1,14 @@
 """An optimal LP basis kept across solves whose right-hand sides and bounds change.
 
-For min cᵀx s.t. A x ≤ b, lo ≤ x ≤ hi with c and A fixed, a basis (which columns are
-basic, at which bound each non-basic column sits, which rows are active) stays dual
-feasible whatever b, lo and hi become: only its primal values move. So when the basis that
-was optimal for the last solve is still primal feasible for the new b and bounds, it is
-optimal again, and its primal values are the LP's solution, the one a warm-started
-simplex returns after zero iterations. ``OptimalBasis`` checks exactly that, with one
-solve against a factorisation kept per basis: a small fraction of a call into the
-solver, which re-factorises and re-checks from scratch on every run.
+For min cᵀx s.t. r_lo ≤ A x ≤ r_hi, lo ≤ x ≤ hi with c and A fixed, a basis (which
+columns are basic, at which bound each non-basic column sits, which rows are active and at
+which of their bounds) stays dual feasible whatever the bounds become: only its primal
+values move. So when the basis that was optimal for the last solve is still primal
+feasible for the new bounds, it is optimal again, and its primal values are the LP's
+solution, the one a warm-started simplex returns after zero iterations. ``OptimalBasis``
+checks exactly that, with one solve against a factorisation kept per basis: a small
+fraction of a call into the solver, which re-factorises and re-checks from scratch on
+every run.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ MIN_RCOND = 1e-12
 
 class OptimalBasis:
     """The basis of an optimum: the basic columns, the non-basic ones' bounds, the active
-    rows, and the square system of the active rows over the basic columns (square: an LP
-    with only ≤ rows has as many basic columns as active rows), factorised.
+    rows and the bound each sits at, and the square system of the active rows over the
+    basic columns (square: a basis has as many basic columns as active rows), factorised.
 
     Most of that system is column singletons: a basic slack appears in one active row
     only, and its value follows from that row once the other columns are known. Those
@@ -50,27 +51,31 @@ class OptimalBasis:
         "_pivots",
         "_rest_cols",
         "_rest_rows",
+        "_row_at_upper",
         "_single_cols",
         "_single_rows",
     )
 
     def __init__(
         self,
-        a_ub: Array,
+        a: Array,
         basic_cols: NDArray[np.bool_],
         at_upper: NDArray[np.bool_],
         active_rows: NDArray[np.bool_],
+        row_at_upper: NDArray[np.bool_],
     ) -> None:
         """``basic_cols``; ``at_upper``: the non-basic columns at their upper bound (the
-        others sit at their lower); ``active_rows``: the non-basic rows (A_i x = b_i).
-        ValueError when the active rows over the basic columns are not a square,
-        well-conditioned matrix."""
+        others sit at their lower); ``active_rows``: the non-basic rows (A_i x at a bound of
+        row i); ``row_at_upper``: the rows that sit at their upper bound when active, the others
+        at their lower. ValueError when
+        the active rows over the basic columns are not a square, well-conditioned matrix."""
         self._basic: Index = np.flatnonzero(basic_cols)
         self._nonbasic: Index = np.flatnonzero(~basic_cols)
         self._at_upper = at_upper[self._nonbasic]
         self._active: Index = np.flatnonzero(active_rows)
         self._inactive: Index = np.flatnonzero(~active_rows)
-        square = a_ub.take(self._active, 0).take(self._basic, 1)
+        self._row_at_upper = np.asarray(row_at_upper, dtype=bool)[self._active]
+        square = a.take(self._active, 0).take(self._basic, 1)
         size = square.shape[0]
         if size != square.shape[1]:
             raise ValueError(f"not a basis: {size} active rows, {square.shape[1]} basic")
@@ -103,13 +108,20 @@ class OptimalBasis:
             rcond, info = lapack.dgecon(self._lu, norm, norm="1")
             if info != 0 or not rcond >= MIN_RCOND:
                 raise ValueError(f"basis too ill-conditioned (rcond {rcond:.3g})")
-        self._a_active_n = a_ub.take(self._active, 0).take(self._nonbasic, 1)
-        self._a_inactive = a_ub.take(self._inactive, 0)
+        self._a_active_n = a.take(self._active, 0).take(self._nonbasic, 1)
+        self._a_inactive = a.take(self._inactive, 0)
 
-    def primal(self, b_ub: Array, lower: Array, upper: Array, tolerance: float) -> Array | None:
-        """x of this basis for ``b_ub`` and the column bounds, or None where it is not
-        feasible (a bound or an inactive row violated by more than ``tolerance``) or not
-        finite (a NaN passes every comparison: the solver decides such an LP)."""
+    def primal(
+        self,
+        row_lower: Array,
+        row_upper: Array,
+        lower: Array,
+        upper: Array,
+        tolerance: float,
+    ) -> Array | None:
+        """x of this basis for the row and column bounds, or None where it is not feasible
+        (a bound or an inactive row violated by more than ``tolerance``) or not finite (a
+        NaN passes every comparison: the solver decides such an LP)."""
         nonbasic = self._nonbasic
         x_n = np.where(self._at_upper, upper.take(nonbasic), lower.take(nonbasic))
         if not np.isfinite(x_n).all():
@@ -118,7 +130,10 @@ class OptimalBasis:
         x[nonbasic] = x_n
         basic = self._basic
         if basic.size:
-            rhs = b_ub.take(self._active) - self._a_active_n @ x_n
+            active = self._active
+            rhs = np.where(
+                self._row_at_upper, row_upper.take(active), row_lower.take(active)
+            ) - self._a_active_n @ x_n
             x_b = np.empty(basic.size)
             x_rest = rhs.take(self._rest_rows)
             if x_rest.size:
@@ -134,23 +149,36 @@ class OptimalBasis:
             ).any():
                 return None
             x[basic] = x_b
-        if (self._a_inactive @ x > b_ub.take(self._inactive) + tolerance).any():
-            return None
+        inactive = self._inactive
+        if inactive.size:
+            activity = self._a_inactive @ x
+            if (activity > row_upper.take(inactive) + tolerance).any() or (
+                activity < row_lower.take(inactive) - tolerance
+            ).any():
+                return None
         if not np.isfinite(x).all():
             return None
         return x
 
 
 def from_basic_variables(
-    a_ub: Array, basic_variables: NDArray[np.int32], x: Array, lower: Array, upper: Array
+    a: Array,
+    basic_variables: NDArray[np.int32],
+    x: Array,
+    lower: Array,
+    upper: Array,
+    row_lower: Array,
+    row_upper: Array,
 ) -> OptimalBasis:
     """The basis a solver reports as its basic variables (column j as j, row i as −(i + 1),
-    HiGHS's convention) at the optimum ``x``: each non-basic column sits at the bound it
-    is nearer."""
-    rows, cols = a_ub.shape
+    HiGHS's convention) at the optimum ``x``: each non-basic column, and each non-basic
+    row's activity A_i x, sits at the bound it is nearer (an equality row's are one)."""
+    rows, cols = a.shape
     basic_cols = np.zeros(cols, dtype=bool)
     basic_rows = np.zeros(rows, dtype=bool)
     basic_cols[basic_variables[basic_variables >= 0]] = True
     basic_rows[-1 - basic_variables[basic_variables < 0]] = True
     at_upper = np.abs(x - upper) < np.abs(x - lower)
-    return OptimalBasis(a_ub, basic_cols, at_upper, ~basic_rows)
+    activity = a @ x
+    row_at_upper = np.abs(activity - row_upper) <= np.abs(activity - row_lower)
+    return OptimalBasis(a, basic_cols, at_upper, ~basic_rows, row_at_upper)

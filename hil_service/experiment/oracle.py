@@ -21,12 +21,16 @@ Each sample k (after the vehicle reported y(k) and the position u(k) applied dur
    move blocking (``blocks``: the input is held over each block) to minimise the predicted
    Σ_j |ŷ(k+1+j) − r(k)| over the horizon, subject to the amplitude limit, the rate limit
    between blocks and the set of positions reachable from u(k) at each block's start.
+   Each |ŷ − r| is the sum of a positive and a negative part tied to the prediction by an
+   equality row, and each rate limit one ranged row: half the rows of bounding one slack
+   from both sides, which is what a simplex's work per iteration and HiGHS's fixed cost
+   per run grow with.
 4. The first block's input, mapped back through the pump map, is the command.
 
 The setpoint is held at its current value over the horizon (no preview).
 
-The LP's matrix and costs never change from one sample to the next: only the right-hand
-sides (the predicted free response, the input now) and the block bounds do. So one HiGHS
+The LP's matrix and costs never change from one sample to the next: only the row bounds
+(the predicted free response, the input now) and the block bounds do. So one HiGHS
 model is built per controller (``_LpModel``) and each sample updates those bounds and
 re-solves from the previous optimal basis (dual simplex warm start): the same LP that
 ``scipy.optimize.linprog(method="highs")`` would solve from scratch, at a fraction of the
@@ -173,11 +177,20 @@ def _quiet_highs() -> highspy.Highs:
 
 
 class _LpModel:
-    """min cᵀx s.t. A x ≤ b, lo ≤ x ≤ hi, with A and c fixed: one persistent HiGHS model
-    whose b and bounds change per solve, each solve warm-started from the last basis."""
+    """min cᵀx s.t. r_lo ≤ A x ≤ r_hi, lo ≤ x ≤ hi, with A and c fixed: one persistent
+    HiGHS model whose row and column bounds change per solve, each solve warm-started from
+    the last basis."""
 
-    def __init__(self, cost: Array, a_ub: Array, lower: Array, upper: Array):
-        rows, cols = a_ub.shape
+    def __init__(
+        self,
+        cost: Array,
+        a: Array,
+        row_lower: Array,
+        row_upper: Array,
+        lower: Array,
+        upper: Array,
+    ):
+        rows, cols = a.shape
         self.rows, self.cols = rows, cols
         self.highs = _quiet_highs()
         lp = highspy.HighsLp()
@@ -185,9 +198,9 @@ class _LpModel:
         lp.col_cost_ = np.asarray(cost, dtype=np.float64)
         lp.col_lower_ = np.asarray(lower, dtype=np.float64)
         lp.col_upper_ = np.asarray(upper, dtype=np.float64)
-        lp.row_lower_ = np.full(rows, -INF)
-        lp.row_upper_ = np.zeros(rows)
-        matrix = np.asarray(a_ub, dtype=np.float64)
+        lp.row_lower_ = np.asarray(row_lower, dtype=np.float64)
+        lp.row_upper_ = np.asarray(row_upper, dtype=np.float64)
+        matrix = np.asarray(a, dtype=np.float64)
         starts, indices, values = [0], [], []
         for j in range(cols):
             nonzero = np.flatnonzero(matrix[:, j])
@@ -203,8 +216,7 @@ class _LpModel:
             raise ValueError("HiGHS refused the oracle's LP")
         self._row_index = np.arange(rows, dtype=np.int32)
         self._col_index = np.arange(cols, dtype=np.int32)
-        self._row_lower = np.full(rows, -INF)
-        self._a_ub = matrix
+        self._a = matrix
         self._lower = np.array(lower, dtype=np.float64)
         self._upper = np.array(upper, dtype=np.float64)
         self._basis: OptimalBasis | None = None
@@ -222,21 +234,30 @@ class _LpModel:
         self._hit_rate = 1.0
         self._since_probe = 0
 
-    def solve(self, b_ub: Array, col_index: Array, lower: Array, upper: Array) -> Array | None:
-        """The optimal x with A x ≤ ``b_ub`` and the bounds of columns ``col_index`` set
-        to [``lower``, ``upper``] (the other columns keep theirs); None when HiGHS finds no
-        optimum. The last optimum's basis answers when it is still primal feasible
-        (``lp_basis``); HiGHS is run, from that basis, when it is not."""
+    def solve(
+        self,
+        row_lower: Array,
+        row_upper: Array,
+        col_index: Array,
+        lower: Array,
+        upper: Array,
+    ) -> Array | None:
+        """The optimal x with ``row_lower`` ≤ A x ≤ ``row_upper`` and the bounds of columns
+        ``col_index`` set to [``lower``, ``upper``] (the other columns keep theirs); None when
+        HiGHS finds no optimum. The last optimum's basis answers when it is still primal
+        feasible (``lp_basis``); HiGHS is run, from that basis, when it is not."""
         self._lower[col_index] = lower
         self._upper[col_index] = upper
         if self._basis is not None:
-            x = self._basis.primal(b_ub, self._lower, self._upper, PRIMAL_TOLERANCE)
+            x = self._basis.primal(
+                row_lower, row_upper, self._lower, self._upper, PRIMAL_TOLERANCE
+            )
             self._hit_rate += ((x is not None) - self._hit_rate) * HIT_RATE_GAIN
             if x is not None:
                 self.reused += 1
                 return x
         highs = self.highs
-        highs.changeRowsBounds(self.rows, self._row_index, self._row_lower, b_ub)
+        highs.changeRowsBounds(self.rows, self._row_index, row_lower, row_upper)
         # Every column's bounds: a solve the basis answered may have changed some that
         # this one does not give, and HiGHS has not seen them.
         highs.changeColsBounds(self.cols, self._col_index, self._lower, self._upper)
@@ -249,17 +270,21 @@ class _LpModel:
         self._since_probe += 1
         if self._hit_rate >= MIN_HIT_RATE or self._since_probe >= PROBE_EVERY:
             self._since_probe = 0
-            self._basis = self._optimal_basis(x)
+            self._basis = self._optimal_basis(x, row_lower, row_upper)
         return x
 
-    def _optimal_basis(self, x: Array) -> OptimalBasis | None:
+    def _optimal_basis(
+        self, x: Array, row_lower: Array, row_upper: Array
+    ) -> OptimalBasis | None:
         """HiGHS's optimal basis at ``x``, factorised; None where the shortcut cannot use
         it (a singular or ill-conditioned square part)."""
         status, basic = self.highs.getBasicVariables()
         if status != highspy.HighsStatus.kOk:
             return None
         try:
-            return from_basic_variables(self._a_ub, basic, x, self._lower, self._upper)
+            return from_basic_variables(
+                self._a, basic, x, self._lower, self._upper, row_lower, row_upper
+            )
         except ValueError:
             return None
 
@@ -355,22 +380,21 @@ def _cost_rows(settings: OracleSettings, horizon: int) -> tuple[Array, Array]:
 
 
 def _constraint_matrix(forced: Array, nb: int, nt: int, moves: bool) -> Array:
-    """A of the LP's A x ≤ b over (V, t[, m]), two rows per bound: |forced·V − gap| ≤ t on
-    the tracking rows, |V_b − V_{b−1}| within the rate limit, and with a move weight
-    |V_b − V_{b−1}| ≤ m_b."""
+    """A of the LP's r_lo ≤ A x ≤ r_hi over (V, e⁺, e⁻[, m]): the tracking rows
+    forced·V − e⁺ + e⁻ = gap (e⁺ + e⁻ is |forced·V − gap| at an optimum), the block
+    differences V_b − V_{b−1} within the rate limit, and with a move weight
+    ±(V_b − V_{b−1}) − m_b ≤ 0."""
     nm = nb if moves else 0
     eye_t = np.eye(nt)
-    diff = np.eye(nb) - np.eye(nb, k=-1)  # V_b − V_{b−1}; row 0 is V_0 (− v(k) in b_ub)
+    diff = np.eye(nb) - np.eye(nb, k=-1)  # V_b − V_{b−1}; row 0 is V_0 (v(k) in its bounds)
     rows = [
-        np.hstack((forced, -eye_t, np.zeros((nt, nm)))),
-        np.hstack((-forced, -eye_t, np.zeros((nt, nm)))),
-        np.hstack((diff, np.zeros((nb, nt + nm)))),
-        np.hstack((-diff, np.zeros((nb, nt + nm)))),
+        np.hstack((forced, -eye_t, eye_t, np.zeros((nt, nm)))),
+        np.hstack((diff, np.zeros((nb, 2 * nt + nm)))),
     ]
     if moves:
         rows += [
-            np.hstack((diff, np.zeros((nb, nt)), -np.eye(nb))),
-            np.hstack((-diff, np.zeros((nb, nt)), -np.eye(nb))),
+            np.hstack((diff, np.zeros((nb, 2 * nt)), -np.eye(nb))),
+            np.hstack((-diff, np.zeros((nb, 2 * nt)), -np.eye(nb))),
         ]
     return np.vstack(rows)
 
@@ -403,31 +427,38 @@ class OracleController:
         self._starts = starts
         nb, nt = len(starts), cost_rows.size
         self._nb, self._nt = nb, nt
-        # Variables: block inputs V (nb), tracking slacks t (nt), and with a move weight
-        # move slacks m (nb) with m_b ≥ |V_b − V_{b−1}|.
+        # Variables: block inputs V (nb), the tracking error's positive and negative parts
+        # e⁺ and e⁻ (nt each), and with a move weight move slacks m (nb) with
+        # m_b ≥ |V_b − V_{b−1}|.
         self._moves = s.move_weight > 0
         nm = nb if self._moves else 0
         weights = spans * np.power(s.discount, cost_rows.astype(float))
-        cost = np.concatenate((np.zeros(nb), weights, np.full(nm, s.move_weight)))
-        self._a_ub = _constraint_matrix(self._forced, nb, nt, self._moves)
+        cost = np.concatenate((np.zeros(nb), weights, weights, np.full(nm, s.move_weight)))
+        self._a = _constraint_matrix(self._forced, nb, nt, self._moves)
         self._hold_gain = self._forced.sum(axis=1)  # the outputs' response to a held input
         self._dc_gain = float(p.c @ np.linalg.solve(np.eye(n) - p.a, p.b)) + p.d
         if s.terminal and abs(self._dc_gain) < 1e-12:
             raise ValueError("a terminal input needs a non-zero DC gain")
         self._cost = cost
         self._block_index = np.arange(nb, dtype=np.int32)
-        self._lp = _LpModel(
-            cost,
-            self._a_ub,
-            np.concatenate((np.full(nb, -INF), np.zeros(nt + nm))),
-            np.full(nb + nt + nm, INF),
-        )
         self._slope = _steepest_pump_slope(p)
         self._reach = p.rate_limit * (starts.astype(float) + 1.0)
-        # The right-hand side, refilled per solve; the rows that never change set once.
+        # The row bounds, refilled per solve; the rows that never change set once: the
+        # rate limit on the block differences, and the move rows' ≤ 0.
         self._rate = p.rate_limit * self._slope
-        self._b_ub = np.zeros(self._a_ub.shape[0])
-        self._b_ub[2 * nt : 2 * nt + 2 * nb] = self._rate
+        rows = self._a.shape[0]
+        self._row_lower = np.full(rows, -INF)
+        self._row_upper = np.zeros(rows)
+        self._row_lower[nt : nt + nb] = -self._rate
+        self._row_upper[nt : nt + nb] = self._rate
+        self._lp = _LpModel(
+            cost,
+            self._a,
+            self._row_lower,
+            self._row_upper,
+            np.concatenate((np.full(nb, -INF), np.zeros(2 * nt + nm))),
+            np.full(nb + 2 * nt + nm, INF),
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -483,18 +514,18 @@ class OracleController:
             v_ss = (setpoint - p.trim - self.disturbance) / self._dc_gain
             v_ss = min(max(v_ss, float(lower[-1])), float(upper[-1]))
             lower[-1] = upper[-1] = v_ss
-        # b of A x ≤ b: ±gap on the tracking rows, the rate limit (about v(k) for the first
-        # block) on the block differences, and with a move weight v(k) on its rows.
-        b_ub = self._b_ub
-        b_ub[:nt] = gap
-        b_ub[nt : 2 * nt] = -gap
-        b_ub[2 * nt] = self._rate + v_now
-        b_ub[2 * nt + nb] = self._rate - v_now
+        # The row bounds: the gap on the tracking rows, the rate limit about v(k) on the
+        # first block's row, and with a move weight ±v(k) on the first move rows.
+        row_lower, row_upper = self._row_lower, self._row_upper
+        row_lower[:nt] = gap
+        row_upper[:nt] = gap
+        row_lower[nt] = v_now - self._rate
+        row_upper[nt] = v_now + self._rate
         if self._moves:
-            b_ub[2 * nt + 2 * nb] = v_now
-            b_ub[2 * nt + 3 * nb] = -v_now
+            row_upper[nt + nb] = v_now
+            row_upper[nt + 2 * nb] = -v_now
         self.solves += 1
-        x = self._lp.solve(b_ub, self._block_index, lower, upper)
+        x = self._lp.solve(row_lower, row_upper, self._block_index, lower, upper)
         if x is None:
             self.failures += 1
             v_next = v_now
