@@ -131,9 +131,10 @@ class OptimalBasis:
         basic = self._basic
         if basic.size:
             active = self._active
-            rhs = np.where(
-                self._row_at_upper, row_upper.take(active), row_lower.take(active)
-            ) - self._a_active_n @ x_n
+            rhs = (
+                np.where(self._row_at_upper, row_upper.take(active), row_lower.take(active))
+                - self._a_active_n @ x_n
+            )
             x_b = np.empty(basic.size)
             x_rest = rhs.take(self._rest_rows)
             if x_rest.size:

@@ -249,9 +249,7 @@ class _LpModel:
         self._lower[col_index] = lower
         self._upper[col_index] = upper
         if self._basis is not None:
-            x = self._basis.primal(
-                row_lower, row_upper, self._lower, self._upper, PRIMAL_TOLERANCE
-            )
+            x = self._basis.primal(row_lower, row_upper, self._lower, self._upper, PRIMAL_TOLERANCE)
             self._hit_rate += ((x is not None) - self._hit_rate) * HIT_RATE_GAIN
             if x is not None:
                 self.reused += 1
@@ -273,9 +271,7 @@ class _LpModel:
             self._basis = self._optimal_basis(x, row_lower, row_upper)
         return x
 
-    def _optimal_basis(
-        self, x: Array, row_lower: Array, row_upper: Array
-    ) -> OptimalBasis | None:
+    def _optimal_basis(self, x: Array, row_lower: Array, row_upper: Array) -> OptimalBasis | None:
         """HiGHS's optimal basis at ``x``, factorised; None where the shortcut cannot use
         it (a singular or ill-conditioned square part)."""
         status, basic = self.highs.getBasicVariables()
