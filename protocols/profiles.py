@@ -62,6 +62,10 @@ MAX_SAMPLE_PERIOD = 2000.0
 #: The largest magnitude of any number in a profile (a scale, an offset, an interval):
 #: far beyond any real one, and a value read or sent with it stays a finite float32.
 MAX_NUMBER = 1e9
+#: The smallest magnitude of a signal's ``scale``, the reciprocal of ``MAX_NUMBER``: finer
+#: than any real unit conversion (degE7 to degrees is 1e-7), while 1e-300 times any
+#: reading the vehicle sends is rounding beside the offset (and 0 as a float32).
+MIN_SCALE = 1.0 / MAX_NUMBER
 #: The longest a periodic sample waits for late messages (``[sampling] delay``), in the
 #: shortest of the sample period and the intervals the profile asks for: the sampler
 #: (``hil_service.sources.sampler``) keeps the last 16 values of each source, 15 intervals
@@ -700,6 +704,14 @@ class _Parser:
         if scale == 0:
             self.advise(
                 "must not be 0: every reading would be the offset, whatever the vehicle sends",
+                name,
+                "scale",
+                occurrence,
+            )
+        elif abs(scale) < MIN_SCALE:
+            self.advise(
+                f"must be at least {MIN_SCALE:g} in magnitude, got {scale!r}: every reading "
+                "would vanish beside the offset, whatever the vehicle sends",
                 name,
                 "scale",
                 occurrence,

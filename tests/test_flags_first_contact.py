@@ -114,6 +114,20 @@ def test_a_profile_refuses_a_zero_scale(tmp_path, capsys, no_emulation, zero) ->
     assert re.search(r"line \d+: \[signals\.depth\] scale: must not be 0", line), line
 
 
+@pytest.mark.parametrize("tiny", ["1e-300", "-5e-10", "5e-324"])
+def test_a_profile_refuses_a_scale_too_small_to_read_by(tmp_path, capsys, no_emulation, tiny):
+    line = _refused_profile(tmp_path, capsys, _ardusub_with("scale = -1.0", f"scale = {tiny}"))
+    assert re.search(r"line \d+: \[signals\.depth\] scale: must be at least 1e-09", line), line
+
+
+def test_a_profile_takes_the_smallest_scale_a_unit_conversion_needs(tmp_path) -> None:
+    """degE7 to degrees (1e-7) and the bound itself are read, not refused."""
+    for scale in ("1e-7", "-1e-9"):
+        path = tmp_path / "vehicle.toml"
+        path.write_text(_ardusub_with("scale = -1.0", f"scale = {scale}"), encoding="utf-8")
+        assert load_profile(str(path)).signals["depth"][1].scale == float(scale)
+
+
 @pytest.mark.parametrize("name", ['""', '"   "'])
 def test_a_profile_refuses_an_empty_name(tmp_path, capsys, no_emulation, name) -> None:
     line = _refused_profile(tmp_path, capsys, _ardusub_with('name = "ardusub"', f"name = {name}"))
