@@ -273,6 +273,15 @@ def test_experiment_bounds_the_samples(capsys, no_experiment, samples) -> None:
             f"got {samples}" in line  # fmt: skip
 
 
+@pytest.mark.parametrize("scenario", ["random", "family"])
+def test_experiment_bounds_the_plants(capsys, no_experiment, scenario) -> None:
+    line = refused_line(
+        capsys, "experiment", "--closed-loop", "--scenario", scenario, "--plants", "10001"
+    )
+    assert "--plants must be at most 10,000 (about an hour's run; another --seed draws " \
+        "other plants), got 10001" in line  # fmt: skip
+
+
 @pytest.mark.parametrize("step_every", ["400", "1000"])
 def test_experiment_refuses_a_step_every_with_no_second_step(
     capsys, no_experiment, step_every

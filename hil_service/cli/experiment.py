@@ -52,6 +52,10 @@ from protocols.flag_types import non_negative_int
 #: sample at its peak (measured: 0.86 kB; ``--scenario all --channel all`` 1.7 kB, the
 #: closed loop 0.15 kB), so the largest run stays near 1 GB. The documented runs take 20,000.
 MAX_SAMPLES = 1_000_000
+#: The most plants a family run takes: the documented runs take 200, at about three plants
+#: a second on one core (2,000 samples each, no oracle), so this is about an hour; more
+#: is a run that seems to hang. Another ``--seed`` draws other plants.
+MAX_PLANTS = 10_000
 
 #: The experiments, each named by the flag that chooses it (``IDENTIFICATION``: none).
 IDENTIFICATION = "the identification experiment"
@@ -277,7 +281,8 @@ def run(args: argparse.Namespace) -> int:
 def check_flags(args: argparse.Namespace) -> None:
     """Raise ValueError, naming the flag, for flags the chosen experiment would ignore or
     that it cannot run with: one typed for another experiment, ``--samples`` beyond
-    ``MAX_SAMPLES``, a ``--step-every`` no second setpoint step would come within."""
+    ``MAX_SAMPLES``, ``--plants`` beyond ``MAX_PLANTS``, a ``--step-every`` no second
+    setpoint step would come within."""
     experiment = _experiment(args)
     if experiment == LOG and (args.closed_loop or args.bench):
         raise ValueError("--log runs the identification experiment (no --closed-loop, --bench)")
@@ -290,6 +295,11 @@ def check_flags(args: argparse.Namespace) -> None:
         raise ValueError(
             f"--samples must be at most {MAX_SAMPLES:,} (a run holds about 1 kB per "
             f"sample), got {args.samples}"
+        )
+    if args.plants > MAX_PLANTS:
+        raise ValueError(
+            f"--plants must be at most {MAX_PLANTS:,} (about an hour's run; another --seed "
+            f"draws other plants), got {args.plants}"
         )
     if "--step-every" in typed:
         _check_step_every(args)
