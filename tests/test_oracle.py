@@ -239,6 +239,70 @@ def test_the_warm_started_lp_finds_the_optimum_linprog_finds_from_scratch(scenar
     assert controller._lp.reused > len(checked) // 4
 
 
+def test_with_a_move_weight_the_lp_has_the_optimum_of_the_slack_form():
+    """Sample after sample of a noisy loop, the oracle's LP with a move weight (the error's
+    parts on equality rows, the move rows about v(k)) reaches the optimal cost of the LP
+    written independently in the slack form: min Σ w·t + μ Σ m, t ≥ ±(F V − gap),
+    m_b ≥ ±(V_b − V_{b−1}), |V_b − V_{b−1}| ≤ rate, V_{−1} = v(k)."""
+    from scipy.optimize import linprog
+
+    plant = KnownPlant(
+        a=np.array([[0.9, 0.1], [0.0, 0.8]]), b=np.array([0.0, 0.5]), c=np.array([1.0, 0.0])
+    )
+    settings = OracleSettings(
+        horizon=30, blocks=(1, 1, 2, 4, 8), move_weight=0.05, disturbance_tau=1.0
+    )
+    controller = OracleController(plant, settings)
+    solve, nb, nt = controller._lp.solve, controller._nb, controller._nt
+    forced, weights = controller._forced, controller._cost[nb : nb + nt]
+    diff = np.eye(nb) - np.eye(nb, k=-1)
+    zeros_t, zeros_b, eye_t, eye_b = np.zeros((nt, nb)), np.zeros((nb, nt)), np.eye(nt), np.eye(nb)
+    a_ub = np.vstack((
+        np.hstack((forced, -eye_t, zeros_t)), np.hstack((-forced, -eye_t, zeros_t)),
+        np.hstack((diff, zeros_b, -eye_b)), np.hstack((-diff, zeros_b, -eye_b)),
+        np.hstack((diff, zeros_b, 0 * eye_b)), np.hstack((-diff, zeros_b, 0 * eye_b)),
+    ))  # fmt: skip
+    cost = np.concatenate((np.zeros(nb), weights, np.full(nb, settings.move_weight)))
+    gaps = []
+
+    def checking(row_lower, row_upper, col_index, lower, upper):
+        x = solve(row_lower, row_upper, col_index, lower, upper)
+        assert x is not None
+        gap = row_lower[:nt]
+        v_now = 0.5 * (row_lower[nt] + row_upper[nt])
+        rate = 0.5 * (row_upper[nt] - row_lower[nt])
+        first = np.zeros(nb)
+        first[0] = v_now
+        rate_rows = np.full(nb, rate)
+        rate_rows[0] += v_now
+        falling = np.full(nb, rate)
+        falling[0] -= v_now
+        b_ub = np.concatenate((gap, -gap, first, -first, rate_rows, falling))
+        bounds = [(float(lo), float(hi)) for lo, hi in zip(lower, upper, strict=True)]
+        reference = linprog(
+            cost, A_ub=a_ub, b_ub=b_ub, bounds=bounds + [(0.0, None)] * (nt + nb),
+            method="highs",
+            options={"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10},
+        )  # fmt: skip
+        assert reference.status == 0
+        moves = np.diff(np.concatenate(([v_now], x[:nb])))
+        ours = float(weights @ np.abs(forced @ x[:nb] - gap)) + settings.move_weight * float(
+            np.sum(np.abs(moves))
+        )
+        gaps.append(abs(ours - reference.fun))
+        return x
+
+    controller._lp.solve = checking  # type: ignore[method-assign]
+    rng = np.random.default_rng(1)
+    state, u = np.zeros(2), 0.0
+    for k in range(300):
+        controller.observe(float(plant.c @ state) + 0.01 * rng.normal(), u)
+        u = controller.command(1.0 if (k // 60) % 2 == 0 else -0.5, u)
+        state = plant.a @ state + plant.b * u
+    assert len(gaps) == 300 and controller.failures == 0
+    assert max(gaps) < 1e-6
+
+
 def _random_lp(seed: int):
     """An L1 fit as the oracle's LP: min Σ t, |F v − g| ≤ t, box bounds on v."""
     rng = np.random.default_rng(seed)
