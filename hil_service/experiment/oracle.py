@@ -201,7 +201,9 @@ class _LpModel:
         lp.row_lower_ = np.asarray(row_lower, dtype=np.float64)
         lp.row_upper_ = np.asarray(row_upper, dtype=np.float64)
         matrix = np.asarray(a, dtype=np.float64)
-        starts, indices, values = [0], [], []
+        starts: list[int] = [0]
+        indices: list[int] = []
+        values: list[float] = []
         for j in range(cols):
             nonzero = np.flatnonzero(matrix[:, j])
             indices.extend(int(i) for i in nonzero)
@@ -238,7 +240,7 @@ class _LpModel:
         self,
         row_lower: Array,
         row_upper: Array,
-        col_index: Array,
+        col_index: NDArray[np.int32],
         lower: Array,
         upper: Array,
     ) -> Array | None:
