@@ -193,6 +193,29 @@ def test_an_input_value_beyond_float_range_is_clipped_without_a_warning(
     assert max(u) == 2.0 and all(np.isfinite(u))
 
 
+@pytest.mark.parametrize("text", ["inf", "-inf", "nan"])
+def test_an_input_that_is_not_a_finite_number_is_held_not_clipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str
+) -> None:
+    """A text ``inf`` is no reading: held from the sample before, like NaN, where a finite
+    1.7e308 is a reading and is clipped (above)."""
+    rows = [f"{1.6e9 + 10 * k!r},{2.0 * k},-20,100,60,1" for k in range(30)]
+    rows[10] = f"{1.6e9 + 100!r},20,-20,{text},60,1"
+    mapping = tmp_path / "map.toml"
+    mapping.write_text(MAPPING)
+    log = tmp_path / "o.mcap"
+    code, out, err = _run(
+        capsys, "import", str(_csv(tmp_path, rows)), "--mapping", str(mapping), "-o", str(log)
+    )
+    assert code == 0, err
+    assert out.startswith("csv: 1 file(s)\n")  # a format without a vehicle name
+    assert "clipped to full scale" not in out
+    assert " 1 input values held from the previous sample" in out
+    reader = LogReader(log)
+    u = [m.json()["u_depth"] for m in reader.messages({"glider/1/telemetry"})]
+    assert len(set(u)) == 1 and np.isfinite(u[0])  # every sample the held 100
+
+
 # ---- the report when no training dive validates ------------------------------------------
 
 

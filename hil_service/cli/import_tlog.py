@@ -173,7 +173,8 @@ def _run_field(args: argparse.Namespace, output: Path) -> int:
             )
         )
         return 0
-    print(f"{data.format} {data.vehicle or ''}: {len(data.files)} file(s)".replace("  ", " "))
+    heading = " ".join(part for part in (data.format, data.vehicle) if part)
+    print(f"{heading}: {len(data.files)} file(s)")
     for line in data.issues.describe():
         print(f"  {line}")
     spacing = f"grid {grid.period:g} s" if grid.period > 0 else "as recorded"
