@@ -63,8 +63,8 @@ MAX_SAMPLE_PERIOD = 2000.0
 #: far beyond any real one, and a value read or sent with it stays a finite float32.
 MAX_NUMBER = 1e9
 #: The smallest magnitude of a signal's ``scale``, the reciprocal of ``MAX_NUMBER``: finer
-#: than any real unit conversion (degE7 to degrees is 1e-7), while 1e-300 times any
-#: reading the vehicle sends is rounding beside the offset (and 0 as a float32).
+#: than any real unit conversion (degE7 to degrees is 1e-7), so a smaller one is a slip, and
+#: at 1e-300 a reading is below float32's range (it would be 0 in any float32 it meets).
 MIN_SCALE = 1.0 / MAX_NUMBER
 #: The longest a periodic sample waits for late messages (``[sampling] delay``), in the
 #: shortest of the sample period and the intervals the profile asks for: the sampler
@@ -710,8 +710,8 @@ class _Parser:
             )
         elif abs(scale) < MIN_SCALE:
             self.advise(
-                f"must be at least {MIN_SCALE:g} in magnitude, got {scale!r}: every reading "
-                "would vanish beside the offset, whatever the vehicle sends",
+                f"must be at least {MIN_SCALE:g} in magnitude, got {scale!r}: finer than "
+                "any unit conversion (degE7 to degrees is 1e-7)",
                 name,
                 "scale",
                 occurrence,
