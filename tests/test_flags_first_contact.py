@@ -278,7 +278,7 @@ def test_experiment_bounds_the_plants(capsys, no_experiment, scenario) -> None:
     line = refused_line(
         capsys, "experiment", "--closed-loop", "--scenario", scenario, "--plants", "10001"
     )
-    assert "--plants must be at most 10,000 (about an hour's run; another --seed draws " \
+    assert "--plants must be at most 10,000 (an hour's run or more; another --seed draws " \
         "other plants), got 10001" in line  # fmt: skip
 
 

@@ -53,8 +53,9 @@ from protocols.flag_types import non_negative_int
 #: closed loop 0.15 kB), so the largest run stays near 1 GB. The documented runs take 20,000.
 MAX_SAMPLES = 1_000_000
 #: The most plants a family run takes: the documented runs take 200, at about three plants
-#: a second on one core (2,000 samples each, no oracle), so this is about an hour; more
-#: is a run that seems to hang. Another ``--seed`` draws other plants.
+#: a second on one core (2,000 samples each, no oracle), so this is an hour there and
+#: hours with the oracle; more is a run that seems to hang. Another ``--seed`` draws other
+#: plants.
 MAX_PLANTS = 10_000
 
 #: The experiments, each named by the flag that chooses it (``IDENTIFICATION``: none).
@@ -298,7 +299,7 @@ def check_flags(args: argparse.Namespace) -> None:
         )
     if args.plants > MAX_PLANTS:
         raise ValueError(
-            f"--plants must be at most {MAX_PLANTS:,} (about an hour's run; another --seed "
+            f"--plants must be at most {MAX_PLANTS:,} (an hour's run or more; another --seed "
             f"draws other plants), got {args.plants}"
         )
     if "--step-every" in typed:
