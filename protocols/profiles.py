@@ -701,21 +701,14 @@ class _Parser:
         if convert == "pressure_to_depth":
             self._refuse_linear_terms(entry, name, occurrence)
         scale = self._number(entry, name, "scale", Source.scale, occurrence)
-        if scale == 0:
-            self.advise(
-                "must not be 0: every reading would be the offset, whatever the vehicle sends",
-                name,
-                "scale",
-                occurrence,
+        if abs(scale) < MIN_SCALE:
+            why = (
+                "must not be 0: every reading would be the offset, whatever the vehicle sends"
+                if scale == 0
+                else f"must be at least {MIN_SCALE:g} in magnitude, got {scale!r}: finer "
+                "than any unit conversion (degE7 to degrees is 1e-7)"
             )
-        elif abs(scale) < MIN_SCALE:
-            self.advise(
-                f"must be at least {MIN_SCALE:g} in magnitude, got {scale!r}: finer than "
-                "any unit conversion (degE7 to degrees is 1e-7)",
-                name,
-                "scale",
-                occurrence,
-            )
+            self.advise(why, name, "scale", occurrence)
         return Source(
             message=message,
             field=field_name,

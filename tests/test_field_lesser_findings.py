@@ -1,7 +1,8 @@
 """Field import and report on lesser bad input: a Slocum file cut in its data is read up to
-its last whole record and says so; absurd mapping numbers are refused naming the key, and a
-huge input value is clipped without a numpy warning; a report whose training dives validate
-no structure says so instead of printing an empty list of fits.
+its last whole record and says so; a huge input value is clipped without a numpy warning,
+and one that is no number is held; a report whose training dives validate no structure
+says so instead of printing an empty list of fits (absurd mapping numbers:
+``tests/test_import_bad_input.py``).
 
 The Slocum inputs are cut copies of the sample file dbdreader's wheel ships.
 """
@@ -124,59 +125,13 @@ def _csv(tmp_path: Path, rows: list[str] | None = None) -> Path:
     return path
 
 
-@pytest.mark.parametrize(
-    ("old", "new", "message"),
-    [
-        ("centre = 60", "centre = 1e308", r"\[pitch_input\] centre must be -1e\+12\.\.1e\+12"),
-        ("centre = 60", "centre = -1e308", r"\[pitch_input\] centre must be -1e\+12\.\.1e\+12"),
-        ("full_scale = 500", "full_scale = 1e308", r"\[buoyancy\] full_scale must be 1e-09\.\."),
-        ("full_scale = 500", "full_scale = 1e-308", r"\[buoyancy\] full_scale must be 1e-09\.\."),
-        (
-            'unit = "dbar"',
-            'unit = "dbar"\nwater_density = 1e308',
-            r"\[pressure\] water_density must be 500\.\.2000",
-        ),
-        (
-            'unit = "dbar"',
-            'unit = "dbar"\nwater_density = 1.025',
-            r"\[pressure\] water_density must be 500\.\.2000",
-        ),
-        (
-            'unit = "dbar"',
-            'unit = "dbar"\nsurface = 1e308',
-            r"\[pressure\] surface must be within ±100 dbar",
-        ),
-        (
-            'unit = "dbar"',
-            'unit = "dbar"\nsurface = -1e308',
-            r"\[pressure\] surface must be within ±100 dbar",
-        ),
-    ],
-)
-def test_an_absurd_mapping_number_is_refused_naming_its_key(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], old: str, new: str, message: str
-) -> None:
-    mapping = tmp_path / "map.toml"
-    assert old in MAPPING
-    mapping.write_text(MAPPING.replace(old, new, 1))
-    log = tmp_path / "o.mcap"
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        code, _, err = _run(
-            capsys, "import", str(_csv(tmp_path)), "--mapping", str(mapping), "-o", str(log)
-        )
-    assert code == 2
-    assert len(err.strip().splitlines()) == 1
-    assert re.match(rf"glider-hil import: {re.escape(str(mapping))}:\d+: {message}", err), err
-    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
-    assert not log.exists()
-
-
-def test_an_input_value_beyond_float_range_is_clipped_without_a_warning(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def _import_with_buoyancy(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str
+) -> tuple[str, list[float], list[warnings.WarningMessage]]:
+    """Import a one-dive CSV whose buoyancy is 100 cc on every row but the 11th, which
+    says ``text``: stdout, the logged u_depth per grid sample, and the warnings raised."""
     rows = [f"{1.6e9 + 10 * k!r},{2.0 * k},-20,100,60,1" for k in range(30)]
-    rows[10] = f"{1.6e9 + 100!r},20,-20,1.7e308,60,1"  # model value 2·1.7e308/500: beyond
+    rows[10] = f"{1.6e9 + 100!r},20,-20,{text},60,1"
     mapping = tmp_path / "map.toml"
     mapping.write_text(MAPPING)
     log = tmp_path / "o.mcap"
@@ -186,10 +141,17 @@ def test_an_input_value_beyond_float_range_is_clipped_without_a_warning(
             capsys, "import", str(_csv(tmp_path, rows)), "--mapping", str(mapping), "-o", str(log)
         )
     assert code == 0, err
+    u = [m.json()["u_depth"] for m in LogReader(log).messages({"glider/1/telemetry"})]
+    return out, u, caught
+
+
+def test_an_input_value_beyond_float_range_is_clipped_without_a_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # model value 2·1.7e308/500: beyond float range
+    out, u, caught = _import_with_buoyancy(tmp_path, capsys, "1.7e308")
     assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
     assert "clipped to full scale: {'buoyancy': 1, 'pitch_input': 0}" in out
-    reader = LogReader(log)
-    u = [m.json()["u_depth"] for m in reader.messages({"glider/1/telemetry"})]
     assert max(u) == 2.0 and all(np.isfinite(u))
 
 
@@ -199,20 +161,10 @@ def test_an_input_that_is_not_a_finite_number_is_held_not_clipped(
 ) -> None:
     """A text ``inf`` is no reading: held from the sample before, like NaN, where a finite
     1.7e308 is a reading and is clipped (above)."""
-    rows = [f"{1.6e9 + 10 * k!r},{2.0 * k},-20,100,60,1" for k in range(30)]
-    rows[10] = f"{1.6e9 + 100!r},20,-20,{text},60,1"
-    mapping = tmp_path / "map.toml"
-    mapping.write_text(MAPPING)
-    log = tmp_path / "o.mcap"
-    code, out, err = _run(
-        capsys, "import", str(_csv(tmp_path, rows)), "--mapping", str(mapping), "-o", str(log)
-    )
-    assert code == 0, err
+    out, u, _ = _import_with_buoyancy(tmp_path, capsys, text)
     assert out.startswith("csv: 1 file(s)\n")  # a format without a vehicle name
     assert "clipped to full scale" not in out
     assert " 1 input values held from the previous sample" in out
-    reader = LogReader(log)
-    u = [m.json()["u_depth"] for m in reader.messages({"glider/1/telemetry"})]
     assert len(set(u)) == 1 and np.isfinite(u[0])  # every sample the held 100
 
 

@@ -8,6 +8,7 @@ import math
 import re
 import shutil
 import struct
+import warnings
 from pathlib import Path
 
 import pytest
@@ -195,19 +196,51 @@ def test_system_id_255_is_the_vehicle_in_the_log(tmp_path, capsys):
         ('unit = "s"', 'unit = "s"\nformat = "%Y"', r"\[time\] format and unit both given"),
         ('[dive]\ncolumn = "dive"', '[surface]\ncolumn = "dive"\nvalues = 105', r"\[surface\] va"),
         ('unit = "deg"', "unit = []", r"\[pitch\] unit must be a string"),
+        # Finite numbers beyond what any glider or tank holds (1e308 would overflow the
+        # scaling), refused by their bounds.
+        ("centre = 60", "centre = 1e308", r"\[pitch_input\] centre must be -1e\+12\.\.1e\+12"),
+        ("centre = 60", "centre = -1e308", r"\[pitch_input\] centre must be -1e\+12\.\.1e\+12"),
+        ("full_scale = 500", "full_scale = 1e308", r"\[buoyancy\] full_scale must be 1e-09\.\."),
+        ("full_scale = 500", "full_scale = 1e-308", r"\[buoyancy\] full_scale must be 1e-09\.\."),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nwater_density = 1e308',
+            r"\[pressure\] water_density must be 500\.\.2000",
+        ),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nwater_density = 1.025',
+            r"\[pressure\] water_density must be 500\.\.2000",
+        ),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nsurface = 1e308',
+            r"\[pressure\] surface must be within ±100 dbar",
+        ),
+        (
+            'unit = "dbar"',
+            'unit = "dbar"\nsurface = -1e308',
+            r"\[pressure\] surface must be within ±100 dbar",
+        ),
     ],
-)
+)  # fmt: skip
 def test_a_mapping_value_that_makes_no_sense_names_file_table_and_key(
     tmp_path, capsys, old, new, message
 ):
+    """One line naming the file, the line, the table and the key; no numpy warning on
+    the way (an absurd number must not reach the arithmetic)."""
     data, mapping = _csv(tmp_path)
     assert old in MAPPING
     mapping.write_text(MAPPING.replace(old, new, 1))
     log = tmp_path / "o.mcap"
-    code, _, err = _import(capsys, str(data), "--mapping", str(mapping), "-o", str(log))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, _, err = _import(capsys, str(data), "--mapping", str(mapping), "-o", str(log))
     assert code == 2
-    assert err.startswith(f"glider-hil import: {mapping}")
+    assert len(err.strip().splitlines()) == 1, err
+    assert re.match(rf"glider-hil import: {re.escape(str(mapping))}:\d+: ", err), err
     assert re.search(message, err), err
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
     assert not log.exists()
 
 

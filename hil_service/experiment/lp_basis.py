@@ -31,11 +31,12 @@ class OptimalBasis:
     rows and the bound each sits at, and the square system of the active rows over the
     basic columns (square: a basis has as many basic columns as active rows), factorised.
 
-    Most of that system is column singletons: a basic slack appears in one active row
-    only, and its value follows from that row once the other columns are known. Those
-    are taken out first, and only what remains is LU-factorised densely (for the oracle's
-    depth LP on a disturbed mission, a median 150 × 150 square part leaves 46 × 46), which
-    keeps the factorisation a small part of a solve."""
+    Most of that system is column singletons: a basic column that appears in one active
+    row only (the oracle's error parts e⁺ and e⁻, a slack), whose value follows from that
+    row once the other columns are known. Those are taken out first, and only what remains
+    is LU-factorised densely (for the oracle's depth LP on a disturbed mission, a median
+    132 × 132 square part leaves 27 × 27), which keeps the factorisation a small part of a
+    solve."""
 
     __slots__ = (
         "_a_active_n",
@@ -66,9 +67,9 @@ class OptimalBasis:
     ) -> None:
         """``basic_cols``; ``at_upper``: the non-basic columns at their upper bound (the
         others sit at their lower); ``active_rows``: the non-basic rows (A_i x at a bound of
-        row i); ``row_at_upper``: the rows that sit at their upper bound when active, the others
-        at their lower. ValueError when
-        the active rows over the basic columns are not a square, well-conditioned matrix."""
+        row i); ``row_at_upper``: the rows that sit at their upper bound when active (the
+        others at their lower). ValueError when the active rows over the basic columns are
+        not a square, well-conditioned matrix."""
         self._basic: Index = np.flatnonzero(basic_cols)
         self._nonbasic: Index = np.flatnonzero(~basic_cols)
         self._at_upper = at_upper[self._nonbasic]
