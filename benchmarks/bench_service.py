@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -38,9 +39,11 @@ from hil_service.builder import open_recorder, wire  # noqa: E402
 from hil_service.config import LogOptions, ServiceConfig  # noqa: E402
 from hil_service.experiment.speed import rates  # noqa: E402
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
+from hil_service.mcap.reader import LogReader  # noqa: E402
 from hil_service.mcap.recorder import McapRecorder  # noqa: E402
 from hil_service.process_tuning import one_cpu_child, tune_for_service  # noqa: E402
 from hil_service.service import HilService  # noqa: E402
+from plant_emulator.autopilot import Autopilot, AutopilotConfig  # noqa: E402
 from plant_emulator.excitation import build_channel_excitations  # noqa: E402
 from plant_emulator.plant import GliderPlant, PlantConfig  # noqa: E402
 from protocols import compiled, keys  # noqa: E402
@@ -58,6 +61,77 @@ def telemetry_datagrams(n: int, seed: int = 0) -> list[bytes]:
         sample = plant.step(excitation["depth"].value(k), excitation["pitch"].value(k))
         datagrams += [codec.pack(m) for m in mapping.encode_telemetry(sample)]
     return datagrams
+
+
+class _Captured:
+    """A vehicle's link that keeps what it sends (``Autopilot`` sends through ``send``)."""
+
+    datagram = True
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def send(self, data: bytes) -> None:
+        self.sent.append(data)
+
+
+def closed_loop_datagrams(n: int, seed: int = 0) -> tuple[list[bytes], list[dict[str, Any]]]:
+    """What a service with control on receives from a vehicle it commands, for n plant
+    steps: the disturbed glider behind the emulator's autopilot (the excitation until the
+    first command), each step's four messages handed to a service built as
+    ``build_service(control=True)``, each command it decides handed to the autopilot,
+    whose COMMAND_ACK follows in the datagrams. Also the commands, in order.
+
+    A service fed the same datagrams decides the same commands (the pipeline is
+    deterministic for its input), so a throughput run over them measures the controller
+    commanding, as on the wire. Telemetry that does not answer the commands
+    (``telemetry_datagrams``) gets the supervisor to trip both channels, and the run would
+    measure a service sending its safe input."""
+    plant = GliderPlant(PlantConfig(scenario="disturbed", seed=seed))
+    link = _Captured()
+    vehicle = Autopilot(
+        plant, link, build_channel_excitations("steps", seed), AutopilotConfig(system_id=1)
+    )
+    datagrams: list[bytes] = []
+    commands: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as log_dir:
+        service, recorder, session = build_service(log_dir, control=True)
+        try:
+            for _ in range(n):
+                link.sent.clear()
+                vehicle.step()
+                for data in link.sent:
+                    service.process_datagram(data)
+                datagrams += link.sent
+                state = service.vehicles[1]
+                if len(commands) < state.commands_sent:
+                    command = state.last_command
+                    assert command is not None
+                    commands.append(command)
+                    link.sent.clear()
+                    for message in service.profile.command_messages(
+                        _value(command["u_depth"]), _value(command["u_pitch"]), 1
+                    ):
+                        vehicle.handle_message(message)
+                    datagrams += link.sent
+        finally:
+            if recorder is not None:
+                recorder.close(timeout=600)
+            service.notifier.stop()
+            session.close()
+    return datagrams, commands
+
+
+def _value(u: float | None) -> float:
+    """A command's channel value: None (the channel not commanded) is NaN on the wire."""
+    return math.nan if u is None else u
+
+
+def logged_commands(log_dir: str) -> list[dict[str, Any]]:
+    """The ballast commands a service logged, in order."""
+    (path,) = Path(log_dir).rglob("*.mcap")
+    reader = LogReader(path)
+    return [json.loads(message.data) for message in reader.messages({keys.command_ballast(1)})]
 
 
 def rss_mib() -> float:
@@ -92,11 +166,18 @@ def build_service(
 
 def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, object]:
     """Each measurement ``repeats`` times on the same datagrams (a fresh service each time);
-    ``control``: with the controller on (``build_service``). Each repeat also runs the
-    service without its log (``serve --no-log``): what the log costs, in the same run."""
-    datagrams = telemetry_datagrams(n)
+    ``control``: with the controller on (``build_service``), on the datagrams of a vehicle
+    it commands (``closed_loop_datagrams``), and each run's commands checked against
+    those the vehicle was given. Each repeat also runs the service without its log
+    (``serve --no-log``): what the log costs, in the same run."""
+    expected: list[dict[str, Any]] | None = None
+    if control:
+        datagrams, expected = closed_loop_datagrams(n)
+    else:
+        datagrams = telemetry_datagrams(n)
     parse_s, path_s, total_s, unlogged_s = [], [], [], []
     samples = 0
+    same_commands = True
     for _ in range(repeats):
         mav = dialect.MAVLink(None)
         mav.robust_parsing = True
@@ -117,6 +198,8 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
             commands = sum(v.commands_sent for v in service.vehicles.values())
             service.notifier.stop()
             session.close()
+            if expected is not None:
+                same_commands = same_commands and logged_commands(log_dir) == expected
         service, _, session = build_service("", control, log=False)
         t0 = time.perf_counter()
         for data in datagrams:
@@ -129,6 +212,7 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
         "control": control,
         "samples": samples,
         "commands": commands,
+        **({} if expected is None else _commanding(expected, same_commands)),
         "repeats": repeats,
         "pymavlink_parse_samples_per_s": rates(n, parse_s),
         "service_path_samples_per_s": rates(samples, path_s),
@@ -137,6 +221,19 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
         "ratio_to_pymavlink_median": statistics.median(parse_s) / statistics.median(total_s),
         "service_without_log_samples_per_s": rates(samples, unlogged_s),
         "ratio_to_pymavlink_without_log_best": min(parse_s) / min(unlogged_s),
+    }
+
+
+def _commanding(commands: list[dict[str, Any]], same: bool) -> dict[str, object]:
+    """How the closed loop's commands were decided: the share of them in which both
+    channels took the controller's own path (neither safe, released nor held), and
+    whether every run decided exactly the recorded ones."""
+    own = sum(
+        1 for command in commands if not {"safe", "released", "-"} & set(command["mode"].split("/"))
+    )
+    return {
+        "commands_both_channels_controlled": own / max(len(commands), 1),
+        "commands_as_recorded": same,
     }
 
 

@@ -142,8 +142,16 @@ def perf_split(script: str) -> dict[str, int]:
     return dict(counts)
 
 
+def datagrams_for(args: argparse.Namespace) -> list[bytes]:
+    """``bench_service.py``'s datagrams: with ``--control`` those of a vehicle the service
+    commands (``closed_loop_datagrams``), so that the controller's own path is split."""
+    if args.control:
+        return bench_service.closed_loop_datagrams(args.samples)[0]
+    return bench_service.telemetry_datagrams(args.samples)
+
+
 def main_compiled(args: argparse.Namespace) -> int:
-    datagrams = bench_service.telemetry_datagrams(args.samples)
+    datagrams = datagrams_for(args)
     warm = 400  # datagrams before perf attaches (first vehicle, first chunk, caches)
     with tempfile.TemporaryDirectory() as scratch:
         data_file = str(Path(scratch) / "perf.data")
@@ -153,6 +161,7 @@ def main_compiled(args: argparse.Namespace) -> int:
         try:
             for data in datagrams[:warm]:
                 service.process_datagram(data)
+            warm_samples = service.source.totals()["samples"]
             perf = subprocess.Popen(
                 ["perf", "record", "-F", str(PERF_HZ), "--call-graph", "dwarf,16384",
                  "-o", data_file, "-p", str(os.getpid())],
@@ -164,6 +173,7 @@ def main_compiled(args: argparse.Namespace) -> int:
             recorder.close(timeout=600)  # the log drained: its thread's time is counted
             perf.send_signal(signal.SIGINT)
             perf.wait()
+            steps = service.source.totals()["samples"] - warm_samples
         finally:
             service.notifier.stop()
             session.close()
@@ -172,7 +182,6 @@ def main_compiled(args: argparse.Namespace) -> int:
         ).stdout
     counts = perf_split(script)
     total = sum(counts.values())
-    steps = (len(datagrams) - warm) // 4  # the glider's four messages a plant step
     result = {
         "modules": compiled.summary(),
         "control": args.control,
@@ -206,7 +215,7 @@ def main() -> int:
     args = parser.parse_args()
     if args.compiled:
         return main_compiled(args)
-    datagrams = bench_service.telemetry_datagrams(args.samples)
+    datagrams = datagrams_for(args)
     with tempfile.TemporaryDirectory() as log_dir:
         service, recorder, session = bench_service.build_service(log_dir, args.control)
         assert recorder is not None
