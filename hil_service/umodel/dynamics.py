@@ -71,6 +71,11 @@ class StaticMap:
         return self.evaluate(u)[1]
 
 
+def _all_finite(values: list[float]) -> bool:
+    """Every value finite (a typed list: compiled, the floats are read unboxed)."""
+    return all(math.isfinite(v) for v in values)
+
+
 class ModelDynamics:
     """One instant of a U-model: coefficients and histories (see the module docstring).
 
@@ -214,17 +219,29 @@ class ModelDynamics:
         """Free run: ŷ of the next sample from u_prev = the input one step before it and
         this snapshot's own histories, which then take ŷ and u_prev in (the coefficients
         stay frozen). The health report's multi-step accuracy runs this."""
-        na = len(self.ar)
+        ar = self.ar
+        na = len(ar)
         acc = self.bias
         outputs = self.outputs
         for i in range(min(na, len(outputs))):
-            acc += self.ar[i] * outputs[i]
-        nb = len(self.lag_polys)
-        acc += self.lag_value(1, u_prev)
+            acc += ar[i] * outputs[i]
+        polys = self.lag_polys
+        nb = len(polys)
+        scale = self.poly_scale
         inputs = self.inputs
-        for lag in range(2, nb + 1):
-            if lag - 2 < len(inputs):
-                acc += self.lag_value(lag, inputs[lag - 2])
+        # ``lag_value``'s Horner sums written out, in its order: lag 1 on u_prev (with the
+        # RBF term), lag L on inputs[L − 2].
+        for lag in range(1, min(nb, len(inputs) + 1) + 1):
+            u = u_prev if lag == 1 else inputs[lag - 2]
+            x = u * scale
+            poly = polys[lag - 1]
+            q = 0.0
+            for k in range(len(poly) - 1, -1, -1):
+                q = q * x + poly[k]
+            value = q * x
+            if lag == 1 and self.rbf is not None:
+                value += self.rbf.weighted(u, self.rbf_weights)[0]
+            acc += value
         if na:
             self.outputs = [acc, *outputs[: na - 1]]
         self.inputs = [u_prev, *inputs[: nb - 1]]
@@ -282,10 +299,11 @@ class ModelDynamics:
         return predictions
 
     def is_finite(self) -> bool:
-        if not math.isfinite(self.bias):
+        if not (
+            math.isfinite(self.bias)
+            and _all_finite(self.ar)
+            and _all_finite(self.outputs)
+            and _all_finite(self.inputs)
+        ):
             return False
-        for values in (self.ar, self.outputs, self.inputs, *self.lag_polys):
-            for v in values:
-                if not math.isfinite(v):
-                    return False
-        return True
+        return all(_all_finite(poly) for poly in self.lag_polys)
