@@ -18,6 +18,7 @@ sample is the path's CPU time.
 
     .venv/bin/python benchmarks/service_stages.py [--samples 5000] [--top 15] [--control]
     .venv/bin/python benchmarks/service_stages.py --compiled [--samples 6000] [--control]
+        [--callees CLASS.METHOD ...]
 """
 
 from __future__ import annotations
@@ -126,20 +127,46 @@ def compiled_stage(stack: list[str]) -> str:
     return "other (outside the compiled path)"
 
 
-def perf_split(script: str) -> dict[str, int]:
-    """Samples per stage in ``perf script`` output."""
-    counts: dict[str, int] = defaultdict(int)
+def perf_stacks(script: str) -> list[list[str]]:
+    """Each sample's stack in ``perf script`` output: its symbols, innermost first."""
+    stacks: list[list[str]] = []
     stack: list[str] = []
     for line in [*script.splitlines(), ""]:
         if not line.strip():
             if stack:
-                counts[compiled_stage(stack)] += 1
+                stacks.append(stack)
             stack = []
         elif line[0] in " \t":
             match = re.search(r"\s[0-9a-f]+\s+(\S+)", line)
             if match:
                 stack.append(match.group(1).split("+")[0])
+    return stacks
+
+
+def perf_split(stacks: list[list[str]]) -> dict[str, int]:
+    """Samples per stage."""
+    counts: dict[str, int] = defaultdict(int)
+    for stack in stacks:
+        counts[compiled_stage(stack)] += 1
     return dict(counts)
+
+
+def callee_split(stacks: list[list[str]], function: str) -> dict[str, int]:
+    """The samples in which compiled ``function`` (a name such as
+    ``PredictiveInverse.decide``) is on the stack, by the compiled function it had called
+    (``(own)`` when none: the function itself and what it calls outside compiled code)."""
+    counts: dict[str, int] = defaultdict(int)
+    for stack in stacks:
+        names = [_plain_name(symbol) for symbol in stack if symbol.startswith("CPyDef_")]
+        if function in names:
+            at = names.index(function)
+            counts["(own)" if at == 0 else names[at - 1]] += 1
+    return dict(counts)
+
+
+def _plain_name(symbol: str) -> str:
+    """``CPyDef_predictive___PredictiveInverse___decide`` → ``PredictiveInverse.decide``."""
+    return ".".join(part for part in symbol[len("CPyDef_") :].split("___")[1:] if part)
 
 
 def datagrams_for(args: argparse.Namespace) -> list[bytes]:
@@ -180,7 +207,8 @@ def main_compiled(args: argparse.Namespace) -> int:
         script = subprocess.run(
             ["perf", "script", "-i", data_file], capture_output=True, text=True, check=True
         ).stdout
-    counts = perf_split(script)
+    stacks = perf_stacks(script)
+    counts = perf_split(stacks)
     total = sum(counts.values())
     result = {
         "modules": compiled.summary(),
@@ -196,6 +224,13 @@ def main_compiled(args: argparse.Namespace) -> int:
             for stage, n in sorted(counts.items(), key=lambda i: -i[1])
         },
     }
+    for function in args.callees:
+        split = callee_split(stacks, function)
+        result[f"us_per_sample_in {function}, by callee"] = {
+            callee: round(1e6 * n / PERF_HZ / steps, 1)
+            for callee, n in sorted(split.items(), key=lambda i: -i[1])
+            if n / total >= 0.002
+        }
     print(json.dumps(result, indent=1))
     return 0
 
@@ -211,6 +246,11 @@ def main() -> int:
     parser.add_argument(
         "--compiled", action="store_true",
         help="split the compiled path with Linux perf (needs perf) instead of cProfile",
+    )  # fmt: skip
+    parser.add_argument(
+        "--callees", action="append", default=[], metavar="CLASS.METHOD",
+        help="with --compiled: this compiled function's time by the compiled function it "
+        "called (e.g. PredictiveInverse.decide); may be repeated",
     )  # fmt: skip
     args = parser.parse_args()
     if args.compiled:
