@@ -226,11 +226,10 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
 
 def _commanding(commands: list[dict[str, Any]], same: bool) -> dict[str, object]:
     """How the closed loop's commands were decided: the share of them in which both
-    channels took the controller's own path (neither safe, released nor held), and
+    channels took the controller's own path (neither safe, released, probing nor held), and
     whether every run decided exactly the recorded ones."""
-    own = sum(
-        1 for command in commands if not {"safe", "released", "-"} & set(command["mode"].split("/"))
-    )
+    idle = {"safe", "released", "probe", "-"}
+    own = sum(1 for command in commands if not idle & set(command["mode"].split("/")))
     return {
         "commands_both_channels_controlled": own / max(len(commands), 1),
         "commands_as_recorded": same,

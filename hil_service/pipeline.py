@@ -28,17 +28,13 @@ from hil_service.umodel import (
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
+from hil_service.umodel.probe import Probe
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
 from hil_service.umodel.structure import VALIDATION_SEGMENT, LagChoice, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 from protocols.keys import CHANNELS
+from protocols.safety import SAFE_INPUTS
 from protocols.samples import BallastCommand, TelemetrySample
-
-#: What a channel's input goes to when its supervisor trips (docs/control.md): "hold" the
-#: input the last clean supervised segment started from, "neutral" (0, the trim), or
-#: "release": the service stops commanding the channel (NaN), for a vehicle whose own
-#: controller takes the channel back when the service's commands for it stop.
-SAFE_INPUTS = ("hold", "neutral", "release")
 
 #: Consecutive samples in the horizon test's record before the input lags are chosen, or
 #: at least ``LAG_CHOICE_MIN`` once the channel is asked to command (``umodel.structure``
@@ -103,10 +99,15 @@ class ControlSettings:
     horizon_fit: float = 20.0
     mean_fit: float | None = 20.0
     safe_input: str = "neutral"  # SAFE_INPUTS: where a tripped channel's input goes
+    #: The probing excitation's amplitude, a share of ``u_limit``, for a channel asked to
+    #: command whose model does not pass the horizon test (``umodel.probe``; 0: none).
+    probe: float = 0.0
 
     def __post_init__(self) -> None:
         self.predictive()  # validates the constants
         HorizonTest(self.horizon_fit, mean_threshold=self.mean_fit)  # validates both
+        if not (math.isfinite(self.probe) and 0.0 <= self.probe <= 1.0):
+            raise ValueError(f"probe must be 0..1 (a share of the input range), got {self.probe}")
         if self.safe_input not in SAFE_INPUTS:
             raise ValueError(f"safe_input must be one of {SAFE_INPUTS}, got {self.safe_input!r}")
 
@@ -359,6 +360,7 @@ class ChannelPipeline:
             -control.u_limit, control.u_limit, control.rate_limit, control.predictive(), phase
         )
         self.shaper = CommandShaper(-control.u_limit, control.u_limit, control.rate_limit)
+        self.probe = Probe(control.probe * control.u_limit, seed, channel)
         self.u_prev: float | None = None
         self.last: Estimate | None = None
         self.converged = False
@@ -1056,7 +1058,26 @@ class ChannelPipeline:
         self._last_saturated = saturated or shaped.saturated
         return shaped.u, path, saturated or shaped.saturated or shaped.rate_limited
 
-    def deactivate(self) -> None:
+    def may_probe(self) -> bool:
+        """Asked to command, identified, not tripped, and not qualified by the horizon
+        test: the channel probes if its settings allow it (``ControlSettings.probe``)."""
+        return self.probe.amplitude > 0.0 and not self.tripped and not self.qualified
+
+    def probe_command(self, u_applied: float) -> float:
+        """The probing excitation's next input (``umodel.probe``), at the rate limit,
+        about the input applied when probing began (kept inside the actuator's range)."""
+        if not self.probe.running:
+            limit = self.settings.control.u_limit - self.probe.amplitude
+            centre = u_applied if math.isfinite(u_applied) else 0.0
+            self.probe.start(min(limit, max(-limit, centre)))
+            self.shaper.reset(u_applied if math.isfinite(u_applied) else 0.0)
+        return self.shaper.shape(self.probe.level()).u
+
+    def deactivate(self, probing: bool = False) -> None:
+        """Not commanding from the plan; ``probing``: the channel probes instead, and its
+        probe goes on from where it is."""
+        if not probing:
+            self.probe.stop()
         self.active = False
         self._sup_run = None
         self._alt_run = None
@@ -1187,6 +1208,7 @@ class VehiclePipeline:
             if not blocked:
                 blocked = pipeline.supervise(active[ch], sample.input(ch))
             if pipeline.tripped:
+                pipeline.probe.stop()
                 reasons.append(blocked)
                 if pipeline.releases:
                     paths.append("released")
@@ -1196,10 +1218,17 @@ class VehiclePipeline:
                 commanded = True
                 continue
             if blocked:
-                pipeline.deactivate()
-                paths.append("-")
                 reasons.append(blocked)
+                if pipeline.may_probe():
+                    pipeline.deactivate(probing=True)
+                    values[ch] = pipeline.probe_command(sample.input(ch))
+                    paths.append("probe")
+                    commanded = True
+                else:
+                    pipeline.deactivate()
+                    paths.append("-")
                 continue
+            pipeline.probe.stop()
             u, path, sat = pipeline.solve(active[ch], sample.input(ch))
             values[ch] = u
             paths.append(path)

@@ -25,6 +25,7 @@ from typing import Any, NamedTuple, NoReturn
 
 from protocols.mavlink_io import MavMessage, dialect
 from protocols.readings import MessageReader
+from protocols.safety import SAFE_INPUTS
 from protocols.units import (
     FULL_SCALE_RANGE,
     SURFACE_PRESSURE_RANGE,
@@ -181,6 +182,17 @@ class Sampling:
 
 
 @dataclass(frozen=True)
+class ControlChoices:
+    """The profile's ``[control]`` table: what the service may do to this kind of vehicle
+    when it must not command from its model (docs/control.md, "Do no harm")."""
+
+    safe_input: str = "neutral"  # SAFE_INPUTS: where a tripped channel's input goes
+    #: The probing excitation of a channel asked to command whose model does not pass the
+    #: horizon test, a share of the actuator's range (0: none; docs/control.md, "Probing").
+    probe: float = 0.0
+
+
+@dataclass(frozen=True)
 class Profile:
     name: str
     description: str = ""
@@ -188,6 +200,7 @@ class Profile:
     pressure: PressureDepth = field(default_factory=PressureDepth)
     signals: dict[str, tuple[Source, ...]] = field(default_factory=dict)
     ballast: Ballast = field(default_factory=Ballast)
+    control: ControlChoices = field(default_factory=ControlChoices)
     #: The TOML text it was read from (stored in logs' metadata).
     text: str = ""
 
@@ -537,9 +550,11 @@ class _Parser:
     # -- the document --
     def profile(self, data: dict) -> Profile:
         for key in data:
-            if key not in {"profile", "sampling", "units", "signals", "ballast"}:
+            if key not in {"profile", "sampling", "units", "signals", "ballast", "control"}:
                 self.fail(
-                    "unknown table (known: profile, sampling, units, signals, ballast)", "", key
+                    "unknown table (known: profile, sampling, units, signals, ballast, control)",
+                    "",
+                    key,
                 )
         head = self._table(data, "profile", {"name", "description"})
         name = self._string(head, "profile", "name", None)
@@ -569,7 +584,16 @@ class _Parser:
         )
         signals = self._signals(data.get("signals", {}))
         ballast = self._ballast(data.get("ballast", {}))
-        profile = Profile(name, description, sampling, pressure, signals, ballast, self.text)
+        control = self._table(data, "control", {"safe_input", "probe"})
+        choices = ControlChoices(
+            self._string(control, "control", "safe_input", "neutral", SAFE_INPUTS),
+            self._number(
+                control, "control", "probe", 0.0, bounds=(0.0, 1.0), unit="(a share of the range)"
+            ),
+        )
+        profile = Profile(
+            name, description, sampling, pressure, signals, ballast, choices, self.text
+        )
         self._check_delay(profile)
         if sampling.mode == "lockstep":
             for message in profile.step_messages():

@@ -261,8 +261,13 @@ def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
     return live
 
 
-def settings_from_args(args: argparse.Namespace) -> PipelineSettings:
+def settings_from_args(args: argparse.Namespace, profile: Profile) -> PipelineSettings:
+    """The pipeline's settings: the flags', with the profile's ``[control]`` choices."""
+    choices = profile.control
     settings = PipelineSettings(model=args.model, seed=args.seed)
+    settings = settings.replace(
+        control=replace(settings.control, safe_input=choices.safe_input, probe=choices.probe)
+    )
     if args.burn_in is not None:
         settings = settings.replace(burn_in=args.burn_in)
     if args.input_lags is not None:
@@ -318,7 +323,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         control_default=args.control,
         stale_timeout=args.stale_timeout,
         health_period=args.health_period,
-        pipeline=settings_from_args(args),
+        pipeline=settings_from_args(args, profile),
         security=security_from_args(args),
         units=units_from_args(args, profile),
         limits=SetpointLimits(args.min_depth, args.max_depth, args.max_pitch),

@@ -419,7 +419,7 @@ def inverse_run(
     trace = _drive(settings, plant, schedule, inverse_control)
     supervision = {}
     for i, (ch, channel) in enumerate(pipeline.channels.items()):
-        idle = ("-", "safe", "released")
+        idle = ("-", "safe", "released", "probe")
         commanded = sum(n for mode, n in paths.items() if mode.split("/")[i] not in idle)
         supervision[ch] = {
             "trips": channel.supervisor.trips,
