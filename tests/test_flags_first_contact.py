@@ -274,12 +274,13 @@ def test_experiment_bounds_the_samples(capsys, no_experiment, samples) -> None:
 
 
 @pytest.mark.parametrize("scenario", ["random", "family"])
-def test_experiment_bounds_the_plants(capsys, no_experiment, scenario) -> None:
+@pytest.mark.parametrize("plants", ["10001", "0", "-3"])
+def test_experiment_bounds_the_plants(capsys, no_experiment, scenario, plants) -> None:
     line = refused_line(
-        capsys, "experiment", "--closed-loop", "--scenario", scenario, "--plants", "10001"
+        capsys, "experiment", "--closed-loop", "--scenario", scenario, "--plants", plants
     )
-    assert "--plants must be at most 10,000 (an hour's run or more; another --seed draws " \
-        "other plants), got 10001" in line  # fmt: skip
+    assert "--plants must be 1..10,000 (the most is an hour's run or more; another --seed " \
+        f"draws other plants), got {plants}" in line  # fmt: skip
 
 
 @pytest.mark.parametrize("step_every", ["400", "1000"])

@@ -282,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
 def check_flags(args: argparse.Namespace) -> None:
     """Raise ValueError, naming the flag, for flags the chosen experiment would ignore or
     that it cannot run with: one typed for another experiment, ``--samples`` beyond
-    ``MAX_SAMPLES``, ``--plants`` beyond ``MAX_PLANTS``, a ``--step-every`` no second
+    ``MAX_SAMPLES``, ``--plants`` outside 1..``MAX_PLANTS``, a ``--step-every`` no second
     setpoint step would come within."""
     experiment = _experiment(args)
     if experiment == LOG and (args.closed_loop or args.bench):
@@ -297,10 +297,10 @@ def check_flags(args: argparse.Namespace) -> None:
             f"--samples must be at most {MAX_SAMPLES:,} (a run holds about 1 kB per "
             f"sample), got {args.samples}"
         )
-    if args.plants > MAX_PLANTS:
+    if not 1 <= args.plants <= MAX_PLANTS:
         raise ValueError(
-            f"--plants must be at most {MAX_PLANTS:,} (an hour's run or more; another --seed "
-            f"draws other plants), got {args.plants}"
+            f"--plants must be 1..{MAX_PLANTS:,} (the most is an hour's run or more; another "
+            f"--seed draws other plants), got {args.plants}"
         )
     if "--step-every" in typed:
         _check_step_every(args)
