@@ -109,6 +109,22 @@ def _dynamics(ar: list[float], polys: list[list[float]], y: float) -> ModelDynam
     return ModelDynamics(ar, 0.0, polys, 0.5, [y] * len(ar), [0.0] * (len(polys) - 1))
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_model_is_finite_only_when_every_coefficient_and_history_value_is(bad: float) -> None:
+    def dyn() -> ModelDynamics:
+        return ModelDynamics([0.5, 0.1], 0.2, [[1.0, -0.1], [0.5, 0.0]], 0.5, [1.0, 1e300], [-3.0])
+
+    assert dyn().is_finite()
+    for part in ("ar", "outputs", "inputs", "lag_polys"):
+        broken = dyn()
+        values = getattr(broken, part)
+        (values[-1] if part == "lag_polys" else values)[-1] = bad
+        assert not broken.is_finite(), part
+    broken = dyn()
+    broken.bias = bad
+    assert not broken.is_finite()
+
+
 @pytest.mark.parametrize(
     "dyn",
     [
