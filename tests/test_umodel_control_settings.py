@@ -54,6 +54,7 @@ STORED_CONTROL = {
     "horizon_fit": 60.0,
     "mean_fit": 30.0,
     "safe_input": "hold",
+    "probe": 0.2,
 }
 
 
@@ -70,6 +71,7 @@ def test_a_stored_configuration_with_every_control_key_loads_and_is_written_back
     )
     assert (control.u_limit, control.rate_limit) == (1.5, 0.25)
     assert (control.horizon_fit, control.mean_fit, control.safe_input) == (60.0, 30.0, "hold")
+    assert control.probe == 0.2
     # The same flat keys, the same values, in what is stored again.
     assert settings.to_json()["control"] == STORED_CONTROL
 

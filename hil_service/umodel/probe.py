@@ -14,7 +14,8 @@ the emulator's excitation), seeded per channel so that a run replays to the bit.
 from __future__ import annotations
 
 import math
-import random
+
+import numpy as np
 
 #: Each level is held this many samples, inclusive.
 SHORTEST_HOLD = 10
@@ -30,8 +31,8 @@ class Probe:
         if not (math.isfinite(amplitude) and amplitude >= 0.0):
             raise ValueError(f"probe amplitude must be finite and >= 0, got {amplitude}")
         self.amplitude = amplitude
-        # A string seed is hashed the same way in every process (random.seed, version 2).
-        self._random = random.Random(f"probe/{seed}/{channel}")
+        # numpy's seed sequences take non-negative integers: the seed's magnitude.
+        self._random = np.random.default_rng([abs(seed), *channel.encode()])
         self._left = 0
         self._level = 0.0
         self.centre = math.nan  # NaN: not probing
@@ -50,7 +51,7 @@ class Probe:
     def level(self) -> float:
         """The next sample's input: the current step's level, or a new step's."""
         if self._left <= 0:
-            self._level = self.centre + self.amplitude * (2.0 * self._random.random() - 1.0)
-            self._left = self._random.randint(SHORTEST_HOLD, LONGEST_HOLD)
+            self._level = self.centre + self.amplitude * float(self._random.uniform(-1.0, 1.0))
+            self._left = int(self._random.integers(SHORTEST_HOLD, LONGEST_HOLD, endpoint=True))
         self._left -= 1
         return self._level
