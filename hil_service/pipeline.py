@@ -26,6 +26,7 @@ from hil_service.umodel import (
     option_names,
 )
 from hil_service.umodel.dynamics import ModelDynamics
+from hil_service.umodel.finite import finite
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.probe import Probe
@@ -106,7 +107,7 @@ class ControlSettings:
     def __post_init__(self) -> None:
         self.predictive()  # validates the constants
         HorizonTest(self.horizon_fit, mean_threshold=self.mean_fit)  # validates both
-        if not (math.isfinite(self.probe) and 0.0 <= self.probe <= 1.0):
+        if not (finite(self.probe) and 0.0 <= self.probe <= 1.0):
             raise ValueError(f"probe must be 0..1 (a share of the input range), got {self.probe}")
         if self.safe_input not in SAFE_INPUTS:
             raise ValueError(f"safe_input must be one of {SAFE_INPUTS}, got {self.safe_input!r}")
@@ -155,7 +156,7 @@ class PipelineSettings:
     def __post_init__(self) -> None:
         gain = self.lag_smoothing_gain
         if isinstance(gain, bool) or not (
-            isinstance(gain, (int, float)) and math.isfinite(gain) and gain >= 0.0
+            isinstance(gain, (int, float)) and finite(gain) and gain >= 0.0
         ):
             raise ValueError(f"lag_smoothing_gain must be a number >= 0, got {gain!r}")
         if isinstance(self.bridge_gap, bool) or not (
@@ -657,10 +658,10 @@ class ChannelPipeline:
         if (
             not 0 < missing <= self.settings.bridge_gap
             or u_before is None
-            or not math.isfinite(u_before)
+            or not finite(u_before)
             or self.resync > 0
             or self.last is None
-            or not math.isfinite(u_now)
+            or not finite(u_now)
         ):
             return False
         if not (self._same_input(u_now, u_before) or self._same_input(u_now, self.last_command)):
@@ -752,7 +753,7 @@ class ChannelPipeline:
         accuracy's free run, the supervisor's prediction and the safe input's
         counterfactual. ``lost``: a bridged step whose output was never read."""
         free_run = self._free_run
-        if free_run is not None and (lost or math.isfinite(y)):
+        if free_run is not None and (lost or finite(y)):
             y_sim = free_run.advance(u_prev)
             if not lost:
                 self.multistep.add(y, y_sim)
@@ -935,7 +936,7 @@ class ChannelPipeline:
         y = self._y_seen
         pred = self._sup_pred
         error = y - setpoint
-        if self._sup_run is None or not math.isfinite(pred) or setpoint != self._sup_setpoint:
+        if self._sup_run is None or not finite(pred) or setpoint != self._sup_setpoint:
             if setpoint != self._sup_setpoint:
                 self.supervisor.new_reference()
                 self._restart_comparison(u_applied, setpoint)
@@ -944,7 +945,7 @@ class ChannelPipeline:
         reason = self.supervisor.segment_sample(
             y, pred, error, pred - setpoint, self._last_saturated
         )
-        if not reason and self._alt_run is not None and math.isfinite(self._alt_delta):
+        if not reason and self._alt_run is not None and finite(self._alt_delta):
             # What the output would have been at the neutral input: the measured one
             # (disturbance and noise included) without commanding's modelled effect.
             reason = self.supervisor.compare_sample(
@@ -967,7 +968,7 @@ class ChannelPipeline:
         limit."""
         self._alt_run = self.model.dynamics()
         self._app_run = self.model.dynamics()
-        self._alt_u = u_applied if math.isfinite(u_applied) else 0.0
+        self._alt_u = u_applied if finite(u_applied) else 0.0
         self._alt_target = self._counterfactual_input(self._alt_run, setpoint)
         self.supervisor.start_comparison()
 
@@ -980,7 +981,7 @@ class ChannelPipeline:
             return 0.0
         limit = self.settings.control.u_limit
         u = steady_input(dyn, setpoint, -limit, limit)
-        return u if math.isfinite(u) else 0.0
+        return u if finite(u) else 0.0
 
     def _restart_supervised(self, y: float, setpoint: float, u_applied: float) -> None:
         run = self.model.dynamics()
@@ -1000,8 +1001,8 @@ class ChannelPipeline:
         self.disqualify()
         self.deactivate()
         good = self.supervisor.good_u if control.safe_input == "hold" else 0.0  # release: 0
-        if not math.isfinite(good):
-            good = u_applied if math.isfinite(u_applied) else 0.0
+        if not finite(good):
+            good = u_applied if finite(u_applied) else 0.0
         self.safe_u = min(control.u_limit, max(-control.u_limit, good))
         self.events.append(self._event("trip", reason))
 
@@ -1068,9 +1069,9 @@ class ChannelPipeline:
         about the input applied when probing began (kept inside the actuator's range)."""
         if not self.probe.running:
             limit = self.settings.control.u_limit - self.probe.amplitude
-            centre = u_applied if math.isfinite(u_applied) else 0.0
+            centre = u_applied if finite(u_applied) else 0.0
             self.probe.start(min(limit, max(-limit, centre)))
-            self.shaper.reset(u_applied if math.isfinite(u_applied) else 0.0)
+            self.shaper.reset(u_applied if finite(u_applied) else 0.0)
         return self.shaper.shape(self.probe.level()).u
 
     def deactivate(self, probing: bool = False) -> None:
@@ -1167,7 +1168,7 @@ class VehiclePipeline:
     def _decide(
         self, sample: TelemetrySample, setpoints: dict[str, float | None], enabled: bool
     ) -> Decision:
-        active = {ch: v for ch, v in setpoints.items() if v is not None and math.isfinite(v)}
+        active = {ch: v for ch, v in setpoints.items() if v is not None and finite(v)}
         if not enabled:
             reason = "control disabled"
             for pipeline in self.channels.values():

@@ -21,9 +21,10 @@ diverging model is therefore still caught, while ordinary level changes are not.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from typing import Any
+
+from .finite import finite
 
 __all__ = ["DIVERGENCE_ACTIONS", "DivergenceMonitor", "GuardConfig"]
 
@@ -50,7 +51,7 @@ class GuardConfig:
     def __post_init__(self) -> None:
         for name in ("input_limit", "output_limit", "error_ratio", "scale_floor", "param_limit"):
             val = getattr(self, name)
-            if not (isinstance(val, int | float) and math.isfinite(val) and val > 0):
+            if not (isinstance(val, int | float) and finite(val) and val > 0):
                 raise ValueError(f"guard {name} must be finite and > 0, got {val!r}")
         if not (0.0 < self.scale_rate <= 1.0):
             raise ValueError("guard scale_rate must be in (0, 1]")

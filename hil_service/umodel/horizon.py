@@ -16,6 +16,8 @@ import math
 from librt.vecs import vec
 from mypy_extensions import i64
 
+from .finite import finite
+
 __all__ = [
     "LinearTerm",
     "add_move_penalty",
@@ -98,7 +100,7 @@ def cost_start(response: vec[float], horizon: int) -> int:
     and 2.6 %; a cost from sample 1 holds the steady-state input and never kicks (paper
     depth 33 % worse)."""
     final = response[len(response) - 1] if len(response) else 0.0
-    if not (math.isfinite(final) and final != 0.0):
+    if not (finite(final) and final != 0.0):
         return 1
     worst = 0.0
     at = 0
@@ -249,7 +251,7 @@ def _final_band(response: vec[float], band: float) -> tuple[float, float] | None
     """The step response's final value and ``band`` × its size; None when the final value
     is zero or not finite (there is no level to come within)."""
     final = response[len(response) - 1]
-    if not math.isfinite(final) or final == 0.0:
+    if not finite(final) or final == 0.0:
         return None
     return final, band * abs(final)
 

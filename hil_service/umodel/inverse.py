@@ -26,6 +26,8 @@ from typing import Literal
 
 import numpy as np
 
+from .finite import finite
+
 __all__ = [
     "CommandShaper",
     "InverseResult",
@@ -66,7 +68,7 @@ def _clamp(x: float, lo: float, hi: float) -> float:
 
 def _abs_res(f: Callable[[float], float], u: float, v: float) -> float:
     r = f(u) - v
-    return abs(r) if math.isfinite(r) else math.inf
+    return abs(r) if finite(r) else math.inf
 
 
 def _bracketed_root(
@@ -92,7 +94,7 @@ def _bracketed_root(
     while it < max_iter:
         it += 1
         r = f(u) - v
-        if not math.isfinite(r):
+        if not finite(r):
             u = 0.5 * (a + b)
             continue
         if abs(r) < best_r:
@@ -106,7 +108,7 @@ def _bracketed_root(
         if b - a <= 1e-15 * (1.0 + abs(a) + abs(b)):
             break
         d = df(u)
-        u_new = u - r / d if math.isfinite(d) and d != 0.0 else a
+        u_new = u - r / d if finite(d) and d != 0.0 else a
         u = u_new if a < u_new < b else 0.5 * (a + b)
     return best_u, it
 
@@ -125,14 +127,14 @@ def _extremum(
     when f' changes sign over [a, b], else by golden-section search."""
     da, db = df(a), df(b)
     it = 0
-    if math.isfinite(da) and math.isfinite(db) and da * db < 0.0:
+    if finite(da) and finite(db) and da * db < 0.0:
         side = 0
         u = a
         while it < max_iter and (b - a) > xtol:
             it += 1
             u = (a * db - b * da) / (db - da)
             du = df(u)
-            if not math.isfinite(du) or du == 0.0:
+            if not finite(du) or du == 0.0:
                 break
             if (du < 0.0) == (da < 0.0):
                 a, da = u, du
@@ -205,17 +207,17 @@ def _scan_grid(
         if np.count_nonzero(r == r[i]) > 1:
             ties = np.flatnonzero(r == r[i])
             i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
-        return i, best, float(r[i]) if math.isfinite(best) else 0.0, None
-    finite = np.isfinite(r)
+        return i, best, float(r[i]) if finite(best) else 0.0, None
+    finite_r = np.isfinite(r)
     # 1) A sign change on the grid means an exact solution exists: the one nearest u0.
-    cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite[:-1] & finite[1:])
+    cells = np.flatnonzero((r[:-1] * r[1:] <= 0.0) & finite_r[:-1] & finite_r[1:])
     if cells.size:
         return 0, 0.0, 0.0, cells
     # 2) No root: minimise |f − v| — best grid point (ties: nearest u0, then lower u)
-    a = np.where(finite, np.abs(r), np.inf)
+    a = np.where(finite_r, np.abs(r), np.inf)
     ties = np.flatnonzero(a == a.min())
     i = int(ties[int(np.argmin(np.abs(grid[ties] - u0)))])
-    return i, float(a[i]), float(r[i]) if finite[i] else 0.0, None
+    return i, float(a[i]), float(r[i]) if finite_r[i] else 0.0, None
 
 
 def _root_nearest(
@@ -269,7 +271,7 @@ def _refine_closest(
     refine = 0 < i < last
     if i in (0, last) and best > tol:
         slope = df(u)
-        if math.isfinite(slope):
+        if finite(slope):
             grows_inward = math.copysign(1.0, ri) * slope * (1.0 if i == 0 else -1.0) > 0.0
             refine = not grows_inward and slope != 0.0
     if refine and best > tol:
@@ -296,11 +298,11 @@ def _unless_u0_is_as_good(
     when f is flat there."""
     res_u0 = _abs_res(f, u0, v)
     res = f(u) - v
-    if not math.isfinite(res):
+    if not finite(res):
         res = math.inf
     if res_u0 <= abs(res):
         u, res = u0, f(u0) - v
-        if not math.isfinite(res):
+        if not finite(res):
             res = math.inf
     saturated = (u <= lo or u >= hi) and abs(res) > tol
     return InverseResult(u, "fallback", iters, res, saturated)
@@ -325,12 +327,12 @@ def solve_inverse(
     A non-finite ``v`` cannot be met: the clamped u0 is returned on the fallback path with
     an infinite residual. A non-finite ``u0`` is replaced by the range midpoint.
     """
-    if not (math.isfinite(u_min) and math.isfinite(u_max) and u_min < u_max):
+    if not (finite(u_min) and finite(u_max) and u_min < u_max):
         raise ValueError("need finite u_min < u_max")
     if grid_points < 2:
         raise ValueError("grid_points must be >= 2")
-    u = _clamp(u0, u_min, u_max) if math.isfinite(u0) else 0.5 * (u_min + u_max)
-    if not math.isfinite(v):
+    u = _clamp(u0, u_min, u_max) if finite(u0) else 0.5 * (u_min + u_max)
+    if not finite(v):
         return InverseResult(u, "fallback", 0, math.inf, False)
     tol_abs = tol * max(1.0, abs(v))
     start = u
@@ -338,7 +340,7 @@ def solve_inverse(
     worse = 0
     for it in range(max_iter + 1):
         r = f(u) - v
-        if not math.isfinite(r):
+        if not finite(r):
             break
         ar = abs(r)
         if ar <= tol_abs:
@@ -352,7 +354,7 @@ def solve_inverse(
         if it == max_iter:
             break
         d = df(u)
-        if not (math.isfinite(d) and abs(d) > min_slope):
+        if not (finite(d) and abs(d) > min_slope):
             break
         u_new = u - r / d
         if not (u_min <= u_new <= u_max):
@@ -385,9 +387,9 @@ class CommandShaper:
     def __init__(
         self, u_min: float, u_max: float, max_rate: float | None = None, u_init: float = 0.0
     ) -> None:
-        if not (math.isfinite(u_min) and math.isfinite(u_max) and u_min < u_max):
+        if not (finite(u_min) and finite(u_max) and u_min < u_max):
             raise ValueError("need finite u_min < u_max")
-        if max_rate is not None and not (math.isfinite(max_rate) and max_rate > 0.0):
+        if max_rate is not None and not (finite(max_rate) and max_rate > 0.0):
             raise ValueError("max_rate must be None or finite and > 0")
         self.u_min = float(u_min)
         self.u_max = float(u_max)
@@ -403,7 +405,7 @@ class CommandShaper:
 
     def shape(self, u_cmd: float) -> ShapedCommand:
         """Next command; a non-finite request holds the previous output."""
-        if not math.isfinite(u_cmd):
+        if not finite(u_cmd):
             return ShapedCommand(self._u, False, False)
         sat = u_cmd < self.u_min or u_cmd > self.u_max
         u = _clamp(u_cmd, self.u_min, self.u_max)

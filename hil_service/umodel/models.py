@@ -39,6 +39,7 @@ import numpy as np
 
 from .dynamics import ModelDynamics
 from .estimate import STATUSES, Estimate, Status, new_estimate
+from .finite import finite
 from .guards import DivergenceMonitor, GuardConfig
 from .interface import OneStepModel
 from .lag_prior import smooth_lag_prior
@@ -311,12 +312,12 @@ class _UModelCore(_ModelBase):
         poly_scale: float = 1.0,
     ) -> None:
         super().__init__(guard)
-        if not (math.isfinite(poly_scale) and poly_scale > 0.0):
+        if not (finite(poly_scale) and poly_scale > 0.0):
             raise ValueError("poly_scale must be finite and > 0")
         self.poly_scale = float(poly_scale)
         if int(degree) != degree or degree < 1:
             raise ValueError("degree M must be an integer >= 1")
-        if not (math.isfinite(init_scale) and init_scale >= 0.0):
+        if not (finite(init_scale) and init_scale >= 0.0):
             raise ValueError("init_scale must be finite and >= 0")
         if int(seed) != seed:
             raise ValueError("seed must be an integer")
@@ -490,7 +491,7 @@ class DynamicUModel(_ModelBase):
         guard: GuardConfig | dict[str, Any] | None = None,
     ) -> None:
         super().__init__(guard)
-        if not (math.isfinite(lag_smoothing) and lag_smoothing >= 0.0):
+        if not (finite(lag_smoothing) and lag_smoothing >= 0.0):
             raise ValueError("lag_smoothing must be finite and >= 0")
         if int(na) != na or na < 1:
             raise ValueError("na must be an integer >= 1")
@@ -498,7 +499,7 @@ class DynamicUModel(_ModelBase):
             raise ValueError("nb must be an integer >= 1 (lag 1 is the U-model polynomial)")
         if int(degree) != degree or degree < 1:
             raise ValueError("degree M must be an integer >= 1")
-        if not (math.isfinite(u_scale) and u_scale > 0.0):
+        if not (finite(u_scale) and u_scale > 0.0):
             raise ValueError("u_scale must be finite and > 0")
         if int(seed) != seed:
             raise ValueError("seed must be an integer")

@@ -10,9 +10,9 @@ default, which is negligible next to φᵀφ for the U-model regressors (the RBF
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
+from .finite import finite
 from .reproducible import dot
 
 __all__ = ["DEFAULT_EPS", "NLMS"]
@@ -21,9 +21,9 @@ DEFAULT_EPS = 1e-6
 
 
 def _check(mu: float, eps: float) -> None:
-    if not (math.isfinite(mu) and 0.0 < mu < 2.0):
+    if not (finite(mu) and 0.0 < mu < 2.0):
         raise ValueError(f"NLMS step size mu must satisfy 0 < mu < 2, got {mu!r}")
-    if not (math.isfinite(eps) and eps > 0.0):
+    if not (finite(eps) and eps > 0.0):
         raise ValueError(f"NLMS regulariser eps must be finite and > 0, got {eps!r}")
 
 

@@ -53,6 +53,7 @@ from librt.vecs import vec
 
 from .box_qp import solve_box_qp
 from .dynamics import ModelDynamics, StaticMap
+from .finite import finite
 from .horizon import (
     LinearTerm,
     add_move_penalty,
@@ -123,9 +124,9 @@ class PredictiveSettings:
             raise ValueError("band must be in (0, 1)")
         if max_blocks < 2:
             raise ValueError("max_blocks must be >= 2")
-        if not (math.isfinite(move_weight) and move_weight >= 0.0):
+        if not (finite(move_weight) and move_weight >= 0.0):
             raise ValueError("move_weight must be finite and >= 0")
-        if not (math.isfinite(disturbance_share) and disturbance_share > 0.0):
+        if not (finite(disturbance_share) and disturbance_share > 0.0):
             raise ValueError("disturbance_share must be finite and > 0")
         if refresh < 1:
             raise ValueError("refresh must be >= 1")
@@ -156,7 +157,7 @@ def _steady_state_direction(rows: list[list[float]], m: int) -> list[float] | No
     for x in total:
         norm += x * x
     norm = math.sqrt(norm)
-    if not (math.isfinite(norm) and norm > 1e-6 * math.sqrt(size)):
+    if not (finite(norm) and norm > 1e-6 * math.sqrt(size)):
         return None
     return [x / norm for x in total]
 
@@ -182,7 +183,7 @@ def _dominant_direction(rows: list[list[float]], m: int) -> list[float] | None:
         for x in w:
             norm += x * x
         norm = math.sqrt(norm)
-        if not (math.isfinite(norm) and norm > 0.0):
+        if not (finite(norm) and norm > 0.0):
             return None
         w = [x / norm for x in w]
         moved = 0.0
@@ -250,7 +251,7 @@ def factorise(dyn: ModelDynamics, u_lo: float, u_hi: float) -> tuple[list[float]
         # The paper model's RBF layer acts on lag 1 only: N carries it, scaled by 1/g_1.
         shape = StaticMap(v, dyn.poly_scale, dyn.rbf, dyn.rbf_weights, 1.0 / gains[0])
     slope = (shape.value(u_hi) - shape.value(u_lo)) / (u_hi - u_lo)
-    if not (math.isfinite(slope) and abs(slope) > 1e-12):
+    if not (finite(slope) and abs(slope) > 1e-12):
         return None
     poly = [x / slope for x in v]
     gains = [g * slope for g in gains]
@@ -330,9 +331,9 @@ class PredictiveInverse:
         """``phase``: the first derivation counts as ``phase`` samples old, so that the
         next comes that much sooner; a service gives its vehicles different phases, so
         that a fleet that started together does not derive all its plans on one sample."""
-        if not (math.isfinite(u_min) and math.isfinite(u_max) and u_min < u_max):
+        if not (finite(u_min) and finite(u_max) and u_min < u_max):
             raise ValueError("need finite u_min < u_max")
-        if not (math.isfinite(rate) and rate > 0.0):
+        if not (finite(rate) and rate > 0.0):
             raise ValueError("rate must be finite and > 0")
         self.u_min = float(u_min)
         self.u_max = float(u_max)
@@ -395,11 +396,11 @@ class PredictiveInverse:
         """
         na = len(dyn.ar)
         sim = self._sim
-        if sim is None or len(sim) != na or not math.isfinite(y):
+        if sim is None or len(sim) != na or not finite(y):
             self._sim = list(dyn.outputs[:na])
             return
         y_m = dyn.one_step(sim)
-        if not math.isfinite(y_m) or not math.isfinite(y - y_m):
+        if not finite(y_m) or not finite(y - y_m):
             self._sim = list(dyn.outputs[:na])
             self._forget_disturbance()
             return
@@ -420,7 +421,7 @@ class PredictiveInverse:
         if sim is None or len(sim) != na:
             return  # the next ``track`` starts it from the history
         y_m = dyn.one_step(sim)
-        if not math.isfinite(y_m):
+        if not finite(y_m):
             self._sim = None
             return
         if na:
@@ -552,9 +553,9 @@ class PredictiveInverse:
         """(next input, path, saturated): path "newton"/"fallback" is the inverse step's,
         "hold" means the plan could not be made (the applied input is kept)."""
         lo_u, hi_u = self.u_min, self.u_max
-        u0 = u_applied if math.isfinite(u_applied) else 0.5 * (lo_u + hi_u)
+        u0 = u_applied if finite(u_applied) else 0.5 * (lo_u + hi_u)
         u0 = lo_u if u0 < lo_u else hi_u if u0 > hi_u else u0
-        if not (math.isfinite(setpoint) and dyn.is_finite()):
+        if not (finite(setpoint) and dyn.is_finite()):
             return u0, "hold", False
         shape = self._current_shape(dyn)
         plan_model = self._plan_model
@@ -568,12 +569,12 @@ class PredictiveInverse:
         w0 = shape.value(u0)
         f = self._linear_term(dyn, plan_model, u0, w0, setpoint)
         for value in f:
-            if not math.isfinite(value):
+            if not finite(value):
                 return u0, "hold", False
         lo, hi = self._block_bounds(shape, u0, lo_u, hi_u)
         plan, self._plan_state = solve_box_qp(self._hessian, f, lo, hi, self._plan_state)
         target = plan[0]
-        if not math.isfinite(target):
+        if not finite(target):
             return u0, "hold", False
         return self._inverse_step(shape, target, u0, lo_u, hi_u)
 
@@ -658,7 +659,7 @@ class PredictiveInverse:
             return first_lo, "fallback", self._at_limit(first_lo)
         result = solve_inverse(shape.value, shape.derivative, target, u0, first_lo, first_hi)
         u = result.u
-        if not math.isfinite(u):
+        if not finite(u):
             return u0, "hold", False
         return u, result.path, self._at_limit(u)
 

@@ -20,6 +20,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .finite import finite
+
 __all__ = ["GaussianRBF", "evenly_spaced_centres"]
 
 
@@ -27,7 +29,7 @@ def evenly_spaced_centres(n: int, lo: float, hi: float) -> tuple[float, ...]:
     """``n`` centres evenly spaced from ``lo`` to ``hi`` inclusive (the paper uses 17, −2..2)."""
     if n < 1:
         raise ValueError("need at least one centre")
-    if not (math.isfinite(lo) and math.isfinite(hi)) or hi < lo:
+    if not (finite(lo) and finite(hi)) or hi < lo:
         raise ValueError("centre range must be finite with lo <= hi")
     if n == 1:
         return (0.5 * (lo + hi),)
@@ -47,9 +49,9 @@ class GaussianRBF:
         cs = tuple(float(c) for c in centres)
         if not cs:
             raise ValueError("need at least one centre")
-        if not all(math.isfinite(c) for c in cs):
+        if not all(finite(c) for c in cs):
             raise ValueError("centres must be finite")
-        if not (math.isfinite(beta) and beta > 0.0):
+        if not (finite(beta) and beta > 0.0):
             raise ValueError("beta must be finite and > 0")
         self.centres: tuple[float, ...] = cs
         self.beta = float(beta)

@@ -13,11 +13,11 @@ returns and trace(P) drops below the bound again.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from librt.vecs import vec
 from mypy_extensions import i64
+
+from .finite import finite
 
 __all__ = ["RLS", "ListRLS"]
 
@@ -31,12 +31,12 @@ def _checked(n: int, lam: float, p0: float, trace_max: float | None) -> float:
     """Validate the estimator's settings (both classes); the trace bound to use."""
     if n < 1:
         raise ValueError("RLS needs at least one parameter")
-    if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
+    if not (finite(lam) and 0.0 < lam <= 1.0):
         raise ValueError(f"forgetting factor must satisfy 0 < lam <= 1, got {lam!r}")
-    if not (math.isfinite(p0) and p0 > 0.0):
+    if not (finite(p0) and p0 > 0.0):
         raise ValueError("p0 must be finite and > 0")
     tmax = n * p0 if trace_max is None else float(trace_max)
-    if not (math.isfinite(tmax) and tmax > 0.0):
+    if not (finite(tmax) and tmax > 0.0):
         raise ValueError("trace_max must be finite and > 0")
     return tmax
 
@@ -66,7 +66,7 @@ class RLS:
         p = self.p
         pphi = p @ phi
         denom = self.lam + float(phi @ pphi)
-        if not (math.isfinite(denom) and denom > 0.0):
+        if not (finite(denom) and denom > 0.0):
             self.reset()
             return
         k = pphi / denom
@@ -76,7 +76,7 @@ class RLS:
             p /= self.lam
         p += p.T
         p *= 0.5
-        if not math.isfinite(float(np.trace(p))):
+        if not finite(float(np.trace(p))):
             self.reset()
 
 
@@ -172,7 +172,7 @@ class ListRLS:
         denom = self.lam
         for i in range(n):
             denom += x[i] * pphi[i]
-        if not (math.isfinite(denom) and denom > 0.0):
+        if not (finite(denom) and denom > 0.0):
             self.reset()
             return False
         inv = 1.0 / denom
@@ -193,7 +193,7 @@ class ListRLS:
                 out[base + j] = v
                 out[j * n + i] = v
         self.p = out
-        if not math.isfinite(trace):
+        if not finite(trace):
             self.reset()
             return False
         return True

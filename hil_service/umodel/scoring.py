@@ -13,6 +13,8 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from .finite import finite
+
 
 @dataclass
 class ErrorStats:
@@ -88,7 +90,7 @@ class ErrorStats:
 def significant(value: float | None) -> float | None:
     """Six significant digits for a report (an NMSE of 3e-8 must not print as 0); None for
     a missing or non-finite value."""
-    return None if value is None or not math.isfinite(value) else float(f"{value:.6g}")
+    return None if value is None or not finite(value) else float(f"{value:.6g}")
 
 
 def normalised_square_error(y: Sequence[float], error: Sequence[float]) -> float | None:
@@ -116,7 +118,7 @@ def normalised_square_error(y: Sequence[float], error: Sequence[float]) -> float
         e = error[i]
         spread += deviation * deviation
         squares += e * e
-    if not (math.isfinite(spread) and math.isfinite(squares)):
+    if not (finite(spread) and finite(squares)):
         return None
     if not spread > 1e-12 * n * (1.0 + mean * mean):
         return None  # a flat output: no scale to judge the fit by
@@ -151,10 +153,10 @@ class MultiStepStats:
         self._errors: deque[float] = deque(maxlen=window)
 
     def add(self, y: float, y_sim: float) -> None:
-        if not math.isfinite(y):
+        if not finite(y):
             return
         e = y - y_sim
-        if not (math.isfinite(e) and abs(e) < self.ERROR_CAP):
+        if not (finite(e) and abs(e) < self.ERROR_CAP):
             e = self.ERROR_CAP
         self._outputs.append(y)
         self._errors.append(e)

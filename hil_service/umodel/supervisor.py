@@ -63,6 +63,7 @@ from collections import deque
 from itertools import islice
 
 from .dynamics import ModelDynamics
+from .finite import finite
 
 __all__ = ["HorizonTest", "Supervisor", "SupervisorSettings", "steady_input"]
 
@@ -73,7 +74,7 @@ def steady_input(dyn: ModelDynamics, level: float, lo: float, hi: float, points:
     inputs, then bisected between the first two neighbours that straddle ``level``; NaN
     when the model has no finite steady state (an integrator, non-finite coefficients)."""
     gain = dyn.ar_gain()
-    if not (math.isfinite(gain) and abs(gain) > 1e-9 and math.isfinite(level)):
+    if not (finite(gain) and abs(gain) > 1e-9 and finite(level)):
         return math.nan
     nb = len(dyn.lag_polys)
 
@@ -89,7 +90,7 @@ def steady_input(dyn: ModelDynamics, level: float, lo: float, hi: float, points:
     for i in range(1, points + 1):
         u = lo + i * step
         m = miss(u)
-        if not math.isfinite(m):
+        if not finite(m):
             return math.nan
         if abs(m) < best:
             best_u, best = u, abs(m)
@@ -109,7 +110,7 @@ def steady_input(dyn: ModelDynamics, level: float, lo: float, hi: float, points:
 
 def _percent(value: float, name: str) -> float:
     """A fit threshold: finite and below 100 % (a fit of 100 % is a perfect prediction)."""
-    if not (math.isfinite(value) and value < 100.0):
+    if not (finite(value) and value < 100.0):
         raise ValueError(f"{name} must be finite and below 100 %")
     return float(value)
 
@@ -212,7 +213,7 @@ class HorizonTest:
 
     def record(self, y: float, u_prev: float) -> None:
         """One consecutive sample: ``y`` and the input applied one step before it."""
-        if math.isfinite(y) and math.isfinite(u_prev):
+        if finite(y) and finite(u_prev):
             self._runs.append(self._runs[-1] + 1 if self._runs and not self._restart else 0)
             self._restart = False
             self._outputs.append(y)
@@ -227,7 +228,7 @@ class HorizonTest:
         it but scores no prediction there and starts no segment from it."""
         if not self._outputs:
             return  # nothing before it to bridge from
-        if not (math.isfinite(y_model) and math.isfinite(u_prev)):
+        if not (finite(y_model) and finite(u_prev)):
             self.break_record()
             return
         self._runs.append(0)
@@ -294,7 +295,7 @@ class HorizonTest:
                     continue
                 y = ys[j]
                 e = y - y_model
-                if not (math.isfinite(e) and abs(e) < 1e100):
+                if not (finite(e) and abs(e) < 1e100):
                     e = 1e100
                 h = y - y0
                 sum_m += e * e
@@ -304,13 +305,13 @@ class HorizonTest:
                 sum_y2 += d * d
                 count += 1
             end = s
-        if count == 0 or not sum_h > 0.0 or not math.isfinite(sum_m / sum_h):
+        if count == 0 or not sum_h > 0.0 or not finite(sum_m / sum_h):
             return False
         self.fit = 100.0 * (1.0 - math.sqrt(sum_m / sum_h))
         self.model_rms = math.sqrt(sum_m / count)
         self.hold_rms = math.sqrt(sum_h / count)
         spread = sum_y2 - sum_y * sum_y / count
-        if spread > 0.0 and math.isfinite(spread):
+        if spread > 0.0 and finite(spread):
             self.mean_fit = 100.0 * (1.0 - math.sqrt(sum_m / spread))
         if self.mean_threshold is not None and not (
             self.mean_fit is not None and self.mean_fit >= self.mean_threshold
@@ -440,7 +441,7 @@ class Supervisor:
         s = self.settings
         self.window = self.window_for(horizon)
         self.bound = s.bound_factor * max(model_rms, s.hold_floor * hold_rms)
-        if not (math.isfinite(self.bound) and self.bound > 0.0):
+        if not (finite(self.bound) and self.bound > 0.0):
             self.bound = math.inf  # nothing to judge by: only the saturation test acts
         self.good_u = u
         self.reason = ""
@@ -483,7 +484,7 @@ class Supervisor:
 
     def neutral(self, error: float) -> None:
         """|r − the model's steady state at the neutral input| for this segment."""
-        self._neutral_error = abs(error) if math.isfinite(error) else math.inf
+        self._neutral_error = abs(error) if finite(error) else math.inf
 
     def segment_sample(
         self, y: float, y_pred: float, error: float, error_pred: float, saturated: bool
@@ -580,7 +581,7 @@ class Supervisor:
         running that did worse ("" when none)."""
         if not self._armed:
             return ""
-        if not math.isfinite(error_neutral):
+        if not finite(error_neutral):
             error_neutral = math.inf
         self._cmp_n += 1
         self._cmp_real += abs(error)
