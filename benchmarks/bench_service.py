@@ -41,6 +41,7 @@ from hil_service.experiment.speed import rates  # noqa: E402
 from hil_service.listeners.zenoh_config import ZenohOptions, open_session  # noqa: E402
 from hil_service.mcap.reader import LogReader  # noqa: E402
 from hil_service.mcap.recorder import McapRecorder  # noqa: E402
+from hil_service.pipeline import NOT_FROM_THE_PLAN  # noqa: E402
 from hil_service.process_tuning import one_cpu_child, tune_for_service  # noqa: E402
 from hil_service.service import HilService  # noqa: E402
 from plant_emulator.autopilot import Autopilot, AutopilotConfig  # noqa: E402
@@ -226,10 +227,11 @@ def bench_throughput(n: int, repeats: int, control: bool = False) -> dict[str, o
 
 def _commanding(commands: list[dict[str, Any]], same: bool) -> dict[str, object]:
     """How the closed loop's commands were decided: the share of them in which both
-    channels took the controller's own path (neither safe, released, probing nor held), and
+    channels took the controller's own path (none of ``NOT_FROM_THE_PLAN``), and
     whether every run decided exactly the recorded ones."""
-    idle = {"safe", "released", "probe", "-"}
-    own = sum(1 for command in commands if not idle & set(command["mode"].split("/")))
+    own = sum(
+        1 for command in commands if not NOT_FROM_THE_PLAN & set(command["mode"].split("/"))
+    )
     return {
         "commands_both_channels_controlled": own / max(len(commands), 1),
         "commands_as_recorded": same,

@@ -37,6 +37,10 @@ from protocols.keys import CHANNELS
 from protocols.safety import SAFE_INPUTS
 from protocols.samples import BallastCommand, TelemetrySample
 
+#: A command's per-channel ``mode`` when the channel does not command from its plan:
+#: nothing sent, its safe input, released to the vehicle, or probing.
+NOT_FROM_THE_PLAN = frozenset({"-", "safe", "released", "probe"})
+
 #: Consecutive samples in the horizon test's record before the input lags are chosen, or
 #: at least ``LAG_CHOICE_MIN`` once the channel is asked to command (``umodel.structure``
 #: needs two thirds of its record to fit and a third to validate on).
@@ -1039,6 +1043,7 @@ class ChannelPipeline:
         """One predictive-inverse step: (command, path, saturated); path is the inverse
         step's ("newton", "fallback") or "hold" when no plan could be made."""
         if not self.active:
+            self.probe.stop()
             self.shaper.reset(u_applied)
             # The internal model and its disturbance estimate start with control: what the
             # estimate gathered before, while the model it runs was still being learnt, is
@@ -1066,12 +1071,14 @@ class ChannelPipeline:
 
     def probe_command(self, u_applied: float) -> float:
         """The probing excitation's next input (``umodel.probe``), at the rate limit,
-        about the input applied when probing began (kept inside the actuator's range)."""
+        about the input applied when probing began (kept inside the actuator's range); the
+        channel is off its plan meanwhile (``deactivate``), its probe going on."""
+        self.deactivate(probing=True)
         if not self.probe.running:
+            held = u_applied if finite(u_applied) else 0.0
             limit = self.settings.control.u_limit - self.probe.amplitude
-            centre = u_applied if finite(u_applied) else 0.0
-            self.probe.start(min(limit, max(-limit, centre)))
-            self.shaper.reset(u_applied if finite(u_applied) else 0.0)
+            self.probe.start(min(limit, max(-limit, held)))
+            self.shaper.reset(held)
         return self.shaper.shape(self.probe.level()).u
 
     def deactivate(self, probing: bool = False) -> None:
@@ -1209,7 +1216,6 @@ class VehiclePipeline:
             if not blocked:
                 blocked = pipeline.supervise(active[ch], sample.input(ch))
             if pipeline.tripped:
-                pipeline.probe.stop()
                 reasons.append(blocked)
                 if pipeline.releases:
                     paths.append("released")
@@ -1221,7 +1227,6 @@ class VehiclePipeline:
             if blocked:
                 reasons.append(blocked)
                 if pipeline.may_probe():
-                    pipeline.deactivate(probing=True)
                     values[ch] = pipeline.probe_command(sample.input(ch))
                     paths.append("probe")
                     commanded = True
@@ -1229,7 +1234,6 @@ class VehiclePipeline:
                     pipeline.deactivate()
                     paths.append("-")
                 continue
-            pipeline.probe.stop()
             u, path, sat = pipeline.solve(active[ch], sample.input(ch))
             values[ch] = u
             paths.append(path)

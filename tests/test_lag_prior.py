@@ -23,7 +23,10 @@ from hil_service.umodel.lag_prior import (
 )
 from hil_service.umodel.structure import choose_input_lags
 from plant_emulator.family import FamilyVehicle, draw_vehicle
+from protocols.profiles import DEFAULT_PROFILE, load_profile
 from tests.harm_rig import Loop, spec
+
+DEFAULT = load_profile(DEFAULT_PROFILE)  # serve's, with no --profile
 
 
 def _record(noise: float, n: int = 900, seed: int = 0, pole: float = 0.8, delay: int = 1):
@@ -105,8 +108,10 @@ def test_the_gain_is_a_serve_flag_stored_and_a_log_from_before_replays_without_i
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    assert settings_from_args(parser.parse_args([])).lag_smoothing_gain == LAG_SMOOTHING_GAIN
-    off = settings_from_args(parser.parse_args(["--lag-smoothing-gain", "0"]))
+    assert (
+        settings_from_args(parser.parse_args([]), DEFAULT).lag_smoothing_gain == LAG_SMOOTHING_GAIN
+    )
+    off = settings_from_args(parser.parse_args(["--lag-smoothing-gain", "0"]), DEFAULT)
     assert off.lag_smoothing_gain == 0.0
     data = json.loads(json.dumps(off.to_json()))
     assert PipelineSettings.from_json(data).lag_smoothing_gain == 0.0

@@ -7,6 +7,9 @@ import json
 import pytest
 
 from hil_service.pipeline import ControlSettings, PipelineSettings
+from protocols.profiles import DEFAULT_PROFILE, load_profile
+
+DEFAULT = load_profile(DEFAULT_PROFILE)  # serve's, with no --profile
 
 
 def test_settings_survive_the_stored_configuration() -> None:
@@ -113,12 +116,12 @@ def test_input_lags_reach_every_channels_identifier_and_the_stored_configuration
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    settings = settings_from_args(parser.parse_args(["--input-lags", "7"]))
+    settings = settings_from_args(parser.parse_args(["--input-lags", "7"]), DEFAULT)
     assert settings.model_options == {"depth": {"nb": 7}, "pitch": {"nb": 7}}
     again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
     assert again.options_for("pitch") == {"nb": 7}
     assert build_model("dynamic", **again.options_for("depth")).config()["nb"] == 7
-    assert settings_from_args(parser.parse_args([])).model_options is None
+    assert settings_from_args(parser.parse_args([]), DEFAULT).model_options is None
 
 
 @pytest.mark.parametrize("lags", [0, -1, 2.5, True, 51])
@@ -139,15 +142,15 @@ def test_input_lags_auto_chooses_them_from_the_record_and_is_stored() -> None:
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    settings = settings_from_args(parser.parse_args(["--input-lags", "auto"]))
+    settings = settings_from_args(parser.parse_args(["--input-lags", "auto"]), DEFAULT)
     assert settings.choose_input_lags and settings.model_options is None
     again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
     assert again.choose_input_lags
     assert not PipelineSettings.from_json({"model": "dynamic"}).choose_input_lags  # old logs
     # The default for the dynamic model, the only one with input lags; given lags win.
-    assert settings_from_args(parser.parse_args([])).choose_input_lags
+    assert settings_from_args(parser.parse_args([]), DEFAULT).choose_input_lags
     assert not PipelineSettings(model="paper").choose_input_lags
-    given = settings_from_args(parser.parse_args(["--input-lags", "4"]))
+    given = settings_from_args(parser.parse_args(["--input-lags", "4"]), DEFAULT)
     assert given.options_for("depth")["nb"] == 4
     with pytest.raises(ValueError, match="auto or an integer"):
         PipelineSettings().with_input_lag_choice("some")
@@ -162,8 +165,8 @@ def test_bridge_gap_is_stored_and_old_logs_replay_without_it() -> None:
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    assert settings_from_args(parser.parse_args([])).bridge_gap == 5
-    settings = settings_from_args(parser.parse_args(["--bridge-gap", "0"]))
+    assert settings_from_args(parser.parse_args([]), DEFAULT).bridge_gap == 5
+    settings = settings_from_args(parser.parse_args(["--bridge-gap", "0"]), DEFAULT)
     again = PipelineSettings.from_json(json.loads(json.dumps(settings.to_json())))
     assert again.bridge_gap == 0
     # A log recorded before gaps were bridged resynchronised after every one.

@@ -11,6 +11,7 @@ import pytest
 from hil_service.umodel import build_model
 from hil_service.umodel.box_qp import flat_matrix, solve_box_qp
 from hil_service.umodel.dynamics import ModelDynamics
+from hil_service.umodel.finite import all_finite, finite
 from hil_service.umodel.horizon import arrival_time, free_response_terms
 from hil_service.umodel.predictive import (
     PredictiveInverse,
@@ -107,6 +108,16 @@ def test_box_qp_is_the_minimum_over_the_box(seed: int) -> None:
 
 def _dynamics(ar: list[float], polys: list[list[float]], y: float) -> ModelDynamics:
     return ModelDynamics(ar, 0.0, polys, 0.5, [y] * len(ar), [0.0] * (len(polys) - 1))
+
+
+EDGES = [0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308, 1.7976931348623157e308,
+         -1.7976931348623157e308, 1.0, -3.5, math.inf, -math.inf, math.nan]  # fmt: skip
+
+
+@pytest.mark.parametrize("x", EDGES)
+def test_finite_agrees_with_math_isfinite(x: float) -> None:
+    assert finite(x) is math.isfinite(x)
+    assert all_finite([1.0, x, -2.0]) is math.isfinite(x)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

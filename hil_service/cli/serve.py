@@ -261,12 +261,9 @@ def start_live(address: LiveAddress | None, verb: str) -> LiveView | None:
     return live
 
 
-def settings_from_args(
-    args: argparse.Namespace, profile: Profile | None = None
-) -> PipelineSettings:
-    """The pipeline's settings: the flags', with the ``[control]`` choices of ``profile``
-    (the ``--profile`` given, loaded here when None)."""
-    choices = (load_profile(args.profile) if profile is None else profile).control
+def settings_from_args(args: argparse.Namespace, profile: Profile) -> PipelineSettings:
+    """The pipeline's settings: the flags', with the ``[control]`` choices of ``profile``."""
+    choices = profile.control
     settings = PipelineSettings(model=args.model, seed=args.seed)
     settings = settings.replace(
         control=replace(settings.control, safe_input=choices.safe_input, probe=choices.probe)

@@ -20,7 +20,7 @@ import control
 import numpy as np
 
 from hil_service.experiment.oracle import KnownPlant, OracleController, OracleSettings, identity
-from hil_service.pipeline import PipelineSettings, VehiclePipeline
+from hil_service.pipeline import NOT_FROM_THE_PLAN, PipelineSettings, VehiclePipeline
 from plant_emulator.actuator import BallastActuator
 from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.models import CHANNELS, DEFAULT_DESIGNS, ClosedLoopChannel, open_loop_plant
@@ -419,8 +419,9 @@ def inverse_run(
     trace = _drive(settings, plant, schedule, inverse_control)
     supervision = {}
     for i, (ch, channel) in enumerate(pipeline.channels.items()):
-        idle = ("-", "safe", "released", "probe")
-        commanded = sum(n for mode, n in paths.items() if mode.split("/")[i] not in idle)
+        commanded = sum(
+            n for mode, n in paths.items() if mode.split("/")[i] not in NOT_FROM_THE_PLAN
+        )
         supervision[ch] = {
             "trips": channel.supervisor.trips,
             "horizon_passed": channel.ever_qualified,

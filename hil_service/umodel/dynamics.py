@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from librt.vecs import append, vec
 from mypy_extensions import i64
 
+from .finite import all_finite, finite
 from .rbf import GaussianRBF
 
 __all__ = ["ModelDynamics", "StaticMap"]
@@ -68,12 +69,6 @@ class StaticMap:
 
     def derivative(self, u: float) -> float:
         return self.evaluate(u)[1]
-
-
-def _all_finite(values: list[float]) -> bool:
-    """Every value finite: v − v is 0 for a finite v and NaN for ±inf or NaN. Compiled,
-    that is a float subtraction per value, where ``math.isfinite`` is a Python call."""
-    return all(v - v == 0.0 for v in values)
 
 
 class ModelDynamics:
@@ -288,10 +283,10 @@ class ModelDynamics:
 
     def is_finite(self) -> bool:
         if not (
-            self.bias - self.bias == 0.0
-            and _all_finite(self.ar)
-            and _all_finite(self.outputs)
-            and _all_finite(self.inputs)
+            finite(self.bias)
+            and all_finite(self.ar)
+            and all_finite(self.outputs)
+            and all_finite(self.inputs)
         ):
             return False
-        return all(_all_finite(poly) for poly in self.lag_polys)
+        return all(all_finite(poly) for poly in self.lag_polys)
