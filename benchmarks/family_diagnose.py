@@ -13,10 +13,15 @@ a step the excess accrues").
 
     python benchmarks/family_diagnose.py --seeds 10 11 12 13 14 --plants 50 --save d.pkl
 
-``--dead-zone-removed``: a bound, not a controller. The pipeline runs on each plant with its
-dead zone taken out ahead of it (``DeadZoneRemoved``: what it commands, u′, reaches the
-plant as u′ + δ·sign(u′) and it is told u′ back), scored against reference-only on the
-true plant: what an input map that holds a dead zone exactly could at most give.
+``--no-dead-zone`` runs the pipeline without the input dead zone chosen from the record
+(docs/control.md, "An input dead zone, chosen from the record"), as the figures of "Crossing
+a dead zone" were measured.
+
+``--dead-zone-removed``: a bound, not a controller. The pipeline (choosing no dead zone) runs
+on each plant with its dead zone taken out ahead of it (``DeadZoneRemoved``: what it
+commands, u′, reaches the plant as u′ + δ·sign(u′) and it is told u′ back), scored against
+reference-only on the true plant: what an input map that holds a dead zone exactly could
+at most give.
 """
 
 from __future__ import annotations
@@ -107,6 +112,7 @@ def run(
     plants: int,
     pipeline: PipelineSettings | None,
     dead_zone_removed: bool = False,
+    no_dead_zone: bool = False,
 ) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for seed in seeds:
@@ -120,7 +126,10 @@ def run(
             reference_only = reference_only_controller(specs, schedule)
 
             vehicle = (DeadZoneRemoved if dead_zone_removed else FamilyVehicle)(depth, pitch, seed)
-            inv = inverse_run(settings, vehicle, schedule, pipeline)
+            chosen = pipeline
+            if chosen is None and (dead_zone_removed or no_dead_zone):
+                chosen = PipelineSettings(seed=seed, choose_dead_zone=False)
+            inv = inverse_run(settings, vehicle, schedule, chosen)
             ref = _drive(settings, FamilyVehicle(depth, pitch, seed), schedule, reference_only)
             for i, ch in enumerate(CHANNELS):
                 spec = specs[ch]
@@ -279,13 +288,17 @@ def main() -> None:
     parser.add_argument(
         "--dead-zone-removed",
         action="store_true",
-        help="a bound: the pipeline on each plant with its dead zone taken out ahead of it",
+        help="a bound: the pipeline on each plant with its dead zone taken out ahead of it "
+        "(and no dead zone chosen from the record)",
+    )
+    parser.add_argument(
+        "--no-dead-zone", action="store_true", help="no input dead zone chosen from the record"
     )
     args = parser.parse_args()
     if args.load:
         rows = load_rows(args.load)
     else:
-        rows = run(args.seeds, args.plants, None, args.dead_zone_removed)
+        rows = run(args.seeds, args.plants, None, args.dead_zone_removed, args.no_dead_zone)
     report(rows)
     if args.save:
         with open(args.save, "wb") as f:

@@ -26,11 +26,13 @@ the plant's *true* input delay, which no deployed identifier knows: an upper bou
 choosing the lags from the data could give, not a controller. ``--lag-smoothing-gain K``
 sets the smoothness prior on the input lags (0: none; docs/control.md, "A smoothness prior
 on the input lags"). ``--control NAME=VALUE`` sets any numeric ``ControlSettings`` constant
-(e.g. ``move_weight=0.1``; repeatable) and ``--degree M`` the identifier's input polynomial
-degree. ``--best-of SHIPPED A.pkl B.pkl …`` compares saved runs of the same plants: each
-one's count, its geometric mean ratio and the plants it moved against the first, and how
-many plants stay above the limit when each keeps its lowest ratio over the runs (docs/
-control.md, "One constant at a time, and the best of them plant by plant").
+(e.g. ``move_weight=0.1``; repeatable), ``--degree M`` the identifier's input polynomial
+degree and ``--no-dead-zone`` leaves out the input dead zone's choice (docs/control.md, "An
+input dead zone, chosen from the record"). ``--best-of SHIPPED A.pkl B.pkl …`` compares
+saved runs of the same plants: each one's count, its geometric mean ratio and the plants it
+moved against the first, and how many plants stay above the limit when each keeps its
+lowest ratio over the runs (docs/control.md, "One constant at a time, and the best of them
+plant by plant").
 """
 
 from __future__ import annotations
@@ -196,12 +198,14 @@ def what_if(
     lag_smoothing_gain: float | None = None,
     control_changes: dict[str, float] | None = None,
     degree: int | None = None,
+    dead_zone: bool = True,
 ) -> Callable[[int, FamilyPlantSpec, FamilyPlantSpec], PipelineSettings | None]:
     """The pipeline settings of a what-if run (None: the defaults; a negative ``mean_fit``
     asks for no test against the mean). ``control_changes``: other ``ControlSettings``
-    fields; ``degree``: the identifier's input polynomial degree."""
+    fields; ``degree``: the identifier's input polynomial degree; ``dead_zone``: the input
+    dead zone chosen from the record (the default) or not."""
     chosen = (horizon_fit, nb, nb_from_true_delay, mean_fit, lag_smoothing_gain, degree)
-    if all(v is None for v in chosen) and not control_changes:
+    if all(v is None for v in chosen) and not control_changes and dead_zone:
         return lambda seed, depth, pitch: None
 
     def lags(spec: FamilyPlantSpec) -> dict[str, int]:
@@ -217,7 +221,9 @@ def what_if(
         if mean_fit is not None:
             control = dataclasses.replace(control, mean_fit=None if mean_fit < 0 else mean_fit)
         options = {"depth": lags(depth), "pitch": lags(pitch)}
-        settings = PipelineSettings(seed=seed, control=control, model_options=options)
+        settings = PipelineSettings(
+            seed=seed, control=control, model_options=options, choose_dead_zone=dead_zone
+        )
         if lag_smoothing_gain is not None:
             settings = settings.replace(lag_smoothing_gain=lag_smoothing_gain)
         return settings
@@ -315,6 +321,9 @@ def main() -> None:
     )
     parser.add_argument("--degree", type=int, help="the identifier's input polynomial degree")
     parser.add_argument(
+        "--no-dead-zone", action="store_true", help="no input dead zone chosen from the record"
+    )
+    parser.add_argument(
         "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
     )
     parser.add_argument(
@@ -354,6 +363,7 @@ def main() -> None:
             args.lag_smoothing_gain,
             dict(args.control or []),
             args.degree,
+            not args.no_dead_zone,
         ),
     )
     print(

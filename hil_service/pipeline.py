@@ -25,13 +25,19 @@ from hil_service.umodel import (
     build_model,
     option_names,
 )
+from hil_service.umodel.dead_zone import narrow, widen
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.finite import finite
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.probe import Probe
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
-from hil_service.umodel.structure import VALIDATION_SEGMENT, LagChoice, choose_input_lags
+from hil_service.umodel.structure import (
+    VALIDATION_SEGMENT,
+    LagChoice,
+    choose_dead_zone,
+    choose_input_lags,
+)
 from hil_service.umodel.supervisor import HorizonTest, Supervisor, steady_input
 from protocols.keys import CHANNELS
 from protocols.safety import SAFE_INPUTS
@@ -46,6 +52,9 @@ NOT_FROM_THE_PLAN = frozenset({"-", "safe", "released", "probe"})
 #: needs two thirds of its record to fit and a third to validate on).
 LAG_CHOICE_RECORD = 600
 LAG_CHOICE_MIN = 300
+#: A tripped channel re-arms only on a record whose inputs span at least this share of the
+#: actuator's limit (``_input_moved_since_trip``).
+REARM_INPUT_SPAN = 0.1
 #: An identifier's AR mode of modulus r is unstable for the lags' choice when rᵏ ≥ 2 over
 #: k = ``VALIDATION_SEGMENT`` samples: it doubles within a segment the choice validates on.
 #: A slower one (a fitted integrator, r within 1.4 % of 1) looks like an integrator there.
@@ -156,6 +165,10 @@ class PipelineSettings:
     #: A rebuilt identifier (other input lags, or the prior) is judged on the record it was
     #: rebuilt from; False: on a record started afresh at the rebuild.
     rebuild_keeps_record: bool = True
+    #: With the input lags' choice, an input dead zone is chosen from the record too
+    #: (``umodel.structure.choose_dead_zone``): the identifier and the plan then see the
+    #: input beyond it, and commands step over it (docs/control.md).
+    choose_dead_zone: bool = True
 
     def __post_init__(self) -> None:
         gain = self.lag_smoothing_gain
@@ -226,6 +239,8 @@ class PipelineSettings:
         data.setdefault("lag_smoothing_gain", 0.0)
         # ... and before a rebuilt identifier was judged on its record.
         data.setdefault("rebuild_keeps_record", False)
+        # ... and before an input dead zone was chosen with the lags.
+        data.setdefault("choose_dead_zone", False)
         control = ControlSettings.from_json(dict(data.pop("control", {})))
         options = data.get("model_options")
         if options:
@@ -340,7 +355,12 @@ class ChannelPipeline:
         assert isinstance(model, PredictiveModel)  # U_MODELS are the U-models
         self.model: PredictiveModel = model
         self._seed = seed
+        self._phase = phase
         self._options = options
+        #: The input dead zone's half-width chosen from the record (0: none). The
+        #: identifier, the horizon test, the supervisor and the plan see every input beyond
+        #: it (``narrow``); the commands sent step over it (``widen``).
+        self.dead_zone = 0.0
         #: With ``choose_input_lags``, the dynamic model's input lags are chosen from the
         #: first ``LAG_CHOICE_RECORD`` consecutive samples unless the options give them.
         self._lags_pending = bool(settings.choose_input_lags) and "nb" not in options
@@ -408,6 +428,9 @@ class ChannelPipeline:
         self.safe_u = 0.0
         self.restarts = 0
         self._since_trip = 0
+        #: Samples from the trip until the input has reached the safe input at the rate
+        #: limit: the move there is the trip's, not evidence of the input's effect.
+        self._trip_ramp = 0
         self._sup_run: ModelDynamics | None = None
         # The neutral input's counterfactual: two frozen copies from the same measured
         # history, one fed the applied inputs, one the neutral input (reached at the rate
@@ -449,6 +472,7 @@ class ChannelPipeline:
         ``sampled``: the sample comes from an asynchronous sampler (a periodic profile), the
         only source whose outputs can be a reading served twice; a lockstep sample is fresh
         by construction, and its repeated output a real one."""
+        u_now = self.narrow(u_now)
         if not follows_previous and self._bridge(missing, u_now):
             follows_previous = True
             sampled = False  # the output two ticks apart from the last one is not a repeat
@@ -551,8 +575,58 @@ class ChannelPipeline:
         self.lag_choice = choice
         if choice is None:
             return
+        width = 0.0
+        if self.settings.choose_dead_zone and self.dead_zone == 0.0:
+            width, fits = choose_dead_zone(
+                outputs, inputs, float(self._options["u_scale"]), choice.lags, runs=runs
+            )
+            choice.dead_zone, choice.dead_zone_fits = width, fits
+        smoothing = choice.smoothing
+        options, model = self._structure(choice, outputs, inputs, runs, width)
+        if model is not None and width > 0.0 and slowest_mode(model.dynamics().ar) >= UNSTABLE_MODE:
+            # Rebuilt beyond the zone, the identifier's AR part is unstable and fewer output
+            # lags do not take that out: its free runs grow without bound, so no model
+            # qualifies. The structure without the zone instead.
+            choice.reject_dead_zone(smoothing)
+            width = 0.0
+            options, model = self._structure(choice, outputs, inputs, runs, 0.0)
+        if model is None:
+            return
+        if width > 0.0:
+            self._take_dead_zone(width)
+        self._options = options
+        self.model = model
+        self._input_lags = choice.lags
+        self.dynamics = model.dynamics()
+        self._free_run, self._free_run_left = None, 0
+        self._sup_run = None
+        self._alt_run = None
+        self.controller.reset()
+        if self.active:
+            self.deactivate()
+        # Judged again before it may command: on the record it was rebuilt from, as the
+        # channel's own model is judged on the record it learnt from.
+        self.disqualify(keep_record=self.settings.rebuild_keeps_record)
+
+    def _structure(
+        self,
+        choice: LagChoice,
+        outputs: list[float],
+        inputs: list[float],
+        runs: list[int],
+        width: float,
+    ) -> tuple[dict[str, Any], PredictiveModel | None]:
+        """The identifier's options for ``choice``'s lags on the inputs beyond a dead zone
+        of half-width ``width``, and the identifier rebuilt with them from the record
+        (None: the channel's own stands)."""
+        if width > 0.0:
+            inputs = [narrow(u, width) for u in inputs]
         plain = {**self._options, "nb": choice.lags, "lag_smoothing": 0.0}
-        unchanged = choice.lags == self._input_lags and not self._options.get("lag_smoothing")
+        unchanged = (
+            choice.lags == self._input_lags
+            and not self._options.get("lag_smoothing")
+            and width == 0.0
+        )
         if unchanged and self.active and choice.smoothing > 0.0:
             # Commanding on a standing verdict, with the lags chosen: the prior alone does
             # not stop it. A rebuilt identifier would be judged on a record the loop has
@@ -574,21 +648,31 @@ class ChannelPipeline:
                 choice.reject_smoothing()
             else:
                 options, model = smoothed, smooth
-        if model is None:
-            return
-        self._options = options
-        self.model = model
-        self._input_lags = choice.lags
-        self.dynamics = model.dynamics()
-        self._free_run, self._free_run_left = None, 0
-        self._sup_run = None
-        self._alt_run = None
-        self.controller.reset()
-        if self.active:
-            self.deactivate()
-        # Judged again before it may command: on the record it was rebuilt from, as the
-        # channel's own model is judged on the record it learnt from.
-        self.disqualify(keep_record=self.settings.rebuild_keeps_record)
+        return options, model
+
+    def _take_dead_zone(self, width: float) -> None:
+        """From now on the channel sees inputs beyond a dead zone of half-width ``width``:
+        its record and its last input are narrowed, and the plan's inputs range over what
+        is left of the actuator beyond the zone."""
+        self.dead_zone = width
+        self.horizon_test.narrow_inputs(width)
+        if self.u_prev is not None:
+            self.u_prev = self.narrow(self.u_prev)
+        self.last_command = self.narrow(self.last_command)
+        control = self.settings.control
+        limit = control.u_limit - width
+        self.controller = PredictiveInverse(
+            -limit, limit, control.rate_limit, control.predictive(), self._phase
+        )
+        self.shaper = CommandShaper(-limit, limit, control.rate_limit)
+
+    def narrow(self, u: float) -> float:
+        """An input as the channel sees it: its part beyond the dead zone."""
+        return narrow(u, self.dead_zone)
+
+    def widen(self, v: float) -> float:
+        """The input to command for ``v`` beyond the dead zone."""
+        return widen(v, self.dead_zone)
 
     def _fewer_output_lags(
         self,
@@ -851,8 +935,10 @@ class ChannelPipeline:
                     f"{self.supervisor.strikes} times, off until control is re-enabled "
                     f"({self.channel})"
                 )
-            if self._since_trip < self.supervisor.holdoff(horizon) or not (
-                self._horizon_passes(horizon)
+            if (
+                self._since_trip < self.supervisor.holdoff(horizon)
+                or not self._input_moved_since_trip()
+                or not self._horizon_passes(horizon)
             ):
                 return f"supervisor: {self.supervisor.reason} ({self.channel})"
             self.tripped = False
@@ -868,6 +954,16 @@ class ChannelPipeline:
                 return f"model does not predict over the horizon ({self._horizon_verdict()})"
             self.qualified = self.ever_qualified = True
         return ""
+
+    def _input_moved_since_trip(self) -> bool:
+        """The record since the input reached its safe input after the trip holds inputs
+        that moved by at least ``REARM_INPUT_SPAN`` of the actuator's limit. At a held safe
+        input the record shows the output's own dynamics and disturbance and nothing of
+        the input's effect, so a model passing the horizon test on it says nothing about
+        the response the plan relies on."""
+        since = self._since_trip - self._trip_ramp
+        span = self.horizon_test.input_span(since)
+        return span >= REARM_INPUT_SPAN * self.settings.control.u_limit
 
     def _horizon_verdict(self) -> str:
         """The horizon test's last figures against what it needs, for ``health``."""
@@ -937,6 +1033,7 @@ class ChannelPipeline:
         """The supervisor's verdict on this commanded sample ("" or the trip's reason)."""
         if not self.active:
             return ""
+        u_applied = self.narrow(u_applied)
         y = self._y_seen
         pred = self._sup_pred
         error = y - setpoint
@@ -1007,7 +1104,13 @@ class ChannelPipeline:
         good = self.supervisor.good_u if control.safe_input == "hold" else 0.0  # release: 0
         if not finite(good):
             good = u_applied if finite(u_applied) else 0.0
-        self.safe_u = min(control.u_limit, max(-control.u_limit, good))
+        limit = control.u_limit - self.dead_zone
+        self.safe_u = min(limit, max(-limit, good))
+        applied = u_applied if finite(u_applied) else self.safe_u
+        travel = abs(applied - self.safe_u) + 2.0 * self.dead_zone
+        self._trip_ramp = (
+            math.ceil(travel / control.rate_limit) + 2 if control.rate_limit > 0 else 2
+        )
         self.events.append(self._event("trip", reason))
 
     @property
@@ -1021,14 +1124,14 @@ class ChannelPipeline:
         when the safe input is "release"."""
         if self.releases:
             return math.nan
-        return self.shaper.shape(self.safe_u).u
+        return self.widen(self.shaper.shape(self.safe_u).u)
 
     def _event(self, kind: str, reason: str, holdoff: int | None = None) -> dict[str, Any]:
         return {
             "channel": self.channel,
             "event": kind,
             "reason": reason,
-            "safe_input": self.safe_u if kind == "trip" and not self.releases else None,
+            "safe_input": self.widen(self.safe_u) if kind == "trip" and not self.releases else None,
             "safe_mode": self.settings.control.safe_input,
             "trips": self.supervisor.trips,
             "rearms": self.supervisor.rearms,
@@ -1042,6 +1145,7 @@ class ChannelPipeline:
     def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
         """One predictive-inverse step: (command, path, saturated); path is the inverse
         step's ("newton", "fallback") or "hold" when no plan could be made."""
+        u_applied = self.narrow(u_applied)
         if not self.active:
             self.probe.stop()
             self.shaper.reset(u_applied)
@@ -1062,24 +1166,32 @@ class ChannelPipeline:
         u, path, saturated = self.controller.decide(dynamics, u_applied, setpoint)
         shaped = self.shaper.shape(u)
         self._last_saturated = saturated or shaped.saturated
-        return shaped.u, path, saturated or shaped.saturated or shaped.rate_limited
+        return self.widen(shaped.u), path, saturated or shaped.saturated or shaped.rate_limited
 
     def may_probe(self) -> bool:
-        """Asked to command, identified, not tripped, and not qualified by the horizon
-        test: the channel probes if its settings allow it (``ControlSettings.probe``)."""
-        return self.probe.amplitude > 0.0 and not self.tripped and not self.qualified
+        """Asked to command, identified, and not qualified by the horizon test: the channel
+        probes if its settings allow it (``ControlSettings.probe``). A tripped one first
+        waits out its hold-off at the safe input, and does not probe once latched: its
+        probe is what lets it re-arm (``_input_moved_since_trip``)."""
+        if not self.probe.amplitude > 0.0 or self.qualified:
+            return False
+        if not self.tripped:
+            return True
+        holdoff = self.supervisor.holdoff(self.controller.horizon)
+        return self._since_trip >= holdoff and not self.supervisor.latched
 
     def probe_command(self, u_applied: float) -> float:
         """The probing excitation's next input (``umodel.probe``), at the rate limit,
         about the input applied when probing began (kept inside the actuator's range); the
         channel is off its plan meanwhile (``deactivate``), its probe going on."""
         self.deactivate(probing=True)
+        u_applied = self.narrow(u_applied)
         if not self.probe.running:
             held = u_applied if finite(u_applied) else 0.0
             limit = self.settings.control.u_limit - self.probe.amplitude
             self.probe.start(min(limit, max(-limit, held)))
             self.shaper.reset(held)
-        return self.shaper.shape(self.probe.level()).u
+        return self.widen(self.shaper.shape(self.probe.level()).u)
 
     def deactivate(self, probing: bool = False) -> None:
         """Not commanding from the plan; ``probing``: the channel probes instead, and its
@@ -1106,6 +1218,7 @@ class ChannelPipeline:
             "horizon_mean_fit": significant(self.horizon_test.mean_fit),
             "horizon_samples": self.horizon_test.count,
             "input_lags": self._input_lags,
+            "input_dead_zone": self.dead_zone,
             "input_lag_choice": None if self.lag_choice is None else self.lag_choice.as_json(),
             "horizon_qualified": self.qualified,
             "restarts": self.restarts,
@@ -1114,7 +1227,9 @@ class ChannelPipeline:
                 "trips": self.supervisor.trips,
                 "rearms": self.supervisor.rearms,
                 "reason": self.supervisor.reason,
-                "safe_input": self.safe_u if self.tripped and not self.releases else None,
+                "safe_input": self.widen(self.safe_u)
+                if self.tripped and not self.releases
+                else None,
                 "safe_mode": self.settings.control.safe_input,
             },
         }
@@ -1169,7 +1284,8 @@ class VehiclePipeline:
             if command is None:
                 pipeline.last_command = math.nan
             else:
-                pipeline.last_command = command.u_depth if ch == "depth" else command.u_pitch
+                sent = command.u_depth if ch == "depth" else command.u_pitch
+                pipeline.last_command = pipeline.narrow(sent)
         return decision
 
     def _decide(
@@ -1220,8 +1336,12 @@ class VehiclePipeline:
                 if pipeline.releases:
                     paths.append("released")
                     continue
-                values[ch] = pipeline.safe_command()
-                paths.append("safe")
+                if pipeline.may_probe():
+                    values[ch] = pipeline.probe_command(sample.input(ch))
+                    paths.append("probe")
+                else:
+                    values[ch] = pipeline.safe_command()
+                    paths.append("safe")
                 commanded = True
                 continue
             if blocked:

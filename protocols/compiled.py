@@ -39,6 +39,7 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.dynamics",
     "hil_service.umodel.estimate",
     "hil_service.umodel.finite",
+    "hil_service.umodel.dead_zone",
     "hil_service.umodel.guards",
     "hil_service.umodel.horizon",
     "hil_service.umodel.inverse",

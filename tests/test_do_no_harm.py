@@ -20,8 +20,8 @@ CHANGE = 1900  # the plant changes here, 400 samples into control
 SETPOINT = 15.8  # trim 15, 0.8 above
 
 
-def _tripped_loop(change) -> Loop:
-    loop = Loop(spec(), spec(), change=change)
+def _tripped_loop(change, settings: PipelineSettings | None = None) -> Loop:
+    loop = Loop(spec(), spec(), change=change, settings=settings or PipelineSettings())
     loop.run(IDENTIFY, {"depth": None, "pitch": None})
     loop.run(2000, {"depth": SETPOINT, "pitch": None})
     return loop
@@ -98,13 +98,18 @@ def test_the_supervisor_trips_when_an_asynchronous_sampler_repeats_readings(chan
 
 def test_trips_and_rearms_are_rate_limited():
     """After a trip the channel re-arms only once its hold-off has passed and its model
-    passed the horizon test on data after the trip; the hold-off doubles with each."""
-    loop = _tripped_loop(lambda k, u: -u if k >= CHANGE else u)
+    passed the horizon test on data after the trip, in which the input moved (here its
+    profile allows probing: a tripped channel probes once its hold-off has passed); the
+    hold-off doubles with each."""
+    settings = PipelineSettings()
+    probing = settings.replace(control=dataclasses.replace(settings.control, probe=0.25))
+    loop = _tripped_loop(lambda k, u: -u if k >= CHANGE else u, probing)
     loop.run(6000, {"depth": SETPOINT, "pitch": None})
     depth = loop.pipeline.channels["depth"]
     times = [(e["event"], e["time_boot_ms"] // 100) for e in loop.events]  # samples (0.1 s)
     trips = [t for kind, t in times if kind == "trip"]
     assert trips, times
+    assert any(kind == "rearm" for kind, _ in times), times
     for event in loop.events:
         if event["event"] == "rearm":
             t = event["time_boot_ms"] // 100
@@ -122,25 +127,32 @@ def test_trips_and_rearms_are_rate_limited():
         assert not depth.supervisor.latched
 
 
-def test_a_model_that_does_not_predict_over_the_horizon_does_not_command():
+def _issue_vehicle(settings: PipelineSettings) -> Loop:
     """The issue's vehicle: 100 Hz, second order, a dead zone and a cubic pump, a periodic
-    disturbance as large as the control authority. One-step skill is excellent; over the
-    horizon the model is worse than holding the output, and the channel does not command
-    while the horizon test says so (identification goes on, on the vehicle's excitation).
-    When a later model passes it and the loop then does worse than not commanding, the
-    supervisor trips (on this plant, "saturation held against the predicted response",
-    about 1,000 samples after its first command; the neutral-input comparison, whose
-    counterfactual rests on the model's input response, does not see it)."""
+    disturbance as large as the control authority."""
     authority = PumpNonlinearity(dead_zone=0.3, cubic=0.1)(2.0)
 
     def disturbance(k: int) -> float:
         return authority * math.sin(2.0 * math.pi * k / 200)
 
-    loop = Loop(
+    return Loop(
         spec((0.8, 0.8), period=0.01, dead_zone=0.3, cubic=0.1),
         spec(period=0.01),
+        settings=settings,
         disturbance=disturbance,
     )
+
+
+def test_a_model_that_does_not_predict_over_the_horizon_does_not_command():
+    """The issue's vehicle, identified as the issue found it (a cubic input map, no dead
+    zone chosen): one-step skill is excellent; over the horizon the model is worse than
+    holding the output, and the channel does not command while the horizon test says so
+    (identification goes on, on the vehicle's excitation). When a later model passes it
+    and the loop then does worse than not commanding, the supervisor trips (on this plant,
+    "saturation held against the predicted response", about 1,000 samples after its first
+    command; the neutral-input comparison, whose counterfactual rests on the model's input
+    response, does not see it)."""
+    loop = _issue_vehicle(PipelineSettings(choose_dead_zone=False))
     loop.run(IDENTIFY, {"depth": None, "pitch": None})
     depth = loop.pipeline.channels["depth"]
     assert depth.stats.recent_skill() > 0.9  # the one-step skill the issue saw
@@ -156,6 +168,29 @@ def test_a_model_that_does_not_predict_over_the_horizon_does_not_command():
     trips = [e for e in loop.events if e["event"] == "trip"]
     assert trips, "the supervisor never tripped"
     assert trips[0]["time_boot_ms"] // 10 - first <= 2 * depth.supervisor.compare_window
+    enabled_error = abs(loop.y[IDENTIFY] - 15.5)
+    end_error = sum(abs(y - 15.5) for y in loop.y[-300:]) / 300
+    assert end_error <= 1.2 * enabled_error, (end_error, enabled_error)
+
+
+def test_the_issue_vehicle_with_its_dead_zone_found_trips_and_does_not_rearm_at_rest():
+    """By default the dead zone is found (0.3, exactly) and the model with it predicts over
+    the horizon: the channel commands, the loop still does worse than not commanding (the
+    disturbance is as large as the authority), and the supervisor trips. At the neutral
+    input the record since the trip shows no input moving, so the channel does not re-arm
+    on it; the error at the end is no worse than 1.2 × the error at enable."""
+    loop = _issue_vehicle(PipelineSettings())
+    loop.run(IDENTIFY, {"depth": None, "pitch": None})
+    depth = loop.pipeline.channels["depth"]
+    assert depth.dead_zone == pytest.approx(0.3)
+    loop.run(2500, {"depth": 15.5, "pitch": None})
+    first = next(k for k, m in enumerate(loop.modes) if m)
+    trips = [e for e in loop.events if e["event"] == "trip"]
+    assert trips, "the supervisor never tripped"
+    assert trips[0]["time_boot_ms"] // 10 - first <= 2 * depth.supervisor.compare_window
+    assert not [e for e in loop.events if e["event"] == "rearm"], loop.events
+    trip = trips[0]["time_boot_ms"] // 10
+    assert all(m.startswith("safe") for m in loop.modes[trip + 1 :])
     enabled_error = abs(loop.y[IDENTIFY] - 15.5)
     end_error = sum(abs(y - 15.5) for y in loop.y[-300:]) / 300
     assert end_error <= 1.2 * enabled_error, (end_error, enabled_error)

@@ -33,14 +33,24 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .dead_zone import narrow
 from .lag_prior import NOISE_FLOOR
 
-__all__ = ["INPUT_LAG_CANDIDATES", "VALIDATION_SEGMENT", "LagChoice", "choose_input_lags"]
+__all__ = [
+    "DEAD_ZONE_CANDIDATES", "INPUT_LAG_CANDIDATES", "VALIDATION_SEGMENT", "LagChoice",
+    "choose_dead_zone", "choose_input_lags",
+]  # fmt: skip
 
 #: The input lags tried: the model's default and enough for the delays up to 6 samples.
 INPUT_LAG_CANDIDATES: tuple[int, ...] = (4, 6, 8)
 #: Samples of each free run that a candidate's validation fit is scored over.
 VALIDATION_SEGMENT = 50
+#: The input dead zones tried (half-widths, in shares of the input scale): none, and up to
+#: 17.5 % of it in steps of 2.5 %.
+DEAD_ZONE_CANDIDATES: tuple[float, ...] = (0.0, 0.025, 0.05, 0.075, 0.1, 0.125, 0.15, 0.175)
+#: The narrowest dead zone whose validation fit is within this of the best is taken: on a
+#: plant without one, a record's noise lets a wider candidate fit a little better by chance.
+DEAD_ZONE_MARGIN = 0.005
 
 
 class LagChoice:
@@ -48,8 +58,8 @@ class LagChoice:
     smoothness prior's weight given with them."""
 
     __slots__ = (
-        "fits", "lags", "output_lags", "residual", "smoothing", "smoothing_rejected",
-        "smoothing_withheld",
+        "dead_zone", "dead_zone_fits", "dead_zone_rejected", "fits", "lags", "output_lags",
+        "residual", "smoothing", "smoothing_rejected", "smoothing_withheld",
     )  # fmt: skip
 
     def __init__(
@@ -68,11 +78,26 @@ class LagChoice:
         #: Fewer output lags than the model's own, taken because its AR part was unstable
         #: (the pipeline's ``_fewer_output_lags``); None: the model's own.
         self.output_lags: int | None = None
+        #: The input dead zone's half-width, in the input's units (``choose_dead_zone``).
+        self.dead_zone = 0.0
+        self.dead_zone_fits: dict[float, float] = {}
+        #: A dead zone was found, but the identifier rebuilt beyond it was unstable.
+        self.dead_zone_rejected = False
 
     def reject_smoothing(self) -> None:
         """The identifier keeps no smoothness prior (``lag_prior.adds_a_slower_mode``)."""
         self.smoothing = 0.0
         self.smoothing_rejected = True
+
+    def reject_dead_zone(self, smoothing: float) -> None:
+        """The identifier rebuilt beyond the dead zone found was unstable (the pipeline's
+        ``_choose_input_lags``): none is taken, and the lags are taken again without it,
+        with the prior's weight ``smoothing`` as first given."""
+        self.dead_zone = 0.0
+        self.dead_zone_rejected = True
+        self.smoothing = smoothing
+        self.smoothing_rejected = self.smoothing_withheld = False
+        self.output_lags = None
 
     def withhold_smoothing(self) -> None:
         """The identifier keeps no smoothness prior: it commands with these lags already."""
@@ -90,6 +115,12 @@ class LagChoice:
             "lag_smoothing": round(self.smoothing, 6),
             "lag_smoothing_rejected": self.smoothing_rejected,
             "lag_smoothing_withheld": self.smoothing_withheld,
+            "dead_zone": self.dead_zone,
+            "dead_zone_rejected": self.dead_zone_rejected,
+            "dead_zone_fits": {
+                f"{k:g}": round(v, 4) if math.isfinite(v) else None
+                for k, v in self.dead_zone_fits.items()
+            },
         }
 
 
@@ -204,3 +235,61 @@ def choose_input_lags(
     residual = residuals[lags]
     weight = smoothing_gain * residual if residual >= NOISE_FLOOR else 0.0
     return LagChoice(lags, fits, weight, residual)
+
+
+def choose_dead_zone(
+    outputs: Sequence[float],
+    inputs: Sequence[float],
+    u_scale: float,
+    lags: int,
+    na: int = 4,
+    degree: int = 3,
+    candidates: Sequence[float] = DEAD_ZONE_CANDIDATES,
+    segment: int = VALIDATION_SEGMENT,
+    margin: float = DEAD_ZONE_MARGIN,
+    qualify: float = 0.5,
+    runs: Sequence[int] | None = None,
+) -> tuple[float, dict[float, float]]:
+    """The input dead zone's half-width (in the input's units) for a record, as
+    ``choose_input_lags`` judges a structure: the same regression with ``lags`` input lags
+    on the input beyond each candidate dead zone, fitted on the first two thirds and run
+    free over the last third. The narrowest candidate within ``margin`` of the best fit,
+    when that reaches ``qualify``; else 0 (so no dead zone whenever none fits within
+    ``margin`` of the best). Also each candidate's fit, by its share of ``u_scale`` (empty
+    when the record cannot be judged).
+
+    A polynomial input map gives the plant a slope across a dead zone where it has none,
+    so a loop settles inside the zone and creeps across it (docs/control.md, "An input
+    dead zone, chosen from the record"); taken out ahead of the model, the zone is
+    stepped over."""
+    y = np.asarray(outputs, dtype=float)
+    u = np.asarray(inputs, dtype=float)
+    if y.size != u.size or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+        return 0.0, {}
+    run = np.arange(y.size) if runs is None else np.asarray(runs, dtype=int)
+    if run.size != y.size or not u_scale > 0.0:
+        return 0.0, {}
+    first = max(na, lags - 1)
+    split = (2 * y.size) // 3
+    rows = np.asarray([t for t in range(first, split) if run[t] >= first], dtype=int)
+    if rows.size < 4 * (degree * lags + 1 + na) or y.size - split < 2 * segment:
+        return 0.0, {}
+    spread = float(np.std(y))
+    if not spread > 0.0:
+        return 0.0, {}
+    y = (y - y[0]) / spread
+    target = y[rows]
+    fits: dict[float, float] = {}
+    for share in candidates:
+        width = share * u_scale
+        v = np.asarray([narrow(float(x), width) for x in u]) / u_scale
+        design = _design(y, v, rows, na, lags, degree)
+        theta, *_ = np.linalg.lstsq(design, target, rcond=None)
+        if not np.all(np.isfinite(theta)):
+            return 0.0, {}
+        fits[share] = _validation_fit(theta, y, v, split, na, lags, degree, segment, run, first)
+    best = max(fits.values())
+    if not (math.isfinite(best) and best >= qualify):
+        return 0.0, fits
+    share = min(share for share, fit in fits.items() if fit >= best - margin)
+    return share * u_scale, fits

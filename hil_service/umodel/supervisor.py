@@ -62,6 +62,7 @@ import math
 from collections import deque
 from itertools import islice
 
+from .dead_zone import narrow
 from .dynamics import ModelDynamics
 from .finite import finite
 
@@ -210,6 +211,21 @@ class HorizonTest:
         """Per recorded sample, oldest first: how many samples before it follow on (its
         index, unless ``restart_run`` was called since the record began)."""
         return list(self._runs)
+
+    def input_span(self, last: int) -> float:
+        """How far the last ``last`` recorded inputs range (max − min; 0 for none)."""
+        n = min(last, len(self._inputs))
+        if n <= 0:
+            return 0.0
+        recent = list(islice(self._inputs, len(self._inputs) - n, None))
+        return max(recent) - min(recent)
+
+    def narrow_inputs(self, width: float) -> None:
+        """The record's inputs beyond a dead zone of half-width ``width``, as the
+        identifier sees them from now on (``ChannelPipeline``'s dead zone)."""
+        narrowed = [narrow(u, width) for u in self._inputs]
+        self._inputs.clear()
+        self._inputs.extend(narrowed)
 
     def record(self, y: float, u_prev: float) -> None:
         """One consecutive sample: ``y`` and the input applied one step before it."""
