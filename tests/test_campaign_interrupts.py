@@ -45,8 +45,10 @@ def start_campaign(out: Path, *args: str, ignore_sigint: bool = False) -> subpro
 
     def setup() -> None:
         set_parent_death_signal()
-        if ignore_sigint:  # as a shell starts a background job
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # As a shell starts a background job (SIGINT ignored) or a foreground one (its
+        # default), whatever this test process inherited: a suite started in the
+        # background by a non-interactive shell ignores SIGINT, and so would the campaign.
+        signal.signal(signal.SIGINT, signal.SIG_IGN if ignore_sigint else signal.SIG_DFL)
 
     return subprocess.Popen(
         [sys.executable, "-m", "hil_service.cli", "campaign", "-o", str(out), *SMALL, *args],
