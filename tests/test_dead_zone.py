@@ -130,6 +130,21 @@ def test_a_loop_steps_over_the_dead_zone_it_found(monkeypatch: pytest.MonkeyPatc
     assert sent and all(u == 0.0 or abs(u) > width for u in sent)
 
 
+def test_serve_chooses_a_dead_zone_unless_told_not_to_and_stores_the_setting():
+    import argparse
+
+    from hil_service.cli.serve import DEFAULT_PROFILE, add_arguments, settings_from_args
+    from protocols.profiles import load_profile
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    profile = load_profile(DEFAULT_PROFILE)
+    assert settings_from_args(parser.parse_args([]), profile).choose_dead_zone is True
+    off = settings_from_args(parser.parse_args(["--no-input-dead-zone"]), profile)
+    assert off.choose_dead_zone is False
+    assert PipelineSettings.from_json(off.to_json()).choose_dead_zone is False
+
+
 def test_a_log_recorded_before_the_choice_replays_without_it():
     stored = PipelineSettings().to_json()
     assert stored["choose_dead_zone"] is True

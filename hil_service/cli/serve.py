@@ -189,6 +189,12 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         "weight is K times the record's one-step residual share (default 100; 0: none; "
         "docs/control.md)",
     )
+    group.add_argument(
+        "--no-input-dead-zone",
+        action="store_true",
+        help="with --input-lags auto, choose no input dead zone from the record (by default "
+        "each channel chooses one with its lags; docs/control.md)",
+    )
 
 
 def _add_log_arguments(parser: argparse.ArgumentParser) -> None:
@@ -276,6 +282,8 @@ def settings_from_args(args: argparse.Namespace, profile: Profile) -> PipelineSe
         settings = settings.replace(bridge_gap=args.bridge_gap)
     if args.lag_smoothing_gain is not None:
         settings = settings.replace(lag_smoothing_gain=args.lag_smoothing_gain)
+    if args.no_input_dead_zone:
+        settings = settings.replace(choose_dead_zone=False)
     if args.max_ballast_rate is not None:
         if not args.max_ballast_rate > 0:
             raise ValueError("--max-ballast-rate must be positive")
