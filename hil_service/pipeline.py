@@ -1108,9 +1108,7 @@ class ChannelPipeline:
         self.safe_u = min(limit, max(-limit, good))
         applied = u_applied if finite(u_applied) else self.safe_u
         travel = abs(applied - self.safe_u) + 2.0 * self.dead_zone
-        self._trip_ramp = (
-            math.ceil(travel / control.rate_limit) + 2 if control.rate_limit > 0 else 2
-        )
+        self._trip_ramp = math.ceil(travel / control.rate_limit) + 2
         self.events.append(self._event("trip", reason))
 
     @property

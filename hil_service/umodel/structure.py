@@ -1,4 +1,5 @@
-"""How many input lags the dynamic U-model needs, chosen from the identification record.
+"""How many input lags the dynamic U-model needs, and the input dead zone ahead of it,
+chosen from the identification record.
 
 A plant whose input acts after a delay of d samples first responds at lag d + 1; the dynamic
 U-model's default four input lags cannot hold a delay of 4 or more, and leave one lag of the
@@ -180,6 +181,35 @@ def _validation_fit(
     return 1.0 - math.sqrt(error / hold)
 
 
+def _record(
+    outputs: Sequence[float],
+    u: np.ndarray,
+    runs: Sequence[int] | None,
+    first: int,
+    parameters: int,
+    segment: int,
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray] | None:
+    """A record made ready for a structure's fit and validation: the outputs normalised
+    (the regression is the same in any output unit and offset), the runs, where the
+    validation third starts, and the regression rows of the first two thirds (from
+    ``first`` on, none reaching across a restart). None when the record is not finite, too
+    short for ``parameters`` (four rows each) and two validation segments, or constant."""
+    y = np.asarray(outputs, dtype=float)
+    if y.size != u.size or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+        return None
+    run = np.arange(y.size) if runs is None else np.asarray(runs, dtype=int)
+    if run.size != y.size:
+        return None
+    split = (2 * y.size) // 3
+    rows = np.asarray([t for t in range(first, split) if run[t] >= first], dtype=int)
+    if rows.size < 4 * parameters or y.size - split < 2 * segment:
+        return None
+    spread = float(np.std(y))
+    if not spread > 0.0:
+        return None
+    return (y - y[0]) / spread, run, split, rows
+
+
 def choose_input_lags(
     outputs: Sequence[float],
     inputs: Sequence[float],
@@ -198,24 +228,12 @@ def choose_input_lags(
     when given, counts the samples before t that follow on (``HorizonTest.runs``): no
     regression row or validation segment reaches across a restart. None when the record
     is too short for the largest candidate or a fit is not finite."""
-    y = np.asarray(outputs, dtype=float)
     u = np.asarray(inputs, dtype=float) / u_scale
-    if y.size != u.size or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
-        return None
-    run = np.arange(y.size) if runs is None else np.asarray(runs, dtype=int)
-    if run.size != y.size:
-        return None
     first = max(na, max(candidates) - 1)
-    split = (2 * y.size) // 3
-    rows = [t for t in range(first, split) if run[t] >= first]
-    most = degree * max(candidates) + 1 + na
-    if len(rows) < 4 * most or y.size - split < 2 * segment:
+    record = _record(outputs, u, runs, first, degree * max(candidates) + 1 + na, segment)
+    if record is None:
         return None
-    spread = float(np.std(y))
-    if not spread > 0.0:
-        return None
-    y = (y - y[0]) / spread  # the regression is the same in any output unit and offset
-    row_index = np.asarray(rows, dtype=int)
+    y, run, split, row_index = record
     target = y[row_index]
     spread_rows = float(np.var(target))
     fits: dict[int, float] = {}
@@ -262,22 +280,12 @@ def choose_dead_zone(
     so a loop settles inside the zone and creeps across it (docs/control.md, "An input
     dead zone, chosen from the record"); taken out ahead of the model, the zone is
     stepped over."""
-    y = np.asarray(outputs, dtype=float)
     u = np.asarray(inputs, dtype=float)
-    if y.size != u.size or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
-        return 0.0, {}
-    run = np.arange(y.size) if runs is None else np.asarray(runs, dtype=int)
-    if run.size != y.size or not u_scale > 0.0:
-        return 0.0, {}
     first = max(na, lags - 1)
-    split = (2 * y.size) // 3
-    rows = np.asarray([t for t in range(first, split) if run[t] >= first], dtype=int)
-    if rows.size < 4 * (degree * lags + 1 + na) or y.size - split < 2 * segment:
+    record = _record(outputs, u, runs, first, degree * lags + 1 + na, segment)
+    if record is None or not u_scale > 0.0:
         return 0.0, {}
-    spread = float(np.std(y))
-    if not spread > 0.0:
-        return 0.0, {}
-    y = (y - y[0]) / spread
+    y, run, split, rows = record
     target = y[rows]
     fits: dict[float, float] = {}
     for share in candidates:
