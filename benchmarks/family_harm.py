@@ -45,18 +45,22 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 
-import numpy as np
+from hil_service.process_tuning import single_threaded_blas
 
-from hil_service.experiment.closed_loop import ClosedLoopSettings
-from hil_service.experiment.family_loop import (
+single_threaded_blas()  # as every glider-hil command runs (before numpy loads)
+
+import numpy as np  # noqa: E402
+
+from hil_service.experiment.closed_loop import ClosedLoopSettings  # noqa: E402
+from hil_service.experiment.family_loop import (  # noqa: E402
     HARM_LIMIT,
     PHASES,
     RELEASED,
     FamilyRow,
     run_vehicle,
 )
-from hil_service.pipeline import ControlSettings, PipelineSettings
-from plant_emulator.family import FamilyPlantSpec, draw_family
+from hil_service.pipeline import ControlSettings, PipelineSettings  # noqa: E402
+from plant_emulator.family import FamilyPlantSpec, draw_family  # noqa: E402
 
 
 def features(row: FamilyRow) -> list[str]:

@@ -10,7 +10,9 @@ clock, ``tick()`` after every datagram as ``serve``'s loop calls it; nothing els
 runs meanwhile. After ``--from-step`` steps (past the burn-in) it measures:
 
 * CPU per sample: the main thread's and the whole process's (Zenoh's threads included);
-* the wall time of one sample's handling: p50, p99, max;
+* the wall time of one sample's handling: p50, p99, max; and of one step's, summed over
+  the vehicles (median, max, which step, how many took over 1 s): at 1 Hz a step that
+  takes longer than a second is a stall the wire's queue must absorb;
 * Python's garbage collections over the same samples (``gc.callbacks``): how many per
   generation, their total and their longest pause; then one full collection: its pause
   and the unreachable objects it found, the reference cycles of the whole run.
@@ -181,6 +183,7 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
     collections = Collections()
     gc.callbacks.append(collections)
     handling: list[float] = []
+    steps: dict[int, float] = {}  # a step's handling summed over its vehicles
     profile = None
     cpu = process = 0.0
     for index, (link, _wire_id, datagrams) in enumerate(frames):
@@ -200,6 +203,7 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
             service.tick()
         if collections.on:
             handling.append(time.perf_counter() - start)
+            steps[step] = steps.get(step, 0.0) + handling[-1]
     cpu, process = time.thread_time() - cpu, time.process_time() - process
     if profile is not None:
         profile.disable()
@@ -212,6 +216,8 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
     full_collection_s = time.perf_counter() - start
     handling.sort()
     samples = len(handling)
+    step_sums = sorted(steps.values())
+    longest_step = max(steps, key=steps.__getitem__)
     print(
         json.dumps(
             {
@@ -224,6 +230,12 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
                     "p50": round(1000 * handling[samples // 2], 3),
                     "p99": round(1000 * handling[int(0.99 * samples)], 3),
                     "max": round(1000 * handling[-1], 3),
+                },
+                "step_handling_s": {
+                    "median": round(step_sums[len(step_sums) // 2], 3),
+                    "max": round(step_sums[-1], 3),
+                    "longest_step": longest_step,
+                    "steps_over_1s": sum(1 for v in step_sums if v > 1.0),
                 },
                 "gc": {
                     "collections_per_generation": collections.counts,

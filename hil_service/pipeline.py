@@ -52,6 +52,11 @@ NOT_FROM_THE_PLAN = frozenset({"-", "safe", "released", "probe"})
 #: needs two thirds of its record to fit and a third to validate on).
 LAG_CHOICE_RECORD = 600
 LAG_CHOICE_MIN = 300
+#: A vehicle of phase p makes its choices ``p mod LAG_CHOICE_SPREAD`` samples later. A
+#: service gives its vehicles phases in the order they appear, so a fleet that started
+#: together (a service restart) spreads its choices, about 10 ms of CPU a channel, over
+#: this many samples instead of stalling every vehicle's sample on one (docs/fleet.md).
+LAG_CHOICE_SPREAD = 100
 #: A tripped channel re-arms only on a record whose inputs span at least this share of the
 #: actuator's limit (``_input_moved_since_trip``).
 REARM_INPUT_SPAN = 0.1
@@ -368,6 +373,7 @@ class ChannelPipeline:
         #: unless the options give them.
         self._output_lags_given = "na" in options
         self._lags_tried = False  # the choice was tried on a shorter record at the first ask
+        self._choice_delay = phase % LAG_CHOICE_SPREAD
         config = model.config()
         self._model_name: str = config["name"]  # for health, without a config() each time
         self._input_lags: int | None = config.get("nb")
@@ -519,7 +525,7 @@ class ChannelPipeline:
         estimate = self.model.step(u_prev, y)
         self.horizon_test.record(y, u_prev)
         self._learnt_last = True
-        if self._lags_pending and self.horizon_test.count >= LAG_CHOICE_RECORD:
+        if self._lags_pending and self.horizon_test.count >= LAG_CHOICE_RECORD + self._choice_delay:
             self._choose_input_lags()
         baseline = self.persistence.step(u_prev, y)
         self.u_prev = u_now
@@ -917,7 +923,7 @@ class ChannelPipeline:
             self._lags_pending
             and not self._lags_tried
             and not self.active
-            and self.horizon_test.count >= LAG_CHOICE_MIN
+            and self.horizon_test.count >= LAG_CHOICE_MIN + self._choice_delay
         ):
             # Asked to command: the input lags are chosen now, before the first command,
             # rather than under way.

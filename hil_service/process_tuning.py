@@ -1,7 +1,8 @@
 """Interpreter settings for a process that runs the per-sample path for a long time.
 
 ``serve`` and ``replay`` call :func:`tune_for_service` once, after start-up; the benchmarks
-call it too, so that they measure the path as those commands run it.
+call it too, so that they measure the path as those commands run it. Every ``glider-hil``
+command calls :func:`single_threaded_blas` before anything loads numpy.
 
 * Switch interval 0.5 ms: the recorder's thread must not hold the GIL for the default
   5 ms while a telemetry datagram waits, so a short interval bounds the control path's wait.
@@ -30,6 +31,9 @@ import sys
 import threading
 from collections.abc import Callable
 
+#: The variables through which OpenBLAS (numpy's and scipy's wheels) and MKL take their
+#: thread count, once, when they load.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 SWITCH_INTERVAL_S = 0.0005
 COLLECTION_PERIOD_S = 3600.0
 
@@ -67,6 +71,20 @@ def tune_for_service() -> None:
     gc.disable()
     if _collector is None:
         _collector = Collector(COLLECTION_PERIOD_S)
+
+
+def single_threaded_blas() -> None:
+    """BLAS and LAPACK on the calling thread, unless the user set a thread count: in effect
+    for the libraries loaded after the call, and for child processes.
+
+    Their matrices here are small (a structure choice's least squares, 400 × 29; the
+    oracle's bases), where a thread pool only adds its hand-offs, and its threads spin on
+    the cores the service, the emulator and a campaign's missions need: on a 2-core machine
+    with both cores busy, one channel's choice took 84 ms in the median and 542 ms at most
+    with numpy's default of a thread per core, 16 and 33 ms on one thread
+    (``benchmarks/choice_cost.py``, docs/benchmarks.md)."""
+    for name in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
 
 
 def one_cpu_child() -> tuple[int, Callable[[], None]]:

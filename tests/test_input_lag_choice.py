@@ -3,11 +3,18 @@ validation, and the pipeline that rebuilds its identifier with them."""
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 import pytest
 
-from hil_service.umodel.structure import _design, _regressors, choose_input_lags
+from hil_service.experiment import closed_loop
+from hil_service.experiment.closed_loop import ClosedLoopSettings, setpoint_schedule
+from hil_service.pipeline import LAG_CHOICE_SPREAD, PipelineSettings, VehiclePipeline
+from hil_service.umodel.structure import _design, _validation_fit, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest
+from plant_emulator.family import FamilyVehicle, draw_vehicle
 
 
 def _record(delay: int, noise: float = 0.0, n: int = 900, seed: int = 0):
@@ -102,16 +109,88 @@ def test_no_regression_reaches_across_a_reading_served_early():
     assert choose_input_lags(ys, us, u_scale=2.0, runs=runs) is None
 
 
+def _free_runs_one_sample_at_a_time(
+    theta: np.ndarray, y: np.ndarray, u: np.ndarray, start: int, lags: int, segment: int,
+    runs: np.ndarray, first: int,
+) -> float:  # fmt: skip
+    """The validation fit written the plain way: each segment's free run one sample at a
+    time, its regressors from a list of measured then predicted outputs."""
+    error = hold = 0.0
+    s = start
+    while s + segment <= y.size:
+        if runs[s + segment - 1] < segment - 1 + first:
+            s += 1
+            continue
+        run = [float(v) for v in y[: s + 1]]
+        for t in range(s + 1, s + segment):
+            row = [1.0] + [run[t - i] for i in range(1, 5)]
+            for lag in range(1, lags + 1):
+                x = float(u[t - lag + 1])
+                row += [x, x * x, x * x * x]
+            value = float(np.dot(theta, row))
+            if not (math.isfinite(value) and abs(value) < 1e100):
+                return -math.inf
+            run.append(value)
+            error += (float(y[t]) - value) ** 2
+            hold += (float(y[t]) - float(y[s])) ** 2
+        s += segment
+    return 1.0 - math.sqrt(error / hold) if hold > 0.0 else -math.inf
+
+
 @pytest.mark.parametrize("lags", [4, 6, 8])
-def test_the_free_runs_regressors_are_the_fits_rows_to_the_bit(lags: int) -> None:
-    # A candidate is fitted on rows built a column at a time and validated by free runs
-    # whose regressors are built a sample at a time: the two must be one regression, or
-    # the validation fit scores a model that was never fitted.
+def test_the_free_runs_advanced_together_score_as_one_at_a_time(lags: int) -> None:
+    # The validation runs every segment's free run at once, one sample of each a step. It
+    # must score what the runs score one sample at a time: the same segments (moved past
+    # restarts), the same regression, each run from its own measured history.
     rng = np.random.default_rng(lags)
-    y = rng.normal(size=600).cumsum()
-    u = rng.uniform(-2.0, 2.0, 600)
-    rows = np.arange(8, 400)
-    by_sample = np.array([_regressors(y, u, int(t), 4, lags, 3) for t in rows])
-    by_column = _design(y, u, rows, 4, lags, 3)
-    assert by_column.shape == by_sample.shape
-    assert by_column.tobytes() == by_sample.tobytes()
+    u = rng.uniform(-2.0, 2.0, 900)
+    y = np.zeros(900)
+    for t in range(2, 900):
+        y[t] = 1.2 * y[t - 1] - 0.4 * y[t - 2] + 0.3 * u[t - 1] + 0.05 * rng.normal()
+    rows = np.arange(8, 600)
+    theta, *_ = np.linalg.lstsq(_design(y, u, rows, 4, lags, 3), y[rows], rcond=None)
+    runs = np.arange(900)
+    runs[700:] -= 700  # a restart at 700: the segment across it moves on
+    first = max(4, lags - 1)
+    for record_runs in (np.arange(900), runs):
+        together = _validation_fit(theta, y, u, 600, 4, lags, 3, 50, record_runs, first)
+        plain = _free_runs_one_sample_at_a_time(theta, y, u, 600, lags, 50, record_runs, first)
+        assert together == pytest.approx(plain, abs=1e-12)
+        assert 0.5 < together < 1.0
+    # A model whose free run blows up fails, as one sample at a time it does.
+    unstable = theta.copy()
+    unstable[1] = 1e3  # y(t) ≈ 1,000·y(t−1): past 1e100 within a segment
+    assert _validation_fit(unstable, y, u, 600, 4, lags, 3, 50, runs, first) == -math.inf
+    assert _free_runs_one_sample_at_a_time(unstable, y, u, 600, lags, 50, runs, first) == -math.inf
+
+
+def _sample_of_the_choice(phase: int) -> dict[str, int]:
+    """The sample on which each channel of a vehicle with ``phase`` chose its lags, on a
+    family vehicle (seed 20, vehicle 0) identified open loop, control never asked."""
+    depth, pitch = draw_vehicle(20, 0)
+    settings = ClosedLoopSettings(
+        scenario="family", samples=900, seed=20, identify=850, step_every=300,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    pipeline = VehiclePipeline(PipelineSettings(seed=20), phase=phase)
+    chosen: dict[str, int] = {}
+
+    def observe(k: int, sample: Any) -> None:
+        pipeline.observe(sample)
+        for ch, channel in pipeline.channels.items():
+            if ch not in chosen and channel.lag_choice is not None:
+                chosen[ch] = k
+
+    schedule = setpoint_schedule(settings, {"depth": (0.0,), "pitch": (0.0,)})
+    closed_loop._drive(settings, FamilyVehicle(depth, pitch, 20), schedule, observe)
+    return chosen
+
+
+def test_a_fleets_vehicles_make_their_choices_on_samples_their_phase_spreads():
+    # A service gives its vehicles phases in the order they appear: a fleet that started
+    # together must not make every channel's choice (about 10 ms of CPU each) on one sample.
+    first = _sample_of_the_choice(0)
+    assert set(first) == {"depth", "pitch"}
+    for phase in (37, LAG_CHOICE_SPREAD + 37):
+        later = _sample_of_the_choice(phase)
+        assert later == {ch: k + 37 for ch, k in first.items()}, (phase, first, later)

@@ -7,6 +7,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from hil_service.process_tuning import single_threaded_blas
+
 #: verb → (module with add_arguments/run, one-line help)
 VERBS: dict[str, tuple[str, str]] = {
     "emulate": ("plant_emulator.cli", "run the emulated glider autopilot over MAVLink"),
@@ -42,6 +44,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     # Importing every verb's modules (matplotlib, python-control, scipy: 2 s of CPU) for each
     # command cost a `fleet` or `router` started next to a running fleet that much CPU.
+    single_threaded_blas()  # before a verb's modules load numpy
     arguments = list(sys.argv[1:] if argv is None else argv)
     only = arguments[0] if arguments and arguments[0] in VERBS else None
     args = build_parser(only).parse_args(arguments)
