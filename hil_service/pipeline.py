@@ -52,11 +52,20 @@ NOT_FROM_THE_PLAN = frozenset({"-", "safe", "released", "probe"})
 #: needs two thirds of its record to fit and a third to validate on).
 LAG_CHOICE_RECORD = 600
 LAG_CHOICE_MIN = 300
-#: A vehicle of phase p makes its choices ``p mod LAG_CHOICE_SPREAD`` samples later. A
-#: service gives its vehicles phases in the order they appear, so a fleet that started
-#: together (a service restart) spreads its choices, about 10 ms of CPU a channel, over
-#: this many samples instead of stalling every vehicle's sample on one (docs/fleet.md).
+#: A vehicle of phase p makes its choices ``p mod spread`` samples later (``choice_spread``).
+#: A service gives its vehicles phases in the order they appear, so a fleet that started
+#: together (a service restart) spreads its choices, 12-25 ms of CPU a channel, over that
+#: many samples instead of stalling every vehicle's sample on one (docs/fleet.md).
 LAG_CHOICE_SPREAD = 100
+
+
+def choice_spread(max_vehicles: int) -> int:
+    """The samples over which a service of up to ``max_vehicles`` spreads its vehicles'
+    structure choices: half the fleet, so that at most two vehicles of a sample period
+    choose (four channels' choices, about 0.1 s of CPU), and at least ``LAG_CHOICE_SPREAD``."""
+    return max(LAG_CHOICE_SPREAD, max_vehicles // 2)
+
+
 #: A tripped channel re-arms only on a record whose inputs span at least this share of the
 #: actuator's limit (``_input_moved_since_trip``).
 REARM_INPUT_SPAN = 0.1
@@ -349,7 +358,14 @@ class Decision:
 
 
 class ChannelPipeline:
-    def __init__(self, channel: str, settings: PipelineSettings, seed: int, phase: int = 0):
+    def __init__(
+        self,
+        channel: str,
+        settings: PipelineSettings,
+        seed: int,
+        phase: int = 0,
+        spread: int = LAG_CHOICE_SPREAD,
+    ):
         self.channel = channel
         self.settings = settings
         options = settings.options_for(channel)
@@ -373,7 +389,7 @@ class ChannelPipeline:
         #: unless the options give them.
         self._output_lags_given = "na" in options
         self._lags_tried = False  # the choice was tried on a shorter record at the first ask
-        self._choice_delay = phase % LAG_CHOICE_SPREAD
+        self._choice_delay = phase % max(spread, 1)
         config = model.config()
         self._model_name: str = config["name"]  # for health, without a config() each time
         self._input_lags: int | None = config.get("nb")
@@ -1240,12 +1256,18 @@ class ChannelPipeline:
 
 
 class VehiclePipeline:
-    def __init__(self, settings: PipelineSettings | None = None, phase: int = 0):
+    def __init__(
+        self,
+        settings: PipelineSettings | None = None,
+        phase: int = 0,
+        spread: int = LAG_CHOICE_SPREAD,
+    ):
         """``phase``: on which samples the controllers re-derive their plans
-        (``PredictiveInverse``); a service gives each vehicle its own."""
+        (``PredictiveInverse``) and, modulo ``spread`` (``choice_spread``), how many samples
+        late the channels choose their structure; a service gives each vehicle its own."""
         self.settings = settings or PipelineSettings()
         self.channels = {
-            ch: ChannelPipeline(ch, self.settings, self.settings.seed * 2 + i, phase)
+            ch: ChannelPipeline(ch, self.settings, self.settings.seed * 2 + i, phase, spread)
             for i, ch in enumerate(CHANNELS)
         }
         self.gaps = StepContinuity()

@@ -22,7 +22,7 @@ from hil_service.inputs import Inbox
 from hil_service.link_stats import RateMeter, SequenceTracker
 from hil_service.listeners import Listener, Notifier
 from hil_service.mcap.recorder import McapRecorder
-from hil_service.pipeline import VehiclePipeline
+from hil_service.pipeline import VehiclePipeline, choice_spread
 from hil_service.sources import SampleSource, source_for
 from hil_service.sources.companion import ack_is_ours
 from hil_service.vehicle_links import LinkIdentity, LinkSet, identity_for
@@ -279,7 +279,11 @@ class HilService:
         if vehicle is None:
             # Vehicles in the order they appear take turns for the controllers' periodic
             # work, so that a fleet that started together does not do it on one sample.
-            pipeline = VehiclePipeline(self.config.pipeline, phase=len(self.vehicles))
+            pipeline = VehiclePipeline(
+                self.config.pipeline,
+                phase=len(self.vehicles),
+                spread=choice_spread(self.config.max_vehicles),
+            )
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle
             self.source.vehicle_seen(system_id)

@@ -11,7 +11,12 @@ import pytest
 
 from hil_service.experiment import closed_loop
 from hil_service.experiment.closed_loop import ClosedLoopSettings, setpoint_schedule
-from hil_service.pipeline import LAG_CHOICE_SPREAD, PipelineSettings, VehiclePipeline
+from hil_service.pipeline import (
+    LAG_CHOICE_SPREAD,
+    PipelineSettings,
+    VehiclePipeline,
+    choice_spread,
+)
 from hil_service.umodel.structure import _design, _validation_fit, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest
 from plant_emulator.family import FamilyVehicle, draw_vehicle
@@ -164,15 +169,15 @@ def test_the_free_runs_advanced_together_score_as_one_at_a_time(lags: int) -> No
     assert _free_runs_one_sample_at_a_time(unstable, y, u, 600, lags, 50, runs, first) == -math.inf
 
 
-def _sample_of_the_choice(phase: int) -> dict[str, int]:
+def _sample_of_the_choice(phase: int, spread: int = LAG_CHOICE_SPREAD) -> dict[str, int]:
     """The sample on which each channel of a vehicle with ``phase`` chose its lags, on a
     family vehicle (seed 20, vehicle 0) identified open loop, control never asked."""
     depth, pitch = draw_vehicle(20, 0)
     settings = ClosedLoopSettings(
-        scenario="family", samples=900, seed=20, identify=850, step_every=300,
+        scenario="family", samples=1300, seed=20, identify=1250, step_every=300,
         neutral_after_identify=True,
     )  # fmt: skip
-    pipeline = VehiclePipeline(PipelineSettings(seed=20), phase=phase)
+    pipeline = VehiclePipeline(PipelineSettings(seed=20), phase=phase, spread=spread)
     chosen: dict[str, int] = {}
 
     def observe(k: int, sample: Any) -> None:
@@ -188,9 +193,16 @@ def _sample_of_the_choice(phase: int) -> dict[str, int]:
 
 def test_a_fleets_vehicles_make_their_choices_on_samples_their_phase_spreads():
     # A service gives its vehicles phases in the order they appear: a fleet that started
-    # together must not make every channel's choice (about 10 ms of CPU each) on one sample.
+    # together must not make every channel's choice (12-25 ms of CPU each) on one sample.
     first = _sample_of_the_choice(0)
     assert set(first) == {"depth", "pitch"}
-    for phase in (37, LAG_CHOICE_SPREAD + 37):
-        later = _sample_of_the_choice(phase)
-        assert later == {ch: k + 37 for ch, k in first.items()}, (phase, first, later)
+    for phase, spread, delay in ((37, 100, 37), (137, 100, 37), (437, 500, 437)):
+        later = _sample_of_the_choice(phase, spread)
+        assert later == {ch: k + delay for ch, k in first.items()}, (phase, first, later)
+
+
+def test_a_larger_fleet_spreads_its_choices_over_more_samples():
+    # At most two vehicles of a sample period choose: 1,000 gliders over 500 samples.
+    assert choice_spread(32) == LAG_CHOICE_SPREAD
+    assert choice_spread(1000) == 500
+    assert [p % choice_spread(1000) for p in range(1000)].count(7) == 2
