@@ -80,9 +80,9 @@ def single_threaded_blas() -> None:
     Their matrices here are small (a structure choice's least squares, 400 × 29; the
     oracle's bases), where a thread pool only adds its hand-offs, and its threads spin on
     the cores the service, the emulator and a campaign's missions need: on a 2-core machine
-    with both cores busy, one channel's choice took 84 ms in the median and 542 ms at most
-    with numpy's default of a thread per core, 16 and 33 ms on one thread
-    (``benchmarks/choice_cost.py``, docs/benchmarks.md)."""
+    with both cores busy, one channel's structure choice took up to 0.3-0.5 s with numpy's
+    default of a thread per core, 33-50 ms on one thread (``benchmarks/choice_cost.py``;
+    docs/benchmarks.md, "The structure choices of a fleet that started together")."""
     for name in BLAS_THREAD_VARIABLES:
         os.environ.setdefault(name, "1")
 

@@ -282,7 +282,9 @@ class HilService:
             pipeline = VehiclePipeline(
                 self.config.pipeline,
                 phase=len(self.vehicles),
-                spread=choice_spread(self.config.max_vehicles),
+                spread=choice_spread(
+                    max(self.config.max_vehicles, len(self.config.system_ids or ()))
+                ),
             )
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle

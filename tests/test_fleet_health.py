@@ -144,3 +144,21 @@ def test_a_verb_imports_its_own_modules_only():
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
     ).stdout
     assert out.split() == ["fleet", "[]"], out
+
+
+def test_a_service_spreads_its_vehicles_structure_choices_over_its_fleet() -> None:
+    # Each channel chooses its structure once (12-25 ms of CPU); vehicles that appeared
+    # together choose `phase mod S` samples late, S = max(100, fleet / 2), the fleet being
+    # --max-vehicles or the --sysid list, whichever is more (pipeline.choice_spread).
+    def delays(config: ServiceConfig, ids: list[int]) -> list[int]:
+        service = HilService(config, CaptureBus(lambda: 0.0), Inbox(), clock=lambda: 0.0)
+        for vehicle_id in ids:
+            service._vehicle(vehicle_id)  # as its first sample does
+        return [v.pipeline.channels["depth"]._choice_delay for v in service.vehicles.values()]
+
+    links = [(i // 250 + 1) * 256 + i % 250 + 1 for i in range(501)]  # (link, system id)
+    large = delays(ServiceConfig(vehicle_ids="link", max_vehicles=1000), links)
+    assert large[:3] == [0, 1, 2] and large[437] == 437 and large[500] == 0
+    listed = delays(ServiceConfig(system_ids=tuple(range(1, 251))), list(range(1, 131)))
+    assert listed[129] == 129 % 125
+    assert delays(ServiceConfig(), list(range(1, 102)))[100] == 0  # 32 vehicles: 100 samples
