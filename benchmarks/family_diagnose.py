@@ -32,19 +32,23 @@ import pickle
 from collections import defaultdict
 from typing import Any
 
-import numpy as np
+from hil_service.process_tuning import single_threaded_blas
 
-from hil_service.experiment.closed_loop import (
+single_threaded_blas()  # as every glider-hil command runs (before numpy loads)
+
+import numpy as np  # noqa: E402
+
+from hil_service.experiment.closed_loop import (  # noqa: E402
     ClosedLoopSettings,
     _drive,
     inverse_run,
     setpoint_schedule,
 )
-from hil_service.experiment.family_loop import HARM_LIMIT, levels, reference_only_controller
-from hil_service.pipeline import PipelineSettings
-from plant_emulator.family import FamilyPlantSpec, FamilyVehicle, draw_family
-from plant_emulator.models import CHANNELS
-from protocols.samples import TelemetrySample
+from hil_service.experiment.family_loop import HARM_LIMIT, levels, reference_only_controller  # noqa: E402
+from hil_service.pipeline import PipelineSettings  # noqa: E402
+from plant_emulator.family import FamilyPlantSpec, FamilyVehicle, draw_family  # noqa: E402
+from plant_emulator.models import CHANNELS  # noqa: E402
+from protocols.samples import TelemetrySample  # noqa: E402
 
 
 def segments(setpoint: np.ndarray, start: int) -> list[tuple[int, int]]:

@@ -37,6 +37,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from hil_service.process_tuning import single_threaded_blas  # noqa: E402
+
+single_threaded_blas()  # as `serve` runs (before numpy loads)
+
 import zenoh  # noqa: E402
 
 from hil_service.builder import wire  # noqa: E402
