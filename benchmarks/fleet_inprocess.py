@@ -13,6 +13,7 @@ runs meanwhile. After ``--from-step`` steps (past the burn-in) it measures:
 * the wall time of one sample's handling: p50, p99, max; and of one step's, summed over
   the vehicles (median, max, which step, how many took over 1 s): at 1 Hz a step that
   takes longer than a second is a stall the wire's queue must absorb;
+* one health payload's build time, per vehicle, after the run;
 * Python's garbage collections over the same samples (``gc.callbacks``): how many per
   generation, their total and their longest pause; then one full collection: its pause
   and the unreachable objects it found, the reference cycles of the whole run.
@@ -218,6 +219,12 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
     start = time.perf_counter()
     unreachable = gc.collect()
     full_collection_s = time.perf_counter() - start
+    # One health payload per vehicle, as the round robin builds them: at 1 Hz and the
+    # default --health-period 1, one for every sample.
+    start = time.perf_counter()
+    for vehicle_id in service.vehicles:
+        service.health(vehicle_id)
+    health_s = (time.perf_counter() - start) / max(1, len(service.vehicles))
     handling.sort()
     samples = len(handling)
     step_sums = sorted(steps.values())
@@ -248,6 +255,7 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
                     "full_collection_after_the_run_ms": round(1000 * full_collection_s, 1),
                     "unreachable_objects_it_found": unreachable,
                 },
+                "health_payload_us": round(1e6 * health_s, 1),
                 "commands_sent": sum(v.commands_sent for v in service.vehicles.values()),
                 "received_on_the_router": received,
             }

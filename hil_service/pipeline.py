@@ -394,6 +394,9 @@ class ChannelPipeline:
         self._model_name: str = config["name"]  # for health, without a config() each time
         self._input_lags: int | None = config.get("nb")
         self.lag_choice: LagChoice | None = None
+        # The choice's JSON, made at the first health after it: the choice does not change
+        # once made, and a fleet's health asks for it every period.
+        self._lag_choice_json: dict[str, object] | None = None
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
         # Multi-step accuracy: a frozen copy of the model runs free on the applied inputs
@@ -595,6 +598,7 @@ class ChannelPipeline:
             return  # no choice on this short a record: the full record decides
         self._lags_pending = False
         self.lag_choice = choice
+        self._lag_choice_json = None
         if choice is None:
             return
         width = 0.0
@@ -1223,6 +1227,13 @@ class ChannelPipeline:
         self._alt_run = None
         self.supervisor.disarm()
 
+    def _lag_choice_health(self) -> dict[str, object] | None:
+        if self.lag_choice is None:
+            return None
+        if self._lag_choice_json is None:
+            self._lag_choice_json = self.lag_choice.as_json()
+        return self._lag_choice_json
+
     def health(self) -> dict[str, Any]:
         return {
             "model": self._model_name,
@@ -1239,7 +1250,7 @@ class ChannelPipeline:
             "horizon_samples": self.horizon_test.count,
             "input_lags": self._input_lags,
             "input_dead_zone": self.dead_zone,
-            "input_lag_choice": None if self.lag_choice is None else self.lag_choice.as_json(),
+            "input_lag_choice": self._lag_choice_health(),
             "horizon_qualified": self.qualified,
             "restarts": self.restarts,
             "supervisor": {

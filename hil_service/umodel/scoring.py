@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from .finite import finite
@@ -93,14 +92,16 @@ def significant(value: float | None) -> float | None:
     return None if value is None or not finite(value) else float(f"{value:.6g}")
 
 
-def normalised_square_error(y: Sequence[float], error: Sequence[float]) -> float | None:
+def normalised_square_error(y: list[float], error: list[float]) -> float | None:
     """Σe² / Σ(y − ȳ)²: the NMSE of a prediction whose error is ``error`` = y − ŷ.
 
     The one definition of the multi-step figures: the k-step NMSE, and through
     ``fit_from_nmse`` the free-run fit, in ``experiment``, ``report`` (through
     ``hil_service.umodel.multistep``) and ``health`` (``MultiStepStats``). None for
     fewer than two samples, a non-finite y or error, or a flat output (no scale to judge
-    the prediction by). Fixed-order sums: the same figures on every run.
+    the prediction by). Fixed-order sums: the same figures on every run. Lists, not any
+    sequence: compiled, a list's items are read without a generic call each, and a
+    fleet's health takes these sums for every vehicle.
     """
     n = len(y)
     if len(error) != n:
@@ -168,8 +169,9 @@ class MultiStepStats:
         return fit_from_nmse(self.nmse())
 
     def summary(self, horizon: int) -> dict[str, float | int | None]:
+        nmse = self.nmse()
         return {
             "multistep_horizon": horizon,
-            "multistep_nmse": significant(self.nmse()),
-            "multistep_fit": significant(self.fit()),
+            "multistep_nmse": significant(nmse),
+            "multistep_fit": significant(fit_from_nmse(nmse)),
         }
