@@ -17,7 +17,7 @@ from hil_service.pipeline import (
     VehiclePipeline,
     choice_spread,
 )
-from hil_service.umodel.structure import _design, _validation_fit, choose_input_lags
+from hil_service.umodel.structure import _design, _validation_fits, choose_input_lags
 from hil_service.umodel.supervisor import HorizonTest
 from plant_emulator.family import FamilyVehicle, draw_vehicle
 
@@ -144,9 +144,11 @@ def _free_runs_one_sample_at_a_time(
 
 @pytest.mark.parametrize("lags", [4, 6, 8])
 def test_the_free_runs_advanced_together_score_as_one_at_a_time(lags: int) -> None:
-    # The validation runs every segment's free run at once, one sample of each a step. It
-    # must score what the runs score one sample at a time: the same segments (moved past
-    # restarts), the same regression, each run from its own measured history.
+    # The validation runs every segment's free run of every candidate at once, one sample
+    # of each a step. It must score what each candidate's runs score one sample at a time:
+    # the same segments (moved past restarts), the same regression, each run from its own
+    # measured history on its own candidate's inputs, and a candidate that blows up fails
+    # alone.
     rng = np.random.default_rng(lags)
     u = rng.uniform(-2.0, 2.0, 900)
     y = np.zeros(900)
@@ -154,19 +156,32 @@ def test_the_free_runs_advanced_together_score_as_one_at_a_time(lags: int) -> No
         y[t] = 1.2 * y[t - 1] - 0.4 * y[t - 2] + 0.3 * u[t - 1] + 0.05 * rng.normal()
     rows = np.arange(8, 600)
     theta, *_ = np.linalg.lstsq(_design(y, u, rows, 4, lags, 3), y[rows], rcond=None)
+    unstable = theta.copy()
+    unstable[1] = 1e3  # y(t) ≈ 1,000·y(t−1): past 1e100 within a segment
+    other_inputs = np.where(np.abs(u) > 0.3, u - 0.3 * np.sign(u), 0.0)  # beyond a dead zone
+    candidates = [(theta, u), (unstable, u), (0.9 * theta, other_inputs)]
     runs = np.arange(900)
     runs[700:] -= 700  # a restart at 700: the segment across it moves on
     first = max(4, lags - 1)
     for record_runs in (np.arange(900), runs):
-        together = _validation_fit(theta, y, u, 600, 4, lags, 3, 50, record_runs, first)
-        plain = _free_runs_one_sample_at_a_time(theta, y, u, 600, lags, 50, record_runs, first)
+        together = _validation_fits(
+            np.array([c[0] for c in candidates]), y, [c[1] for c in candidates], 600, 4,
+            lags, 3, 50, record_runs, first,
+        )  # fmt: skip
+        plain = [
+            _free_runs_one_sample_at_a_time(c[0], y, c[1], 600, lags, 50, record_runs, first)
+            for c in candidates
+        ]
         assert together == pytest.approx(plain, abs=1e-12)
-        assert 0.5 < together < 1.0
-    # A model whose free run blows up fails, as one sample at a time it does.
-    unstable = theta.copy()
-    unstable[1] = 1e3  # y(t) ≈ 1,000·y(t−1): past 1e100 within a segment
-    assert _validation_fit(unstable, y, u, 600, 4, lags, 3, 50, runs, first) == -math.inf
-    assert _free_runs_one_sample_at_a_time(unstable, y, u, 600, lags, 50, runs, first) == -math.inf
+        assert 0.5 < together[0] < 1.0
+        assert together[1] == -math.inf
+        assert math.isfinite(together[2]) and together[2] != together[0]
+        # Alone, a candidate scores what it scores among others, to the bit.
+        for i, (weights, inputs) in enumerate(candidates):
+            alone = _validation_fits(
+                weights[None], y, [inputs], 600, 4, lags, 3, 50, record_runs, first
+            )
+            assert alone == [together[i]]
 
 
 def _sample_of_the_choice(phase: int, spread: int = LAG_CHOICE_SPREAD) -> dict[str, int]:

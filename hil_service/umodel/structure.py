@@ -154,49 +154,56 @@ def _segment_starts(runs: np.ndarray, start: int, size: int, segment: int, first
     return starts
 
 
-def _validation_fit(
-    theta: np.ndarray, y: np.ndarray, u: np.ndarray, start: int, na: int, lags: int,
-    degree: int, segment: int, runs: np.ndarray, first: int,
-) -> float:  # fmt: skip
-    """Free runs of ``segment`` samples from ``start`` on, each from measured history and
-    within one run of consecutive samples (``runs``), ``1 − ‖y − ŷ‖ / ‖y − y_hold‖`` over
-    them all; −inf when a run blows up or there is nothing to judge.
+def _validation_fits(
+    thetas: np.ndarray, y: np.ndarray, us: Sequence[np.ndarray], start: int, na: int,
+    lags: int, degree: int, segment: int, runs: np.ndarray, first: int,
+) -> list[float]:  # fmt: skip
+    """Each candidate's fit (``thetas[c]`` on inputs ``us[c]``, the same lags): free runs
+    of ``segment`` samples from ``start`` on, each from measured history and within one
+    run of consecutive samples (``runs``), ``1 − ‖y − ŷ‖ / ‖y − y_hold‖`` over them all;
+    −inf when a run blows up or there is nothing to judge.
 
-    The runs are independent, so they advance together, one sample of every run a step: a
-    choice costs a few dozen small matrix products rather than a Python loop per sample
-    (a fleet's channels make theirs around the same sample)."""
+    The runs are independent of each other and of the candidates', so they all advance
+    together, one sample of every run of every candidate a step: a choice costs a few dozen
+    stacked matrix products rather than a Python loop per sample or per candidate (a
+    fleet's channels make theirs around the same sample)."""
     starts = np.asarray(_segment_starts(runs, start, y.size, segment, first), dtype=int)
     if starts.size == 0:
-        return -math.inf
+        return [-math.inf] * len(us)
     with np.errstate(over="ignore", invalid="ignore"):
-        return _free_run_fit(theta, y, u, starts, na, lags, degree, segment)
+        return _free_run_fits(thetas, y, us, starts, na, lags, degree, segment)
 
 
-def _free_run_fit(
-    theta: np.ndarray, y: np.ndarray, u: np.ndarray, starts: np.ndarray, na: int, lags: int,
-    degree: int, segment: int,
-) -> float:  # fmt: skip
+def _free_run_fits(
+    thetas: np.ndarray, y: np.ndarray, us: Sequence[np.ndarray], starts: np.ndarray, na: int,
+    lags: int, degree: int, segment: int,
+) -> list[float]:  # fmt: skip
     # The regression rows of every sample the runs predict, measured inputs throughout;
-    # their output columns are replaced by each run's own outputs as it advances.
+    # their output columns are replaced by each run's own outputs as it advances. Each
+    # candidate's product is a matrix times a vector, as it would be alone: the same bits.
     targets = starts[:, None] + np.arange(1, segment)
-    design = _design(y, u, targets.ravel(), na, lags, degree).reshape(starts.size, segment - 1, -1)
-    history = np.empty((starts.size, na + segment - 1))
+    flat = targets.ravel()
+    design = np.stack([_design(y, u, flat, na, lags, degree) for u in us])
+    design = design.reshape(len(us), starts.size, segment - 1, -1)
+    history = np.empty((len(us), starts.size, na + segment - 1))
     for i in range(na):
-        history[:, na - 1 - i] = y[starts - i]
+        history[:, :, na - 1 - i] = y[starts - i]
+    weights = thetas[:, :, None]
     for m in range(segment - 1):
-        rows = design[:, m, :]
-        rows[:, 1 : na + 1] = history[:, m : m + na][:, ::-1]
-        history[:, na + m] = rows @ theta
-    predicted = history[:, na:]
-    # A run that blew up anywhere fails the candidate (the values after it are not used).
-    if not np.all(np.abs(predicted) < 1e100):
-        return -math.inf
+        rows = design[:, :, m, :]
+        rows[:, :, 1 : na + 1] = history[:, :, m : m + na][:, :, ::-1]
+        history[:, :, na + m] = np.matmul(rows, weights)[:, :, 0]
     measured = y[targets]
-    error = float(np.sum((measured - predicted) ** 2))
     hold = float(np.sum((measured - y[starts][:, None]) ** 2))
-    if not hold > 0.0:
-        return -math.inf
-    return 1.0 - math.sqrt(error / hold)
+    fits = []
+    for predicted in history[:, :, na:]:
+        # A run that blew up anywhere fails the candidate (the values after it are not used).
+        if not (np.all(np.abs(predicted) < 1e100) and hold > 0.0):
+            fits.append(-math.inf)
+            continue
+        error = float(np.sum((measured - predicted) ** 2))
+        fits.append(1.0 - math.sqrt(error / hold))
+    return fits
 
 
 def _record(
@@ -269,7 +276,9 @@ def choose_input_lags(
         theta, *_ = np.linalg.lstsq(design, target, rcond=None)
         if not np.all(np.isfinite(theta)):
             return None
-        fits[lags] = _validation_fit(theta, y, u, split, na, lags, degree, segment, run, first)
+        fits[lags] = _validation_fits(
+            theta[None], y, [u], split, na, lags, degree, segment, run, first
+        )[0]
         residual = float(np.mean((target - design @ theta) ** 2))
         residuals[lags] = residual / spread_rows if spread_rows > 0.0 else 0.0
     best = max(fits.values())
@@ -313,15 +322,19 @@ def choose_dead_zone(
         return 0.0, {}
     y, run, split, rows = record
     target = y[rows]
-    fits: dict[float, float] = {}
+    narrowed, thetas = [], []
     for share in candidates:
-        width = share * u_scale
-        v = _narrowed(u, width) / u_scale
+        v = _narrowed(u, share * u_scale) / u_scale
         design = _design(y, v, rows, na, lags, degree)
         theta, *_ = np.linalg.lstsq(design, target, rcond=None)
         if not np.all(np.isfinite(theta)):
             return 0.0, {}
-        fits[share] = _validation_fit(theta, y, v, split, na, lags, degree, segment, run, first)
+        narrowed.append(v)
+        thetas.append(theta)
+    validated = _validation_fits(
+        np.array(thetas), y, narrowed, split, na, lags, degree, segment, run, first
+    )
+    fits = dict(zip(candidates, validated, strict=True))
     best = max(fits.values())
     if not (math.isfinite(best) and best >= qualify):
         return 0.0, fits
