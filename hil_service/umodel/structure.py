@@ -128,16 +128,21 @@ def _design(
     y: np.ndarray, u: np.ndarray, rows: np.ndarray, na: int, lags: int, degree: int
 ) -> np.ndarray:
     """The regression row of each sample t in ``rows``: 1, the outputs y(t−1)…y(t−na), then
-    x, x², … x^degree of each input lag's x = u(t − lag + 1), built a column at a time."""
-    columns = [np.ones(rows.size)]
-    columns += [y[rows - i] for i in range(1, na + 1)]
+    x, x², … x^degree of each input lag's x = u(t − lag + 1), written a column at a time
+    into one array (x^k as x^(k−1)·x, from 1·x)."""
+    design = np.empty((rows.size, 1 + na + lags * degree))
+    design[:, 0] = 1.0
+    for i in range(1, na + 1):
+        design[:, i] = y[rows - i]
+    column = na + 1
     for lag in range(1, lags + 1):
         x = u[rows - lag + 1]
         p = np.ones(rows.size)
         for _ in range(degree):
             p = p * x
-            columns.append(p)
-    return np.column_stack(columns)
+            design[:, column] = p
+            column += 1
+    return design
 
 
 def _segment_starts(runs: np.ndarray, start: int, size: int, segment: int, first: int) -> list[int]:
