@@ -184,8 +184,9 @@ def _free_run_fits(
     lags: int, degree: int, segment: int,
 ) -> list[float]:  # fmt: skip
     # The regression rows of every sample the runs predict, measured inputs throughout;
-    # their output columns are replaced by each run's own outputs as it advances. Each
-    # candidate's product is a matrix times a vector, as it would be alone: the same bits.
+    # their output columns are replaced by each run's own outputs as it advances. The
+    # stacked product multiplies each candidate's rows by its own weights alone: a
+    # candidate scores the same bits among others as on its own.
     targets = starts[:, None] + np.arange(1, segment)
     flat = targets.ravel()
     design = np.stack([_design(y, u, flat, na, lags, degree) for u in us])
