@@ -27,8 +27,9 @@ choosing the lags from the data could give, not a controller. ``--lag-smoothing-
 sets the smoothness prior on the input lags (0: none; docs/control.md, "A smoothness prior
 on the input lags"). ``--control NAME=VALUE`` sets any numeric ``ControlSettings`` constant
 (e.g. ``move_weight=0.1``; repeatable), ``--degree M`` the identifier's input polynomial
-degree and ``--no-dead-zone`` leaves out the input dead zone's choice (docs/control.md, "An
-input dead zone, chosen from the record"). ``--best-of SHIPPED A.pkl B.pkl …`` compares
+degree, ``--no-dead-zone`` leaves out the input dead zone's choice and ``--dead-zone-margin
+M`` sets the tie of that choice (docs/control.md, "An input dead zone, chosen from the
+record"). ``--best-of SHIPPED A.pkl B.pkl …`` compares
 saved runs of the same plants: each one's count, its geometric mean ratio and the plants it
 moved against the first, and how many plants stay above the limit when each keeps its
 lowest ratio over the runs (docs/control.md, "One constant at a time, and the best of them
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import json
 import pickle
 import time
@@ -60,6 +62,7 @@ from hil_service.experiment.family_loop import (  # noqa: E402
     run_vehicle,
 )
 from hil_service.pipeline import ControlSettings, PipelineSettings  # noqa: E402
+from hil_service.umodel import structure  # noqa: E402
 from plant_emulator.family import FamilyPlantSpec, draw_family  # noqa: E402
 
 
@@ -235,6 +238,16 @@ def what_if(
     return settings
 
 
+def set_dead_zone_margin(margin: float) -> None:
+    """What-if: the tie of the input dead zone's choice in this process. The pipeline calls
+    ``structure.choose_dead_zone`` without a margin, so its default is what is set."""
+    choose = structure.choose_dead_zone
+    names = list(inspect.signature(choose).parameters)
+    defaults = list(choose.__defaults__ or ())
+    defaults[names.index("margin") - (len(names) - len(defaults))] = margin
+    choose.__defaults__ = tuple(defaults)
+
+
 def control_change(text: str) -> tuple[str, float]:
     """``--control NAME=VALUE``: a numeric ``ControlSettings`` field and its value."""
     name, sep, value = text.partition("=")
@@ -328,6 +341,11 @@ def main() -> None:
         "--no-dead-zone", action="store_true", help="no input dead zone chosen from the record"
     )
     parser.add_argument(
+        "--dead-zone-margin",
+        type=float,
+        help="the dead zone choice's tie: the narrowest candidate within this of the best fit",
+    )
+    parser.add_argument(
         "--combine", nargs="+", help="summarise rows saved by earlier runs instead of running"
     )
     parser.add_argument(
@@ -351,6 +369,8 @@ def main() -> None:
         for name, found in rows.items():
             summarise(name, found)
         return
+    if args.dead_zone_margin is not None:
+        set_dead_zone_margin(args.dead_zone_margin)
     rows = run(
         args.seeds,
         args.plants,

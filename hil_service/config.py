@@ -189,6 +189,12 @@ class ServiceConfig:
             raise ValueError(f"--max-vehicles must be 1..{most} ({what}), got {self.max_vehicles}")
 
     @property
+    def vehicle_slots(self) -> int:
+        """The most vehicles served: ``max_vehicles``, or the ``system_ids`` list when it
+        names more (a listed set is always served whole)."""
+        return max(self.max_vehicles, len(self.system_ids or ()))
+
+    @property
     def periodic(self) -> bool:
         return self.profile.sampling.mode == "periodic"
 

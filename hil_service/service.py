@@ -92,6 +92,8 @@ class HilService:
         self.link = link
         self.recorder = recorder
         self.profile = config.vehicle_profile()
+        #: Over how many samples the vehicles' structure choices spread (their phases mod it).
+        self._choice_spread = choice_spread(config.vehicle_slots)
         self.clock = clock
         self.send_commands = send_commands and link is not None
         #: What a datagram makes the service send goes out before the listeners hear of the
@@ -280,11 +282,7 @@ class HilService:
             # Vehicles in the order they appear take turns for the controllers' periodic
             # work, so that a fleet that started together does not do it on one sample.
             pipeline = VehiclePipeline(
-                self.config.pipeline,
-                phase=len(self.vehicles),
-                spread=choice_spread(
-                    max(self.config.max_vehicles, len(self.config.system_ids or ()))
-                ),
+                self.config.pipeline, phase=len(self.vehicles), spread=self._choice_spread
             )
             vehicle = VehicleRuntime(pipeline, keys.VehicleKeys.of(system_id))
             self.vehicles[system_id] = vehicle

@@ -201,14 +201,15 @@ def _free_run_fits(
         history[:, :, na + m] = np.matmul(rows, weights)[:, :, 0]
     measured = y[targets]
     hold = float(np.sum((measured - y[starts][:, None]) ** 2))
+    if not hold > 0.0:
+        return [-math.inf] * len(us)
     fits = []
     for predicted in history[:, :, na:]:
         # A run that blew up anywhere fails the candidate (the values after it are not used).
-        if not (np.all(np.abs(predicted) < 1e100) and hold > 0.0):
+        if np.all(np.abs(predicted) < 1e100):
+            fits.append(1.0 - math.sqrt(float(np.sum((measured - predicted) ** 2)) / hold))
+        else:
             fits.append(-math.inf)
-            continue
-        error = float(np.sum((measured - predicted) ** 2))
-        fits.append(1.0 - math.sqrt(error / hold))
     return fits
 
 
