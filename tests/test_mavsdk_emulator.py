@@ -11,7 +11,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import os
 import struct
+import subprocess
+import tempfile
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -23,7 +26,7 @@ from mavsdk.action import ActionError  # noqa: E402
 from mavsdk.mission_raw import MissionItem, MissionRawError  # noqa: E402
 from mavsdk.telemetry import TelemetryError  # noqa: E402
 
-from hil_service.cli.processes import last_json  # noqa: E402
+from hil_service.cli.processes import dies_with_parent, last_json  # noqa: E402
 from protocols.mavlink_io import dialect  # noqa: E402
 from tests.conftest import free_tcp_port, free_udp_port  # noqa: E402
 from tests.mavlink_peer import UdpPeer  # noqa: E402
@@ -62,20 +65,44 @@ def missions(profile: str) -> tuple[list[MissionItem], list[MissionItem]]:
 
 @contextlib.asynccontextmanager
 async def connected(udp_port: int) -> AsyncIterator[System]:
-    """MAVSDK's own server on free ports, connected to the vehicle; stopped afterwards."""
-    drone = System(port=free_tcp_port())
-    try:
-        await drone.connect(system_address=f"udpin://127.0.0.1:{udp_port}")
+    """MAVSDK's own server (the wheel's binary) on a free port, connected to the vehicle.
 
-        async def wait_connected() -> None:
-            async for state in drone.core.connection_state():
-                if state.is_connected:
-                    return
+    Started here rather than by ``System``, as the project starts every peer: it dies with
+    the test run even when that is SIGKILLed (``dies_with_parent``), and the files it keeps
+    in the temporary directory (downloaded component metadata) go to one that is removed
+    with it."""
+    port = free_tcp_port()
+    with tempfile.TemporaryDirectory(prefix="mavsdk-server-") as scratch:
+        log_path = Path(scratch) / "mavsdk_server.log"
+        with open(log_path, "w") as log:
+            server = subprocess.Popen(
+                dies_with_parent(
+                    [str(SERVER), "-p", str(port), "--sysid", "245", "--compid", "190",
+                     f"udpin://127.0.0.1:{udp_port}"]
+                ),
+                env={**os.environ, "TMPDIR": scratch},
+                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+            )  # fmt: skip
+        try:
+            drone = System(mavsdk_server_address="127.0.0.1", port=port)
 
-        await asyncio.wait_for(wait_connected(), TIMEOUT)
-        yield drone
-    finally:
-        drone._stop_mavsdk_server()
+            async def wait_connected() -> None:
+                await drone.connect()  # returns once the server's gRPC port answers
+                async for state in drone.core.connection_state():
+                    if state.is_connected:
+                        return
+
+            try:
+                await asyncio.wait_for(wait_connected(), TIMEOUT)
+            except TimeoutError as timeout:
+                tail = log_path.read_text(errors="replace")[-2000:]
+                raise AssertionError(
+                    f"mavsdk_server did not connect; its log ends:\n{tail}"
+                ) from timeout
+            yield drone
+        finally:
+            server.kill()
+            server.wait()
 
 
 async def first(stream, predicate=lambda value: True):
