@@ -136,6 +136,9 @@ def main() -> None:
     parser.add_argument("--from-step", type=int, default=70, help="measure from this step on")
     parser.add_argument("--health-period", type=float, default=5.0)
     parser.add_argument("--profile", help="write a cProfile of the measured samples here")
+    parser.add_argument(
+        "--step-times", help="write each measured step's handling, summed over the vehicles, here"
+    )
     args = parser.parse_args()
     if not 0 < args.from_step < args.steps:
         parser.error("--from-step must be within --steps")
@@ -214,6 +217,8 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
         profile.disable()
         profile.dump_stats(args.profile)
     gc.callbacks.remove(collections)
+    if args.step_times:
+        Path(args.step_times).write_text(json.dumps({str(k): v for k, v in steps.items()}))
     # What the hourly collection of a `serve` would cost now, and what it would find: the
     # reference cycles the whole run left (with automatic collection off, none was freed).
     start = time.perf_counter()
