@@ -18,6 +18,7 @@ from hil_service.listeners import Notifier
 from hil_service.listeners.zenoh import ZenohPublisher
 from hil_service.mcap.recorder import McapRecorder
 from hil_service.service import HilService
+from hil_service.vehicle_links import LinkSet
 from protocols.mavlink_io import Link
 
 if TYPE_CHECKING:  # the Foxglove SDK is imported only by a run with a live view
@@ -44,7 +45,7 @@ class Wired:
     inbox: Inbox
     notifier: Notifier
     recorder: McapRecorder | None = None
-    link: Link | None = None
+    link: Link | LinkSet | None = None
     session: Any = None  # zenoh.Session
     live: LiveView | None = None
 
@@ -69,7 +70,7 @@ def wire(
     config: ServiceConfig,
     *,
     session: Any = None,
-    link: Link | None = None,
+    link: Link | LinkSet | None = None,
     recorder: McapRecorder | None = None,
     inbox: Inbox | None = None,
     listeners: Sequence[Any] = (),

@@ -31,13 +31,14 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Protocol
 
 from plant_emulator.excitation import Excitation
 from plant_emulator.gcs import GENERIC, GroundStationManners, Identity, Parameter
 from plant_emulator.mission import Item, ItemRefused, Mission
 from plant_emulator.navigation import Navigation, NavigationConfig
-from plant_emulator.plant import GliderPlant
+from plant_emulator.plant import FamilyPlant, GliderPlant
 from protocols.mapping import (
     CommandRejected,
     TelemetryMapping,
@@ -150,7 +151,7 @@ class Autopilot:
 
     def __init__(
         self,
-        plant: GliderPlant,
+        plant: GliderPlant | FamilyPlant,
         link: Link,
         excitations: Mapping[str, Excitation],
         config: AutopilotConfig | None = None,
@@ -219,10 +220,10 @@ class Autopilot:
         on_demand[dialect.MAVLINK_MSG_ID_FLIGHT_INFORMATION] = self._send_flight_information
         for name in GCS_RATES_HZ:
             msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
-            on_demand[msg_id] = lambda name=name: self._send_gcs_stream(name)
+            on_demand[msg_id] = partial(self._send_gcs_stream, name)
         for name in self.step_message_names():
             msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
-            on_demand[msg_id] = lambda name=name: self._send_latest(name)
+            on_demand[msg_id] = partial(self._send_latest, name)
 
     def parameters(self) -> list[Parameter]:
         """The emulator's real settings as MAVLink parameters (a change takes effect)."""

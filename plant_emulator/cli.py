@@ -461,9 +461,9 @@ def _autopilot(
     """The profile's autopilot on ``link``, with its step hooks (``--print-every``,
     ``--reboot-at``: the latter's hook, returned too, for the summary)."""
 
-    def print_sample(sample: object) -> None:
+    def print_sample(sample: TelemetrySample) -> None:
         if args.print_every and autopilot.stats.steps % args.print_every == 0:
-            print(json.dumps(autopilot.stats.last_sample.to_payload()), flush=True)
+            print(json.dumps(sample.to_payload()), flush=True)
 
     excitations = build_channel_excitations(args.excitation, seed=args.seed)
     on_step: Callable[[TelemetrySample], None] | None = print_sample if args.print_every else None

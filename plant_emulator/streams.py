@@ -25,12 +25,13 @@ import math
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 
 from plant_emulator.autopilot import Autopilot, AutopilotConfig
 from plant_emulator.excitation import Excitation
 from plant_emulator.gcs import ARDUPILOT, Parameter
 from plant_emulator.mission import Item, ItemRefused
-from plant_emulator.plant import GliderPlant
+from plant_emulator.plant import FamilyPlant, GliderPlant
 from protocols.mapping import WATER_TEMPERATURE_CDEG, TelemetryMapping
 from protocols.mavlink_io import Link, MavMessage, dialect
 from protocols.profiles import Profile
@@ -84,7 +85,7 @@ class ArduSubAutopilot(Autopilot):
 
     def __init__(
         self,
-        plant: GliderPlant,
+        plant: GliderPlant | FamilyPlant,
         link: Link,
         excitations: Mapping[str, Excitation],
         profile: Profile,
@@ -130,7 +131,7 @@ class ArduSubAutopilot(Autopilot):
         handlers[dialect.MAV_CMD_DO_SET_SERVO] = self._set_servo
         for name in self.intervals:
             msg_id = getattr(dialect, f"MAVLINK_MSG_ID_{name}")
-            self.manners.on_demand[msg_id] = lambda name=name: self._send_stream(name)
+            self.manners.on_demand[msg_id] = partial(self._send_stream, name)
 
     def reboot(self, boot_s: float) -> float:
         """Reboot as an autopilot does: the clock starts again so that the next step is
@@ -163,8 +164,8 @@ class ArduSubAutopilot(Autopilot):
             params.append(
                 Parameter(
                     param,
-                    lambda names=names: self._group_hz(names),
-                    lambda hz, names=names: self._set_group_hz(names, hz),
+                    partial(self._group_hz, names),
+                    partial(self._set_group_hz, names),
                 )
             )
         pwm = self.profile.ballast.pwm
@@ -179,12 +180,15 @@ class ArduSubAutopilot(Autopilot):
             params.append(
                 Parameter(
                     f"SERVO{n}_FUNCTION",
-                    lambda n=n: self.functions[n],
-                    lambda value, n=n: self._set_function(n, value),
+                    partial(self._function, n),
+                    partial(self._set_function, n),
                     integer=True,
                 )
             )
         return params
+
+    def _function(self, servo: int) -> float:
+        return self.functions[servo]
 
     def _set_function(self, servo: int, value: float) -> None:
         if not (0 <= value <= 255):

@@ -105,7 +105,9 @@ def compare(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> list[dict[str, 
         ]
         ok_pairs = [(ra, rb) for ra, rb in pairs if ra.get("status") == rb.get("status") == "ok"]
         for metric in METRICS:
-            values = [(ra.get(metric), rb.get(metric)) for ra, rb in ok_pairs]
+            values: list[tuple[Any, Any]] = [
+                (ra.get(metric), rb.get(metric)) for ra, rb in ok_pairs
+            ]
             differences = [
                 float(vb) - float(va)
                 for va, vb in values

@@ -280,9 +280,9 @@ def _take(
         except CancelledError as error:
             raise _Lost(_lost(scheduler, str(getattr(error, "reason", error)))) from None
         raise _Lost(_lost(scheduler, "its task was cancelled"))
-    error = future.exception()
-    if error is not None:
-        row = failed_row(mission, f"task failed: {type(error).__name__}: {error}")
+    failure = future.exception()
+    if failure is not None:
+        row = failed_row(mission, f"task failed: {type(failure).__name__}: {failure}")
         write_row(run_dir(spec, mission), row)
         return row
     try:

@@ -84,17 +84,17 @@ class ScheduledInbox(Inbox):
             for channel, values in schedule.items()
         }
         self.steps = len(next(iter(columns.values())))
-        self._inputs: list[ControlInputs] = []
+        self._by_step: list[ControlInputs] = []
         inputs: ControlInputs | None = None
         for k in range(self.steps):
             setpoints = {channel: column[k] for channel, column in columns.items()}
             if inputs is None or inputs.setpoints != setpoints:
                 inputs = ControlInputs(setpoints, True)
-            self._inputs.append(inputs)
+            self._by_step.append(inputs)
 
     def inputs_for(self, sample: TelemetrySample) -> ControlInputs:
         k = round(sample.time_boot_ms / self.period_ms)
-        return self._inputs[min(max(k, 0), self.steps - 1)]
+        return self._by_step[min(max(k, 0), self.steps - 1)]
 
     def get(self, system_id: int) -> ControlInputs:
         return ControlInputs({"depth": None, "pitch": None}, True)

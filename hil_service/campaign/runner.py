@@ -484,9 +484,9 @@ def run_campaign(
                 clear_result(spec, mission)
                 running[_start_worker(spec, mission)] = mission
             pid, status = os.waitpid(-1, 0)
-            mission = running.pop(pid, None)
-            if mission is None:
+            if pid not in running:
                 continue
+            mission = running.pop(pid)
             row = load_row(run_dir(spec, mission), mission)
             if row is None and worker_interrupted(status):
                 not_recorded.append(mission.run_id)

@@ -104,7 +104,7 @@ class _Typed(argparse.Action):
         option_string: str | None = None,
     ) -> None:
         setattr(namespace, self.dest, values)
-        typed = getattr(namespace, TYPED, frozenset())
+        typed: frozenset[str] = getattr(namespace, TYPED, frozenset())
         setattr(namespace, TYPED, typed | {self.option_strings[0]})
 
 

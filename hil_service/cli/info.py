@@ -18,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     reader = LogReader(args.log)
-    first = last = None
+    first: int | None = None
+    last = 0
     try:
         for message in reader.messages():
             first = message.log_time_ns if first is None else first

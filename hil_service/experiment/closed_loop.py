@@ -405,7 +405,7 @@ def inverse_run(
         pipeline.observe(sample)
         if k < settings.identify:
             return None
-        setpoints = {ch: float(schedule[ch][k]) for ch in CHANNELS}
+        setpoints: dict[str, float | None] = {ch: float(schedule[ch][k]) for ch in CHANNELS}
         decision = pipeline.decide(sample, setpoints, True)
         if decision.command is None or decision.payload is None:
             blocked += 1  # the vehicle holds its last input, as it would on a silent link

@@ -24,6 +24,7 @@ import argparse
 import random
 import statistics
 import sys
+from typing import TypedDict
 
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from plant_emulator.excitation import build_channel_excitations
@@ -107,7 +108,18 @@ def jittered_loop(
     )
 
 
-CASES = {
+class Jitter(TypedDict, total=False):
+    """A case's arguments of ``jittered_loop``."""
+
+    output_early: float
+    input_early: float
+    late_command: float
+    output_late: float
+    input_late: float
+    flag_reused: bool
+
+
+CASES: dict[str, Jitter] = {
     "none": {},
     "command latency only": {"late_command": 0.3},
     "output readings only": {"output_early": 0.08},

@@ -123,7 +123,7 @@ def _bisect(f: Callable[[float], float], v: float, lo: float, hi: float, strict:
 
 #: Tighter than HiGHS's default 1e-7: a settled loop's error is of the order of the
 #: tolerance, and over 20,000 samples that adds up on pitch (IAE ≈ 10).
-LP_OPTIONS: dict[str, object] = {
+LP_OPTIONS: dict[str, bool | float | str] = {
     "primal_feasibility_tolerance": 1e-10,
     "dual_feasibility_tolerance": 1e-10,
     "output_flag": False,  # a library: nothing on the console
@@ -258,7 +258,9 @@ class _LpModel:
                 self.reused += 1
                 return x
         highs = self.highs
-        highs.changeRowsBounds(self.rows, self._row_index, row_lower, row_upper)
+        highs.changeRowsBounds(  # type: ignore[attr-defined]  # not in highspy's stubs
+            self.rows, self._row_index, row_lower, row_upper
+        )
         # Every column's bounds: a solve the basis answered may have changed some that
         # this one does not give, and HiGHS has not seen them.
         highs.changeColsBounds(self.cols, self._col_index, self._lower, self._upper)
@@ -277,7 +279,7 @@ class _LpModel:
     def _optimal_basis(self, x: Array, row_lower: Array, row_upper: Array) -> OptimalBasis | None:
         """HiGHS's optimal basis at ``x``, factorised; None where the shortcut cannot use
         it (a singular or ill-conditioned square part)."""
-        status, basic = self.highs.getBasicVariables()
+        status, basic = self.highs.getBasicVariables()  # type: ignore[attr-defined]  # (stubs)
         if status != highspy.HighsStatus.kOk:
             return None
         try:

@@ -39,7 +39,8 @@ def prediction_figure(
     ``note``: a line under the title (the multi-step fit, the skill)."""
     unit = UNITS.get(channel, "")
     has_alpha = alpha is not None and alpha.size > 0
-    rows = 2 + (2 if has_alpha and alpha.shape[1] > 1 else 1 if has_alpha else 0)
+    wide = alpha is not None and has_alpha and alpha.shape[1] > 1
+    rows = 2 + (2 if wide else 1 if has_alpha else 0)
     fig = Figure(figsize=(_SIZE[0], _SIZE[1] + 2.0 * (rows - 3)), dpi=_DPI, layout="constrained")
     axes = fig.subplots(rows, 1, sharex=True)
     axes[0].plot(t, y, color="black", linewidth=1.0, label=f"actual {channel}")

@@ -175,7 +175,8 @@ def neutral_and_compression(pieces: Sequence[Piece], u_scale: float) -> tuple[fl
     columns = [np.concatenate([getattr(p, a)[:-1] for p in pieces]) for a in ("u", "pitch", "y")]
     try:
         with np.errstate(invalid="ignore", over="ignore"):
-            model = fit_steady_glide(rate, *columns, (-u_scale, u_scale))
+            buoyancy, pitch, depth = columns
+            model = fit_steady_glide(rate, buoyancy, pitch, depth, (-u_scale, u_scale))
     except ValueError:
         return None
     if not (math.isfinite(model.v0) and math.isfinite(model.c_p)):
