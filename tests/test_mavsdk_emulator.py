@@ -12,9 +12,12 @@ import asyncio
 import contextlib
 import math
 import os
+import signal
 import struct
 import subprocess
+import sys
 import tempfile
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -32,6 +35,7 @@ from tests.conftest import free_tcp_port, free_udp_port  # noqa: E402
 from tests.mavlink_peer import UdpPeer  # noqa: E402
 
 SERVER = Path(mavsdk.__file__).parent / "bin" / "mavsdk_server"
+ROOT = Path(__file__).resolve().parent.parent
 TIMEOUT = 20.0  # s for any one MAVSDK call
 SPEED = 5.0
 NAN = math.nan
@@ -63,6 +67,22 @@ def missions(profile: str) -> tuple[list[MissionItem], list[MissionItem]]:
     return good, bad
 
 
+def start_mavsdk_server(port: int, vehicle: str, scratch: Path) -> subprocess.Popen[bytes]:
+    """The wheel's ``mavsdk_server`` on gRPC ``port`` for the vehicle at ``vehicle``, dying
+    with this process, its temporary files and its log (``mavsdk_server.log``) in
+    ``scratch``."""
+    with open(scratch / "mavsdk_server.log", "w") as log:
+        return subprocess.Popen(
+            dies_with_parent(
+                [str(SERVER), "-p", str(port), "--sysid", "245", "--compid", "190", vehicle]
+            ),
+            env={**os.environ, "TMPDIR": str(scratch)},
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+
+
 @contextlib.asynccontextmanager
 async def connected(udp_port: int) -> AsyncIterator[System]:
     """MAVSDK's own server (the wheel's binary) on a free port, connected to the vehicle.
@@ -74,15 +94,7 @@ async def connected(udp_port: int) -> AsyncIterator[System]:
     port = free_tcp_port()
     with tempfile.TemporaryDirectory(prefix="mavsdk-server-") as scratch:
         log_path = Path(scratch) / "mavsdk_server.log"
-        with open(log_path, "w") as log:
-            server = subprocess.Popen(
-                dies_with_parent(
-                    [str(SERVER), "-p", str(port), "--sysid", "245", "--compid", "190",
-                     f"udpin://127.0.0.1:{udp_port}"]
-                ),
-                env={**os.environ, "TMPDIR": scratch},
-                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-            )  # fmt: skip
+        server = start_mavsdk_server(port, f"udpin://127.0.0.1:{udp_port}", Path(scratch))
         try:
             drone = System(mavsdk_server_address="127.0.0.1", port=port)
 
@@ -413,3 +425,41 @@ def test_every_message_is_requestable_and_its_rate_changes(processes, profile):
         assert summary["arms_refused"] == 1 and summary["disarms"] == 1
     finally:
         peer.close()
+
+
+def test_mavsdk_server_dies_with_a_parent_that_is_sigkilled(tmp_path):
+    """A test run SIGKILLed while MAVSDK is connected leaves no ``mavsdk_server`` behind:
+    the parent here is a plain Python process that starts it as ``connected`` does."""
+    code = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from tests.test_mavsdk_emulator import start_mavsdk_server\n"
+        f"server = start_mavsdk_server({free_tcp_port()}, "
+        f"'udpin://127.0.0.1:{free_udp_port()}', Path({str(tmp_path)!r}))\n"
+        "print(server.pid, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT
+    )
+    try:
+        assert parent.stdout is not None
+        server = int(parent.stdout.readline())
+        assert _running(server)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 10
+        while _running(server):
+            assert time.monotonic() < deadline, "mavsdk_server outlived its killed parent"
+            time.sleep(0.05)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"  # a zombie is dead, waiting for its parent
