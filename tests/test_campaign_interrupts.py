@@ -31,6 +31,7 @@ from hil_service.campaign.runner import (
 )
 from hil_service.cli import main
 from hil_service.cli.processes import free_port, set_parent_death_signal
+from tests.orphans import running
 from tests.test_campaign_dask import _end as end_process
 from tests.test_campaign_dask import _start as dask_process
 from tests.test_campaign_dask import children
@@ -57,15 +58,6 @@ def start_campaign(out: Path, *args: str, ignore_sigint: bool = False) -> subpro
         text=True,
         preexec_fn=setup,
     )
-
-
-def alive(pid: int) -> bool:
-    """Running (a zombie, exited but not reaped, is not)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rpartition(")")[2].split()[0] != "Z"
 
 
 #: How long a stopped mission may take to be gone: a mission stops its service and waits
@@ -124,7 +116,7 @@ def test_a_sigkilled_campaign_takes_its_missions_and_services_with_it(tmp_path: 
         campaign.send_signal(signal.SIGKILL)
         campaign.wait(10)
         gone = "workers and services gone"
-        wait_until(lambda: not any(alive(pid) for pid in tree), STOPPED, gone)
+        wait_until(lambda: not any(running(pid) for pid in tree), STOPPED, gone)
     finally:
         end(campaign)
     assert recorded(out) == []  # nothing half-done recorded: --resume runs both again
@@ -151,7 +143,7 @@ def test_a_signal_to_the_campaign_stops_it_and_its_missions_in_one_line(
         f"glider-hil campaign: interrupted: the missions recorded in {out} are kept, the "
         "running ones are not; --resume runs the rest"
     ]
-    assert not any(alive(pid) for pid in tree)  # the campaign waited for them
+    assert not any(running(pid) for pid in tree)  # the campaign waited for them
     assert recorded(out) == []
     CampaignLock(out).release()
 

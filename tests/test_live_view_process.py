@@ -11,24 +11,15 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 
 import pytest
 
 from hil_service.live.address import LiveAddress
 from hil_service.live.view import LiveView
 from tests.foxglove_stalled import StalledViewer
+from tests.orphans import outlives_its_killed_parent
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _ended(pid: int) -> bool:
-    """Whether ``pid`` has exited (gone, or a zombie nobody reaped yet)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rpartition(")")[2].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
 
 
 def test_the_services_process_never_loads_the_sdk() -> None:
@@ -86,22 +77,7 @@ def test_the_live_view_process_ends_with_a_killed_service() -> None:
         "print(live.pid, flush=True)\n"
         "time.sleep(600)\n"
     )
-    service = subprocess.Popen(
-        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT
-    )
-    try:
-        assert service.stdout is not None
-        pid = int(service.stdout.readline())
-        assert not _ended(pid)
-    finally:
-        service.kill()
-        service.communicate(timeout=30)
-    deadline = time.monotonic() + 30
-    while not _ended(pid):
-        if time.monotonic() > deadline:
-            os.kill(pid, signal.SIGKILL)
-            pytest.fail("the live view's process outlived its service by 30 s")
-        time.sleep(0.05)
+    assert not outlives_its_killed_parent(code, 30), "the live view outlived its service by 30 s"
 
 
 def test_a_port_in_use_is_a_clear_error() -> None:

@@ -12,12 +12,9 @@ import asyncio
 import contextlib
 import math
 import os
-import signal
 import struct
 import subprocess
-import sys
 import tempfile
-import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -33,9 +30,9 @@ from hil_service.cli.processes import dies_with_parent, last_json  # noqa: E402
 from protocols.mavlink_io import dialect  # noqa: E402
 from tests.conftest import free_tcp_port, free_udp_port  # noqa: E402
 from tests.mavlink_peer import UdpPeer  # noqa: E402
+from tests.orphans import outlives_its_killed_parent  # noqa: E402
 
 SERVER = Path(mavsdk.__file__).parent / "bin" / "mavsdk_server"
-ROOT = Path(__file__).resolve().parent.parent
 TIMEOUT = 20.0  # s for any one MAVSDK call
 SPEED = 5.0
 NAN = math.nan
@@ -439,27 +436,4 @@ def test_mavsdk_server_dies_with_a_parent_that_is_sigkilled(tmp_path):
         "print(server.pid, flush=True)\n"
         "time.sleep(600)\n"
     )
-    parent = subprocess.Popen(
-        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT
-    )
-    try:
-        assert parent.stdout is not None
-        server = int(parent.stdout.readline())
-        assert _running(server)
-        parent.send_signal(signal.SIGKILL)
-        parent.wait(10)
-        deadline = time.monotonic() + 10
-        while _running(server):
-            assert time.monotonic() < deadline, "mavsdk_server outlived its killed parent"
-            time.sleep(0.05)
-    finally:
-        if parent.poll() is None:
-            parent.kill()
-
-
-def _running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except FileNotFoundError:
-        return False
-    return state != "Z"  # a zombie is dead, waiting for its parent
+    assert not outlives_its_killed_parent(code), "mavsdk_server outlived its killed parent"

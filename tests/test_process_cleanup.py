@@ -7,6 +7,8 @@ import os
 import time
 from pathlib import Path
 
+from tests.orphans import outlives_its_killed_parent
+
 
 def _group_members(leader: int) -> list[int]:
     """Live processes of the process group ``leader`` leads, other than the leader."""
@@ -52,10 +54,6 @@ def test_a_killed_demos_service_and_emulator_are_stopped_with_it(
 def test_a_verb_dies_with_a_parent_that_is_sigkilled(tmp_path):
     """A test run SIGKILLed mid-test leaves no ``serve`` behind: the parent here is a plain
     Python process that starts ``serve`` as the suite does, then is SIGKILLed."""
-    import signal
-    import subprocess
-    import sys
-
     code = (
         "import sys, time\n"
         "from hil_service.cli.processes import free_port, start_service\n"
@@ -66,25 +64,4 @@ def test_a_verb_dies_with_a_parent_that_is_sigkilled(tmp_path):
         "print(service.pid, flush=True)\n"
         "time.sleep(600)\n"
     )
-    root = Path(__file__).parent.parent
-    parent = subprocess.Popen(
-        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=root
-    )
-    try:
-        assert parent.stdout is not None
-        service = int(parent.stdout.readline())
-        assert _alive(service)
-        parent.send_signal(signal.SIGKILL)
-        parent.wait(10)
-        _until(lambda: not _alive(service), 10, "the service to die with its parent")
-    finally:
-        if parent.poll() is None:
-            parent.kill()
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except FileNotFoundError:
-        return False
-    return state != "Z"
+    assert not outlives_its_killed_parent(code), "serve outlived its SIGKILLed parent"
