@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+from hil_service.listeners.zenoh_shutdown import close_at_exit
+
 DEFAULT_MODE = "peer"
 
 
@@ -79,4 +81,5 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
 
 
 def open_session(options: ZenohOptions) -> zenoh.Session:
-    return zenoh.open(options.to_config())
+    """A session for ``options``, closed at exit if nothing closes it (``zenoh_shutdown``)."""
+    return close_at_exit(zenoh.open(options.to_config()))
