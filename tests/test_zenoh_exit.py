@@ -55,3 +55,34 @@ def test_an_uncaught_error_with_a_session_open_ends_the_process():
     assert "heard 1" in out  # the callback's thread was running
     assert process.returncode == 1
     assert "an uncaught error with the session open" in err
+
+
+def test_serve_that_cannot_start_its_service_says_why_and_closes_what_it_opened(
+    monkeypatch, tmp_path, capsys
+):
+    """A failure while the service is wired (after the link, the log and the Zenoh session
+    are open) is a clear error and exit status 2, with the session closed, not a traceback
+    with everything left open."""
+    from hil_service.cli import build_parser, serve
+
+    opened = []
+    real_open = serve.open_session
+
+    def open_and_keep(options):
+        opened.append(real_open(options))
+        return opened[-1]
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("declaration refused")
+
+    monkeypatch.setattr(serve, "open_session", open_and_keep)
+    monkeypatch.setattr(serve, "wire", refuse)
+    # serve installs SIGINT/SIGTERM handlers: not in this test process beyond the test.
+    monkeypatch.setattr(serve.signal, "signal", lambda *args: None)
+    args = build_parser().parse_args(
+        ["serve", "--mavlink", f"udpin:127.0.0.1:{_free_port()}",
+         "--zenoh-listen", f"tcp/127.0.0.1:{_free_port()}", "--log-dir", str(tmp_path)]
+    )  # fmt: skip
+    assert serve.run(args) == 2
+    assert "cannot start the service: declaration refused" in capsys.readouterr().err
+    assert len(opened) == 1 and opened[0].is_closed()

@@ -434,7 +434,17 @@ def main(config: ServeConfig) -> int:
         if recorder is not None:
             recorder.close()
         return 2
-    wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
+    try:
+        wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
+    except Exception as error:  # zenoh raises its own ZError for a declaration it refuses
+        print(f"glider-hil serve: cannot start the service: {error}", file=sys.stderr)
+        if live is not None:
+            live.close()
+        session.close()
+        link.close()
+        if recorder is not None:
+            recorder.close()
+        return 2
     tune_for_service()
     model = config.service.pipeline.model
     print(
