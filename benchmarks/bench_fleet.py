@@ -67,6 +67,7 @@ from hil_service.cli.processes import (  # noqa: E402
     wait_for_line,
 )
 from hil_service.cli.router import ROUTER_READY  # noqa: E402
+from hil_service.listeners.zenoh_shutdown import close_at_exit  # noqa: E402
 from plant_emulator.fleet import connection_for, fleet_identities  # noqa: E402
 from protocols import keys  # noqa: E402
 
@@ -109,7 +110,7 @@ def client_session(router: str) -> zenoh.Session:
     config.insert_json5("mode", '"client"')
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("connect/endpoints", json.dumps([router]))
-    return zenoh.open(config)
+    return close_at_exit(zenoh.open(config))
 
 
 class Counts:

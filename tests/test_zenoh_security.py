@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from hil_service.listeners.zenoh_shutdown import close_at_exit
 from tests.conftest import ROOT, free_tcp_port, free_udp_port
 from tests.zenoh_peer import ZenohProbe
 from tests.zenoh_router import start_router, stop_router, wait_listening
@@ -54,7 +55,7 @@ def _anonymous(endpoint: str, ca: Path, password: str | None = None) -> zenoh.Se
     if password is not None:
         config.insert_json5("transport/auth/usrpwd/user", '"operator"')
         config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
-    return zenoh.open(config)
+    return close_at_exit(zenoh.open(config))
 
 
 @pytest.mark.timeout(120)
