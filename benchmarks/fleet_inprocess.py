@@ -18,10 +18,12 @@ runs meanwhile. After ``--from-step`` steps (past the burn-in) it measures:
   generation, their total and their longest pause; then one full collection: its pause
   and the unreachable objects it found, the reference cycles of the whole run.
 
-``--profile FILE`` writes a cProfile of the measured samples.
+``--profile FILE`` writes a cProfile of the measured samples; ``--step-times FILE`` each
+measured step's handling summed over the vehicles (JSON, step → s): where in a run the load
+rises, e.g. over the structure choices' window from sample 600 on.
 
 Run: .venv/bin/python benchmarks/fleet_inprocess.py [--vehicles 1000] [--links 4]
-         [--steps 100] [--from-step 70] [--health-period 5]
+         [--steps 100] [--from-step 70] [--health-period 5] [--step-times FILE]
 """
 
 from __future__ import annotations
