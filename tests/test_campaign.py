@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ from hil_service.campaign.compare import compare, t_interval
 from hil_service.campaign.metrics import divergence
 from hil_service.campaign.mission import Mission, Trace
 from hil_service.campaign.runner import parse_seeds
-from hil_service.cli.processes import last_json
+from hil_service.cli.processes import last_json, run_verb
 
 pytestmark = pytest.mark.wire
 
@@ -25,12 +24,7 @@ SHORT = ("--steps", "500", "--identify", "300", "--step-every", "60", "--no-figu
 
 
 def campaign(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "campaign", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_verb("campaign", *args, timeout=timeout)
 
 
 def rows(directory: Path) -> list[dict[str, str]]:
@@ -106,11 +100,9 @@ def test_compare_of_two_campaigns_of_the_same_revision_finds_no_difference(
             "--scenarios", "random", "--seeds", "0-1", *SHORT, "-o", str(tmp_path / name)
         )
         assert done.returncode == 0, done.stderr
-    printed = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "campaign", "compare", str(tmp_path / "a"),
-         str(tmp_path / "b"), "--json"],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    printed = run_verb(
+        "campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b"), "--json", timeout=120
+    )
     assert printed.returncode == 0, printed.stderr
     results = {r["metric"]: r for r in last_json(printed.stdout, "compare")}
     # Same revision, same seeds: lockstep runs are reproducible, so every difference is 0.
@@ -118,11 +110,7 @@ def test_compare_of_two_campaigns_of_the_same_revision_finds_no_difference(
         assert results[metric]["pairs"] == 2
         assert results[metric]["mean_difference"] == 0.0
         assert results[metric]["ci95"] == [0.0, 0.0]
-    table = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "campaign", "compare", str(tmp_path / "a"),
-         str(tmp_path / "b")],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    table = run_verb("campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b"), timeout=120)
     assert "| random | depth_iae | 2 | +0 |" in table.stdout
 
 

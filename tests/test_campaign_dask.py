@@ -19,7 +19,7 @@ from pathlib import Path
 import distributed
 import pytest
 
-from hil_service.cli.processes import free_port, last_json, set_parent_death_signal
+from hil_service.cli.processes import free_port, last_json, run_verb, set_parent_death_signal
 
 pytestmark = pytest.mark.wire
 
@@ -96,12 +96,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
 
 
 def campaign(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "campaign", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_verb("campaign", *args, timeout=timeout)
 
 
 def start_campaign(*args: str) -> subprocess.Popen[str]:

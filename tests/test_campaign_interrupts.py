@@ -30,7 +30,7 @@ from hil_service.campaign.runner import (
     run_dir,
 )
 from hil_service.cli import main
-from hil_service.cli.processes import free_port, set_parent_death_signal
+from hil_service.cli.processes import free_port, run_verb, set_parent_death_signal
 from tests.orphans import running
 from tests.test_campaign_dask import _end as end_process
 from tests.test_campaign_dask import _start as dask_process
@@ -204,10 +204,10 @@ def test_a_second_campaign_in_the_same_directory_is_refused(tmp_path: Path) -> N
     first = start_campaign(out, "--scenarios", "disturbed", "--seeds", "0", *LONG)
     try:
         services_running(first, out, 1)
-        second = subprocess.run(
-            [sys.executable, "-m", "hil_service.cli", "campaign", "-o", str(out), *SMALL,
-             "--scenarios", "disturbed", "--seeds", "0", *LONG, "--resume"],
-            capture_output=True, text=True, timeout=60,
+        second = run_verb(
+            "campaign", "-o", str(out), *SMALL,
+            "--scenarios", "disturbed", "--seeds", "0", *LONG, "--resume",
+            timeout=60,
         )  # fmt: skip
         assert first.poll() is None
     finally:

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from hil_service.cli import build_parser, main
+from hil_service.cli.processes import run_verb
 from hil_service.mcap.recorder import McapRecorder
 from protocols import keys
 from tests.refused_flags import must_not_run, refused_by_argparse
@@ -229,11 +229,11 @@ def test_campaign_refuses_missions_too_short_for_the_identifier_and_a_step(
 @pytest.mark.wire
 def test_a_campaign_whose_every_mission_failed_exits_1(tmp_path: Path) -> None:
     out = tmp_path / "c"
-    done = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "campaign", "--scenarios", "disturbed",
-         "--seeds", "0", "--steps", "400", "--identify", "300", "--step-every", "60",
-         "--no-oracle", "--no-figures", "--kill-service", "disturbed-s0000:1", "-o", str(out)],
-        capture_output=True, text=True, timeout=120,
+    done = run_verb(
+        "campaign", "--scenarios", "disturbed",
+        "--seeds", "0", "--steps", "400", "--identify", "300", "--step-every", "60",
+        "--no-oracle", "--no-figures", "--kill-service", "disturbed-s0000:1", "-o", str(out),
+        timeout=120,
     )  # fmt: skip
     assert done.returncode == 1, done.stderr
     assert "every mission failed" in done.stderr

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from hil_service.cli.processes import run_verb
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.field.evaluate import Arrays, identify_dives
 from hil_service.offline.field.report import field_arrays
@@ -16,12 +15,7 @@ DATA = Path(__file__).parent / "data" / "field"
 
 
 def _arrays(source: Path, out: Path) -> Arrays:
-    done = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "import", str(source), "-o", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = run_verb("import", str(source), "-o", str(out), timeout=120)
     assert done.returncode == 0, done.stderr
     reader = LogReader(out)
     for _ in reader.messages({"glider/1/telemetry"}):

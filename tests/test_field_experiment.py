@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from hil_service.cli.processes import run_verb
 
 DATA = Path(__file__).parent / "data"
 SEA = DATA / "field" / "seaexplorer-sea035"
@@ -24,12 +25,7 @@ PITCH_MODELS = ["persistence", "rls-arx", "dynamic", "paper", "static-balance"]
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    return run_verb(*args, timeout=300)
 
 
 @pytest.fixture(scope="module")

@@ -6,12 +6,12 @@ import gzip
 import json
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hil_service.cli.processes import run_verb
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.field import FieldError, read_field
 from hil_service.offline.field.grid import resample
@@ -55,12 +55,7 @@ column = "dive"
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    return run_verb(*args, timeout=120)
 
 
 def test_seaglider_dives_read_in_order_with_si_units() -> None:

@@ -4,13 +4,11 @@ each, ``--sysid`` ranges), one emulator per vehicle, a subscriber on the router,
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 
 import pytest
 
-from hil_service.cli.processes import wait_for_line
+from hil_service.cli.processes import run_verb, wait_for_line
 from hil_service.cli.router import ROUTER_READY
 from hil_service.config import parse_system_ids
 from tests.conftest import free_tcp_port, free_udp_port
@@ -32,12 +30,7 @@ def test_sysid_ranges() -> None:
 
 
 def fleet_snapshot(router: str) -> dict[int, dict]:
-    result = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-connect", router, "--json"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_verb("fleet", "--zenoh-connect", router, "--json", timeout=60)
     assert result.returncode == 0, result.stderr
     return {row["system_id"]: row for row in json.loads(result.stdout)["vehicles"]}
 

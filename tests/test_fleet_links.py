@@ -5,13 +5,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 
 import pytest
 
-from hil_service.cli.processes import last_json, wait_for_line
+from hil_service.cli.processes import last_json, run_verb, wait_for_line
 from hil_service.cli.router import ROUTER_READY
 from hil_service.config import ServiceConfig
 from hil_service.vehicle_links import LinkIdentity, LinkSet
@@ -166,11 +164,7 @@ def test_more_than_255_vehicles_over_two_links_on_one_service(processes) -> None
         wall = time.monotonic() - started
         emulated = last_json(emulated_out, "emulator")
         assert emulated, emulated_err[-2000:]
-        listed = subprocess.run(
-            [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-connect", router,
-             "--json"],
-            capture_output=True, text=True, timeout=120,
-        )  # fmt: skip
+        listed = run_verb("fleet", "--zenoh-connect", router, "--json", timeout=120)
         assert listed.returncode == 0, listed.stderr
         rows = json.loads(listed.stdout)["vehicles"]
         commanded_on_zenoh = {

@@ -5,13 +5,11 @@ one Zenoh router, one emulator (``emulate --vehicles N --fleet-connect …``), `
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 
 import pytest
 
-from hil_service.cli.processes import last_json, wait_for_line
+from hil_service.cli.processes import last_json, run_verb, wait_for_line
 from hil_service.cli.router import ROUTER_READY
 from hil_service.config import DEFAULT_MAX_VEHICLES, ServiceConfig
 from tests.conftest import free_tcp_port, free_udp_port
@@ -23,12 +21,7 @@ SPEED = 5  # samples/s per vehicle
 
 
 def fleet_ids(router: str) -> set[int]:
-    result = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-connect", router, "--json"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_verb("fleet", "--zenoh-connect", router, "--json", timeout=60)
     assert result.returncode == 0, result.stderr
     return {row["system_id"] for row in json.loads(result.stdout)["vehicles"]}
 
@@ -74,12 +67,7 @@ def test_the_vehicle_limit_is_a_setting_stored_with_the_configuration() -> None:
     for bad in (0, 256):
         with pytest.raises(ValueError, match="--max-vehicles"):
             ServiceConfig(max_vehicles=bad)
-    refused = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "serve", "--max-vehicles", "0", "--no-log"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    refused = run_verb("serve", "--max-vehicles", "0", "--no-log", timeout=60)
     assert refused.returncode == 2 and "--max-vehicles must be 1..255" in refused.stderr
 
 

@@ -6,12 +6,10 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 
 import pytest
 
-from hil_service.cli.processes import wait_for_line
+from hil_service.cli.processes import run_verb, wait_for_line
 from hil_service.cli.router import ROUTER_READY
 from tests.conftest import free_tcp_port, free_udp_port
 from tests.test_zenoh_security import _install_configs
@@ -40,11 +38,15 @@ def test_router_verb_runs_the_secured_configuration(processes, tmp_path) -> None
         assert observer.wait_for(lambda: observer.count("glider/1/health") > 0, 60)
     finally:
         observer.close()
-    result = subprocess.run(
-        [sys.executable, "-m", "hil_service.cli", "fleet", "--zenoh-config",
-         str(configs["observer"]), "--zenoh-connect", endpoint, "--json"],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    result = run_verb(
+        "fleet",
+        "--zenoh-config",
+        str(configs["observer"]),
+        "--zenoh-connect",
+        endpoint,
+        "--json",
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr
     vehicles = json.loads(result.stdout)["vehicles"]
     assert [v["system_id"] for v in vehicles] == [1], vehicles

@@ -81,6 +81,18 @@ def start_verb(*args: str, own_group: bool = False) -> subprocess.Popen[str]:
     return process
 
 
+def run_verb(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
+    """``glider-hil ARGS…`` with this interpreter, to its end, output captured as text;
+    killed at ``timeout`` s (``subprocess.TimeoutExpired``), and with this process
+    (``dies_with_parent``)."""
+    return subprocess.run(
+        dies_with_parent([sys.executable, "-m", "hil_service.cli", *args]),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
 #: What ``serve`` prints on stderr once its MAVLink link, Zenoh session and log are open.
 SERVICE_READY = "glider-hil serve: ready"
 
