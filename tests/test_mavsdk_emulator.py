@@ -33,6 +33,7 @@ from tests.mavlink_peer import UdpPeer  # noqa: E402
 from tests.orphans import outlives_its_killed_parent  # noqa: E402
 
 SERVER = Path(mavsdk.__file__).parent / "bin" / "mavsdk_server"
+SERVER_LOG = "mavsdk_server.log"  # in the server's scratch directory
 TIMEOUT = 20.0  # s for any one MAVSDK call
 SPEED = 5.0
 NAN = math.nan
@@ -66,9 +67,8 @@ def missions(profile: str) -> tuple[list[MissionItem], list[MissionItem]]:
 
 def start_mavsdk_server(port: int, vehicle: str, scratch: Path) -> subprocess.Popen[bytes]:
     """The wheel's ``mavsdk_server`` on gRPC ``port`` for the vehicle at ``vehicle``, dying
-    with this process, its temporary files and its log (``mavsdk_server.log``) in
-    ``scratch``."""
-    with open(scratch / "mavsdk_server.log", "w") as log:
+    with this process, its temporary files and its log (``SERVER_LOG``) in ``scratch``."""
+    with open(scratch / SERVER_LOG, "w") as log:
         return subprocess.Popen(
             dies_with_parent(
                 [str(SERVER), "-p", str(port), "--sysid", "245", "--compid", "190", vehicle]
@@ -90,7 +90,7 @@ async def connected(udp_port: int) -> AsyncIterator[System]:
     with it."""
     port = free_tcp_port()
     with tempfile.TemporaryDirectory(prefix="mavsdk-server-") as scratch:
-        log_path = Path(scratch) / "mavsdk_server.log"
+        log_path = Path(scratch) / SERVER_LOG
         server = start_mavsdk_server(port, f"udpin://127.0.0.1:{udp_port}", Path(scratch))
         try:
             drone = System(mavsdk_server_address="127.0.0.1", port=port)

@@ -61,6 +61,11 @@ def set_parent_death_signal(signum: int = signal.SIGKILL) -> bool:
     return armed
 
 
+def _verb(args: Sequence[str]) -> list[str]:
+    """``glider-hil ARGS…`` with this interpreter, dying with this process."""
+    return dies_with_parent([sys.executable, "-m", "hil_service.cli", *args])
+
+
 def start_verb(*args: str, own_group: bool = False) -> subprocess.Popen[str]:
     """``glider-hil ARGS…`` with this interpreter, output captured, unbuffered.
 
@@ -70,7 +75,7 @@ def start_verb(*args: str, own_group: bool = False) -> subprocess.Popen[str]:
     (``dies_with_parent``).
     """
     process = subprocess.Popen(
-        dies_with_parent([sys.executable, "-m", "hil_service.cli", *args]),
+        _verb(args),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -86,7 +91,7 @@ def run_verb(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
     killed at ``timeout`` s (``subprocess.TimeoutExpired``), and with this process
     (``dies_with_parent``)."""
     return subprocess.run(
-        dies_with_parent([sys.executable, "-m", "hil_service.cli", *args]),
+        _verb(args),
         capture_output=True,
         text=True,
         timeout=timeout,

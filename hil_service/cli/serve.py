@@ -6,6 +6,7 @@ As zenoh-python's examples: flags → ``config_from_args`` → ``main(config)``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -16,7 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hil_service.builder import open_recorder, wire
+from hil_service.builder import Wired, open_recorder, wire
 from hil_service.cli.processes import SERVICE_READY
 from hil_service.config import (
     DEFAULT_MAX_VEHICLES,
@@ -403,47 +404,9 @@ def main(config: ServeConfig) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
-    recorder = open_recorder(config.service, config.log)
     connections = (config.mavlink, *config.more_mavlink)
-    try:
-        link: Link | LinkSet
-        if len(connections) > 1 or config.service.vehicle_ids == "link":
-            # Replies carry the link number (LinkSet): each vehicle's go back on its own.
-            link = LinkSet(connections, 255, 191, spin_wait=config.spin_wait)
-        else:
-            link = Link(config.mavlink, 255, 191, spin_wait=config.spin_wait)
-    except Exception as error:  # pymavlink raises many kinds for a bad connection string
-        print(f"glider-hil serve: cannot open {', '.join(connections)}: {error}", file=sys.stderr)
-        if recorder is not None:
-            recorder.close()
-        return 2
-    try:
-        session = open_session(config.zenoh)
-    except Exception as error:  # zenoh raises its own ZError for bad endpoints
-        print(f"glider-hil serve: cannot open Zenoh session: {error}", file=sys.stderr)
-        link.close()
-        if recorder is not None:
-            recorder.close()
-        return 2
-    try:
-        live = start_live(config.foxglove, "serve")
-    except OSError as error:
-        print(f"glider-hil serve: {error}", file=sys.stderr)
-        session.close()
-        link.close()
-        if recorder is not None:
-            recorder.close()
-        return 2
-    try:
-        wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
-    except Exception as error:  # zenoh raises its own ZError for a declaration it refuses
-        print(f"glider-hil serve: cannot start the service: {error}", file=sys.stderr)
-        if live is not None:
-            live.close()
-        session.close()
-        link.close()
-        if recorder is not None:
-            recorder.close()
+    wired = _start(config, connections)
+    if wired is None:
         return 2
     tune_for_service()
     model = config.service.pipeline.model
@@ -460,10 +423,54 @@ def main(config: ServeConfig) -> int:
     finally:
         summary = wired.service.summary()
         summary["wall_s"] = time.monotonic() - started
-        if live is not None:
-            summary["foxglove"] = live.status()
+        if wired.live is not None:
+            summary["foxglove"] = wired.live.status()
         log = wired.close()
         if log is not None:
             summary["log"] = log
     print(json.dumps({"service": summary}), flush=True)
     return 0
+
+
+def _start(config: ServeConfig, connections: tuple[str, ...]) -> Wired | None:
+    """The service wired on its parts, opened in turn (log, MAVLink links, Zenoh session,
+    live view); None when one cannot open or the service cannot be wired, with the reason
+    on stderr and every part opened so far closed again, the last opened first."""
+    with contextlib.ExitStack() as opened:
+        recorder = open_recorder(config.service, config.log)
+        if recorder is not None:
+            opened.callback(recorder.close)
+        try:
+            link: Link | LinkSet
+            if len(connections) > 1 or config.service.vehicle_ids == "link":
+                # Replies carry the link number (LinkSet): each vehicle's go back on its own.
+                link = LinkSet(connections, 255, 191, spin_wait=config.spin_wait)
+            else:
+                link = Link(config.mavlink, 255, 191, spin_wait=config.spin_wait)
+        except Exception as error:  # pymavlink raises many kinds for a bad connection string
+            print(
+                f"glider-hil serve: cannot open {', '.join(connections)}: {error}",
+                file=sys.stderr,
+            )
+            return None
+        opened.callback(link.close)
+        try:
+            session = open_session(config.zenoh)
+        except Exception as error:  # zenoh raises its own ZError for bad endpoints
+            print(f"glider-hil serve: cannot open Zenoh session: {error}", file=sys.stderr)
+            return None
+        opened.callback(session.close)
+        try:
+            live = start_live(config.foxglove, "serve")
+        except OSError as error:
+            print(f"glider-hil serve: {error}", file=sys.stderr)
+            return None
+        if live is not None:
+            opened.callback(live.close)
+        try:
+            wired = wire(config.service, session=session, link=link, recorder=recorder, live=live)
+        except Exception as error:  # zenoh raises its own ZError for a declaration it refuses
+            print(f"glider-hil serve: cannot start the service: {error}", file=sys.stderr)
+            return None
+        opened.pop_all()  # from here on ``Wired.close`` closes them
+        return wired

@@ -279,7 +279,7 @@ class _LpModel:
     def _optimal_basis(self, x: Array, row_lower: Array, row_upper: Array) -> OptimalBasis | None:
         """HiGHS's optimal basis at ``x``, factorised; None where the shortcut cannot use
         it (a singular or ill-conditioned square part)."""
-        status, basic = self.highs.getBasicVariables()  # type: ignore[attr-defined]  # (stubs)
+        status, basic = self.highs.getBasicVariables()  # type: ignore[attr-defined]  # not in highspy's stubs
         if status != highspy.HighsStatus.kOk:
             return None
         try:

@@ -23,20 +23,14 @@ import zenoh
 #: no weak reference: closed ones are dropped from here whenever another is added).
 _sessions: list[zenoh.Session] = []
 _lock = threading.Lock()
-_registered = False
 
 
 def close_at_exit(session: zenoh.Session) -> zenoh.Session:
     """Close ``session`` at interpreter exit, before the non-daemon threads are joined, if
     nothing closed it before; returns it."""
-    global _registered
     with _lock:
         _sessions[:] = [s for s in _sessions if not s.is_closed()]
         _sessions.append(session)
-        if not _registered:
-            register: Any = getattr(threading, "_register_atexit", atexit.register)
-            register(_close_open_sessions)
-            _registered = True
     return session
 
 
@@ -48,3 +42,7 @@ def _close_open_sessions() -> None:
         # Exiting anyway: one that fails to close must not keep the others open.
         with contextlib.suppress(Exception):
             session.close()
+
+
+_register: Any = getattr(threading, "_register_atexit", atexit.register)
+_register(_close_open_sessions)
