@@ -1,7 +1,8 @@
 """``fleet`` and ``router`` refuse a number their flag cannot take before anything runs (one
 line naming the flag, exit 2); ``emulate --vehicles N --latency-trace FILE`` refuses a FILE
 that cannot be written before the run, and prints its summary even when writing the trace
-fails after it."""
+fails after it; ``fleet`` that cannot declare its subscribers says so and closes its
+session."""
 
 from __future__ import annotations
 
@@ -109,3 +110,29 @@ def test_emulate_keeps_the_summary_when_the_latency_trace_cannot_be_written_afte
     assert json.loads(captured.out)["emulator"]["vehicles"] == 2
     assert f"--latency-trace {trace}: cannot write" in captured.err
     assert "Traceback" not in captured.err
+
+
+def test_fleet_that_cannot_listen_says_why_and_closes_its_session(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A failure to declare the fleet's subscribers is one line and exit 2, with the Zenoh
+    session closed (an open one would keep the interpreter from exiting)."""
+    from hil_service.cli import fleet as fleet_cli
+    from hil_service.listeners.zenoh_config import ZenohOptions, open_session
+    from tests.conftest import free_tcp_port
+
+    opened = []
+
+    def open_on_loopback(options: ZenohOptions):  # the test's own endpoint, not the default
+        opened.append(open_session(ZenohOptions(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",))))
+        return opened[-1]
+
+    def refuse(*args: object) -> list[object]:
+        raise RuntimeError("declaration refused")
+
+    monkeypatch.setattr(fleet_cli, "open_session", open_on_loopback)
+    monkeypatch.setattr(fleet_cli, "open_fleet", refuse)
+    assert main(["fleet", "--json", "--wait", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "glider-hil fleet: cannot listen for the fleet: declaration refused" in err
+    assert len(opened) == 1 and opened[0].is_closed()

@@ -224,7 +224,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"glider-hil fleet: cannot open Zenoh session: {error}", file=sys.stderr)
         return 2
     fleet = Fleet()
-    declared = open_fleet(session, fleet)
+    try:
+        declared = open_fleet(session, fleet)
+    except Exception as error:  # a router that refuses the declarations
+        session.close()
+        print(f"glider-hil fleet: cannot listen for the fleet: {error}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     try:
         if args.json:
