@@ -39,11 +39,13 @@ TEST_WORKERS ?= 2
 
 test: build foxglove-client
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 # mypy is not in `make test`: a library's new stubs must not fail a test run.
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy hil_service protocols plant_emulator
 
 bench: build

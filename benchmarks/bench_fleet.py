@@ -273,9 +273,7 @@ def run_fleet(
         links = list(range(service_count))
         udp = [free_port(socket.SOCK_DGRAM) for _ in links]
         block = [connection_for(i, vehicles, links) for i in range(vehicles)]
-        ranges = [
-            f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in links
-        ]
+        ranges = [f"{block.index(link) + 1}-{vehicles - block[::-1].index(link)}" for link in links]
         services = []
         if link_count:
             udp = [free_port(socket.SOCK_DGRAM) for _ in range(link_count)]

@@ -192,16 +192,29 @@ def main() -> int:
     parser.add_argument("--campaign", type=int, default=0, metavar="SEEDS")
     parser.add_argument("--scenarios", default="disturbed,nonlinear")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--oracle", action=argparse.BooleanOptionalAction, default=True,
-                        help="--campaign: with the known-model oracle (default, as campaign)")
+    parser.add_argument(
+        "--oracle",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="--campaign: with the known-model oracle (default, as campaign)",
+    )
     parser.add_argument("--scheduler", default=None, help="--campaign: on this Dask scheduler")
-    parser.add_argument("--oracle-cpu", type=int, default=0, metavar="SEEDS",
-                        help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1")
+    parser.add_argument(
+        "--oracle-cpu",
+        type=int,
+        default=0,
+        metavar="SEEDS",
+        help="CPU s of the oracle alone per mission, seeds 0..SEEDS-1",
+    )
     parser.add_argument("--mission-cpu", type=int, default=0, metavar="SEEDS",
                         help="a mission's CPU s by part, median of seeds 0..SEEDS-1")  # fmt: skip
-    parser.add_argument("--two-cores", default=None, metavar="E,S",
-                        help="also run the lockstep missions with the emulator on core E and "
-                             "the service on core S, each polling --spin-wait µs")
+    parser.add_argument(
+        "--two-cores",
+        default=None,
+        metavar="E,S",
+        help="also run the lockstep missions with the emulator on core E and "
+        "the service on core S, each polling --spin-wait µs",
+    )
     parser.add_argument("--spin-wait", type=spin_wait_us, default=0.0, metavar="US",
                         help="with --two-cores: each side's poll before it sleeps")  # fmt: skip
     args = parser.parse_args()

@@ -229,9 +229,7 @@ def _commanding(commands: list[dict[str, Any]], same: bool) -> dict[str, object]
     """How the closed loop's commands were decided: the share of them in which both
     channels took the controller's own path (none of ``NOT_FROM_THE_PLAN``), and
     whether every run decided exactly the recorded ones."""
-    own = sum(
-        1 for command in commands if not NOT_FROM_THE_PLAN & set(command["mode"].split("/"))
-    )
+    own = sum(1 for command in commands if not NOT_FROM_THE_PLAN & set(command["mode"].split("/")))
     return {
         "commands_both_channels_controlled": own / max(len(commands), 1),
         "commands_as_recorded": same,
@@ -380,7 +378,9 @@ def main() -> None:
     parser.add_argument("--latency-samples", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=3, help="throughput runs (best, median)")
     parser.add_argument(
-        "--skip", action="append", default=[],
+        "--skip",
+        action="append",
+        default=[],
         choices=("memory", "latency", "unpinned", "interpreted"),
     )
     parser.add_argument(

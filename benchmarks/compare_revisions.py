@@ -88,10 +88,18 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--samples", type=int, default=8000, help="throughput samples")
     parser.add_argument("--control-samples", type=int, default=4000)
-    parser.add_argument("--lockstep", type=int, default=0, metavar="STEPS",
-                        help="also a lockstep mission of STEPS steps (0: not measured)")
-    parser.add_argument("--interpreted", action="store_true",
-                        help="run the Python sources of every revision (compile nothing)")
+    parser.add_argument(
+        "--lockstep",
+        type=int,
+        default=0,
+        metavar="STEPS",
+        help="also a lockstep mission of STEPS steps (0: not measured)",
+    )
+    parser.add_argument(
+        "--interpreted",
+        action="store_true",
+        help="run the Python sources of every revision (compile nothing)",
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as base:
         trees = {}

@@ -100,8 +100,7 @@ def summarise(rows: list[dict[str, Any]]) -> str:
         target = FIT_TARGET[scenario]
         verdict = "met" if m is not None and m >= target else "MISSED"
         line = (
-            f"{scenario:10s} {channel:7s} median fit {fmt(m, '.1f')} % >= {target:.0f} %: "
-            f"{verdict}"
+            f"{scenario:10s} {channel:7s} median fit {fmt(m, '.1f')} % >= {target:.0f} %: {verdict}"
         )
         if scenario == "nonlinear":
             above = sum(

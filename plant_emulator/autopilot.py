@@ -474,8 +474,7 @@ class Autopilot:
     def _inputs_for_step(self) -> tuple[float, float]:
         t = self.plant.t
         timed_out = (
-            self._last_command_t is not None
-            and t - self._last_command_t > self.command_timeout
+            self._last_command_t is not None and t - self._last_command_t > self.command_timeout
         )
         if self._external_active and timed_out:
             self._external_active = False

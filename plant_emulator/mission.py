@@ -308,9 +308,7 @@ class Mission:
         return len(self.items) > self.first
 
     def current_message(self) -> MavMessage:
-        state = (
-            dialect.MISSION_STATE_ACTIVE if self.playable else dialect.MISSION_STATE_NO_MISSION
-        )
+        state = dialect.MISSION_STATE_ACTIVE if self.playable else dialect.MISSION_STATE_NO_MISSION
         return dialect.MAVLink_mission_current_message(self.current, len(self.items), state)
 
     def send_current(self) -> None:

@@ -33,9 +33,7 @@ class RebootAt:
     """A step hook (``Autopilot.on_step``) that reboots ``autopilot`` once, after its
     ``step``-th step, and calls ``on_step`` on every step."""
 
-    def __init__(
-        self, step: int, on_step: Callable[[TelemetrySample], None] | None = None
-    ) -> None:
+    def __init__(self, step: int, on_step: Callable[[TelemetrySample], None] | None = None) -> None:
         if step < 1:
             raise ValueError(f"the reboot's step must be ≥ 1, got {step}")
         self.step = step

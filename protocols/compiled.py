@@ -130,7 +130,7 @@ def module_kinds() -> dict[str, str]:
 
 
 def _build_state(root: Path, name: str) -> str:
-    """"missing", "stale" (a compiled module older than its source) or "built"."""
+    """ "missing", "stale" (a compiled module older than its source) or "built"."""
     source = root / _source(name)
     suffixes = importlib.machinery.EXTENSION_SUFFIXES
     binaries = [b for b in (source.with_suffix(s) for s in suffixes) if b.is_file()]
@@ -175,7 +175,7 @@ def orphan_binaries(root: Path) -> list[Path]:
 
 
 def summary() -> str:
-    """"compiled", "interpreted" or "mixed (…)", for reports and benchmark output."""
+    """ "compiled", "interpreted" or "mixed (…)", for reports and benchmark output."""
     kinds = module_kinds()
     values = set(kinds.values())
     if len(values) == 1:

@@ -279,9 +279,7 @@ def check_link(connection: str) -> None:
         return  # a scheme (udpin:, tcp:, ...): pymavlink parses it
     is_device = os.path.exists(name) and not os.path.isfile(name)
     if not is_device and (lowered.endswith(_LOG_SUFFIXES) or os.path.isfile(name)):
-        raise ValueError(
-            f"{connection} is a file, not a link; --mavlink takes {ACCEPTED_LINKS}"
-        )
+        raise ValueError(f"{connection} is a file, not a link; --mavlink takes {ACCEPTED_LINKS}")
 
 
 def spin_wait_problem(spin_wait: float) -> str:
@@ -353,9 +351,7 @@ class Link:
         self.datagram = isinstance(self._file, mavutil.mavudp)
         if self.datagram:
             with contextlib.suppress(OSError):
-                self._file.port.setsockopt(
-                    socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER
-                )
+                self._file.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
 
     def fileno(self) -> int:
         return self._file.fd if self._file.fd is not None else self._file.port.fileno()

@@ -21,6 +21,7 @@ SCHEMA_NAMES = (
     "rejected_input",
 )
 
+
 @cache
 def load_schema(name: str) -> dict[str, Any]:
     if name not in SCHEMA_NAMES:

@@ -46,8 +46,10 @@ def test_glider_profile_heartbeat_and_commands_from_the_vehicles_companion(proce
         probe.put("glider/3/setpoint/depth", {"value": 15.5})
         # 100 samples are 5 s at SPEED: at least 4 heartbeats at 1 Hz, however loaded.
         assert probe.wait_for(
-            lambda: probe.count("glider/3/command/ballast") >= 20
-            and probe.count("glider/3/telemetry") >= 100,
+            lambda: (
+                probe.count("glider/3/command/ballast") >= 20
+                and probe.count("glider/3/telemetry") >= 100
+            ),
             90,
         ), probe.latest("glider/3/health")
         health = probe.latest("glider/3/health")

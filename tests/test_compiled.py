@@ -91,7 +91,9 @@ def test_make_build_deletes_compiled_modules_that_are_not_on_the_list(tmp_path):
     })  # fmt: skip
     orphans = {p.relative_to(tmp_path).as_posix() for p in compiled.orphan_binaries(tmp_path)}
     assert orphans == {
-        f"hil_service/assembler{ext}", f"hil_service/config{ext}", f"plant_emulator/sub/x{ext}"
+        f"hil_service/assembler{ext}",
+        f"hil_service/config{ext}",
+        f"plant_emulator/sub/x{ext}",
     }
     assert compiled.stale_modules(tmp_path) == [compiled.HOT_PATH[0]]
     out = run_child([str(ROOT / "protocols" / "compiled.py"), str(tmp_path)], interpreted=True)

@@ -79,9 +79,7 @@ class OrderBus(Listener):
         self.commands: list[bool] = []  # per command publish: was its datagram there?
         self.frames: list[bytes] = []
 
-    def on_publish(
-        self, key: str, payload: dict[str, Any], data: bytes, reliable: bool
-    ) -> None:
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
         if not key.endswith("/command/ballast"):
             return
         wanted = len(self.commands) + 1

@@ -316,7 +316,9 @@ def test_serve_flags_reach_replay_through_the_stored_configuration():
     again = ServiceConfig.from_stored(stored)
     assert again is not None and again.stored() == config.stored() == stored
     assert (again.units, again.limits, again.system_ids) == (
-        config.units, config.limits, config.system_ids
+        config.units,
+        config.limits,
+        config.system_ids,
     )
     assert again.mapping().inputs.full_scale == 1.5
     assert again.pipeline.model == "paper" and again.pipeline.burn_in == 77

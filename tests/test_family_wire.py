@@ -83,9 +83,7 @@ def _outcome(channel: str, setpoint: float, telemetry, commands, events, healths
                    <= s["t"] < until]  # fmt: skip
         assert all(abs(u - trip["safe_input"]) < 1e-6 for u in applied), channel
         return f"trip ({trip['reason']}), safe input {trip['safe_input']:g}"
-    commanded = [
-        c for c in commands if c[key] is not None and c["mode"].split("/")[slot] != "-"
-    ]
+    commanded = [c for c in commands if c[key] is not None and c["mode"].split("/")[slot] != "-"]
     if not commanded:
         # The last health while the vehicle ran (after it, telemetry is stale).
         live = [h for h in healths if h["control"]["reason"] != "telemetry stale"]

@@ -36,9 +36,7 @@ class CapturingBus(Listener):
     def __init__(self) -> None:
         self.published: list[tuple[str, dict[str, Any]]] = []
 
-    def on_publish(
-        self, key: str, payload: dict[str, Any], data: bytes, reliable: bool
-    ) -> None:
+    def on_publish(self, key: str, payload: dict[str, Any], data: bytes, reliable: bool) -> None:
         self.published.append((key, payload))
 
 

@@ -44,17 +44,19 @@ STREAMS = {"SCALED_PRESSURE2", "VFR_HUD", "ATTITUDE", "SERVO_OUTPUT_RAW"}
 def _mavproxy(tmp_path: Path, master: int, out: int, tlog: Path, *extra: str):
     console = open(tmp_path / "mavproxy.out", "w")  # noqa: SIM115 - closed by _stop_mavproxy
     process = subprocess.Popen(
-        dies_with_parent([
-            sys.executable,
-            str(MAVPROXY),
-            f"--master=udpin:127.0.0.1:{master}",
-            f"--out=udpout:127.0.0.1:{out}",
-            "--daemon",
-            "--non-interactive",
-            f"--state-basedir={tmp_path}",
-            f"--logfile={tlog}",
-            *extra,
-        ]),
+        dies_with_parent(
+            [
+                sys.executable,
+                str(MAVPROXY),
+                f"--master=udpin:127.0.0.1:{master}",
+                f"--out=udpout:127.0.0.1:{out}",
+                "--daemon",
+                "--non-interactive",
+                f"--state-basedir={tmp_path}",
+                f"--logfile={tlog}",
+                *extra,
+            ]
+        ),
         cwd=tmp_path,
         stdin=subprocess.DEVNULL,
         # To a file: an undrained pipe fills up and MAVProxy stops routing when it blocks.

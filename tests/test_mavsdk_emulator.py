@@ -303,8 +303,10 @@ def test_pymavlink_reads_integers_with_the_advertised_encoding(processes, profil
         assert capabilities & dialect.MAV_PROTOCOL_CAPABILITY_MISSION_INT
         peer.send(dialect.MAVLink_param_request_list_message(1, 1))
         got = peer.receive_until(
-            lambda r: {"SYSID_THISMAV", "CMD_FALLBACK"}
-            <= {m.message.param_id for m in r if m.message.get_type() == "PARAM_VALUE"},
+            lambda r: (
+                {"SYSID_THISMAV", "CMD_FALLBACK"}
+                <= {m.message.param_id for m in r if m.message.get_type() == "PARAM_VALUE"}
+            ),
             20,
         )
         values = {
@@ -315,8 +317,10 @@ def test_pymavlink_reads_integers_with_the_advertised_encoding(processes, profil
         }
         assert values["SYSID_THISMAV"] == 1 and values["CMD_FALLBACK"] == 0
         # A PARAM_SET in the same encoding is applied and announced with PARAM_VALUE.
-        wire = 1.0 if encodings & dialect.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST else (
-            struct.unpack("<f", struct.pack("<i", 1))[0]
+        wire = (
+            1.0
+            if encodings & dialect.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+            else (struct.unpack("<f", struct.pack("<i", 1))[0])
         )
         peer.send(
             dialect.MAVLink_param_set_message(

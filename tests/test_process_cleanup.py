@@ -34,9 +34,7 @@ def _until(condition, timeout: float, what: str) -> None:
         time.sleep(0.05)
 
 
-def test_a_killed_demos_service_and_emulator_are_stopped_with_it(
-    processes, tmp_path, monkeypatch
-):
+def test_a_killed_demos_service_and_emulator_are_stopped_with_it(processes, tmp_path, monkeypatch):
     scratch = tmp_path / "tmp"  # the children's temporary files go here
     scratch.mkdir()
     monkeypatch.setenv("TMPDIR", str(scratch))

@@ -166,6 +166,7 @@ def test_reader_reports_truncation_and_corruption_with_offsets(tmp_path):
     bad.write_bytes(bytes(damaged))
     recovered, reader = read_all(bad)
     report = reader.report
+
     def in_middle(message) -> bool:
         return middle.message_start_time <= message.log_time_ns <= middle.message_end_time
 

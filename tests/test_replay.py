@@ -295,9 +295,7 @@ def test_non_default_units_replay_with_the_units_of_the_log(tmp_path):
 
     units = Units(full_scale=1.5, water_density=1000.0, surface_pressure=990.0)
     mapping = units.mapping()
-    config = ServiceConfig(
-        control_default=True, pipeline=PipelineSettings(burn_in=50), units=units
-    )
+    config = ServiceConfig(control_default=True, pipeline=PipelineSettings(burn_in=50), units=units)
     metadata = config.to_metadata()
     recorder = McapRecorder(tmp_path, metadata=metadata).start()
 

@@ -57,9 +57,11 @@ def test_a_reboot_on_the_periodic_profile_stops_commanding_until_a_new_horizon_p
         assert emulator.returncode == 0, err
         vehicle = json.loads(out.strip().splitlines()[-1])["emulator"]
         assert probe.wait_for(
-            lambda: probe.latest("glider/1/health", {}).get("identifier", {})
-            and probe.latest("glider/1/health")["sampling"]["reboots"] >= 1
-            and probe.latest("glider/1/telemetry")["t"] >= 0.9 * STEPS * PERIOD,
+            lambda: (
+                probe.latest("glider/1/health", {}).get("identifier", {})
+                and probe.latest("glider/1/health")["sampling"]["reboots"] >= 1
+                and probe.latest("glider/1/telemetry")["t"] >= 0.9 * STEPS * PERIOD
+            ),
             15,
         ), probe.latest("glider/1/health")
         health = probe.latest("glider/1/health")

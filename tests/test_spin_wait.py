@@ -170,7 +170,6 @@ def test_a_mission_with_a_core_each_and_spinning_links_is_the_same_run(tmp_path:
         assert (spun.trace.y[channel] == slept.trace.y[channel]).all()
 
 
-
 def test_several_links_spin_too(pair) -> None:
     """``serve --mavlink A --mavlink B --spin-wait US``: the links' wait polls all of them."""
     first, second = free_udp_port(), free_udp_port()

@@ -100,9 +100,9 @@ def test_box_qp_is_the_minimum_over_the_box(seed: int) -> None:
     def cost(v: np.ndarray) -> float:
         return float(0.5 * v @ np.array(h) @ v + np.array(f) @ v)
 
-    grid = np.stack(
-        np.meshgrid(*[np.linspace(lo[i], hi[i], 41) for i in range(3)]), -1
-    ).reshape(-1, 3)
+    grid = np.stack(np.meshgrid(*[np.linspace(lo[i], hi[i], 41) for i in range(3)]), -1).reshape(
+        -1, 3
+    )
     assert cost(np.array(x)) <= min(cost(v) for v in grid) + 1e-9
 
 

@@ -123,9 +123,7 @@ def wire_mission_service(mission: Mission, link: Link, log_dir: Path | None) -> 
     return wire(config, link=link, recorder=recorder, inbox=inbox)
 
 
-def _serve(
-    mission: Mission, run_dir: Path, ready_fd: int, log: bool, placement: Placement
-) -> int:
+def _serve(mission: Mission, run_dir: Path, ready_fd: int, log: bool, placement: Placement) -> int:
     """The forked service: open, say the port on ``ready_fd``, serve until ``MISSION_OVER``
     (0 returned) or an interrupting signal (its number returned), also the SIGTERM it gets
     when the process that forked it dies mid-mission: no orphan service. SIGINT is left

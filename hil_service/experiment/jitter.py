@@ -128,10 +128,15 @@ CASES: dict[str, Jitter] = {
     "input readings late (reused) 3 %": {"input_late": 0.03},
     "input late 3 %, reuse flagged": {"input_late": 0.03, "flag_reused": True},
     "all late 3 % + latency, flagged": {
-        "input_late": 0.03, "output_late": 0.03, "late_command": 0.3, "flag_reused": True
+        "input_late": 0.03,
+        "output_late": 0.03,
+        "late_command": 0.3,
+        "flag_reused": True,
     },
     "all late 3 % + latency, not flagged": {
-        "input_late": 0.03, "output_late": 0.03, "late_command": 0.3
+        "input_late": 0.03,
+        "output_late": 0.03,
+        "late_command": 0.3,
     },
 }
 

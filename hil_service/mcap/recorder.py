@@ -327,9 +327,7 @@ class McapRecorder:
             self._write_chunk(item)
 
     def _write_chunk(self, sealed: SealedChunk) -> None:
-        if self._file is None and (
-            self._clock() < self._retry_at or not self._guarded(self._open)
-        ):
+        if self._file is None and (self._clock() < self._retry_at or not self._guarded(self._open)):
             self._discard(sealed)
             return
         assert self._file is not None

@@ -177,9 +177,7 @@ def replay(
 
 
 class _Replay:
-    def __init__(
-        self, paths: list[Path], options: ReplayOptions, listeners: Sequence[Any]
-    ) -> None:
+    def __init__(self, paths: list[Path], options: ReplayOptions, listeners: Sequence[Any]) -> None:
         self.path = paths[0]
         self.options = options
         self.readers = [LogReader(path) for path in paths]

@@ -24,9 +24,7 @@ from protocols.samples import TelemetrySample
 class PeriodicSource:
     periodic = True
 
-    def __init__(
-        self, profile: Profile, config: ServiceConfig, clock: Callable[[], float]
-    ) -> None:
+    def __init__(self, profile: Profile, config: ServiceConfig, clock: Callable[[], float]) -> None:
         self.profile = profile
         self.assembler = ProfileAssembler(
             profile,

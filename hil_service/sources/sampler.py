@@ -258,9 +258,7 @@ class StreamSampler:
         self.counters.samples += 1
         return Tick(t, vehicle_t, values, "", stamps)
 
-    def _value(
-        self, signal: str, limits: tuple[float, ...], t: float
-    ) -> tuple[float, str, float]:
+    def _value(self, signal: str, limits: tuple[float, ...], t: float) -> tuple[float, str, float]:
         """The value of the first fresh source at ``t`` and its stamp, or a reason."""
         seen = False
         tolerance = 1e-9

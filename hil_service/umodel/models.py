@@ -517,9 +517,7 @@ class DynamicUModel(_ModelBase):
             prior = smooth_lag_prior(n, float(p0), self.lag_smoothing, self._lag_chains())
         self.rls = ListRLS(n, lam, p0, prior=prior)
         self._ia = self.degree + 1  # index of a_1 (after the lag-1 powers and the bias)
-        self._theta0: tuple[float, ...] = tuple(
-            1.0 if i == self._ia else 0.0 for i in range(n)
-        )
+        self._theta0: tuple[float, ...] = tuple(1.0 if i == self._ia else 0.0 for i in range(n))
         self._theta: list[float] = list(self._theta0)
         self._phi: list[float] = [0.0] * n  # scratch: regressor of the last _predict
         self._levels: list[float] = []  # y(t), y(t−1), …
@@ -543,9 +541,7 @@ class DynamicUModel(_ModelBase):
         """θ's indices of each power's input lags 1 … nb, in lag order."""
         m = self.degree
         start = m + 1 + self.na
-        return [
-            [power] + [start + k * m + power for k in range(self.nb - 1)] for power in range(m)
-        ]
+        return [[power] + [start + k * m + power for k in range(self.nb - 1)] for power in range(m)]
 
     def _powers(self, u: float) -> list[float]:
         x = u * self.poly_scale
