@@ -24,6 +24,7 @@ from hil_service.experiment.closed_loop import (
     setpoint_schedule,
 )
 from hil_service.experiment.oracle import (
+    SMALL_MATRIX_VALUE,
     KnownPlant,
     OracleController,
     OracleSettings,
@@ -162,6 +163,29 @@ def test_oracle_tracks_a_step_within_the_actuator_limits():
         ref_iae += abs(float(loop_plant.c @ ref_x) - 1.5)
         ref_x = loop_plant.a @ ref_x + loop_plant.b * ref.position
     assert sum(abs(y - 1.5) for y in ys) < 0.8 * ref_iae
+    assert oracle.failures == 0
+
+
+def test_an_lp_with_entries_highs_would_drop_is_built_and_tracks():
+    """A fast plant over a long horizon: its step response falls below HiGHS's
+    ``small_matrix_value`` (0.332¹⁹ ≈ 8·10⁻¹⁰), which HiGHS answers with a warning; the
+    oracle drops those entries itself (family seed 41's vehicle 21 depth, whose run stopped
+    at "HiGHS refused the oracle's LP")."""
+    assert _quiet_highs().getOptionValue("small_matrix_value")[1] == SMALL_MATRIX_VALUE
+    fast = KnownPlant(
+        a=np.array([[0.332]]), b=np.array([1.0]), c=np.array([0.3417]), u_limit=2.0,
+        rate_limit=0.5,
+    )  # fmt: skip
+    oracle = OracleController(fast, OracleSettings(horizon=20, blocks=(1, 1, 2, 4)))
+    x, y, command = np.zeros(1), 0.0, 0.0
+    actuator = BallastActuator(limit=2.0, rate_limit=0.5)
+    for _ in range(60):
+        actuator.apply(command)
+        y = float(fast.c @ x)
+        x = fast.a @ x + fast.b * actuator.position
+        oracle.observe(y, actuator.position)
+        command = oracle.command(0.3, actuator.position)
+    assert abs(y - 0.3) < 1e-6
     assert oracle.failures == 0
 
 

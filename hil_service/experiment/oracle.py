@@ -133,6 +133,11 @@ INF = float(highspy.kHighsInf)
 #: The last optimum's basis is taken again when no bound or row is violated by more than
 #: this: HiGHS's own primal feasibility tolerance (``LP_OPTIONS``).
 PRIMAL_TOLERANCE = 1e-10
+#: HiGHS drops matrix entries of at most this magnitude (its ``small_matrix_value``) and
+#: answers the model with a warning. A fast plant's step response over a long horizon has
+#: such entries (0.33¹⁹ ≈ 8·10⁻¹⁰), so the LP drops them itself: HiGHS and the basis check
+#: (``lp_basis``) then solve the same LP.
+SMALL_MATRIX_VALUE = 1e-9
 #: The basis is factorised after a HiGHS run while its running hit rate (the share of
 #: solves it answered, averaged with this gain) is at least MIN_HIT_RATE, and otherwise on
 #: every PROBE_EVERY-th run, so that a rate that has fallen can recover.
@@ -202,6 +207,7 @@ class _LpModel:
         lp.row_lower_ = np.asarray(row_lower, dtype=np.float64)
         lp.row_upper_ = np.asarray(row_upper, dtype=np.float64)
         matrix = np.asarray(a, dtype=np.float64)
+        matrix = np.where(np.abs(matrix) <= SMALL_MATRIX_VALUE, 0.0, matrix)
         starts: list[int] = [0]
         indices: list[int] = []
         values: list[float] = []
