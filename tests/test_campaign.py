@@ -16,6 +16,7 @@ from hil_service.campaign.metrics import divergence
 from hil_service.campaign.mission import Mission, Trace
 from hil_service.campaign.runner import parse_seeds
 from hil_service.cli.processes import last_json, run_verb
+from tests.markdown_tables import misshapen_tables
 
 pytestmark = pytest.mark.wire
 
@@ -63,6 +64,7 @@ def test_a_campaign_writes_its_tables_summary_figure_and_logs(small: Path) -> No
     assert json.loads((small / "runs.json").read_text())[0]["scenario"] == "disturbed"
     summary = (small / "summary.md").read_text()
     assert "| disturbed | 2 | 1 | 0 | 1 | depth |" in summary
+    assert misshapen_tables(summary) == []
     assert "![IAE ratios per scenario](iae_ratios.png)" in summary
     assert (small / "iae_ratios.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -112,6 +114,7 @@ def test_compare_of_two_campaigns_of_the_same_revision_finds_no_difference(
         assert results[metric]["ci95"] == [0.0, 0.0]
     table = run_verb("campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b"), timeout=120)
     assert "| random | depth_iae | 2 | +0 |" in table.stdout
+    assert misshapen_tables(table.stdout) == []
 
 
 def test_t_interval_and_pairing_by_seed() -> None:

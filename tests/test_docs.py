@@ -1,5 +1,6 @@
 """docs/ tells the truth: the documented keys are ``protocols/keys.py``'s, the documented MCAP
-channels are what a recorded log holds, the MAVLink ids are the dialect's."""
+channels are what a recorded log holds, the MAVLink ids are the dialect's, and every table
+renders."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from protocols import keys
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, dialect
 from protocols.schemas import load_schema
+from tests.markdown_tables import misshapen_tables
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
@@ -330,3 +332,13 @@ def test_the_docs_index_lists_every_document():
         if path.is_file() and path.name != "README.md":
             name = path.relative_to(DOCS).as_posix()
             assert name in index, f"docs/README.md does not list {name}"
+
+
+@pytest.mark.parametrize(
+    "document",
+    ["README.md", *sorted(p.relative_to(ROOT).as_posix() for p in DOCS.rglob("*.md"))],
+)
+def test_every_table_of_the_docs_renders(document):
+    """Each Markdown table has as many cells in every row as in its header (an escaped
+    ``\\|`` is a pipe inside a cell); one that does not is shown as text, or loses cells."""
+    assert misshapen_tables((ROOT / document).read_text()) == []

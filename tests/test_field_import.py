@@ -17,6 +17,7 @@ from hil_service.offline.field import FieldError, read_field
 from hil_service.offline.field.grid import resample
 from hil_service.offline.field.mapped import load_mapping
 from hil_service.offline.field.write import write_field_log
+from tests.markdown_tables import misshapen_tables
 
 DATA = Path(__file__).parent / "data" / "field"
 SG = DATA / "seaglider-sg542"
@@ -124,6 +125,7 @@ def test_report_on_a_field_import_scores_held_out_dives(tmp_path: Path) -> None:
     assert "## Field identification (seaglider SG542)" in text
     assert "steady-glide" in text and "rls-arx" in text and "persistence" in text
     assert "| glide-u |" in text and "glide-u (buoyancy input and measured pitch)" in text
+    assert misshapen_tables(text) == []
     assert "fit % dive 306" in text and "excited" in text
     assert (tmp_path / "report" / "field_depth_steady-glide.png").stat().st_size > 10_000
 

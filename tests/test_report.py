@@ -12,6 +12,7 @@ from hil_service.cli import main
 from hil_service.mcap.reader import LogReader
 from hil_service.offline.report import write_report
 from hil_service.umodel import build_model
+from tests.markdown_tables import misshapen_tables
 
 DATA = Path(__file__).parent / "data"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -96,4 +97,4 @@ def test_report_cli_prints_where_it_wrote(tmp_path, capsys):
     assert main(["report", str(DATA / "nonlinear.mcap"), "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert f"wrote {tmp_path / 'report.md'}" in out
-    assert (tmp_path / "report.md").exists()
+    assert misshapen_tables((tmp_path / "report.md").read_text()) == []

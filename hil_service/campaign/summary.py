@@ -113,7 +113,7 @@ def summary_markdown(
         "",
         "| scenario | runs | ok | diverged | failed | channel | IAE / reference (median, 10–90 %) "
         "| IAE / oracle | overshoot % | settling s | skill | refused |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in scenarios:
         group = [r for r in rows if r["scenario"] == s]
