@@ -98,3 +98,21 @@ def test_report_cli_prints_where_it_wrote(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"wrote {tmp_path / 'report.md'}" in out
     assert misshapen_tables((tmp_path / "report.md").read_text()) == []
+
+
+def test_the_link_section_says_when_the_last_health_stops_short_of_the_log():
+    """A lockstep mission ends between two health publications: the report's link counts
+    are the last health's, and it says how many of the log's samples they cover."""
+    from hil_service.offline.report import _link_lines
+    from hil_service.offline.series import VehicleSeries
+
+    vehicle = VehicleSeries(system_id=1, telemetry_t=[0.1 * k for k in range(10)])
+    vehicle.last_health = {"counters": {"samples": 7, "commands_sent": 5}}
+    lines = _link_lines(vehicle)
+    assert lines[0] == (
+        "- as of the last health, after 7 of the log's 10 samples "
+        "(health is periodic: the counts below stop there)"
+    )
+    assert "- commands sent 5, acknowledged –, refused –" in lines
+    vehicle.last_health = {"counters": {"samples": 10}}
+    assert not _link_lines(vehicle)[0].startswith("- as of the last health")

@@ -348,7 +348,17 @@ def _link_lines(vehicle: VehicleSeries) -> list[str]:
     # Logs written before health was per vehicle keep the link's counters in "counters".
     link_wide = health.get("link_wide") or counters
     loss = link.get("loss_fraction", health.get("packet_loss"))
+    lines = []
+    counted, logged = counters.get("samples"), len(vehicle.telemetry_t)
+    if isinstance(counted, int) and counted < logged:
+        # Health comes every --health-period s of the service's clock: a log that ends
+        # between two (a lockstep mission runs far faster) has samples after the last.
+        lines.append(
+            f"- as of the last health, after {counted} of the log's {logged} samples "
+            "(health is periodic: the counts below stop there)"
+        )
     return [
+        *lines,
         f"- packet loss: {_fmt(loss * 100 if isinstance(loss, (int, float)) else None, '.2f')} % "
         f"({link.get('frames_lost', '–')} frames lost of "
         f"{link.get('frames_received', '–')} received; "
