@@ -187,3 +187,26 @@ def test_a_missions_plants_are_fresh_independent_copies_and_its_period_is_theirs
     stepped_second = [tuple(second.step(*u)) for u in inputs]
     from_scratch = [tuple(built.step(*u)) for u in inputs]
     assert stepped_first == stepped_second == from_scratch
+
+
+def test_compare_refuses_campaigns_of_different_missions(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two campaigns whose missions differ in length or schedule do not pair: their IAEs
+    sum over other samples and setpoints. Same missions pair."""
+    from hil_service.cli import main
+
+    for name, steps in (("a", 2400), ("b", 1800), ("c", 2400)):
+        directory = tmp_path / name
+        directory.mkdir()
+        row = {"scenario": "random", "seed": 0, "status": "ok", "depth_iae": steps / 100}
+        (directory / "runs.json").write_text(json.dumps([row]))
+        spec = {"steps": steps, "identify": steps // 3, "step_every": steps // 6}
+        (directory / "campaign.json").write_text(json.dumps(spec))
+    assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    assert (
+        "ran different missions (steps 2400 against 1800, identify 800 against 600, "
+        "step_every 400 against 300): their figures do not pair"
+    ) in capsys.readouterr().err
+    assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "c")]) == 0
+    assert "| random | depth_iae | 1 | +0 |" in capsys.readouterr().out

@@ -72,6 +72,30 @@ def load_runs(directory: Path) -> Runs:
     return Runs(usable, len(rows) - len(usable))
 
 
+#: What defines a campaign's missions besides scenario and seed (``campaign.json``): two
+#: campaigns that differ in these ran different missions, whose IAEs do not pair.
+MISSION_SETTINGS = ("steps", "identify", "step_every")
+
+
+def mission_differences(a: Path, b: Path) -> list[str]:
+    """The mission settings in which the campaigns in ``a`` and ``b`` differ, as
+    "steps 2400 against 1800"; none when either has no readable ``campaign.json``."""
+    specs = []
+    for directory in (a, b):
+        try:
+            spec = json.loads((directory / "campaign.json").read_text())
+        except (OSError, ValueError):
+            return []
+        if not isinstance(spec, dict):
+            return []
+        specs.append(spec)
+    return [
+        f"{name} {specs[0].get(name)} against {specs[1].get(name)}"
+        for name in MISSION_SETTINGS
+        if specs[0].get(name) != specs[1].get(name)
+    ]
+
+
 def _invalid(value: Any) -> bool:
     """A metric recorded but not a finite number (NaN, a string); None means not measured."""
     return value is not None and not is_finite_number(value)

@@ -337,10 +337,23 @@ def check_mission_segments(spec: CampaignSpec) -> None:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from hil_service.campaign.compare import compare, format_table, load_runs
+    from hil_service.campaign.compare import (
+        compare,
+        format_table,
+        load_runs,
+        mission_differences,
+    )
 
     if len(args.dirs) != 2:
         print("glider-hil campaign compare: give DIR_A DIR_B", file=sys.stderr)
+        return 2
+    different = mission_differences(Path(args.dirs[0]), Path(args.dirs[1]))
+    if different:
+        print(
+            f"glider-hil campaign compare: {args.dirs[0]} and {args.dirs[1]} ran different "
+            f"missions ({', '.join(different)}): their figures do not pair",
+            file=sys.stderr,
+        )
         return 2
     try:
         a, b = (load_runs(Path(d)) for d in args.dirs)
