@@ -332,3 +332,18 @@ def test_two_tlogs_are_refused_as_one_file_at_a_time(tmp_path, capsys):
     first, second = _tlog(tmp_path, data, "a.tlog"), _tlog(tmp_path, data, "b.tlog")
     code, _, err = _import(capsys, str(first), str(second), "-o", str(tmp_path / "t.mcap"))
     assert code == 2 and "a tlog import takes one file, got 2" in err
+
+
+def test_a_pipe_given_as_field_data_is_named_for_what_it_is(tmp_path, capsys):
+    """A named pipe (or `<(zcat …)`, a device) is not a file the import can read twice;
+    the error says so instead of "no such file"."""
+    import os
+
+    pipe = tmp_path / "dives.csv"
+    os.mkfifo(pipe)
+    argv = ["import", str(pipe), "--mapping", str(MAPPING), "-o", str(tmp_path / "x.mcap")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{pipe}: not a regular file (a pipe or a device: save it to a file)" in err
+    assert main(["import", str(tmp_path / "missing.csv"), "-o", str(tmp_path / "y.mcap")]) == 2
+    assert "missing.csv: no such file or directory" in capsys.readouterr().err

@@ -25,6 +25,8 @@ def expand(paths: list[str | Path]) -> list[Path]:
             files += inside
         elif path.is_file():
             files.append(path)
+        elif path.exists():
+            raise FieldError(f"{path}: not a regular file (a pipe or a device: save it to a file)")
         else:
             raise FieldError(f"{path}: no such file or directory")
     return files
