@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterable
 
 from plant_emulator.autopilot import AutopilotConfig
 from plant_emulator.plant import PlantConfig
+from protocols.link_address import host_problem
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import ACCEPTED_LINKS
 from protocols.signing import load_key
@@ -101,7 +102,8 @@ def connection_problem(connection: str) -> str:
             return f"{connection!r}: {scheme}: wants HOST:PORT; it takes {ACCEPTED_LINKS}"
         if not (port.isdigit() and 1 <= int(port) <= 65535):
             return f"{connection!r}: port must be an integer 1..65535, got {port!r}"
-        return ""
+        unresolved = host_problem(name)
+        return f"{connection!r}: {unresolved}" if unresolved else ""
     if not os.path.exists(name):
         return f"{connection!r}: no such serial device; it takes {ACCEPTED_LINKS}"
     if os.path.isfile(name):

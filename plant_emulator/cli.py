@@ -416,9 +416,13 @@ def _plant_from_args(args: argparse.Namespace, profile: Profile) -> GliderPlant 
 def _emulate(args: argparse.Namespace, vehicle: _Vehicle) -> int:
     """Run the vehicle on its link until SIGINT/SIGTERM or ``--duration``; print the
     summary as JSON."""
-    link = Link(
-        args.connect, source_system=args.sysid, source_component=1, spin_wait=args.spin_wait
-    )
+    try:
+        link = Link(
+            args.connect, source_system=args.sysid, source_component=1, spin_wait=args.spin_wait
+        )
+    except Exception as error:  # pymavlink raises many kinds (a TCP peer not listening)
+        print(f"glider-hil emulate: cannot open {args.connect}: {error}", file=sys.stderr)
+        return 2
     stop = threading.Event()
 
     def request_stop(signum: int, frame: object) -> None:

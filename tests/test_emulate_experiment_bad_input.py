@@ -118,11 +118,24 @@ def test_a_deeply_nested_profile_isrefused_line(tmp_path, capsys, no_run) -> Non
         ("udpout:127.0.0.1:0", "port must be an integer 1..65535"),
         ("tcp:localhost:http", "port must be an integer 1..65535"),
         ("/no/such/serial/device", "no such serial device"),
+        ("udpout:999.1.1.1:14550", "host '999.1.1.1' is not an address"),
     ],
 )
 def test_emulate_refuses_a_connection_that_cannot_be_a_link(capsys, no_run, connection, says):
     line = refused_line(capsys, "emulate", *SHORT, "--connect", connection)
     assert line.startswith("glider-hil emulate: --connect ") and says in line
+
+
+def test_emulate_says_when_its_tcp_peer_is_not_listening(capsys) -> None:
+    """A TCP link whose peer refuses the connection (a SITL or companion not up yet) is one
+    line and exit 2, not pymavlink's traceback."""
+    from tests.conftest import free_tcp_port
+
+    port = free_tcp_port()  # nothing listens on it
+    assert main(["emulate", "--connect", f"tcp:127.0.0.1:{port}", "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"glider-hil emulate: cannot open tcp:127.0.0.1:{port}: " in err
+    assert "Traceback" not in err
 
 
 def test_emulate_refuses_a_regular_file_as_a_serial_device(tmp_path, capsys, no_run) -> None:

@@ -239,3 +239,15 @@ def test_replay_refuses_a_sample_period_the_profiles_delay_is_too_long_for(tmp_p
     err = capsys.readouterr().err
     assert "Traceback" not in err
     assert "--sample-period 0.01: the profile's [sampling] delay must be at most 0.1 s" in err
+
+
+# ---- links ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("connection", ["udpout:999.1.1.1:14550", "tcp:192.168.1.2.3:5760"])
+def test_a_link_whose_host_is_no_address_is_refused(tmp_path, capsys, monkeypatch, connection):
+    """pymavlink would take it and every datagram would vanish: serve said "ready" and
+    reached no one. The host is parsed, never looked up (digits and dots only)."""
+    line = _refused(tmp_path, capsys, monkeypatch, "--mavlink", connection)
+    host = connection.split(":")[1]
+    assert f"--mavlink {connection!r}: host {host!r} is not an address" in line
