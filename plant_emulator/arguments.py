@@ -9,14 +9,11 @@ from collections.abc import Callable, Iterable
 
 from plant_emulator.autopilot import AutopilotConfig
 from plant_emulator.plant import PlantConfig
-from protocols.link_address import host_problem
+from protocols.link_address import NETWORK_SCHEMES, host_problem
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import ACCEPTED_LINKS
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
-
-#: Connection schemes ``Link`` opens as a live link, each followed by HOST:PORT.
-LINK_SCHEMES = ("udpin", "udpout", "udpbcast", "udp", "tcp", "tcpin")
 
 
 def autopilot_config(args: argparse.Namespace, system_id: int) -> AutopilotConfig:
@@ -86,7 +83,7 @@ def check_flags(checks: Iterable[tuple[str, Callable[[], object]]]) -> None:
 
 def connection_problem(connection: str) -> str:
     """Why ``connection`` cannot be opened as a link, or "" when it can be tried: a scheme
-    of ``LINK_SCHEMES`` with HOST:PORT (PORT 1..65535), or a serial device that exists.
+    of ``NETWORK_SCHEMES`` with HOST:PORT (PORT 1..65535), or a serial device that exists.
 
     pymavlink would raise ValueError for an unknown scheme or a missing port, a serial
     error for an empty name, and take a port beyond 65535 until the first send fails."""
@@ -95,7 +92,7 @@ def connection_problem(connection: str) -> str:
         return f"is empty; it takes {ACCEPTED_LINKS}"
     scheme, colon, rest = name.partition(":")
     if colon and "/" not in scheme:
-        if scheme.lower() not in LINK_SCHEMES:
+        if scheme.lower() not in NETWORK_SCHEMES:
             return f"{connection!r}: unknown scheme {scheme!r}; it takes {ACCEPTED_LINKS}"
         host, colon, port = rest.partition(":")
         if not host or not colon or ":" in port:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import socket
 
-#: pymavlink's schemes whose HOST names a network address.
+#: The connection schemes ``Link`` opens as a live network link, each followed by HOST:PORT.
 NETWORK_SCHEMES = ("udpin", "udpout", "udpbcast", "udp", "tcp", "tcpin")
 
 

@@ -246,8 +246,19 @@ def test_replay_refuses_a_sample_period_the_profiles_delay_is_too_long_for(tmp_p
 
 @pytest.mark.parametrize("connection", ["udpout:999.1.1.1:14550", "tcp:192.168.1.2.3:5760"])
 def test_a_link_whose_host_is_no_address_is_refused(tmp_path, capsys, monkeypatch, connection):
-    """pymavlink would take it and every datagram would vanish: serve said "ready" and
-    reached no one. The host is parsed, never looked up (digits and dots only)."""
+    """pymavlink would take it and swallow every send error: serve would be ready and
+    reach no one. The host is parsed, never looked up (digits and dots only)."""
     line = _refused(tmp_path, capsys, monkeypatch, "--mavlink", connection)
     host = connection.split(":")[1]
     assert f"--mavlink {connection!r}: host {host!r} is not an address" in line
+
+
+@pytest.mark.parametrize(
+    "connection",
+    ["udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550", "tcp:localhost:5760", "/dev/ttyUSB0,57600"],
+)
+def test_a_link_whose_host_is_an_address_or_no_host_passes_the_host_check(connection):
+    """An address, a name the hosts file resolves, and a serial device (no host at all)."""
+    from protocols.link_address import host_problem
+
+    assert host_problem(connection) == ""

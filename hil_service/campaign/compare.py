@@ -18,6 +18,7 @@ from typing import Any, NamedTuple
 
 from scipy import stats
 
+from hil_service.campaign.runner import MISSION_SETTINGS, SPEC_FILE
 from plant_emulator.models import CHANNELS
 from protocols.payload_json import is_finite_number
 
@@ -72,18 +73,14 @@ def load_runs(directory: Path) -> Runs:
     return Runs(usable, len(rows) - len(usable))
 
 
-#: What defines a campaign's missions besides scenario and seed (``campaign.json``): two
-#: campaigns that differ in these ran different missions, whose IAEs do not pair.
-MISSION_SETTINGS = ("steps", "identify", "step_every")
-
-
 def mission_differences(a: Path, b: Path) -> list[str]:
-    """The mission settings in which the campaigns in ``a`` and ``b`` differ, as
-    "steps 2400 against 1800"; none when either has no readable ``campaign.json``."""
+    """The mission settings (``runner.MISSION_SETTINGS``) in which the campaigns in ``a``
+    and ``b`` differ, as "steps 2400 against 1800": such campaigns ran different missions,
+    whose IAEs do not pair. None when either has no readable ``campaign.json``."""
     specs = []
     for directory in (a, b):
         try:
-            spec = json.loads((directory / "campaign.json").read_text())
+            spec = json.loads((directory / SPEC_FILE).read_text())
         except (OSError, ValueError):
             return []
         if not isinstance(spec, dict):

@@ -45,13 +45,11 @@ INTERRUPTED_EXIT = 130
 #: Keys every recorded row holds (``execute`` and ``failed_row`` write them all).
 ROW_KEYS = ("scenario", "seed", "steps", "status")
 STATUSES = ("ok", "diverged", "failed")
+#: The settings in campaign.json that define a mission beside its scenario and seed (the
+#: samples and setpoints its IAEs sum over), and their flags.
+MISSION_SETTINGS = {"steps": "--steps", "identify": "--identify", "step_every": "--step-every"}
 #: The settings in campaign.json that change a mission's result, and their flags.
-RESULT_SETTINGS = {
-    "steps": "--steps",
-    "identify": "--identify",
-    "step_every": "--step-every",
-    "oracle": "--oracle/--no-oracle",
-}
+RESULT_SETTINGS = {**MISSION_SETTINGS, "oracle": "--oracle/--no-oracle"}
 
 
 class MissionInterrupted(BaseException):
