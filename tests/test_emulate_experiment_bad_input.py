@@ -126,6 +126,25 @@ def test_emulate_refuses_a_connection_that_cannot_be_a_link(capsys, no_run, conn
     assert line.startswith("glider-hil emulate: --connect ") and says in line
 
 
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (("--vehicles", "0"), "--vehicles must be at least 1, got 0"),
+        (("--vehicles", "-3"), "--vehicles must be at least 1, got -3"),
+        (("--vehicles", "3", "--sysid", "0"), "--sysid must be 1..255, got 0"),
+        (("--vehicles", "3", "--sysid", "256"), "--sysid must be 1..255, got 256"),
+        (("--vehicles", "3", "--sysid", "254"), "--vehicles 3 from --sysid 254 leaves 1..255"),
+    ],
+)
+def test_a_fleet_s_size_and_first_id_are_refused_for_what_is_wrong_with_them(
+    capsys, flags, says
+) -> None:
+    """A fleet of no vehicles, or one starting at an id MAVLink has not, is refused naming
+    that flag; a fleet that runs past id 255 names both."""
+    line = refused_line(capsys, "emulate", "--connect", "udpout:127.0.0.1:9", *flags)
+    assert line.startswith(f"glider-hil emulate: {says}")
+
+
 def test_emulate_says_when_its_tcp_peer_is_not_listening(capsys) -> None:
     """A TCP link whose peer refuses the connection (a SITL or companion not up yet) is one
     line and exit 2, not pymavlink's traceback."""
