@@ -10,8 +10,8 @@ with the oracle, a known-model constrained controller (``experiment/oracle.py``)
 ``--bench`` prints how many samples per second one channel identifies and inverts on one
 core. ``--log FILE.mcap`` runs the identification experiment on a log's recorded samples
 instead of the emulator (a field import by its dives, ``experiment/field.py``). A flag
-typed for an experiment that does not use it is refused (``USED_BY``), as are ``--samples``
-beyond ``MAX_SAMPLES`` and a typed ``--step-every`` with no second setpoint step in the run.
+typed for an experiment that does not use it is refused, as are ``--samples`` beyond the
+largest run and a typed ``--step-every`` with no second setpoint step in the run.
 """
 
 from __future__ import annotations

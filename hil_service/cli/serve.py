@@ -1,6 +1,12 @@
 """``glider-hil serve``: the HIL service on a MAVLink link, publishing on Zenoh, logging MCAP.
 
-As zenoh-python's examples: flags → ``config_from_args`` → ``main(config)``.
+    glider-hil serve --mavlink udpin:127.0.0.1:14550 --zenoh-listen tcp/127.0.0.1:7447 \\
+        [--control] [--profile glider|ardusub|FILE] [--log-dir logs]
+    glider-hil serve --mavlink udpin:127.0.0.1:14550 --mavlink udpin:127.0.0.1:14551 \\
+        --vehicle-ids link --max-vehicles 500 --zenoh-connect tcp/ROUTER:7447
+
+docs/running.md describes every flag. The code reads as zenoh-python's examples: flags →
+``config_from_args`` → ``main(config)``.
 """
 
 from __future__ import annotations
