@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 
 import pytest
 from mcap.records import Channel, Message, Metadata, Schema
@@ -195,6 +196,25 @@ def test_info_and_cli_errors(capsys, tmp_path):
     junk.write_bytes(b"\x00" * 100)
     assert main(["replay", "--fast", str(junk)]) == 2
     assert "not an MCAP file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "verb", [("info",), ("replay", "--fast"), ("report",), ("experiment", "--log")]
+)
+def test_what_is_not_a_log_file_is_named_for_what_it_is(capsys, tmp_path, verb):
+    """A missing path, a directory and a named pipe are refused before they are opened,
+    each in one line saying which: a pipe would block the open until a writer came."""
+    pipe = tmp_path / "stream.mcap"
+    os.mkfifo(pipe)
+    cases = (
+        (tmp_path / "none.mcap", "no such log"),
+        (tmp_path, "a directory, not a log"),
+        (pipe, "not a regular file (a pipe or a device"),
+    )
+    for path, says in cases:
+        assert main([*verb, str(path)]) == 2
+        err = capsys.readouterr().err
+        assert f"{path}: {says}" in err and "Traceback" not in err, err
 
 
 def test_a_chunk_damaged_inside_is_skipped_and_the_rest_read(capsys, tmp_path):

@@ -14,6 +14,7 @@ counted as lost.
 from __future__ import annotations
 
 import json
+import stat
 import struct
 import zlib
 from collections.abc import Iterator
@@ -123,6 +124,23 @@ class ReadReport:
         )
 
 
+def not_a_log(path: Path) -> str:
+    """Why ``path`` cannot be read as a log before it is opened, or '': missing, a
+    directory, or not a regular file (a named pipe would block the open until a writer
+    came, and a log is read with seeks)."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return f"{path}: no such log"
+    except OSError as error:
+        return f"{path}: {error.strerror or error}"
+    if stat.S_ISDIR(mode):
+        return f"{path}: a directory, not a log (give the .mcap files in it)"
+    if not stat.S_ISREG(mode):
+        return f"{path}: not a regular file (a pipe or a device: save it to a file)"
+    return ""
+
+
 class LogReader:
     """Iterate a log's messages in file order; ``report`` is filled in as it goes."""
 
@@ -133,6 +151,9 @@ class LogReader:
     def messages(self, topics: set[str] | None = None) -> Iterator[LogMessage]:
         """Messages in file order, only on ``topics`` if given (all are counted in ``report``)."""
         report = self.report
+        problem = not_a_log(self.path)
+        if problem:
+            raise LogError(problem)
         report.file_size = self.path.stat().st_size
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}
