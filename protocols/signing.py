@@ -21,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from protocols.input_files import not_a_file
+
 KEY_BYTES = 32
 SIGNATURE_BLOCK = 13
 MARKER_V2 = 0xFD
@@ -42,6 +44,9 @@ def load_key(path: str | Path) -> bytes:
     ssh does for private keys: anyone who can read it can command the vehicle.
     """
     path = Path(path)
+    problem = not_a_file(path, "signing key file")
+    if problem:
+        raise SigningKeyError(f"cannot read signing key {problem}")
     try:
         data = path.read_bytes()
         mode = path.stat().st_mode

@@ -20,6 +20,7 @@ import threading
 import zenoh
 
 from protocols.flag_types import positive_float
+from protocols.input_files import not_a_file
 
 #: What ``router`` prints on stderr once it listens.
 ROUTER_READY = "glider-hil router: ready"
@@ -43,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
     """The router's Zenoh configuration (raises on a bad file or endpoint)."""
     if config_file:
+        problem = not_a_file(config_file, "Zenoh configuration file")
+        if problem:
+            raise ValueError(f"--config {problem}")
         config = zenoh.Config.from_file(config_file)
     else:
         config = zenoh.Config()

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from hil_service.listeners.zenoh_shutdown import close_at_exit
+from protocols.input_files import not_a_file
 
 DEFAULT_MODE = "peer"
 
@@ -31,6 +32,9 @@ class ZenohOptions:
     def to_config(self) -> zenoh.Config:
         """A Zenoh config: the file's, if given, with every explicit flag on top."""
         if self.config_file:
+            problem = not_a_file(self.config_file, "Zenoh configuration file")
+            if problem:
+                raise ValueError(f"--zenoh-config {problem}")
             config = zenoh.Config.from_file(self.config_file)
         else:
             config = zenoh.Config()

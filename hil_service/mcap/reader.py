@@ -14,7 +14,6 @@ counted as lost.
 from __future__ import annotations
 
 import json
-import stat
 import struct
 import zlib
 from collections.abc import Iterator
@@ -28,6 +27,7 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 
 from hil_service.mcap.recorder import CONFIG_METADATA, PART_METADATA
 from hil_service.mcap.records import MAGIC, DamagedChunk, read_records
+from protocols.input_files import not_a_file
 
 RECORD_SIZE_LIMIT = 256 * 1024 * 1024  # a corrupted length must not allocate gigabytes
 #: The footer record at the end of a finished file, before the closing magic: opcode,
@@ -124,23 +124,6 @@ class ReadReport:
         )
 
 
-def not_a_log(path: Path) -> str:
-    """Why ``path`` cannot be read as a log before it is opened, or '': missing, a
-    directory, or not a regular file (a named pipe would block the open until a writer
-    came, and a log is read with seeks)."""
-    try:
-        mode = path.stat().st_mode
-    except FileNotFoundError:
-        return f"{path}: no such log"
-    except OSError as error:
-        return f"{path}: {error.strerror or error}"
-    if stat.S_ISDIR(mode):
-        return f"{path}: a directory, not a log (give the .mcap files in it)"
-    if not stat.S_ISREG(mode):
-        return f"{path}: not a regular file (a pipe or a device: save it to a file)"
-    return ""
-
-
 class LogReader:
     """Iterate a log's messages in file order; ``report`` is filled in as it goes."""
 
@@ -151,9 +134,11 @@ class LogReader:
     def messages(self, topics: set[str] | None = None) -> Iterator[LogMessage]:
         """Messages in file order, only on ``topics`` if given (all are counted in ``report``)."""
         report = self.report
-        problem = not_a_log(self.path)
+        problem = not_a_file(self.path, "log")
         if problem:
-            raise LogError(problem)
+            raise LogError(
+                problem + (" (give the .mcap files in it)" if self.path.is_dir() else "")
+            )
         report.file_size = self.path.stat().st_size
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}

@@ -31,6 +31,7 @@ from hil_service.offline.field.table import (
     no_log_time,
     whole_dive,
 )
+from protocols.input_files import not_a_file
 from protocols.payload_json import is_finite_number
 from protocols.units import SURFACE_PRESSURE_RANGE, WATER_DENSITY_RANGE, range_problem
 
@@ -113,6 +114,9 @@ def load_mapping(path: str | Path) -> Mapping:
     finite number within its bounds, a scale > 0, one delimiter character, …); else an
     error naming the file, line, table and key."""
     origin = str(path)
+    problem = not_a_file(path, "mapping file")
+    if problem:
+        raise FieldError(problem)
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as error:

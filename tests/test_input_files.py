@@ -1,0 +1,82 @@
+"""A file a flag names (a signing key, a Zenoh configuration, a field mapping) that is
+missing, a directory or a named pipe is refused in one line saying which, exit 2, before it
+is opened: a pipe would block the open until a writer came (Zenoh's reader does so holding
+the interpreter, where not even SIGTERM ends the process)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from hil_service.cli import main
+from protocols.input_files import not_a_file
+from tests.conftest import free_udp_port
+
+
+@pytest.fixture
+def paths(tmp_path: Path) -> dict[str, Path]:
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    return {"missing": tmp_path / "none", "directory": tmp_path, "pipe": pipe}
+
+
+SAYS = {
+    "missing": "no such",
+    "directory": "a directory, not a",
+    "pipe": "not a regular file (a pipe or a device: save it to a file)",
+}
+
+
+def _refused(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    return line
+
+
+def test_a_regular_file_passes_and_the_rest_are_named(paths, tmp_path) -> None:
+    regular = tmp_path / "key"
+    regular.write_bytes(b"")
+    assert not_a_file(regular, "key") == ""
+    for kind, path in paths.items():
+        assert not_a_file(path, "key").startswith(f"{path}: {SAYS[kind]}")
+
+
+@pytest.mark.parametrize("kind", sorted(SAYS))
+def test_serve_and_emulate_refuse_such_a_signing_key(capsys, paths, kind) -> None:
+    key = str(paths[kind])
+    link = f"udpin:127.0.0.1:{free_udp_port()}"
+    serve = ["serve", "--mavlink", link, "--no-log", "--duration", "1", "--signing-key", key]
+    line = _refused(capsys, serve)
+    assert line.startswith(f"glider-hil serve: cannot read signing key {key}: {SAYS[kind]}")
+    emulate = ["emulate", "--connect", "udpout:127.0.0.1:9", "--duration", "1", "--signing-key"]
+    line = _refused(capsys, [*emulate, key])
+    assert line.startswith(f"glider-hil emulate: cannot read signing key {key}: {SAYS[kind]}")
+
+
+@pytest.mark.parametrize("kind", sorted(SAYS))
+def test_serve_fleet_and_router_refuse_such_a_zenoh_configuration(capsys, paths, kind) -> None:
+    config = str(paths[kind])
+    link = f"udpin:127.0.0.1:{free_udp_port()}"
+    argvs = {
+        "serve": ["serve", "--mavlink", link, "--no-log", "--duration", "1", "--zenoh-config"],
+        "fleet": ["fleet", "--json", "--wait", "1", "--zenoh-config"],
+        "router": ["router", "--duration", "1", "--config"],
+    }
+    for verb, argv in argvs.items():
+        line = _refused(capsys, [*argv, config])
+        assert line.startswith(f"glider-hil {verb}: ")
+        assert f"{argv[-1]} {config}: {SAYS[kind]}" in line, line
+
+
+@pytest.mark.parametrize("kind", sorted(SAYS))
+def test_import_refuses_such_a_mapping(capsys, paths, tmp_path, kind) -> None:
+    data = tmp_path / "d.csv"
+    data.write_text("t,depth\n1,2\n")
+    mapping = str(paths[kind])
+    argv = ["import", str(data), "--format", "csv", "--mapping", mapping]
+    line = _refused(capsys, [*argv, "-o", str(tmp_path / "o.mcap")])
+    assert line.startswith(f"glider-hil import: {mapping}: {SAYS[kind]}")
