@@ -347,3 +347,15 @@ def test_a_pipe_given_as_field_data_is_named_for_what_it_is(tmp_path, capsys):
     assert f"{pipe}: not a regular file (a pipe or a device: save it to a file)" in err
     assert main(["import", str(tmp_path / "missing.csv"), "-o", str(tmp_path / "y.mcap")]) == 2
     assert "missing.csv: no such file or directory" in capsys.readouterr().err
+
+
+def test_a_mapping_given_for_a_glider_s_own_format_is_refused_not_ignored(tmp_path, capsys):
+    """A ``--mapping`` names the columns of a CSV/Parquet file; a SeaExplorer's files are read
+    through their own variables, so a mapping given with them would be silently unused."""
+    mapping = tmp_path / "map.toml"
+    mapping.write_text(MAPPING)
+    log = tmp_path / "o.mcap"
+    code, _, err = _import(capsys, str(SEA / DIVE), "--mapping", str(mapping), "-o", str(log))
+    assert code == 2
+    assert "--mapping is for CSV/Parquet files; these are seaexplorer files" in err
+    assert not log.exists()

@@ -61,6 +61,11 @@ def read_field(
                 f"files of several formats given: {', '.join(sorted(map(str, kinds)))}"
             )
         fmt = str(next(iter(kinds)))
+    if mapping is not None and fmt != "csv":
+        raise FieldError(
+            f"--mapping is for CSV/Parquet files; these are {fmt} files, read through their "
+            "format's own variables (docs/field-data.md): leave it out, or give --format csv"
+        )
     if fmt == "seaglider":
         return read_seaglider(files)
     if fmt == "seaexplorer":
