@@ -6,6 +6,7 @@ the interpreter, where not even SIGTERM ends the process)."""
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -80,3 +81,37 @@ def test_import_refuses_such_a_mapping(capsys, paths, tmp_path, kind) -> None:
     argv = ["import", str(data), "--format", "csv", "--mapping", mapping]
     line = _refused(capsys, [*argv, "-o", str(tmp_path / "o.mcap")])
     assert line.startswith(f"glider-hil import: {mapping}: {SAYS[kind]}")
+
+
+def test_zenoh_s_refusals_are_said_without_its_rust_source_paths(capsys, tmp_path) -> None:
+    """A configuration file zenoh cannot parse is named with the flag and where it fails,
+    and an endpoint in use is said as zenoh says it, neither with the ``at /root/.cargo/…
+    lib.rs:1486`` the Rust error carries; the live view's address is HOST:PORT."""
+    bad = tmp_path / "zenoh.json5"
+    bad.write_text("{ not json5")
+    link = f"udpin:127.0.0.1:{free_udp_port()}"
+    serve = ["serve", "--mavlink", link, "--no-log", "--duration", "1"]
+    argvs = {
+        "serve": [*serve, "--zenoh-config", str(bad)],
+        "fleet": ["fleet", "--json", "--wait", "1", "--zenoh-config", str(bad)],
+        "router": ["router", "--duration", "1", "--config", str(bad)],
+    }
+    for verb, argv in argvs.items():
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"glider-hil {verb}: ") and f"{argv[-2]} {bad}: " in err, err
+        assert "1 | { not json5" in err and ".rs:" not in err and "Traceback" not in err
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["router", "--duration", "1", "--listen", f"tcp/127.0.0.1:{port}"]) == 2
+        err = capsys.readouterr().err
+        assert "Address already in use" in err and ".rs:" not in err, err
+        assert main([*serve, "--zenoh-listen", f"tcp/127.0.0.1:{port}"]) == 2
+        err = capsys.readouterr().err
+        assert "cannot open Zenoh session" in err and "Address already in use" in err
+        assert ".rs:" not in err
+        assert main([*serve, "--foxglove", f"127.0.0.1:{port}"]) == 2
+        err = capsys.readouterr().err
+        assert f"cannot start the Foxglove server on 127.0.0.1:{port}: " in err, err

@@ -19,6 +19,7 @@ import threading
 
 import zenoh
 
+from hil_service.listeners.zenoh_config import zenoh_error_text
 from protocols.flag_types import positive_float
 from protocols.input_files import not_a_file
 
@@ -47,7 +48,10 @@ def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
         problem = not_a_file(config_file, "Zenoh configuration file")
         if problem:
             raise ValueError(f"--config {problem}")
-        config = zenoh.Config.from_file(config_file)
+        try:
+            config = zenoh.Config.from_file(config_file)
+        except zenoh.ZError as error:
+            raise ValueError(f"--config {config_file}: {zenoh_error_text(error)}") from error
     else:
         config = zenoh.Config()
         config.insert_json5("scouting/multicast/enabled", "false")
@@ -66,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         session = zenoh.open(router_config(args.config, list(args.listen)))
     except Exception as error:  # zenoh raises ZError for a bad file, endpoint or port in use
-        print(f"glider-hil router: {error}", file=sys.stderr)
+        print(f"glider-hil router: {zenoh_error_text(error)}", file=sys.stderr)
         return 2
     try:
         print(f"{ROUTER_READY} zid {session.zid()}", file=sys.stderr, flush=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -35,7 +36,12 @@ class ZenohOptions:
             problem = not_a_file(self.config_file, "Zenoh configuration file")
             if problem:
                 raise ValueError(f"--zenoh-config {problem}")
-            config = zenoh.Config.from_file(self.config_file)
+            try:
+                config = zenoh.Config.from_file(self.config_file)
+            except zenoh.ZError as error:
+                raise ValueError(
+                    f"--zenoh-config {self.config_file}: {zenoh_error_text(error)}"
+                ) from error
         else:
             config = zenoh.Config()
             config.insert_json5("mode", json.dumps(DEFAULT_MODE))
@@ -84,6 +90,23 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
     )
 
 
+#: Where in zenoh's Rust sources an error was raised, as its message ends: `` at
+#: /root/.cargo/git/checkouts/…/lib.rs:1472.`` Nothing a user can act on.
+_RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
+def zenoh_error_text(error: BaseException) -> str:
+    """A Zenoh error's message without the Rust source locations it carries."""
+    return _RUST_SOURCE.sub("", str(error)).strip()
+
+
 def open_session(options: ZenohOptions) -> zenoh.Session:
-    """A session for ``options``, closed at exit if nothing closes it (``zenoh_shutdown``)."""
-    return close_at_exit(zenoh.open(options.to_config()))
+    """A session for ``options``, closed at exit if nothing closes it (``zenoh_shutdown``).
+    ValueError for a configuration file that is not one (``to_config``), OSError for what
+    zenoh refuses (a file it cannot parse, an endpoint in use or unreachable), in a message
+    that names no Rust source."""
+    try:
+        session = zenoh.open(options.to_config())
+    except zenoh.ZError as error:
+        raise OSError(zenoh_error_text(error)) from error
+    return close_at_exit(session)

@@ -27,3 +27,6 @@ class LiveAddress:
         if not 0 <= port <= 65535:
             raise ValueError(f"--foxglove {text!r}: port out of range")
         return cls(host, port)
+
+    def __str__(self) -> str:
+        return f"[{self.host}]:{self.port}" if ":" in self.host else f"{self.host}:{self.port}"
