@@ -9,6 +9,7 @@ from hil_service.offline.field.seaexplorer import is_seaexplorer, read_seaexplor
 from hil_service.offline.field.seaglider import is_seaglider, read_seaglider
 from hil_service.offline.field.slocum import is_slocum, read_slocum
 from hil_service.offline.field.table import FieldData, FieldError
+from protocols.input_files import not_a_file
 
 FORMATS = ("seaglider", "seaexplorer", "slocum", "csv")
 
@@ -23,12 +24,11 @@ def expand(paths: list[str | Path]) -> list[Path]:
             if not inside:
                 raise FieldError(f"{path}: a directory without any field data file")
             files += inside
-        elif path.is_file():
-            files.append(path)
-        elif path.exists():
-            raise FieldError(f"{path}: not a regular file (a pipe or a device: save it to a file)")
         else:
-            raise FieldError(f"{path}: no such file or directory")
+            problem = not_a_file(path, "file or directory")
+            if problem:
+                raise FieldError(problem)
+            files.append(path)
     return files
 
 
