@@ -57,6 +57,10 @@ class LinkSet:
     def fileno(self) -> int:
         return self.links[0].fileno()
 
+    def bound(self) -> str:
+        """Each link's connection string with the port it listens on (``Link.bound``)."""
+        return ", ".join(link.bound() for link in self.links)
+
     def wait(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for a datagram on any link; True when one may be there."""
         if self._ready:

@@ -356,6 +356,20 @@ class Link:
     def fileno(self) -> int:
         return self._file.fd if self._file.fd is not None else self._file.port.fileno()
 
+    def bound(self) -> str:
+        """The connection string with the port this end listens on: a ``udpin:`` or
+        ``tcpin:`` link given port 0 has one from the system, which its peer needs to know.
+        Any other link, as given."""
+        scheme, _, rest = self.connection.partition(":")
+        listening = {"udpin": "port", "tcpin": "listen"}.get(scheme)
+        if listening is None:
+            return self.connection
+        try:
+            port = int(getattr(self._file, listening).getsockname()[1])
+        except (AttributeError, OSError, IndexError, TypeError, ValueError):
+            return self.connection
+        return f"{scheme}:{rest.rpartition(':')[0]}:{port}"
+
     def wait(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for readable data; True when some may be there."""
         try:

@@ -421,9 +421,8 @@ def main(config: ServeConfig) -> int:
         return 2
     tune_for_service()
     model = config.service.pipeline.model
-    print(
-        f"{SERVICE_READY} on {', '.join(connections)}, model {model}", file=sys.stderr, flush=True
-    )
+    where = ", ".join(connections) if wired.link is None else wired.link.bound()
+    print(f"{SERVICE_READY} on {where}, model {model}", file=sys.stderr, flush=True)
     if config.duration is not None:
         timer = threading.Timer(config.duration, stop.set)
         timer.daemon = True
