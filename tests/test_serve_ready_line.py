@@ -7,21 +7,28 @@ from __future__ import annotations
 import json
 import re
 import socket
+import subprocess
 
 from hil_service.cli.processes import SERVICE_READY, wait_for_line
 from tests.conftest import free_tcp_port
 
 
-def test_a_udp_link_on_port_0_is_announced_with_its_port_and_hears_on_it(processes) -> None:
+def _served_on_port_0(processes, scheme: str) -> tuple[subprocess.Popen[str], int]:
+    """``serve`` on ``SCHEME:127.0.0.1:0``, and the port its ready line announces."""
     zenoh = f"tcp/127.0.0.1:{free_tcp_port()}"
     service = processes.start(
-        "serve", "--mavlink", "udpin:127.0.0.1:0", "--zenoh-listen", zenoh, "--no-log"
+        "serve", "--mavlink", f"{scheme}:127.0.0.1:0", "--zenoh-listen", zenoh, "--no-log"
     )
     line = wait_for_line(service, SERVICE_READY)
-    match = re.search(r"ready on udpin:127\.0\.0\.1:(\d+),", line)
+    match = re.search(rf"ready on {scheme}:127\.0\.0\.1:(\d+),", line)
     assert match, line
     port = int(match.group(1))
     assert port != 0
+    return service, port
+
+
+def test_a_udp_link_on_port_0_is_announced_with_its_port_and_hears_on_it(processes) -> None:
+    service, port = _served_on_port_0(processes, "udpin")
     vehicle = processes.start(
         "emulate", "--connect", f"udpout:127.0.0.1:{port}", "--duration", "20", "--speed", "20"
     )
@@ -34,13 +41,7 @@ def test_a_udp_link_on_port_0_is_announced_with_its_port_and_hears_on_it(process
 
 
 def test_a_tcp_link_on_port_0_is_announced_with_its_port(processes) -> None:
-    zenoh = f"tcp/127.0.0.1:{free_tcp_port()}"
-    service = processes.start(
-        "serve", "--mavlink", "tcpin:127.0.0.1:0", "--zenoh-listen", zenoh, "--no-log"
-    )
-    line = wait_for_line(service, SERVICE_READY)
-    match = re.search(r"ready on tcpin:127\.0\.0\.1:(\d+),", line)
-    assert match, line
-    with socket.create_connection(("127.0.0.1", int(match.group(1))), timeout=10):
+    service, port = _served_on_port_0(processes, "tcpin")
+    with socket.create_connection(("127.0.0.1", port), timeout=10):
         pass  # something listens there
     processes.stop(service)
