@@ -38,6 +38,17 @@ def _refused(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     return line
 
 
+def _zenoh_verbs(serve_flag: str, fleet_flag: str, router_flag: str) -> dict[str, list[str]]:
+    """``serve``, ``fleet`` and ``router`` runs that would end by themselves, each ending in
+    the flag given for it (its value to be appended)."""
+    link = f"udpin:127.0.0.1:{free_udp_port()}"
+    return {
+        "serve": ["serve", "--mavlink", link, "--no-log", "--duration", "1", serve_flag],
+        "fleet": ["fleet", "--json", "--wait", "1", fleet_flag],
+        "router": ["router", "--duration", "1", router_flag],
+    }
+
+
 def test_a_regular_file_passes_and_the_rest_are_named(paths, tmp_path) -> None:
     regular = tmp_path / "key"
     regular.write_bytes(b"")
@@ -61,12 +72,7 @@ def test_serve_and_emulate_refuse_such_a_signing_key(capsys, paths, kind) -> Non
 @pytest.mark.parametrize("kind", sorted(SAYS))
 def test_serve_fleet_and_router_refuse_such_a_zenoh_configuration(capsys, paths, kind) -> None:
     config = str(paths[kind])
-    link = f"udpin:127.0.0.1:{free_udp_port()}"
-    argvs = {
-        "serve": ["serve", "--mavlink", link, "--no-log", "--duration", "1", "--zenoh-config"],
-        "fleet": ["fleet", "--json", "--wait", "1", "--zenoh-config"],
-        "router": ["router", "--duration", "1", "--config"],
-    }
+    argvs = _zenoh_verbs("--zenoh-config", "--zenoh-config", "--config")
     for verb, argv in argvs.items():
         line = _refused(capsys, [*argv, config])
         assert line.startswith(f"glider-hil {verb}: ")
@@ -91,12 +97,9 @@ def test_zenoh_s_refusals_are_said_without_its_rust_source_paths(capsys, tmp_pat
     bad.write_text("{ not json5")
     link = f"udpin:127.0.0.1:{free_udp_port()}"
     serve = ["serve", "--mavlink", link, "--no-log", "--duration", "1"]
-    argvs = {
-        "serve": [*serve, "--zenoh-config", str(bad)],
-        "fleet": ["fleet", "--json", "--wait", "1", "--zenoh-config", str(bad)],
-        "router": ["router", "--duration", "1", "--config", str(bad)],
-    }
+    argvs = _zenoh_verbs("--zenoh-config", "--zenoh-config", "--config")
     for verb, argv in argvs.items():
+        argv.append(str(bad))
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert err.startswith(f"glider-hil {verb}: ") and f"{argv[-2]} {bad}: " in err, err
@@ -115,3 +118,12 @@ def test_zenoh_s_refusals_are_said_without_its_rust_source_paths(capsys, tmp_pat
         assert main([*serve, "--foxglove", f"127.0.0.1:{port}"]) == 2
         err = capsys.readouterr().err
         assert f"cannot start the Foxglove server on 127.0.0.1:{port}: " in err, err
+
+
+def test_an_endpoint_zenoh_refuses_is_said_with_its_flag_and_zenoh_s_own_words(capsys) -> None:
+    """Not Rust's debug form of the error (``Json5Err(Message { msg: …, location: … })``)."""
+    argvs = _zenoh_verbs("--zenoh-listen", "--zenoh-connect", "--listen")
+    for verb, argv in argvs.items():
+        line = _refused(capsys, [*argv, "nonsense"])
+        assert line.startswith(f"glider-hil {verb}: ") and f"{argv[-1]}: Endpoints must be" in line
+        assert line.endswith(": nonsense") and "Json5Err" not in line and ".rs:" not in line

@@ -59,7 +59,10 @@ def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
         listen = listen or [DEFAULT_LISTEN]
     config.insert_json5("mode", json.dumps("router"))
     if listen:
-        config.insert_json5("listen/endpoints", json.dumps(listen))
+        try:
+            config.insert_json5("listen/endpoints", json.dumps(listen))
+        except zenoh.ZError as error:
+            raise ValueError(f"--listen: {zenoh_error_text(error)}") from error
     return config
 
 

@@ -47,12 +47,18 @@ class ZenohOptions:
             config.insert_json5("mode", json.dumps(DEFAULT_MODE))
             config.insert_json5("scouting/multicast/enabled", "false")
             config.insert_json5("scouting/gossip/enabled", "false")
-        if self.mode is not None:
-            config.insert_json5("mode", json.dumps(self.mode))
-        if self.listen:
-            config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        if self.connect:
-            config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        flags = (
+            ("mode", "--zenoh-mode", self.mode),
+            ("listen/endpoints", "--zenoh-listen", list(self.listen) or None),
+            ("connect/endpoints", "--zenoh-connect", list(self.connect) or None),
+        )
+        for key, flag, value in flags:
+            if value is None:
+                continue
+            try:
+                config.insert_json5(key, json.dumps(value))
+            except zenoh.ZError as error:
+                raise ValueError(f"{flag}: {zenoh_error_text(error)}") from error
         return config
 
 
@@ -95,9 +101,17 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
 
 
+#: A configuration value zenoh refused, as Rust's debug form of its JSON5 error:
+#: ``Json5Err(Message { msg: "…", location: … })``; the message is what a user reads.
+_JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(.*?)", location: .*\}\)$', re.S)
+
+
 def zenoh_error_text(error: BaseException) -> str:
-    """A Zenoh error's message without the Rust source locations it carries."""
-    return _RUST_SOURCE.sub("", str(error)).strip()
+    """A Zenoh error's message without the Rust source locations and debug forms it
+    carries."""
+    text = _RUST_SOURCE.sub("", str(error)).strip()
+    json5 = _JSON5_MESSAGE.search(text)
+    return text if json5 is None else text[: json5.start()] + json5.group(1)
 
 
 def open_session(options: ZenohOptions) -> zenoh.Session:
