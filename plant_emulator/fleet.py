@@ -354,10 +354,13 @@ def run_fleet(args: argparse.Namespace) -> int:
     per_link = bool(args.sysid_per_link)
     identities = fleet_identities(count, args.sysid, len(connections), per_link) if count else []
     last = max((system_id for _, system_id in identities), default=args.sysid)
-    if count < 1 or not 1 <= args.sysid <= 255:
-        flag, value = ("--vehicles", count) if count < 1 else ("--sysid", args.sysid)
-        limits = "at least 1" if count < 1 else "1..255"
-        print(f"glider-hil emulate: {flag} must be {limits}, got {value}", file=sys.stderr)
+    refused = ""
+    if count < 1:
+        refused = f"--vehicles must be at least 1, got {count}"
+    elif not 1 <= args.sysid <= 255:
+        refused = f"--sysid must be 1..255, got {args.sysid}"
+    if refused:
+        print(f"glider-hil emulate: {refused}", file=sys.stderr)
         return 2
     if last > 255:
         hint = "" if per_link else " (--sysid-per-link: a system-id space per --fleet-connect)"

@@ -127,3 +127,17 @@ def test_an_endpoint_zenoh_refuses_is_said_with_its_flag_and_zenoh_s_own_words(c
         line = _refused(capsys, [*argv, "nonsense"])
         assert line.startswith(f"glider-hil {verb}: ") and f"{argv[-1]}: Endpoints must be" in line
         assert line.endswith(": nonsense") and "Json5Err" not in line and ".rs:" not in line
+
+
+def test_a_value_zenoh_refuses_in_a_configuration_file_is_said_with_its_line(
+    capsys, tmp_path
+) -> None:
+    """A file that parses but holds a value zenoh refuses (a mode it has not): the file, the
+    message and where it is, not ``JSON error: Message { msg: …, location: Some(…) }``."""
+    config = tmp_path / "zenoh.json5"
+    config.write_text('{\n  mode: "nonsense",\n}\n')
+    for verb, argv in _zenoh_verbs("--zenoh-config", "--zenoh-config", "--config").items():
+        line = _refused(capsys, [*argv, str(config)])
+        assert line.startswith(f"glider-hil {verb}: ") and f"{argv[-1]} {config}: " in line
+        assert "unknown variant `nonsense`" in line and "(line 2, column " in line, line
+        assert "Message {" not in line and ".rs:" not in line

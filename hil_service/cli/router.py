@@ -19,9 +19,8 @@ import threading
 
 import zenoh
 
-from hil_service.listeners.zenoh_config import zenoh_error_text
+from hil_service.listeners.zenoh_config import config_from_file, insert_flag, zenoh_error_text
 from protocols.flag_types import positive_float
-from protocols.input_files import not_a_file
 
 #: What ``router`` prints on stderr once it listens.
 ROUTER_READY = "glider-hil router: ready"
@@ -45,13 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
     """The router's Zenoh configuration (raises on a bad file or endpoint)."""
     if config_file:
-        problem = not_a_file(config_file, "Zenoh configuration file")
-        if problem:
-            raise ValueError(f"--config {problem}")
-        try:
-            config = zenoh.Config.from_file(config_file)
-        except zenoh.ZError as error:
-            raise ValueError(f"--config {config_file}: {zenoh_error_text(error)}") from error
+        config = config_from_file(config_file, "--config")
     else:
         config = zenoh.Config()
         config.insert_json5("scouting/multicast/enabled", "false")
@@ -59,10 +52,7 @@ def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
         listen = listen or [DEFAULT_LISTEN]
     config.insert_json5("mode", json.dumps("router"))
     if listen:
-        try:
-            config.insert_json5("listen/endpoints", json.dumps(listen))
-        except zenoh.ZError as error:
-            raise ValueError(f"--listen: {zenoh_error_text(error)}") from error
+        insert_flag(config, "listen/endpoints", listen, "--listen")
     return config
 
 

@@ -31,35 +31,44 @@ class ZenohOptions:
     connect: Sequence[str] = field(default_factory=tuple)
 
     def to_config(self) -> zenoh.Config:
-        """A Zenoh config: the file's, if given, with every explicit flag on top."""
+        """A Zenoh config: the file's, if given, with every explicit flag on top (ValueError
+        naming the flag for a file or a value zenoh refuses)."""
         if self.config_file:
-            problem = not_a_file(self.config_file, "Zenoh configuration file")
-            if problem:
-                raise ValueError(f"--zenoh-config {problem}")
-            try:
-                config = zenoh.Config.from_file(self.config_file)
-            except zenoh.ZError as error:
-                raise ValueError(
-                    f"--zenoh-config {self.config_file}: {zenoh_error_text(error)}"
-                ) from error
+            config = config_from_file(self.config_file, "--zenoh-config")
         else:
             config = zenoh.Config()
             config.insert_json5("mode", json.dumps(DEFAULT_MODE))
             config.insert_json5("scouting/multicast/enabled", "false")
             config.insert_json5("scouting/gossip/enabled", "false")
-        flags = (
-            ("mode", "--zenoh-mode", self.mode),
-            ("listen/endpoints", "--zenoh-listen", list(self.listen) or None),
-            ("connect/endpoints", "--zenoh-connect", list(self.connect) or None),
-        )
-        for key, flag, value in flags:
-            if value is None:
-                continue
-            try:
-                config.insert_json5(key, json.dumps(value))
-            except zenoh.ZError as error:
-                raise ValueError(f"{flag}: {zenoh_error_text(error)}") from error
+        if self.mode is not None:
+            insert_flag(config, "mode", self.mode, "--zenoh-mode")
+        if self.listen:
+            insert_flag(config, "listen/endpoints", list(self.listen), "--zenoh-listen")
+        if self.connect:
+            insert_flag(config, "connect/endpoints", list(self.connect), "--zenoh-connect")
         return config
+
+
+def config_from_file(path: str, flag: str) -> zenoh.Config:
+    """The Zenoh configuration in ``path``; ValueError naming ``flag`` and the file when it
+    is not a regular file (checked before zenoh opens it: a pipe would block) or zenoh
+    cannot parse it."""
+    problem = not_a_file(path, "Zenoh configuration file")
+    if problem:
+        raise ValueError(f"{flag} {problem}")
+    try:
+        return zenoh.Config.from_file(path)
+    except zenoh.ZError as error:
+        raise ValueError(f"{flag} {path}: {zenoh_error_text(error, in_file=True)}") from error
+
+
+def insert_flag(config: zenoh.Config, key: str, value: object, flag: str) -> None:
+    """``config[key] = value`` from ``flag``; ValueError naming the flag when zenoh refuses
+    the value (an endpoint that is not ``<protocol>/<address>``)."""
+    try:
+        config.insert_json5(key, json.dumps(value))
+    except zenoh.ZError as error:
+        raise ValueError(f"{flag}: {zenoh_error_text(error)}") from error
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
@@ -101,24 +110,32 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
 _RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
 
 
-#: A configuration value zenoh refused, as Rust's debug form of its JSON5 error:
-#: ``Json5Err(Message { msg: "…", location: … })``; the message is what a user reads.
-_JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(.*?)", location: .*\}\)$', re.S)
+#: A configuration value zenoh refused, in Rust's debug form of its JSON5 error:
+#: ``Json5Err(Message { msg: "…", location: … })`` for a value, ``JSON error: Message { … }``
+#: for a file; the message, and for a file its line and column, are what a user reads.
+_JSON5_MESSAGE = re.compile(
+    r'(?:Json5Err\(|JSON error: )Message \{ msg: "(.*?)", location: '
+    r"(?:Some\(Location \{ line: (\d+), column: (\d+) \}\)|None) \}\)?",
+    re.S,
+)
 
 
-def zenoh_error_text(error: BaseException) -> str:
+def zenoh_error_text(error: BaseException, in_file: bool = False) -> str:
     """A Zenoh error's message without the Rust source locations and debug forms it
-    carries."""
-    text = _RUST_SOURCE.sub("", str(error)).strip()
-    json5 = _JSON5_MESSAGE.search(text)
-    return text if json5 is None else text[: json5.start()] + json5.group(1)
+    carries; with ``in_file``, a JSON5 error's line and column in the file after it."""
+
+    def message(match: re.Match[str]) -> str:
+        line, column = match.group(2), match.group(3)
+        where = f" (line {line}, column {column})" if in_file and line else ""
+        return match.group(1) + where
+
+    return _JSON5_MESSAGE.sub(message, _RUST_SOURCE.sub("", str(error))).strip()
 
 
 def open_session(options: ZenohOptions) -> zenoh.Session:
     """A session for ``options``, closed at exit if nothing closes it (``zenoh_shutdown``).
-    ValueError for a configuration file that is not one (``to_config``), OSError for what
-    zenoh refuses (a file it cannot parse, an endpoint in use or unreachable), in a message
-    that names no Rust source."""
+    ValueError for a configuration zenoh refuses (``to_config``), OSError for a session it
+    cannot open (an endpoint in use or unreachable), in messages that name no Rust source."""
     try:
         session = zenoh.open(options.to_config())
     except zenoh.ZError as error:
