@@ -31,16 +31,18 @@ vehicle's name in the summary and the latency trace is its key id ``{link}-{sysi
 from __future__ import annotations
 
 import argparse
+import errno
 import heapq
 import json
 import os
 import select
 import signal
+import stat
 import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TextIO
 
 from plant_emulator.arguments import autopilot_config, telemetry_mapping
 from plant_emulator.autopilot import HEARTBEAT_PERIOD, Autopilot, run_steps
@@ -490,8 +492,27 @@ def write_latency_trace(path: str, autopilots: list[TimedAutopilot]) -> None:
     """Every latency with its telemetry's send time (CLOCK_MONOTONIC, comparable across the
     processes of one machine) and vehicle (its vehicle id, ``TimedAutopilot.vehicle``), for a
     benchmark to find when the slow ones were."""
-    with open(path, "w") as f:
+    with _open_trace(path) as f:
         for autopilot in autopilots:
             system_id = autopilot.vehicle
             for sent, latency in zip(autopilot.sent_times, autopilot.latencies, strict=True):
                 f.write(f"[{sent:.6f}, {system_id}, {latency:.6f}]\n")
+
+
+def _open_trace(path: str) -> TextIO:
+    """The trace's file for writing. A named pipe is opened without waiting for a reader:
+    with nobody reading it, ``open`` would block the emulator after its run for ever."""
+    try:
+        fifo = stat.S_ISFIFO(os.stat(path).st_mode)
+    except FileNotFoundError:
+        fifo = False
+    if not fifo:
+        return open(path, "w")
+    try:
+        descriptor = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+    except OSError as error:
+        if error.errno == errno.ENXIO:
+            raise OSError(errno.ENXIO, "a named pipe no process reads") from None
+        raise
+    os.set_blocking(descriptor, True)
+    return os.fdopen(descriptor, "w")

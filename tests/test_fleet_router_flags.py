@@ -7,6 +7,9 @@ session."""
 from __future__ import annotations
 
 import json
+import os
+import select
+import threading
 from pathlib import Path
 
 import pytest
@@ -136,3 +139,46 @@ def test_fleet_that_cannot_listen_says_why_and_closes_its_session(
     err = capsys.readouterr().err
     assert "glider-hil fleet: cannot listen for the fleet: declaration refused" in err
     assert len(opened) == 1 and opened[0].is_closed()
+
+
+def test_emulate_does_not_wait_for_a_reader_of_a_latency_trace_pipe(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # Opening a named pipe for writing blocks until a process opens it for reading.
+    pipe = tmp_path / "trace.pipe"
+    os.mkfifo(pipe)
+    assert main([*SHORT_FLEET, "--latency-trace", str(pipe)]) == 1
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["emulator"]["vehicles"] == 2
+    assert f"--latency-trace {pipe}: cannot write (a named pipe no process reads)" in captured.err
+
+
+def test_emulate_writes_the_latency_trace_into_a_pipe_that_is_read(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    pipe = tmp_path / "trace.pipe"
+    os.mkfifo(pipe)
+    # Opened before the run, non-blocking, so the emulator finds a reader when it ends.
+    reader = os.open(pipe, os.O_RDONLY | os.O_NONBLOCK)
+    received = bytearray()
+    stop = threading.Event()
+
+    def drain() -> None:
+        while not stop.is_set():
+            ready, _, _ = select.select([reader], [], [], 0.05)
+            if ready:
+                received.extend(os.read(reader, 65536))
+
+    thread = threading.Thread(target=drain, daemon=True)
+    thread.start()
+    try:
+        assert main([*SHORT_FLEET, "--latency-trace", str(pipe)]) == 0
+    finally:
+        stop.set()
+        thread.join()
+        while chunk := os.read(reader, 65536):
+            received.extend(chunk)
+        os.close(reader)
+    assert json.loads(capsys.readouterr().out)["emulator"]["vehicles"] == 2
+    # No service answers this fleet, so its trace holds no latency: the pipe gets none.
+    assert all(len(json.loads(line)) == 3 for line in received.decode().splitlines())
