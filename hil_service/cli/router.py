@@ -19,7 +19,12 @@ import threading
 
 import zenoh
 
-from hil_service.listeners.zenoh_config import config_from_file, insert_flag, zenoh_error_text
+from hil_service.listeners.zenoh_config import (
+    config_from_file,
+    insert_flag,
+    unscouted_config,
+    zenoh_error_text,
+)
 from protocols.flag_types import positive_float
 
 #: What ``router`` prints on stderr once it listens.
@@ -45,12 +50,10 @@ def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
     """The router's Zenoh configuration (raises on a bad file or endpoint)."""
     if config_file:
         config = config_from_file(config_file, "--config")
+        config.insert_json5("mode", json.dumps("router"))
     else:
-        config = zenoh.Config()
-        config.insert_json5("scouting/multicast/enabled", "false")
-        config.insert_json5("scouting/gossip/enabled", "false")
+        config = unscouted_config("router")
         listen = listen or [DEFAULT_LISTEN]
-    config.insert_json5("mode", json.dumps("router"))
     if listen:
         insert_flag(config, "listen/endpoints", listen, "--listen")
     return config

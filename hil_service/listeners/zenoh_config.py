@@ -36,10 +36,7 @@ class ZenohOptions:
         if self.config_file:
             config = config_from_file(self.config_file, "--zenoh-config")
         else:
-            config = zenoh.Config()
-            config.insert_json5("mode", json.dumps(DEFAULT_MODE))
-            config.insert_json5("scouting/multicast/enabled", "false")
-            config.insert_json5("scouting/gossip/enabled", "false")
+            config = unscouted_config(DEFAULT_MODE)
         if self.mode is not None:
             insert_flag(config, "mode", self.mode, "--zenoh-mode")
         if self.listen:
@@ -47,6 +44,16 @@ class ZenohOptions:
         if self.connect:
             insert_flag(config, "connect/endpoints", list(self.connect), "--zenoh-connect")
         return config
+
+
+def unscouted_config(mode: str) -> zenoh.Config:
+    """A configuration in ``mode`` with multicast and gossip scouting off: without a file,
+    a session or router talks only to the endpoints it is given."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("scouting/gossip/enabled", "false")
+    return config
 
 
 def config_from_file(path: str, flag: str) -> zenoh.Config:
