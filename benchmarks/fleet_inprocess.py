@@ -36,6 +36,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -130,6 +131,16 @@ def client(router: str) -> zenoh.Session:
     return open_session(ZenohOptions(mode="client", connect=(router,)))
 
 
+def horizon_tests_run(service: Any) -> int:
+    """The horizon tests the fleet's channels have run so far (each runs its model over
+    up to 1,000 samples: what a fleet that converged together would pay on one sample)."""
+    return sum(
+        channel.horizon_test.evaluations
+        for vehicle in service.vehicles.values()
+        for channel in vehicle.pipeline.channels.values()
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--vehicles", type=int, default=1000)
@@ -196,11 +207,14 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
     steps: dict[int, float] = {}  # a step's handling summed over its vehicles
     profile = None
     cpu = process = 0.0
+    horizon_tests: dict[int, int] = {}  # the fleet's horizon tests run in a step
+    tests_before = 0
     for index, (link, _wire_id, datagrams) in enumerate(frames):
         step, vehicle = divmod(index, args.vehicles)
         if step == args.from_step and vehicle == 0:
             collections.on = True
             cpu, process = time.thread_time(), time.process_time()
+            tests_before = horizon_tests_run(service)
             if args.profile:
                 import cProfile
 
@@ -214,6 +228,10 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
         if collections.on:
             handling.append(time.perf_counter() - start)
             steps[step] = steps.get(step, 0.0) + handling[-1]
+            if vehicle == args.vehicles - 1:
+                tests_run = horizon_tests_run(service)
+                horizon_tests[step] = tests_run - tests_before
+                tests_before = tests_run
     cpu, process = time.thread_time() - cpu, time.process_time() - process
     if profile is not None:
         profile.disable()
@@ -261,6 +279,11 @@ def run(args: argparse.Namespace, frames: list[tuple[int, int, list[bytes]]], ro
                     "longest_ms": round(1000 * collections.longest, 1),
                     "full_collection_after_the_run_ms": round(1000 * full_collection_s, 1),
                     "unreachable_objects_it_found": unreachable,
+                },
+                "horizon_tests_per_step": {
+                    "median": sorted(horizon_tests.values())[len(horizon_tests) // 2],
+                    "max": max(horizon_tests.values()),
+                    "at_step": max(horizon_tests, key=horizon_tests.__getitem__),
                 },
                 "health_payload_us": round(1e6 * health_s, 1),
                 "commands_sent": sum(v.commands_sent for v in service.vehicles.values()),

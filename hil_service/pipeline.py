@@ -440,6 +440,10 @@ class ChannelPipeline:
             control.mean_fit,
         )
         self._until_evaluation = 0  # samples to the horizon test's next evaluation
+        #: Due samples the first evaluation waits: a fleet whose identifiers converge
+        #: together evaluates 1/``refresh`` of its channels on each sample, not all on one,
+        #: and keeps that spread (a single vehicle's pipeline, phase 0, waits none).
+        self._evaluation_delay = phase % max(settings.control.refresh, 1)
         #: ``decide`` asked this channel to command (control on, a setpoint) since the last
         #: sample: the horizon test runs every ``refresh`` samples then, every ``window``
         #: while nobody asks (health's verdict only).
@@ -559,6 +563,9 @@ class ChannelPipeline:
             # longer one (a model with no input map yet gets the longest horizon).
             self._restart_free_run()
         due = self.converged and self._until_evaluation <= 0
+        if due and self._evaluation_delay > 0:
+            self._evaluation_delay -= 1
+            due = False
         if due and (
             self.tripped or not self.active or not (self.qualified and self.horizon_test.full)
         ):

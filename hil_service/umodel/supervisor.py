@@ -132,6 +132,7 @@ class HorizonTest:
         "_outputs",
         "_restart",
         "_runs",
+        "evaluations",
         "fit",
         "full",
         "hold_rms",
@@ -177,6 +178,7 @@ class HorizonTest:
         self.steps = 0  # the prediction steps of the last evaluation's segments
         self.full = False  # they covered the whole horizon
         self.horizon = 0  # the horizon of the last evaluation
+        self.evaluations = 0  # how many times it has run (its cost, and when)
         self.model_rms = 0.0
         self.hold_rms = 0.0
 
@@ -270,6 +272,7 @@ class HorizonTest:
         until a verdict covers the whole horizon)."""
         horizon = max(horizon, 1)
         self.horizon = horizon
+        self.evaluations += 1
         history = max(len(dyn.ar), len(dyn.lag_polys), 1)
         n = len(self._outputs)
         span = max(self.window, horizon)
