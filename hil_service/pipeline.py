@@ -440,10 +440,13 @@ class ChannelPipeline:
             control.mean_fit,
         )
         self._until_evaluation = 0  # samples to the horizon test's next evaluation
-        #: Due samples the first evaluation waits: a fleet whose identifiers converge
-        #: together evaluates 1/``refresh`` of its channels on each sample, not all on one,
-        #: and keeps that spread (a single vehicle's pipeline, phase 0, waits none).
-        self._evaluation_delay = phase % max(settings.control.refresh, 1)
+        #: Samples added to the wait after an evaluation that came off the cadence (the
+        #: first, one a disqualification or the first ask calls for): a fleet whose
+        #: identifiers converge, or whose control is enabled, together runs those tests
+        #: together and its later ones (each over up to 1,000 samples) 1/``refresh`` of
+        #: its channels a sample. A single vehicle's pipeline, phase 0, adds none.
+        self._evaluation_offset = phase % max(settings.control.refresh, 1)
+        self._on_cadence = False  # the next due evaluation is one the last one set
         #: ``decide`` asked this channel to command (control on, a setpoint) since the last
         #: sample: the horizon test runs every ``refresh`` samples then, every ``window``
         #: while nobody asks (health's verdict only).
@@ -563,13 +566,10 @@ class ChannelPipeline:
             # longer one (a model with no input map yet gets the longest horizon).
             self._restart_free_run()
         due = self.converged and self._until_evaluation <= 0
-        if due and self._evaluation_delay > 0:
-            self._evaluation_delay -= 1
-            due = False
         if due and (
             self.tripped or not self.active or not (self.qualified and self.horizon_test.full)
         ):
-            self._evaluate_horizon()
+            self._evaluate_horizon(self._on_cadence)
         return {
             "t": t,
             "y": estimate.y,
@@ -1015,17 +1015,21 @@ class ChannelPipeline:
             f"horizon, needs {test.threshold:g} %{against_mean}"
         )
 
-    def _evaluate_horizon(self) -> None:
+    def _evaluate_horizon(self, on_cadence: bool = False) -> None:
         """The horizon test on the current model, every ``refresh`` samples (it runs the
         model over the whole record) while its verdict matters: whenever the channel does
         not command (control off, no setpoint, blocked, tripped), and while it commands on
         a verdict from a record shorter than the horizon. The model and its horizon keep
         changing while identification goes on: a verdict from an earlier model, or on a
-        shorter horizon, is not one on the model that would command."""
+        shorter horizon, is not one on the model that would command. ``on_cadence``: it
+        comes because the wait an earlier one set ran out."""
         refresh = self.settings.control.refresh
         wanted = self._asked or self.tripped or self.active
         self._slow = not wanted
         self._until_evaluation = refresh if wanted else max(refresh, self.settings.window)
+        if not on_cadence:
+            self._until_evaluation += self._evaluation_offset
+        self._on_cadence = True
         self._asked = False
         dynamics = self.dynamics if self.dynamics is not None else self.model.dynamics()
         horizon = self.controller.horizon
@@ -1054,6 +1058,7 @@ class ChannelPipeline:
             self.horizon_test.reset()
         self._horizon_ok = False
         self._until_evaluation = 0
+        self._on_cadence = False
 
     def on_restart(self) -> None:
         """The vehicle's clock restarted: stop commanding until the model passes the
