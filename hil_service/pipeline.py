@@ -445,7 +445,7 @@ class ChannelPipeline:
         #: identifiers converge, or whose control is enabled, together runs those tests
         #: together and its later ones (each over up to 1,000 samples) 1/``refresh`` of
         #: its channels a sample. A single vehicle's pipeline, phase 0, adds none.
-        self._evaluation_offset = phase % max(settings.control.refresh, 1)
+        self._evaluation_offset = phase % settings.control.refresh  # refresh >= 1: validated
         self._on_cadence = False  # the next due evaluation is one the last one set
         #: ``decide`` asked this channel to command (control on, a setpoint) since the last
         #: sample: the horizon test runs every ``refresh`` samples then, every ``window``
@@ -960,7 +960,7 @@ class ChannelPipeline:
         self._asked = True
         if self._slow and self.converged and not self.tripped:
             # The first ask after a stretch on the slow cadence: a verdict on today's model.
-            self._evaluate_horizon()
+            self._evaluate_horizon(on_cadence=False)
         if self.tripped:
             if self.supervisor.latched:
                 return (
@@ -1015,7 +1015,7 @@ class ChannelPipeline:
             f"horizon, needs {test.threshold:g} %{against_mean}"
         )
 
-    def _evaluate_horizon(self, on_cadence: bool = False) -> None:
+    def _evaluate_horizon(self, on_cadence: bool) -> None:
         """The horizon test on the current model, every ``refresh`` samples (it runs the
         model over the whole record) while its verdict matters: whenever the channel does
         not command (control off, no setpoint, blocked, tripped), and while it commands on

@@ -24,8 +24,9 @@ vehicles, or one link given twice, are refused (``check_links``): a link would c
 ``--sysid-per-link`` numbers each link's block from ``--sysid`` again, as a fleet of more than
 255 gliders is numbered: each gateway (a link) has a system-id space of its own, and a
 service with ``--vehicle-ids link`` tells its vehicles apart by (link, system id). Such a
-vehicle's name in the summary and the latency trace is its key id ``{link}-{sysid}``
-(``protocols.keys.key_id``), link n being the n-th ``--fleet-connect``.
+vehicle's name in the summary is its key id ``{link}-{sysid}`` (``protocols.keys.key_id``),
+link n being the n-th ``--fleet-connect``; the latency trace gives its vehicle id, the
+number ``protocols.keys.vehicle_id`` makes of the two.
 """
 
 from __future__ import annotations
@@ -37,7 +38,6 @@ import json
 import os
 import select
 import signal
-import stat
 import sys
 import threading
 import time
@@ -500,16 +500,11 @@ def write_latency_trace(path: str, autopilots: list[TimedAutopilot]) -> None:
 
 
 def _open_trace(path: str) -> TextIO:
-    """The trace's file for writing. A named pipe is opened without waiting for a reader:
-    with nobody reading it, ``open`` would block the emulator after its run for ever."""
+    """The trace's file for writing. Opened without waiting (``O_NONBLOCK``, which a regular
+    file ignores): a named pipe nobody reads would otherwise block the emulator after its
+    run for ever."""
     try:
-        fifo = stat.S_ISFIFO(os.stat(path).st_mode)
-    except FileNotFoundError:
-        fifo = False
-    if not fifo:
-        return open(path, "w")
-    try:
-        descriptor = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+        descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK, 0o666)
     except OSError as error:
         if error.errno == errno.ENXIO:
             raise OSError(errno.ENXIO, "a named pipe no process reads") from None

@@ -14,9 +14,10 @@ from pathlib import Path
 __all__ = ["not_a_file"]
 
 
-def not_a_file(path: str | Path, what: str) -> str:
+def not_a_file(path: str | Path, what: str, directory_hint: str = "") -> str:
     """Why ``path`` cannot be read as ``what`` ("log", "signing key", …), or '' when it is a
-    regular file (whether it can be read, and what it holds, is the reader's to say)."""
+    regular file (whether it can be read, and what it holds, is the reader's to say);
+    ``directory_hint``: what to give instead of a directory."""
     try:
         mode = Path(path).stat().st_mode
     except FileNotFoundError:
@@ -24,7 +25,8 @@ def not_a_file(path: str | Path, what: str) -> str:
     except OSError as error:
         return f"{path}: {error.strerror or error}"
     if stat.S_ISDIR(mode):
-        return f"{path}: a directory, not a {what}"
+        hint = f" ({directory_hint})" if directory_hint else ""
+        return f"{path}: a directory, not a {what}{hint}"
     if not stat.S_ISREG(mode):
         return f"{path}: not a regular file (a pipe or a device: save it to a file)"
     return ""

@@ -366,7 +366,7 @@ class Link:
             return self.connection
         try:
             port = int(getattr(self._file, listening).getsockname()[1])
-        except (AttributeError, OSError, IndexError, TypeError, ValueError):
+        except (AttributeError, OSError):  # no such socket, or one already closed
             return self.connection
         return f"{scheme}:{rest.rpartition(':')[0]}:{port}"
 

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import json
 import os
-import select
-import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from hil_service.cli import main
+from plant_emulator.fleet import write_latency_trace
 from tests.refused_flags import must_not_run, refused_by_argparse
 
 #: A fleet run short enough to end by itself: 1 s of plant time at 100x.
@@ -153,32 +153,18 @@ def test_emulate_does_not_wait_for_a_reader_of_a_latency_trace_pipe(
     assert f"--latency-trace {pipe}: cannot write (a named pipe no process reads)" in captured.err
 
 
-def test_emulate_writes_the_latency_trace_into_a_pipe_that_is_read(
-    capsys: pytest.CaptureFixture[str], tmp_path: Path
-) -> None:
+def test_the_latency_trace_goes_into_a_pipe_that_is_read(tmp_path: Path) -> None:
     pipe = tmp_path / "trace.pipe"
     os.mkfifo(pipe)
-    # Opened before the run, non-blocking, so the emulator finds a reader when it ends.
-    reader = os.open(pipe, os.O_RDONLY | os.O_NONBLOCK)
-    received = bytearray()
-    stop = threading.Event()
-
-    def drain() -> None:
-        while not stop.is_set():
-            ready, _, _ = select.select([reader], [], [], 0.05)
-            if ready:
-                received.extend(os.read(reader, 65536))
-
-    thread = threading.Thread(target=drain, daemon=True)
-    thread.start()
+    reader = os.open(pipe, os.O_RDONLY | os.O_NONBLOCK)  # a reader there before the write
+    vehicle = SimpleNamespace(vehicle=1007, sent_times=[1.5, 2.5], latencies=[0.001, 0.002])
     try:
-        assert main([*SHORT_FLEET, "--latency-trace", str(pipe)]) == 0
+        write_latency_trace(str(pipe), [vehicle])  # type: ignore[list-item]
+        received = os.read(reader, 65536).decode()
     finally:
-        stop.set()
-        thread.join()
-        while chunk := os.read(reader, 65536):
-            received.extend(chunk)
         os.close(reader)
-    assert json.loads(capsys.readouterr().out)["emulator"]["vehicles"] == 2
-    # No service answers this fleet, so its trace holds no latency: the pipe gets none.
-    assert all(len(json.loads(line)) == 3 for line in received.decode().splitlines())
+    # One JSON array a line: [sent, vehicle, latency] (docs/fleet.md).
+    assert [json.loads(line) for line in received.splitlines()] == [
+        [1.5, 1007, 0.001],
+        [2.5, 1007, 0.002],
+    ]

@@ -134,11 +134,9 @@ class LogReader:
     def messages(self, topics: set[str] | None = None) -> Iterator[LogMessage]:
         """Messages in file order, only on ``topics`` if given (all are counted in ``report``)."""
         report = self.report
-        problem = not_a_file(self.path, "log")
+        problem = not_a_file(self.path, "log", directory_hint="give the .mcap files in it")
         if problem:
-            raise LogError(
-                problem + (" (give the .mcap files in it)" if self.path.is_dir() else "")
-            )
+            raise LogError(problem)
         report.file_size = self.path.stat().st_size
         channels: dict[int, Channel] = {}
         schemas: dict[int, Schema] = {}

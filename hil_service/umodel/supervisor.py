@@ -178,7 +178,7 @@ class HorizonTest:
         self.steps = 0  # the prediction steps of the last evaluation's segments
         self.full = False  # they covered the whole horizon
         self.horizon = 0  # the horizon of the last evaluation
-        self.evaluations = 0  # how many times it has run (its cost, and when)
+        self.evaluations = 0  # how many times ``evaluate`` has run
         self.model_rms = 0.0
         self.hold_rms = 0.0
 
