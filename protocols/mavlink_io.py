@@ -9,6 +9,7 @@ a serial device), so attaching to a real vehicle is a connection string, nothing
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import select
 import socket
@@ -335,12 +336,19 @@ class Link:
             raise ValueError(problem)
         #: Seconds ``wait`` polls before it sleeps (``readable``).
         self.spin_wait = spin_wait
-        self._file = mavutil.mavlink_connection(
-            connection,
-            source_system=source_system,
-            source_component=source_component,
-            autoreconnect=True,
-        )
+        try:
+            self._file = mavutil.mavlink_connection(
+                connection,
+                source_system=source_system,
+                source_component=source_component,
+                autoreconnect=True,
+            )
+        except OSError as error:
+            if error.errno == errno.EADDRINUSE:
+                raise OSError(
+                    error.errno, f"{connection}: the port is in use by another process"
+                ) from error
+            raise
         if not isinstance(self._file, _LINK_CLASSES):
             kind = type(self._file).__name__
             self._file.close()
@@ -352,6 +360,12 @@ class Link:
         if self.datagram:
             with contextlib.suppress(OSError):
                 self._file.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
+            if self._file.udp_server:
+                # pymavlink binds a listening end with SO_REUSEADDR, which on Linux lets a
+                # second socket that sets it too bind the same port and take its unicast
+                # datagrams: a second ``serve`` on a vehicle's port would silently take the
+                # vehicle. Cleared once bound, a later bind to the port fails (EADDRINUSE).
+                self._file.port.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
 
     def fileno(self) -> int:
         return self._file.fd if self._file.fd is not None else self._file.port.fileno()

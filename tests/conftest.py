@@ -58,12 +58,59 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         )
 
 
+#: Ports a test picks for a process to bind later: each xdist worker has a block of its own,
+#: below the kernel's ephemeral range. A socket bound to port 0 (a campaign's service, a
+#: Zenoh session) is given a port of that range, so it can never be given a picked one
+#: between the pick and the bind, and no two workers pick the same one.
+PORT_BLOCK = 1000
+FIRST_PICKED_PORT = 10000
+_picked = {socket.SOCK_DGRAM: 0, socket.SOCK_STREAM: 0}
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768  # Linux's default
+
+
+def _worker_block() -> range | None:
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    index = int(worker) if worker.isdigit() else 0
+    low = FIRST_PICKED_PORT + index * PORT_BLOCK
+    if low + PORT_BLOCK > _ephemeral_low():
+        return None
+    return range(low, low + PORT_BLOCK)
+
+
+def _bindable(port: int, kind: int) -> bool:
+    with socket.socket(socket.AF_INET, kind) as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def pick_port(kind: int) -> int:
+    """A port of this worker's block that binds now; the next pick tries the next one, so
+    a test that picks several gets different ports."""
+    block = _worker_block()
+    if block is not None:
+        for _ in block:
+            port = block[_picked[kind] % len(block)]
+            _picked[kind] += 1
+            if _bindable(port, kind):
+                return port
+    return free_port(kind)  # no block below the ephemeral range, or a full one
+
+
 def free_udp_port() -> int:
-    return free_port(socket.SOCK_DGRAM)
+    return pick_port(socket.SOCK_DGRAM)
 
 
 def free_tcp_port() -> int:
-    return free_port(socket.SOCK_STREAM)
+    return pick_port(socket.SOCK_STREAM)
 
 
 class ProcessGroup:

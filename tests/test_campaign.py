@@ -7,11 +7,13 @@ import csv
 import json
 import subprocess
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from hil_service.campaign.compare import compare, t_interval
+from hil_service.campaign.hil_run import SERVICE_SUMMARY, HilOutcome, _collect
 from hil_service.campaign.metrics import divergence
 from hil_service.campaign.mission import Mission, Trace
 from hil_service.campaign.runner import parse_seeds
@@ -210,3 +212,24 @@ def test_compare_refuses_campaigns_of_different_missions(
     ) in capsys.readouterr().err
     assert main(["campaign", "compare", str(tmp_path / "a"), str(tmp_path / "c")]) == 0
     assert "| random | depth_iae | 1 | +0 |" in capsys.readouterr().out
+
+
+def _collected(tmp_path: Path, served: int, sent: int) -> HilOutcome:
+    """What a mission's outcome says when its service took ``served`` of ``sent`` samples."""
+    (tmp_path / SERVICE_SUMMARY).write_text(json.dumps({"counters": {"samples": served}}))
+    stats = SimpleNamespace(steps=sent, as_dict=lambda codec: {"steps": sent})
+    autopilot = SimpleNamespace(stats=stats, codec=None)
+    runner = SimpleNamespace(stats=SimpleNamespace(as_dict=lambda: {"timeouts": 0}))
+    outcome = HilOutcome(Trace.empty(sent), 1.0)
+    _collect(outcome, autopilot, runner, tmp_path)  # type: ignore[arg-type]
+    return outcome
+
+
+def test_a_mission_whose_service_did_not_take_every_sample_is_failed(tmp_path: Path) -> None:
+    """In lockstep the service releases every step; steps it did not take were released by
+    another process on its port, so the row must not be scored as the service's."""
+    assert _collected(tmp_path, served=500, sent=500).failure is None
+    assert _collected(tmp_path, served=0, sent=500).failure == (
+        "the service took 0 of the 500 samples sent: another process received the rest"
+    )
+    assert "took 499 of the 500" in str(_collected(tmp_path, served=499, sent=500).failure)

@@ -9,7 +9,6 @@ import csv
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,7 +18,8 @@ from pathlib import Path
 import distributed
 import pytest
 
-from hil_service.cli.processes import free_port, last_json, run_verb, set_parent_death_signal
+from hil_service.cli.processes import last_json, run_verb, set_parent_death_signal
+from tests.conftest import free_tcp_port
 
 pytestmark = pytest.mark.wire
 
@@ -49,7 +49,7 @@ def _end(process: subprocess.Popen[bytes]) -> None:
 
 class Cluster:
     def __init__(self, tmp: Path):
-        self.address = f"tcp://127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+        self.address = f"tcp://127.0.0.1:{free_tcp_port()}"
         self.tmp = tmp
         self.processes: list[subprocess.Popen[bytes]] = []
         self.nannies: list[subprocess.Popen[bytes]] = []
@@ -220,7 +220,7 @@ def test_a_worker_killed_mid_mission_its_mission_runs_again_once_and_resume_work
 
 
 def test_a_scheduler_that_is_not_there_is_a_clear_error(tmp_path: Path) -> None:
-    address = f"tcp://127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+    address = f"tcp://127.0.0.1:{free_tcp_port()}"
     done = campaign(
         "--scenarios", "random", "--seeds", "0", *SHORT, "-o", str(tmp_path / "x"),
         "--scheduler", address, "--scheduler-timeout", "2", timeout=120,

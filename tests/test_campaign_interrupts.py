@@ -12,7 +12,6 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -30,7 +29,8 @@ from hil_service.campaign.runner import (
     run_dir,
 )
 from hil_service.cli import main
-from hil_service.cli.processes import free_port, run_verb, set_parent_death_signal
+from hil_service.cli.processes import run_verb, set_parent_death_signal
+from tests.conftest import free_tcp_port
 from tests.orphans import running
 from tests.test_campaign_dask import _end as end_process
 from tests.test_campaign_dask import _start as dask_process
@@ -276,7 +276,7 @@ class OneWorkerCluster:
     """A ``dask scheduler`` and one one-thread ``dask worker`` on 127.0.0.1."""
 
     def __init__(self, tmp: Path) -> None:
-        self.address = f"tcp://127.0.0.1:{free_port(socket.SOCK_STREAM)}"
+        self.address = f"tcp://127.0.0.1:{free_tcp_port()}"
         self.tmp = tmp
         port = self.address.rpartition(":")[2]
         self.scheduler = dask_process(

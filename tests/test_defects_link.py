@@ -3,6 +3,7 @@ command before Zenoh does."""
 
 from __future__ import annotations
 
+import errno
 import select
 import socket
 import time
@@ -63,6 +64,47 @@ def test_a_udp_link_still_opens(tmp_path):
         assert link.datagram and link.fileno() >= 0
     finally:
         link.close()
+
+
+def test_a_second_link_cannot_take_a_listening_port_and_its_vehicle():
+    """pymavlink binds with SO_REUSEADDR; on Linux a second socket that sets it too could
+    bind the port and take the vehicle's datagrams. The second must be refused, by name,
+    and the first must keep receiving."""
+    first = Link("udpin:127.0.0.1:0")
+    taken = first.bound()
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        with pytest.raises(OSError, match="in use by another process") as refused:
+            Link(taken)
+        assert refused.value.errno == errno.EADDRINUSE
+        assert taken in str(refused.value)
+        vehicle.sendto(b"telemetry", ("127.0.0.1", int(taken.rpartition(":")[2])))
+        assert first.wait(5.0)
+        assert first.recv() == b"telemetry"
+    finally:
+        vehicle.close()
+        first.close()
+
+
+def test_a_closed_link_leaves_its_port_free_at_once():
+    first = Link("udpin:127.0.0.1:0")
+    taken = first.bound()
+    first.close()
+    again = Link(taken)  # a service restarted on its vehicle's port
+    again.close()
+
+
+def test_serve_names_a_port_another_service_holds(processes):
+    holder = Link("udpin:127.0.0.1:0")
+    taken = holder.bound()
+    try:
+        process = processes.start("serve", "--mavlink", taken, "--no-log")
+        _, err = process.communicate(timeout=60)
+    finally:
+        holder.close()
+    assert process.returncode != 0, err
+    assert "Traceback" not in err, err
+    assert f"cannot open {taken}" in err and "in use by another process" in err
 
 
 # ---- the vehicle first, then Zenoh ---------------------------------------------------------

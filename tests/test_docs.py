@@ -22,6 +22,7 @@ from protocols import keys
 from protocols.mapping import TelemetryMapping
 from protocols.mavlink_io import Link, MavlinkCodec, dialect
 from protocols.schemas import load_schema
+from tests.conftest import free_tcp_port
 from tests.markdown_tables import misshapen_tables
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -137,12 +138,6 @@ def test_the_documented_mavlink_ids_are_the_dialects():
 
 
 # ---- docs/mcap.md -------------------------------------------------------------------------
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def _wait(condition, what: str, timeout: float = 20.0) -> None:
     deadline = time.monotonic() + timeout
     while not condition():
@@ -174,7 +169,7 @@ def recorded_log(tmp_path_factory) -> Path:
     )
     vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     vehicle.bind(("127.0.0.1", 0))
-    endpoint = f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     link = Link(f"udpout:127.0.0.1:{vehicle.getsockname()[1]}", 255, 191)
     session = open_session(ZenohOptions(listen=(endpoint,)))
     recorder = open_recorder(config, LogOptions(directory=str(log_dir)))

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,11 +15,12 @@ from pathlib import Path
 
 import pytest
 
-from hil_service.cli.processes import dies_with_parent, free_port, start_verb, stop_process
+from hil_service.cli.processes import dies_with_parent, start_verb, stop_process
 from hil_service.offline.tlog_import import TlogReport, read_tlog
 from hil_service.sources.sampler import SamplerConfig, StreamSampler
 from protocols.mavlink_io import MavlinkCodec, dialect
 from protocols.profiles import load_profile, message_clock
+from tests.conftest import free_udp_port
 
 MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
 VEHICLE = 1
@@ -79,7 +79,7 @@ def mavproxy_tlog(tmp_path_factory) -> tuple[Path, dict]:
         pytest.fail(f"MAVProxy is a test dependency (pip install -e '.[dev]'): no {MAVPROXY}")
     base = tmp_path_factory.mktemp("mavproxy")
     tlog = base / "gcs.tlog"
-    port = free_port(socket.SOCK_DGRAM)
+    port = free_udp_port()
     command = [
         sys.executable,
         str(MAVPROXY),

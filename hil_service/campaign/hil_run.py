@@ -430,6 +430,14 @@ def _collect(
     if summary_path.exists():
         outcome.service = json.loads(summary_path.read_text())
     counted = outcome.service.get("counters", {})
+    served = counted.get("samples", 0)
+    if outcome.failure is None and outcome.interrupted is None and served < autopilot.stats.steps:
+        # In lockstep the service releases every step, so a step it did not take was
+        # released by something else: a process that shares its port and took the vehicle.
+        outcome.failure = (
+            f"the service took {served} of the {autopilot.stats.steps} samples sent: "
+            "another process received the rest"
+        )
     dropped = {k: counted.get(k, 0) for k in ("invalid", "incomplete", "out_of_order")}
     if (
         outcome.failure is not None
