@@ -345,9 +345,7 @@ class Link:
             )
         except OSError as error:
             if error.errno == errno.EADDRINUSE:
-                raise OSError(
-                    error.errno, f"{connection}: the port is in use by another process"
-                ) from error
+                raise OSError(error.errno, "the port is in use by another process") from error
             raise
         if not isinstance(self._file, _LINK_CLASSES):
             kind = type(self._file).__name__

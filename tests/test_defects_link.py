@@ -77,7 +77,6 @@ def test_a_second_link_cannot_take_a_listening_port_and_its_vehicle():
         with pytest.raises(OSError, match="in use by another process") as refused:
             Link(taken)
         assert refused.value.errno == errno.EADDRINUSE
-        assert taken in str(refused.value)
         vehicle.sendto(b"telemetry", ("127.0.0.1", int(taken.rpartition(":")[2])))
         assert first.wait(5.0)
         assert first.recv() == b"telemetry"
@@ -102,7 +101,7 @@ def test_serve_names_a_port_another_service_holds(processes):
         _, err = process.communicate(timeout=60)
     finally:
         holder.close()
-    assert process.returncode != 0, err
+    assert process.returncode == 2, err
     assert "Traceback" not in err, err
     assert f"cannot open {taken}" in err and "in use by another process" in err
 
