@@ -31,7 +31,10 @@ apart, docs/cluster.md), ``--sizes 250 --rate 1`` the largest fleet one link can
 service with L ``--mavlink`` links and ``--vehicle-ids link``, the emulator's vehicles in L
 blocks numbered from 1 on each (``--sysid-per-link``), a gateway each:
 ``--services 1 --links 4 --sizes 1000 --rate 1`` is 1,000 gliders at 1 Hz on one service.
-``--pin-service CPU`` pins the service process (every thread) to one core, as ``taskset -c``.
+``--pin-service CPU`` pins the service process (every thread) to one core, as ``taskset -c``;
+with ``--isolate-service`` everything else of the run (this harness and its subscriber, the
+router, the emulator, the ``fleet`` listing) runs on the other cores, so that the service
+has its core to itself: "one service on one core", not one core shared with the harness.
 
 Run: .venv/bin/python benchmarks/bench_fleet.py [--sizes 100,150,200] [--seconds 40]
          [--rate 10] [--services 2] [--target-ms 20] [--links 4] [--pin-service 0]
@@ -99,10 +102,10 @@ def cpu_pressure_us() -> int | None:
     return int(some[-1].partition("=")[2])
 
 
-def pin(pid: int, cpu: int) -> None:
-    """Every thread of ``pid`` on core ``cpu`` (threads it starts later inherit it)."""
+def pin(pid: int, cpus: set[int]) -> None:
+    """Every thread of ``pid`` on ``cpus`` (threads it starts later inherit it)."""
     for task in os.listdir(f"/proc/{pid}/task"):
-        os.sched_setaffinity(int(task), {cpu})
+        os.sched_setaffinity(int(task), cpus)
 
 
 def client_session(router: str) -> zenoh.Session:
@@ -256,10 +259,19 @@ def run_fleet(
     link_count: int = 0,
     pin_service: int | None = None,
     health_period: float = 1.0,
+    isolate_service: bool = False,
 ) -> dict[str, Any]:
     """``link_count`` > 0: one service with that many links, a system-id space each."""
     if link_count and service_count != 1:
         raise ValueError("--links needs --services 1")
+    others: set[int] | None = None
+    if isolate_service:
+        if pin_service is None:
+            raise ValueError("--isolate-service needs --pin-service")
+        others = set(os.sched_getaffinity(0)) - {pin_service}
+        if not others:
+            raise ValueError("--isolate-service needs a core besides the service's")
+        pin(os.getpid(), others)  # the processes started from here inherit it
     router = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     processes: list[subprocess.Popen[str]] = []
     session = None
@@ -296,7 +308,7 @@ def run_fleet(
             services.append(service)
         if pin_service is not None:
             for service in services:
-                pin(service.pid, pin_service)
+                pin(service.pid, {pin_service})
         identities = fleet_identities(vehicles, 1, len(udp), per_link=bool(link_count))
         ids = [keys.vehicle_id(n, s) if link_count else s for n, s in identities]
         session = client_session(router)
@@ -367,6 +379,7 @@ def run_fleet(
             "services": service_count,
             "links": link_count or service_count,
             "service_pinned_to_cpu": pin_service,
+            "others_on_cpus": None if others is None else sorted(others),
             "health_period_s": health_period,
             "rate_per_vehicle": rate,
             "samples_per_s_per_service": round(vehicles * rate / service_count, 1),
@@ -454,6 +467,11 @@ def main() -> int:
         "--pin-service", type=int, default=None, metavar="CPU", help="run the service on one core"
     )
     parser.add_argument(
+        "--isolate-service",
+        action="store_true",
+        help="with --pin-service: everything else of the run on the other cores",
+    )
+    parser.add_argument(
         "--health-period", type=float, default=1.0, help="with --links: serve --health-period"
     )
     parser.add_argument(
@@ -464,7 +482,7 @@ def main() -> int:
     for size in (int(s) for s in args.sizes.split(",")):
         result = run_fleet(
             size, args.seconds, args.phase_locked, args.rate, args.services, args.links,
-            args.pin_service, args.health_period,
+            args.pin_service, args.health_period, args.isolate_service,
         )  # fmt: skip
         print(json.dumps(result), flush=True)
         results.append(result)
