@@ -54,10 +54,9 @@ def test_a_verb_dies_with_a_parent_that_is_sigkilled(tmp_path):
     Python process that starts ``serve`` as the suite does, then is SIGKILLed."""
     code = (
         "import sys, time\n"
-        "from hil_service.cli.processes import free_port, start_service\n"
-        "import socket\n"
-        "service = start_service('--mavlink', f'udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}',"
-        " '--zenoh-listen', f'tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}',"
+        "from hil_service.cli.processes import start_service\n"
+        "service = start_service('--mavlink', 'udpin:127.0.0.1:0',"
+        " '--zenoh-listen', 'tcp/127.0.0.1:0',"
         f" '--log-dir', {str(tmp_path)!r})\n"
         "print(service.pid, flush=True)\n"
         "time.sleep(600)\n"
