@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import gc
 import os
 import socket
@@ -67,6 +68,7 @@ FIRST_PICKED_PORT = 10000
 _picked = {socket.SOCK_DGRAM: 0, socket.SOCK_STREAM: 0}
 
 
+@functools.cache
 def _ephemeral_low() -> int:
     try:
         return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
@@ -97,7 +99,7 @@ def pick_port(kind: int) -> int:
     a test that picks several gets different ports."""
     block = _worker_block()
     if block is not None:
-        for _ in block:
+        for _ in range(len(block)):
             port = block[_picked[kind] % len(block)]
             _picked[kind] += 1
             if _bindable(port, kind):

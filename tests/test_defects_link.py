@@ -90,14 +90,19 @@ def test_a_closed_link_leaves_its_port_free_at_once():
     taken = first.bound()
     first.close()
     again = Link(taken)  # a service restarted on its vehicle's port
-    again.close()
+    try:
+        assert again.bound() == taken
+    finally:
+        again.close()
 
 
 def test_serve_names_a_port_another_service_holds(processes):
     holder = Link("udpin:127.0.0.1:0")
     taken = holder.bound()
     try:
-        process = processes.start("serve", "--mavlink", taken, "--no-log")
+        process = processes.start(
+            "serve", "--mavlink", taken, "--zenoh-listen", "tcp/127.0.0.1:0", "--no-log"
+        )
         _, err = process.communicate(timeout=60)
     finally:
         holder.close()
