@@ -27,8 +27,11 @@ from hil_service.offline.field.table import (
     FieldError,
     InputScaling,
     Issues,
+    UnreadableFile,
+    check_something_read,
     is_log_time,
     no_log_time,
+    skip_unreadable,
     whole_dive,
 )
 from protocols.input_files import not_a_file
@@ -46,6 +49,7 @@ TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0, "h": 3600.0, "days"
 DEPTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 PRESSURE_UNITS = {"dbar": 1e4, "bar": 1e5, "kPa": 1e3, "hPa": 1e2, "Pa": 1.0, "mbar": 1e2}
 PITCH_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+UNPARSABLE_NOTE = "unparsable row dropped"
 TABLES: dict[str, set[str]] = {
     "file": {"kind", "delimiter", "comment"},
     "time": {"column", "unit", "format"},
@@ -251,7 +255,7 @@ def _rows(
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as error:
-        raise FieldError(f"{path}: cannot be read ({error})") from error
+        raise UnreadableFile(path, f"{path}: cannot be read ({error})") from error
     comment = mapping.get("file", "comment", "#")
     delimiter = mapping.get("file", "delimiter", ",")
     numbered = [
@@ -260,13 +264,13 @@ def _rows(
         if line.strip() and not (comment and line.startswith(comment))
     ]
     if not numbered:
-        raise FieldError(f"{path}:1: empty file (no header)")
+        raise UnreadableFile(path, f"{path}:1: empty file (no header)")
     # One line, one row (a quoted field spanning lines is not supported): line numbers stay
     # the file's own, for the errors.
     parsed = [(n, _csv_row(line, delimiter)) for n, line in numbered]
     (header_line, header), body = parsed[0], parsed[1:]
     if header is None:
-        raise FieldError(f"{path}:{header_line}: a header the CSV parser refuses")
+        raise UnreadableFile(path, f"{path}:{header_line}: a header the CSV parser refuses")
     return header_line, [h.strip() for h in header], body
 
 
@@ -293,7 +297,7 @@ def _parquet_rows(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]
     try:
         table = pq.read_table(path)
     except Exception as error:  # ArrowInvalid, OSError, …: whatever a damaged file raises
-        raise FieldError(f"{path}: not a readable Parquet file ({error})") from error
+        raise UnreadableFile(path, f"{path}: not a readable Parquet file ({error})") from error
     header = [str(name) for name in table.column_names]
     columns = [table.column(name).to_pylist() for name in table.column_names]
     records = zip(*columns, strict=True) if columns else iter(())
@@ -307,12 +311,20 @@ def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
     mapping = load_mapping(mapping_path)
     issues = Issues()
     columns = Columns()
+    read_files: list[str] = []
     for number, path in enumerate(paths):
-        _read_file(path, number, mapping, columns, issues)
+        try:
+            _read_file(path, number, mapping, columns, issues)
+        except UnreadableFile as error:
+            skip_unreadable(error, issues, len(paths))
+            continue
+        read_files.append(str(path))
+    check_something_read(issues, len(paths))
     if not columns.t and issues.unparsable_rows:
+        first = next(n for n in issues.notes if n.endswith(UNPARSABLE_NOTE))
         raise FieldError(
-            f"{', '.join(map(str, paths))}: every row unparsable ({issues.unparsable_rows}; "
-            f"the first: {issues.notes[0]})"
+            f"{', '.join(read_files)}: every row unparsable ({issues.unparsable_rows}; "
+            f"the first: {first})"
         )
     data = mapping.data
     depth_table = "depth" if "depth" in data else "pressure"
@@ -344,7 +356,7 @@ def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
         for q in ("buoyancy", "pitch_input")
     }
     return FieldData.from_columns(
-        "csv", [str(p) for p in paths], columns, conversions, scaling, issues, vehicle=""
+        "csv", read_files, columns, conversions, scaling, issues, vehicle=""
     )
 
 
@@ -408,7 +420,7 @@ def _read_file(path: Path, number: int, mapping: Mapping, columns: Columns, issu
         except (ValueError, IndexError, OverflowError):  # int(inf): OverflowError
             issues.unparsable_rows += 1
             if issues.unparsable_rows <= 5:
-                issues.notes.append(f"{path}:{line_no}: unparsable row dropped")
+                issues.notes.append(f"{path}:{line_no}: {UNPARSABLE_NOTE}")
             continue
         surface = surface_column in index and _one_of(row[index[surface_column]], surface_values)
         columns.t.append(t)

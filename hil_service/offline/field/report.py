@@ -156,7 +156,7 @@ def field_section(
     lines = [
         *heading,
         "",
-        f"- {_count(field.get('files', []))} file(s); "
+        f"- {_count(field.get('files', []))} file(s){_skipped(issues)}; "
         f"{issues.get('rows', '–')} rows; "
         f"{issues.get('out_of_order', 0)} out of order, {issues.get('repeated_time', 0)} "
         f"repeated timestamps, {issues.get('nan_rows', 0)} NaN rows, "
@@ -198,6 +198,15 @@ def field_section(
                 figures.append(path)
                 lines.append(f"![{result.channel} {model.model}]({name})")
     return lines, figures, results
+
+
+def _skipped(issues: dict[str, Any]) -> str:
+    """What follows the count of files read when the import skipped some ("13 file(s) read,
+    1 that could not be read skipped"); "" when it skipped none."""
+    skipped = issues.get("unreadable_files")
+    if not skipped or not isinstance(skipped, dict):
+        return ""
+    return f" read, {len(skipped)} that could not be read skipped"
 
 
 def _unreadable(field: dict[str, Any]) -> str:

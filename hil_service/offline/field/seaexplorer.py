@@ -11,7 +11,9 @@ Which column becomes what (docs/field-data.md):
   a row without one (in-dive), a column all NaN a missing column.
 
 Files are taken by their number N; each file is one dive number. Files of two gliders (the
-name before the first dot) are refused.
+name before the first dot) are refused. A file that cannot be read, or whose header lacks a
+column every navigation file has (cut short in transfer), is skipped and named among
+several files (``table.skip_unreadable``), and an error alone.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ from hil_service.offline.field.table import (
     FieldError,
     InputScaling,
     Issues,
+    UnreadableFile,
+    check_something_read,
+    skip_unreadable,
 )
 
 SURFACE_STATES = frozenset({105, 115, 116})
@@ -76,10 +81,17 @@ def read_seaexplorer(paths: list[Path]) -> FieldData:
             "at a time"
         )
     vehicle = next(iter(vehicles), "")
+    read_files: list[str] = []
     for path in ordered:
-        _read_file(path, columns, issues)
+        try:
+            _read_file(path, columns, issues)
+        except UnreadableFile as error:
+            skip_unreadable(error, issues, len(ordered))
+            continue
+        read_files.append(str(path))
+    check_something_read(issues, len(ordered))
     return FieldData.from_columns(
-        "seaexplorer", [str(p) for p in ordered], columns, CONVERSIONS, SCALING, issues, vehicle
+        "seaexplorer", read_files, columns, CONVERSIONS, SCALING, issues, vehicle
     )
 
 
@@ -90,7 +102,8 @@ def _text(path: Path) -> str:
             raw = gzip.decompress(raw)
         return raw.decode("latin-1")
     except (OSError, EOFError, gzip.BadGzipFile) as error:
-        raise FieldError(f"{path}: cannot be read ({type(error).__name__}: {error})") from error
+        message = f"{path}: cannot be read ({type(error).__name__}: {error})"
+        raise UnreadableFile(path, message) from error
 
 
 def _timestamp(text: str) -> float:
@@ -106,9 +119,10 @@ def _read_file(path: Path, columns: Columns, issues: Issues) -> None:
     position = {name: i for i, name in enumerate(header) if name}
     absent = [name for name in REQUIRED if name not in position]
     if absent:
-        raise FieldError(
+        raise UnreadableFile(
+            path,
             f"{path}:1: header lacks {', '.join(absent)} (a SeaExplorer gli header names "
-            f"{', '.join(REQUIRED)})"
+            f"{', '.join(REQUIRED)})",
         )
     chosen: dict[str, int | None] = {}
     missing = []

@@ -13,7 +13,9 @@ becomes what (docs/field-data.md):
 
 Each file is one dive, numbered by its ``dive_number`` attribute (else its name); the files
 are taken in dive order and the surface intervals between dives are not sampled: gaps.
-Files whose ``glider`` attributes differ are refused (one glider per import).
+Files whose ``glider`` attributes differ are refused (one glider per import). A file that is
+not readable netCDF3 (a dive cut short in transfer) is skipped and named among several files
+(``table.skip_unreadable``), and an error alone.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ from hil_service.offline.field.table import (
     FieldError,
     InputScaling,
     Issues,
+    UnreadableFile,
+    check_something_read,
+    skip_unreadable,
     whole_dive,
 )
 
@@ -78,8 +83,14 @@ def read_seaglider(paths: list[Path]) -> FieldData:
     columns = Columns()
     gliders: dict[str, Path] = {}
     conversions: list[Conversion] = []
+    read_files: list[str] = []
     for number, path in dives:
-        read, units, glider = _read_dive(path, number, issues)
+        try:
+            read, units, glider = _read_dive(path, number, issues)
+        except UnreadableFile as error:
+            skip_unreadable(error, issues, len(dives))
+            continue
+        read_files.append(str(path))
         columns.extend(**read)
         if glider:
             gliders.setdefault(glider, path)
@@ -96,9 +107,10 @@ def read_seaglider(paths: list[Path]) -> FieldData:
                 f"{path}: {DEPTH} in {units[DEPTH][0]}, {PITCH} in {units[PITCH][0]} "
                 "(its units attributes), unlike the first file's"
             )
+    check_something_read(issues, len(dives))
     return FieldData.from_columns(
         "seaglider",
-        [str(p) for _, p in dives],
+        read_files,
         columns,
         conversions or CONVERSIONS,
         SCALING,
@@ -125,9 +137,10 @@ def _open(path: Path):
         return netcdf_file(path, "r", mmap=False)
     except (OSError, ValueError, TypeError, IndexError, EOFError) as error:
         size = path.stat().st_size if path.exists() else 0
-        raise FieldError(
+        raise UnreadableFile(
+            path,
             f"{path}: not a readable netCDF3 file ({size} bytes; {type(error).__name__}: "
-            f"{error}); a file cut short in transfer reads like this"
+            f"{error}); a file cut short in transfer reads like this",
         ) from error
 
 
@@ -136,7 +149,7 @@ def _dive_number(path: Path) -> int:
     try:
         with _open(path) as nc:
             value = nc._attributes.get("dive_number")
-    except FieldError:
+    except UnreadableFile:
         value = None  # named when the dive is read; reading it reports the damage
     if value is not None:
         number = _attribute(path, "dive_number", value)

@@ -5,9 +5,11 @@ A Slocum file names its sensor list by a cache id; unless the file carries the l
 ``--cache-dir`` as ``<id>.cac`` (copied from the glider's or the dockserver's
 ``state/cache``). The ASCII header is checked complete before dbdreader sees the file (it
 reads a header cut short forever), and whatever dbdreader raises on a damaged file is an
-error naming it. A file whose data part ends partway through a record (cut short in
-transfer) is read up to its last whole record, with a note naming it: dbdreader would read
-the cut record from stale bytes. Which sensor becomes what (docs/field-data.md):
+error naming it: among several files the file is skipped and named
+(``table.skip_unreadable``), alone it is the import's error. A file whose data part ends
+partway through a record (cut short in transfer) is read up to its last whole record, with
+a note naming it: dbdreader would read the cut record from stale bytes. Which sensor
+becomes what (docs/field-data.md):
 
 * time: the time base of ``m_depth`` (s since 1970); depth: ``m_depth`` m;
 * pitch: ``m_pitch`` rad (+ nose up), interpolated by ``dbdreader.get_sync`` onto the
@@ -39,6 +41,9 @@ from hil_service.offline.field.table import (
     FieldError,
     InputScaling,
     Issues,
+    UnreadableFile,
+    check_something_read,
+    skip_unreadable,
 )
 
 SUFFIXES = frozenset({".dbd", ".sbd", ".tbd", ".ebd", ".mbd", ".nbd"})
@@ -155,7 +160,12 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
     issues = Issues()
     columns = Columns()
     ordered = sorted(paths, key=lambda p: p.name.lower())
-    headers = {path: _header(path, dbdreader) for path in ordered}
+    headers: dict[Path, dict[str, str]] = {}
+    for path in ordered:
+        try:
+            headers[path] = _header(path, dbdreader)
+        except UnreadableFile as error:
+            skip_unreadable(error, issues, len(ordered))
     vehicles: dict[str, Path] = {}
     for path, header in headers.items():
         # The glider's name leads the header's full_filename (an 8.3 name does not hold it).
@@ -167,14 +177,22 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
             f"files of two gliders: {one} is {first}, {other} is {second}; import one glider "
             "at a time"
         )
+    read_files: list[str] = []
     for number, path in enumerate(ordered):
-        header = headers[path]
+        header = headers.get(path)
+        if header is None:
+            continue
         with tempfile.TemporaryDirectory(prefix="glider-hil-cac-") as scratch:
             # A file that carries its sensor list has dbdreader write it into the cache
             # given; a scratch directory keeps a list cut short out of the user's cache.
             carries = header.get("sensor_list_factored", "").strip() == "0"
             given = Path(scratch) if carries else cache
-            dbd = _open(path, path, given, cache, dbdreader)
+            try:
+                dbd = _open(path, path, given, cache, dbdreader)
+            except UnreadableFile as error:
+                skip_unreadable(error, issues, len(ordered))
+                continue
+            read_files.append(str(path))
             try:
                 cut = _whole_records(path, dbd, Path(scratch), dbdreader)
                 if cut is not None:
@@ -186,9 +204,10 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
                 dbd.close()
             if carries:
                 _keep_sensor_list(Path(scratch), cache, str(dbd.cacheID))
+    check_something_read(issues, len(ordered))
     return FieldData.from_columns(
         "slocum",
-        [str(p) for p in ordered],
+        read_files,
         columns,
         CONVERSIONS,
         SCALING,
@@ -203,11 +222,12 @@ def _open(file: Path, path: Path, given: Path, cache: Path, dbdreader: Any) -> A
     try:
         return dbdreader.DBD(str(file), cacheDir=str(given))
     except dbdreader.DbdError as error:
-        raise FieldError(_explain(path, cache, error, dbdreader)) from error
+        raise _explain(path, cache, error, dbdreader) from error
     except Exception as error:  # KeyError, IndexError, ValueError, … on a damaged file
-        raise FieldError(
+        raise UnreadableFile(
+            path,
             f"{path}: not a readable Slocum file ({type(error).__name__}: {error}); a "
-            "file cut short in transfer reads like this"
+            "file cut short in transfer reads like this",
         ) from error
 
 
@@ -254,27 +274,31 @@ def _header(path: Path, dbdreader: object) -> dict[str, str]:
             with path.open("rb") as fp:
                 head = fp.read(HEADER_BYTES)
     except Exception as error:  # OSError, lz4's errors on a damaged compressed file
-        raise FieldError(f"{path}: cannot be read ({type(error).__name__}: {error})") from error
+        message = f"{path}: cannot be read ({type(error).__name__}: {error})"
+        raise UnreadableFile(path, message) from error
     tags: dict[str, str] = {}
     complete = head.split(b"\n")[:-1]  # the piece after the last newline is cut short
     for number, line in enumerate(complete, start=1):
         key, _, value = line.decode("latin-1").partition(":")
         if number == 1 and key != "dbd_label":
-            raise FieldError(f"{path}: not a Slocum file (its first line is no dbd_label)")
+            message = f"{path}: not a Slocum file (its first line is no dbd_label)"
+            raise UnreadableFile(path, message)
         tags.setdefault(key, value.strip())
         count = tags.get("num_ascii_tags")
         if count is None:
             continue
         if not count.isdigit() or int(count) < number:
-            raise FieldError(
-                f"{path}: not a readable Slocum file (num_ascii_tags {count!r} on line {number})"
+            raise UnreadableFile(
+                path,
+                f"{path}: not a readable Slocum file (num_ascii_tags {count!r} on line {number})",
             )
         if int(count) == number:
             return tags
     expected = tags.get("num_ascii_tags", "?")
-    raise FieldError(
+    raise UnreadableFile(
+        path,
         f"{path}: cut short in its ASCII header ({len(complete)} complete lines of "
-        f"num_ascii_tags {expected}); a file cut short in transfer reads like this"
+        f"num_ascii_tags {expected}); a file cut short in transfer reads like this",
     )
 
 
@@ -296,17 +320,19 @@ def _keep_sensor_list(scratch: Path, cache: Path, cache_id: str) -> None:
         raise FieldError(f"--cache-dir {cache}: cannot write {target.name} ({error})") from error
 
 
-def _explain(path: Path, cache: Path, error: Exception, dbdreader: object) -> str:
+def _explain(path: Path, cache: Path, error: Exception, dbdreader: object) -> FieldError:
+    """dbdreader's error as ours: a sensor list missing from the cache is the user's to
+    supply (never skipped), anything else a damaged file."""
     value = getattr(error, "value", None)
     if value == getattr(dbdreader, "DBD_ERROR_CACHE_NOT_FOUND", -1):
         data = getattr(error, "data", None)
         files = getattr(data, "missing_cache_files", None) or {}
         names = ", ".join(f"{cid}.cac" for cid in files) or "its sensor-list (.cac) file"
-        return (
+        return FieldError(
             f"{path}: the sensor list {names} is not in --cache-dir {cache}; copy it from "
             "the glider's state/cache (or the dockserver's) into that directory"
         )
-    return f"{path}: not a readable Slocum file ({str(error).strip()})"
+    return UnreadableFile(path, f"{path}: not a readable Slocum file ({str(error).strip()})")
 
 
 def _read(

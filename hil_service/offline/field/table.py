@@ -58,6 +58,18 @@ class FieldError(ValueError):
     """A file that cannot be read: the message names the file (and the line when known)."""
 
 
+class UnreadableFile(FieldError):
+    """A file whose bytes its format's reader cannot take at all: cut short in transfer,
+    damaged, not of its kind inside. Among several files of an import it is skipped and
+    named (``skip_unreadable``); alone it is the import's error. An error of meaning (units
+    the import cannot read, files of two gliders, a sensor list not in the cache) is never
+    skipped: reading on would import the wrong numbers, or none the user can fix later."""
+
+    def __init__(self, path: object, message: str) -> None:
+        super().__init__(message)
+        self.path = str(path)
+
+
 @dataclass
 class Issues:
     """Counts of what the import found and did about it; ``notes``: one line each."""
@@ -71,6 +83,7 @@ class Issues:
     missing_columns: dict[str, list[str]] = field(default_factory=dict)  # file → columns
     filled_inputs: int = 0  # input values held from the previous sample (missing/NaN)
     surface_rows: int = 0  # samples the vehicle marked at the surface: not identified
+    unreadable_files: dict[str, str] = field(default_factory=dict)  # path → why: skipped
     notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -84,6 +97,7 @@ class Issues:
             "missing_columns": {k: list(v) for k, v in self.missing_columns.items()},
             "filled_inputs": self.filled_inputs,
             "surface_rows": self.surface_rows,
+            "unreadable_files": dict(self.unreadable_files),
             "notes": list(self.notes),
         }
 
@@ -95,10 +109,33 @@ class Issues:
             f"out of range (dropped), "
             f"{self.filled_inputs} input values held from the previous sample, "
             f"{self.surface_rows} at the surface (not identified)"
+            + (
+                f"; {len(self.unreadable_files)} file(s) that could not be read skipped"
+                if self.unreadable_files
+                else ""
+            )
         ]
         for path, columns in self.missing_columns.items():
             lines.append(f"{path}: missing column(s) {', '.join(columns)}")
         return lines + list(self.notes)
+
+
+def skip_unreadable(error: UnreadableFile, issues: Issues, files: int) -> None:
+    """A file of an import of ``files`` files that cannot be read at all: skipped, named in
+    the notes with why, and listed in ``unreadable_files``. A dive lost in transfer leaves
+    the others to identify from; the import fails only when it was the one file."""
+    if files < 2:
+        raise error
+    issues.unreadable_files[error.path] = str(error)
+    issues.notes.append(f"{error}: skipped")
+
+
+def check_something_read(issues: Issues, files: int) -> None:
+    """The error of an import none of whose ``files`` could be read (each was skipped)."""
+    skipped = issues.unreadable_files
+    if files and len(skipped) >= files:
+        first = next(iter(skipped.values()))
+        raise FieldError(f"none of the {files} files could be read; the first: {first}")
 
 
 @dataclass
