@@ -4,14 +4,12 @@ and the checks that refuse a bad flag, naming it, before any link opens."""
 from __future__ import annotations
 
 import argparse
-import os
 from collections.abc import Callable, Iterable
 
 from plant_emulator.autopilot import AutopilotConfig
 from plant_emulator.plant import PlantConfig
-from protocols.link_address import NETWORK_SCHEMES, host_problem
+from protocols.link_address import connection_problem
 from protocols.mapping import TelemetryMapping
-from protocols.mavlink_io import ACCEPTED_LINKS
 from protocols.signing import load_key
 from protocols.units import InputScale, PressureDepth
 
@@ -79,33 +77,6 @@ def check_flags(checks: Iterable[tuple[str, Callable[[], object]]]) -> None:
             check()
         except ValueError as error:
             raise ValueError(f"{flag}: {error}") from None
-
-
-def connection_problem(connection: str) -> str:
-    """Why ``connection`` cannot be opened as a link, or "" when it can be tried: a scheme
-    of ``NETWORK_SCHEMES`` with HOST:PORT (PORT 1..65535), or a serial device that exists.
-
-    pymavlink would raise ValueError for an unknown scheme or a missing port, a serial
-    error for an empty name, and take a port beyond 65535 until the first send fails."""
-    name = connection.strip()
-    if not name:
-        return f"is empty; it takes {ACCEPTED_LINKS}"
-    scheme, colon, rest = name.partition(":")
-    if colon and "/" not in scheme:
-        if scheme.lower() not in NETWORK_SCHEMES:
-            return f"{connection!r}: unknown scheme {scheme!r}; it takes {ACCEPTED_LINKS}"
-        host, colon, port = rest.partition(":")
-        if not host or not colon or ":" in port:
-            return f"{connection!r}: {scheme}: wants HOST:PORT; it takes {ACCEPTED_LINKS}"
-        if not (port.isdigit() and 1 <= int(port) <= 65535):
-            return f"{connection!r}: port must be an integer 1..65535, got {port!r}"
-        unresolved = host_problem(name)
-        return f"{connection!r}: {unresolved}" if unresolved else ""
-    if not os.path.exists(name):
-        return f"{connection!r}: no such serial device; it takes {ACCEPTED_LINKS}"
-    if os.path.isfile(name):
-        return f"{connection!r} is a file, not a link; it takes {ACCEPTED_LINKS}"
-    return ""
 
 
 def check_connection(flag: str, connection: str) -> None:

@@ -1,16 +1,72 @@
-"""Whether a network link's HOST can be an address, before the link opens.
+"""Whether a connection string can be a link, before the link opens: ``connection_problem``
+for ``emulate --connect`` and ``serve --mavlink`` alike.
 
-pymavlink takes ``udpout:999.1.1.1:14550`` (or a name that does not resolve), and every
-datagram to it then vanishes: its write swallows the send error. So a vehicle or a service
-pointed at a mistyped host would run, "sending", and never reach anyone.
+pymavlink takes much that cannot work and says so late or never: ``udpout:999.1.1.1:14550``
+(or a name that does not resolve) runs, and every datagram vanishes (its write swallows the
+send error); ``udpout:HOST:0`` sends nowhere; an unknown scheme or a device with a colon in
+it reaches its UDP parser ("UDP ports must be specified as host:port", "invalid literal for
+int()"); a regular file opens as a log to read. So a vehicle or a service pointed at a
+mistyped link would run, "sending", and never reach anyone, or fail with a message about
+something else.
 """
 
 from __future__ import annotations
 
+import os
 import socket
 
 #: The connection schemes ``Link`` opens as a live network link, each followed by HOST:PORT.
 NETWORK_SCHEMES = ("udpin", "udpout", "udpbcast", "udp", "tcp", "tcpin")
+#: The schemes that listen (pymavlink's ``udp:`` is ``udpin:``): port 0 takes a free port.
+LISTENING_SCHEMES = ("udpin", "udp", "tcpin")
+#: What a link can be, for error messages.
+ACCEPTED_LINKS = (
+    "udpin:HOST:PORT, udpout:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT "
+    "or a serial device, optionally with its baud rate (e.g. /dev/ttyUSB0 or /dev/ttyUSB0,57600)"
+)
+#: Names pymavlink would open as a recorded log (or a CSV export), never a live link.
+LOG_SUFFIXES = (".tlog", ".bin", ".px4log", ".log", ".mavlink", ".raw", ".csv")
+
+
+def connection_problem(connection: str, free_port: bool = False) -> str:
+    """Why ``connection`` cannot be opened as a link, or "" when it can be tried.
+
+    A link is ``SCHEME:HOST:PORT`` with a scheme of ``NETWORK_SCHEMES``, PORT 1..65535 (0
+    too for a listening scheme when ``free_port``: the caller reports the port it got) and
+    a HOST that is an address (``host_problem``); or a serial device that exists and is not
+    a regular file, with an optional baud rate after a comma (``/dev/ttyUSB0,57600``, as
+    pymavlink reads it)."""
+    name = connection.strip()
+    if not name:
+        return f"is empty; it takes {ACCEPTED_LINKS}"
+    scheme, colon, rest = name.partition(":")
+    if scheme.lower() == "csv":
+        return f"{connection!r} is a CSV log, not a link; it takes {ACCEPTED_LINKS}"
+    if colon and "/" not in scheme:
+        return _network_problem(connection, scheme.lower(), rest, free_port)
+    device, comma, baud = name.rpartition(",")
+    if not comma or os.path.exists(name):
+        device, baud = name, ""
+    elif not (baud.isdigit() and int(baud) > 0):
+        return f"{connection!r}: the baud rate after the comma must be a positive integer"
+    if device.lower().endswith(LOG_SUFFIXES) or os.path.isfile(device):
+        return f"{connection!r} is a file, not a link; it takes {ACCEPTED_LINKS}"
+    if not os.path.exists(device):
+        return f"{connection!r}: no such serial device; it takes {ACCEPTED_LINKS}"
+    return ""
+
+
+def _network_problem(connection: str, scheme: str, rest: str, free_port: bool) -> str:
+    if scheme not in NETWORK_SCHEMES:
+        return f"{connection!r}: unknown scheme {scheme!r}; it takes {ACCEPTED_LINKS}"
+    host, colon, port = rest.partition(":")
+    if not host or not colon or ":" in port:
+        return f"{connection!r}: {scheme}: wants HOST:PORT; it takes {ACCEPTED_LINKS}"
+    lowest = 0 if free_port and scheme in LISTENING_SCHEMES else 1
+    if not (port.isdigit() and lowest <= int(port) <= 65535):
+        return f"{connection!r}: port must be an integer {lowest}..65535, got {port!r}"
+    unresolved = host_problem(connection.strip())
+    return f"{connection!r}: {unresolved}" if unresolved else ""
 
 
 def host_problem(connection: str) -> str:

@@ -27,6 +27,7 @@ from pymavlink.dialects.v20 import common as dialect
 from protocols.flag_types import MAX_SPIN_WAIT_US
 from protocols.frame_decoder import FrameDecoder
 from protocols.frame_encoder import FrameEncoder
+from protocols.link_address import ACCEPTED_LINKS, LOG_SUFFIXES
 from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
@@ -253,13 +254,6 @@ class MavlinkCodec:
         self._mav.have_prefix_error = False
 
 
-#: What ``Link`` opens, for error messages.
-ACCEPTED_LINKS = (
-    "udpin:HOST:PORT, udpout:HOST:PORT, udpbcast:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT "
-    "or a serial device (e.g. /dev/ttyUSB0, /dev/ttyACM0)"
-)
-#: Names pymavlink would open as a recorded log (or a CSV export), never a live link.
-_LOG_SUFFIXES = (".tlog", ".bin", ".px4log", ".log", ".mavlink", ".raw", ".csv")
 #: pymavlink classes that are live byte pipes (everything else it returns reads a file
 #: or runs a program).
 _LINK_CLASSES = (mavutil.mavudp, mavutil.mavtcp, mavutil.mavtcpin, mavutil.mavserial)
@@ -276,10 +270,10 @@ def check_link(connection: str) -> None:
     lowered = name.lower()
     if lowered.startswith("csv:"):
         raise ValueError(f"{connection} is a CSV log, not a link; --mavlink takes {ACCEPTED_LINKS}")
-    if ":" in name.split("/")[0] and not lowered.endswith(_LOG_SUFFIXES):
+    if ":" in name.split("/")[0] and not lowered.endswith(LOG_SUFFIXES):
         return  # a scheme (udpin:, tcp:, ...): pymavlink parses it
     is_device = os.path.exists(name) and not os.path.isfile(name)
-    if not is_device and (lowered.endswith(_LOG_SUFFIXES) or os.path.isfile(name)):
+    if not is_device and (lowered.endswith(LOG_SUFFIXES) or os.path.isfile(name)):
         raise ValueError(f"{connection} is a file, not a link; --mavlink takes {ACCEPTED_LINKS}")
 
 

@@ -37,15 +37,15 @@ def test_serve_refuses_a_tlog_naming_what_it_accepts(processes, tmp_path):
     tlog = tmp_path / "dive.tlog"
     tlog.write_bytes(bytes(range(256)) * 8)  # pymavlink would open this as a log to read
     err = _refusal(processes, str(tlog))
-    assert f"{tlog} is a file, not a link" in err
+    assert f"'{tlog}' is a file, not a link" in err
 
 
 def test_serve_refuses_any_regular_file_and_a_missing_log(processes, tmp_path):
     other = tmp_path / "telemetry.dat"
     other.write_bytes(b"\xfd" * 100)
-    assert f"{other} is a file, not a link" in _refusal(processes, str(other))
+    assert f"'{other}' is a file, not a link" in _refusal(processes, str(other))
     missing = tmp_path / "gone.tlog"  # a log name that does not exist is no device either
-    assert f"{missing} is a file, not a link" in _refusal(processes, str(missing))
+    assert f"'{missing}' is a file, not a link" in _refusal(processes, str(missing))
 
 
 @pytest.mark.parametrize(

@@ -262,3 +262,58 @@ def test_a_link_whose_host_is_an_address_or_no_host_passes_the_host_check(connec
     from protocols.link_address import host_problem
 
     assert host_problem(connection) == ""
+
+
+@pytest.mark.parametrize(
+    ("connection", "says"),
+    [
+        ("bogus:xyz", "unknown scheme 'bogus'"),
+        ("serial:/dev/ttyUSB0:57600", "unknown scheme 'serial'"),  # not pymavlink's form
+        ("udpout:127.0.0.1", "wants HOST:PORT"),
+        ("udpout:127.0.0.1:0", "port must be an integer 1..65535, got '0'"),  # sends nowhere
+        ("udpin:127.0.0.1:70000", "port must be an integer 0..65535"),
+        ("/no/such/serial/device,57600", "no such serial device"),
+        ("/dev/null,fast", "the baud rate after the comma must be a positive integer"),
+        ("csv:track.csv", "is a CSV log, not a link"),
+        ("", "is empty"),
+    ],
+)
+def test_a_link_that_cannot_be_opened_is_refused_for_what_is_wrong_with_it(
+    tmp_path, capsys, monkeypatch, connection, says
+):
+    """pymavlink would answer these with a message about something else ("UDP ports must
+    be specified as host:port" for a device with a colon, "invalid literal for int()" for
+    an unknown scheme), or send every datagram to port 0; serve names what is wrong, as
+    emulate does."""
+    line = _refused(tmp_path, capsys, monkeypatch, "--mavlink", connection)
+    assert line.startswith("glider-hil serve: --mavlink "), line
+    assert says in line and (not connection or repr(connection) in line)
+
+
+@pytest.mark.parametrize(
+    ("connection", "free_port", "problem"),
+    [
+        ("/dev/null,57600", False, ""),  # a device that exists, with its baud rate
+        ("/dev/null", False, ""),
+        ("udpin:127.0.0.1:0", True, ""),  # serve: a free port, named when ready
+        ("tcpin:127.0.0.1:0", True, ""),
+        ("udpin:127.0.0.1:0", False, "port must be an integer 1..65535"),  # emulate
+        ("udpout:127.0.0.1:0", True, "port must be an integer 1..65535"),
+        ("tcp:127.0.0.1:0", True, "port must be an integer 1..65535"),
+    ],
+)
+def test_serial_devices_with_a_baud_rate_and_free_ports_where_they_listen(
+    connection, free_port, problem
+):
+    from protocols.link_address import connection_problem
+
+    found = connection_problem(connection, free_port=free_port)
+    assert (problem in found) if problem else found == ""
+
+
+def test_a_regular_file_named_with_a_baud_rate_is_still_a_file(tmp_path):
+    from protocols.link_address import connection_problem
+
+    afile = tmp_path / "ttyUSB0"
+    afile.write_bytes(b"")
+    assert "is a file, not a link" in connection_problem(f"{afile},57600")

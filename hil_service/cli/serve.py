@@ -44,7 +44,7 @@ from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
 from hil_service.vehicle_links import LinkSet
 from protocols.flag_types import spin_wait_us
-from protocols.link_address import host_problem
+from protocols.link_address import connection_problem
 from protocols.mavlink_io import Link
 from protocols.profiles import (
     DEFAULT_PROFILE,
@@ -362,9 +362,9 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
     if len(links) != len(args.mavlink) and args.mavlink:
         raise ValueError("--mavlink: the same link given twice")
     for connection in links:
-        unresolved = host_problem(connection)
-        if unresolved:
-            raise ValueError(f"--mavlink {connection!r}: {unresolved}")
+        problem = connection_problem(connection, free_port=True)
+        if problem:
+            raise ValueError(f"--mavlink {problem}")
     return ServeConfig(
         service,
         links[0],
