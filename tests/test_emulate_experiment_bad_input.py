@@ -118,6 +118,8 @@ def test_a_deeply_nested_profile_isrefused_line(tmp_path, capsys, no_run) -> Non
         ("udpout:127.0.0.1:0", "port must be an integer 1..65535"),
         ("tcp:localhost:http", "port must be an integer 1..65535"),
         ("/no/such/serial/device", "no such serial device"),
+        ("/no/such/serial/device,57600", "no such serial device"),
+        ("serial:/dev/ttyUSB0:57600", "unknown scheme 'serial'"),
         ("udpout:999.1.1.1:14550", "host '999.1.1.1' is not an address"),
     ],
 )
