@@ -265,6 +265,7 @@ def run_fleet(
     if link_count and service_count != 1:
         raise ValueError("--links needs --services 1")
     others: set[int] | None = None
+    own_cpus = os.sched_getaffinity(0)  # given back at the end, for the next fleet size
     if isolate_service:
         if pin_service is None:
             raise ValueError("--isolate-service needs --pin-service")
@@ -436,6 +437,8 @@ def run_fleet(
         for process in reversed(processes):
             if process.poll() is None:
                 stop_process(process)
+        if isolate_service:
+            pin(os.getpid(), own_cpus)
 
 
 def main() -> int:
