@@ -195,7 +195,7 @@ def test_bad_config_file_and_connection_string_are_clear_errors(processes, tmp_p
     process = processes.start("serve", "--mavlink", "udpin:nonsense", "--no-log")
     _, err = process.communicate(timeout=30)
     assert process.returncode == 2
-    assert "cannot open udpin:nonsense" in err and "Traceback" not in err
+    assert "--mavlink 'udpin:nonsense': udpin: wants HOST:PORT" in err and "Traceback" not in err
 
 
 def test_health_turns_stale_exactly_after_the_timeout_on_the_service_clock():
