@@ -78,10 +78,19 @@ def host_problem(connection: str) -> str:
     host, _, port = rest.rpartition(":")
     if scheme.lower() not in NETWORK_SCHEMES or not host or ":" in host or not port.isdigit():
         return ""
-    # Digits and dots are an IPv4 address or nothing: checked without a DNS query.
-    numeric = all(c.isdigit() or c == "." for c in host)
+    return address_problem(host, int(port))
+
+
+def address_problem(host: str, port: int) -> str:
+    """Why ``host`` cannot be an address to reach or bind, or "". Digits and dots are an IPv4
+    address or nothing: parsed, never looked up; a bracketed IPv6 address is parsed too; a
+    name is resolved (the hosts file, then DNS)."""
+    if host.startswith("[") and host.endswith("]"):
+        host, numeric = host[1:-1], True
+    else:
+        numeric = all(c.isdigit() or c == "." for c in host)
     try:
-        socket.getaddrinfo(host, int(port), flags=socket.AI_NUMERICHOST if numeric else 0)
+        socket.getaddrinfo(host, port, flags=socket.AI_NUMERICHOST if numeric else 0)
     except (socket.gaierror, UnicodeError, OverflowError) as error:
         reason = error.strerror if isinstance(error, socket.gaierror) else str(error)
         return f"host {host!r} is not an address ({reason})"

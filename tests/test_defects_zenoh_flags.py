@@ -6,6 +6,7 @@ import argparse
 import json
 import threading
 
+import pytest
 import zenoh
 
 from hil_service.listeners.zenoh_config import (
@@ -87,3 +88,42 @@ def test_a_session_from_file_and_flags_listens_on_the_flags_endpoint(tmp_path):
         if other is not None:
             other.close()
         session.close()
+
+
+@pytest.mark.parametrize(
+    ("endpoint", "bad_host"),
+    [
+        ("tcp/127.0.0.1:7447", None),
+        ("tcp/[::1]:7447", None),
+        ("tcp/127.0.0.1:7447?iface=lo", None),  # metadata after the address
+        ("unixsock-stream//tmp/zenoh.sock", None),  # a path, no host
+        ("tcp/999.1.1.1:7447", "999.1.1.1"),
+        ("udp/10.0.0.300:7447#rel=1", "10.0.0.300"),
+        ("tcp/[zz::1]:7447", "zz::1"),
+    ],
+)
+def test_an_endpoint_whose_host_is_no_address_is_named(endpoint, bad_host):
+    """Zenoh says only "failed to lookup address information" when the session opens, and
+    names no endpoint; the check names the flag, the endpoint and the host. Only numeric
+    hosts here: a name would be looked up."""
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    options = options_from_args(parser.parse_args(["--zenoh-connect", endpoint]))
+    if bad_host is None:
+        options.to_config()
+        return
+    with pytest.raises(ValueError) as refused:
+        options.to_config()
+    assert str(refused.value).startswith(f"--zenoh-connect {endpoint}: host {bad_host!r}")
+
+
+def test_serve_and_the_router_name_an_endpoint_whose_host_is_no_address(capsys):
+    from hil_service.cli import main
+
+    assert main(["router", "--listen", "tcp/999.0.0.1:7447", "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "glider-hil router: --listen tcp/999.0.0.1:7447: host '999.0.0.1'" in err
+    flags = ["--zenoh-listen", "tcp/999.0.0.1:7447", "--no-log", "--duration", "1"]
+    assert main(["serve", "--mavlink", "udpin:127.0.0.1:0", *flags]) == 2
+    err = capsys.readouterr().err
+    assert "glider-hil serve: --zenoh-listen tcp/999.0.0.1:7447: host '999.0.0.1'" in err

@@ -19,6 +19,7 @@ import zenoh
 
 from hil_service.listeners.zenoh_shutdown import close_at_exit
 from protocols.input_files import not_a_file
+from protocols.link_address import address_problem
 
 DEFAULT_MODE = "peer"
 
@@ -71,11 +72,33 @@ def config_from_file(path: str, flag: str) -> zenoh.Config:
 
 def insert_flag(config: zenoh.Config, key: str, value: object, flag: str) -> None:
     """``config[key] = value`` from ``flag``; ValueError naming the flag when zenoh refuses
-    the value (an endpoint that is not ``<protocol>/<address>``)."""
+    the value (an endpoint that is not ``<protocol>/<address>``) or when an endpoint's host
+    is not an address (``endpoint_problem``)."""
     try:
         config.insert_json5(key, json.dumps(value))
     except zenoh.ZError as error:
         raise ValueError(f"{flag}: {zenoh_error_text(error)}") from error
+    if key.endswith("/endpoints") and isinstance(value, list):
+        for endpoint in value:
+            problem = endpoint_problem(str(endpoint))
+            if problem:
+                raise ValueError(f"{flag} {endpoint}: {problem}")
+
+
+#: Zenoh's protocols whose address is HOST:PORT (the others name a path or a device).
+HOST_PORT_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+
+
+def endpoint_problem(endpoint: str) -> str:
+    """Why the host of a ``<protocol>/<host>:<port>`` endpoint (its metadata and config
+    after ``?`` or ``#`` left out) cannot be an address, or "". Zenoh would say only
+    "failed to lookup address information" when the session opens, naming no endpoint."""
+    protocol, _, address = endpoint.partition("/")
+    address = address.split("?", 1)[0].split("#", 1)[0]
+    host, _, port = address.rpartition(":")
+    if protocol.lower() not in HOST_PORT_PROTOCOLS or not host or not port.isdigit():
+        return ""
+    return address_problem(host, int(port))
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
