@@ -269,7 +269,7 @@ def run_fleet(
     if isolate_service:
         if pin_service is None:
             raise ValueError("--isolate-service needs --pin-service")
-        others = set(os.sched_getaffinity(0)) - {pin_service}
+        others = own_cpus - {pin_service}
         if not others:
             raise ValueError("--isolate-service needs a core besides the service's")
         pin(os.getpid(), others)  # the processes started from here inherit it

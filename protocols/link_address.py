@@ -33,24 +33,23 @@ def connection_problem(connection: str, free_port: bool = False) -> str:
 
     A link is ``SCHEME:HOST:PORT`` with a scheme of ``NETWORK_SCHEMES``, PORT 1..65535 (0
     too for a listening scheme when ``free_port``: the caller reports the port it got) and
-    a HOST that is an address (``host_problem``); or a serial device that exists and is not
-    a regular file, with an optional baud rate after a comma (``/dev/ttyUSB0,57600``, as
+    a HOST that is an address (``address_problem``); or a serial device that exists and is
+    not a regular file, with an optional baud rate after a comma (``/dev/ttyUSB0,57600``, as
     pymavlink reads it)."""
     name = connection.strip()
     if not name:
         return f"is empty; it takes {ACCEPTED_LINKS}"
     scheme, colon, rest = name.partition(":")
-    if scheme.lower() == "csv":
-        return f"{connection!r} is a CSV log, not a link; it takes {ACCEPTED_LINKS}"
-    if colon and "/" not in scheme:
+    if colon and "/" not in scheme and scheme.lower() != "csv":
         return _network_problem(connection, scheme.lower(), rest, free_port)
     device, comma, baud = name.rpartition(",")
     if not comma or os.path.exists(name):
         device, baud = name, ""
     elif not (baud.isdigit() and int(baud) > 0):
         return f"{connection!r}: the baud rate after the comma must be a positive integer"
-    if device.lower().endswith(LOG_SUFFIXES) or os.path.isfile(device):
-        return f"{connection!r} is a file, not a link; it takes {ACCEPTED_LINKS}"
+    kind = recorded_kind(device)
+    if kind:
+        return f"{connection!r} is {kind}, not a link; it takes {ACCEPTED_LINKS}"
     if not os.path.exists(device):
         return f"{connection!r}: no such serial device; it takes {ACCEPTED_LINKS}"
     return ""
@@ -65,26 +64,30 @@ def _network_problem(connection: str, scheme: str, rest: str, free_port: bool) -
     lowest = 0 if free_port and scheme in LISTENING_SCHEMES else 1
     if not (port.isdigit() and lowest <= int(port) <= 65535):
         return f"{connection!r}: port must be an integer {lowest}..65535, got {port!r}"
-    unresolved = host_problem(connection.strip())
+    unresolved = address_problem(host, int(port))
     return f"{connection!r}: {unresolved}" if unresolved else ""
 
 
-def host_problem(connection: str) -> str:
-    """Why the HOST of ``SCHEME:HOST:PORT`` cannot be an address, or "" when it resolves
-    (or when ``connection`` is not a network link of that form: a serial device, or a
-    string other checks refuse). A name is resolved as pymavlink would (DNS for a name
-    that is not in the hosts file); digits and dots only are parsed, never looked up."""
-    scheme, _, rest = connection.strip().partition(":")
-    host, _, port = rest.rpartition(":")
-    if scheme.lower() not in NETWORK_SCHEMES or not host or ":" in host or not port.isdigit():
+def recorded_kind(name: str) -> str:
+    """ "a CSV log" or "a file" when pymavlink would open ``name`` as a record to read
+    rather than a live link (a ``csv:`` export, a recorded log's name whether it exists or
+    not, any regular file); "" for a device, a ``SCHEME:HOST:PORT`` or a name that is none
+    of these."""
+    lowered = name.strip().lower()
+    if lowered.startswith("csv:"):
+        return "a CSV log"
+    if ":" in lowered.split("/")[0] and not lowered.endswith(LOG_SUFFIXES):
         return ""
-    return address_problem(host, int(port))
+    is_device = os.path.exists(name) and not os.path.isfile(name)
+    if not is_device and (lowered.endswith(LOG_SUFFIXES) or os.path.isfile(name)):
+        return "a file"
+    return ""
 
 
 def address_problem(host: str, port: int) -> str:
     """Why ``host`` cannot be an address to reach or bind, or "". Digits and dots are an IPv4
     address or nothing: parsed, never looked up; a bracketed IPv6 address is parsed too; a
-    name is resolved (the hosts file, then DNS)."""
+    name is resolved as pymavlink and zenoh would (the hosts file, then DNS)."""
     if host.startswith("[") and host.endswith("]"):
         host, numeric = host[1:-1], True
     else:

@@ -27,7 +27,7 @@ from pymavlink.dialects.v20 import common as dialect
 from protocols.flag_types import MAX_SPIN_WAIT_US
 from protocols.frame_decoder import FrameDecoder
 from protocols.frame_encoder import FrameEncoder
-from protocols.link_address import ACCEPTED_LINKS, LOG_SUFFIXES
+from protocols.link_address import ACCEPTED_LINKS, recorded_kind
 from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
@@ -266,15 +266,9 @@ def check_link(connection: str) -> None:
     ``.elf`` or a file under ``/bin/``): none of them has a socket or a device to wait on
     and send to, so the service would fail later with an obscure error.
     """
-    name = connection.strip()
-    lowered = name.lower()
-    if lowered.startswith("csv:"):
-        raise ValueError(f"{connection} is a CSV log, not a link; --mavlink takes {ACCEPTED_LINKS}")
-    if ":" in name.split("/")[0] and not lowered.endswith(LOG_SUFFIXES):
-        return  # a scheme (udpin:, tcp:, ...): pymavlink parses it
-    is_device = os.path.exists(name) and not os.path.isfile(name)
-    if not is_device and (lowered.endswith(LOG_SUFFIXES) or os.path.isfile(name)):
-        raise ValueError(f"{connection} is a file, not a link; --mavlink takes {ACCEPTED_LINKS}")
+    kind = recorded_kind(connection)
+    if kind:
+        raise ValueError(f"{connection} is {kind}, not a link; --mavlink takes {ACCEPTED_LINKS}")
 
 
 def spin_wait_problem(spin_wait: float) -> str:

@@ -117,13 +117,12 @@ def test_an_endpoint_whose_host_is_no_address_is_named(endpoint, bad_host):
     assert str(refused.value).startswith(f"--zenoh-connect {endpoint}: host {bad_host!r}")
 
 
-def test_serve_and_the_router_name_an_endpoint_whose_host_is_no_address(capsys):
-    from hil_service.cli import main
-
-    assert main(["router", "--listen", "tcp/999.0.0.1:7447", "--duration", "1"]) == 2
-    err = capsys.readouterr().err
-    assert "glider-hil router: --listen tcp/999.0.0.1:7447: host '999.0.0.1'" in err
-    flags = ["--zenoh-listen", "tcp/999.0.0.1:7447", "--no-log", "--duration", "1"]
-    assert main(["serve", "--mavlink", "udpin:127.0.0.1:0", *flags]) == 2
-    err = capsys.readouterr().err
-    assert "glider-hil serve: --zenoh-listen tcp/999.0.0.1:7447: host '999.0.0.1'" in err
+def test_serve_and_the_router_name_an_endpoint_whose_host_is_no_address(processes):
+    """Each in a process of its own, as a user starts it: the router installs its signal
+    handlers before it opens its session, and must not leave them in the test run."""
+    for verb, flag in (("router", "--listen"), ("serve", "--zenoh-listen")):
+        extra = ("--mavlink", "udpin:127.0.0.1:0", "--no-log") if verb == "serve" else ()
+        process = processes.start(verb, flag, "tcp/999.0.0.1:7447", *extra)
+        _, err = process.communicate(timeout=60)
+        assert process.returncode == 2, err
+        assert f"glider-hil {verb}: {flag} tcp/999.0.0.1:7447: host '999.0.0.1'" in err

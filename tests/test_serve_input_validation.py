@@ -255,13 +255,14 @@ def test_a_link_whose_host_is_no_address_is_refused(tmp_path, capsys, monkeypatc
 
 @pytest.mark.parametrize(
     "connection",
-    ["udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550", "tcp:localhost:5760", "/dev/ttyUSB0,57600"],
+    ["udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550", "tcp:localhost:5760", "/dev/null,57600"],
 )
-def test_a_link_whose_host_is_an_address_or_no_host_passes_the_host_check(connection):
-    """An address, a name the hosts file resolves, and a serial device (no host at all)."""
-    from protocols.link_address import host_problem
+def test_a_link_whose_host_is_an_address_or_no_host_passes_the_check(connection):
+    """An address, a name the hosts file resolves, and a serial device that exists (no host
+    at all)."""
+    from protocols.link_address import connection_problem
 
-    assert host_problem(connection) == ""
+    assert connection_problem(connection) == ""
 
 
 @pytest.mark.parametrize(

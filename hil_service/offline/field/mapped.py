@@ -319,7 +319,7 @@ def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
             skip_unreadable(error, issues, len(paths))
             continue
         read_files.append(str(path))
-    check_something_read(issues, len(paths))
+    check_something_read(read_files, issues, len(paths))
     if not columns.t and issues.unparsable_rows:
         first = next(n for n in issues.notes if n.endswith(UNPARSABLE_NOTE))
         raise FieldError(

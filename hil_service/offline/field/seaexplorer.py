@@ -89,7 +89,7 @@ def read_seaexplorer(paths: list[Path]) -> FieldData:
             skip_unreadable(error, issues, len(ordered))
             continue
         read_files.append(str(path))
-    check_something_read(issues, len(ordered))
+    check_something_read(read_files, issues, len(ordered))
     return FieldData.from_columns(
         "seaexplorer", read_files, columns, CONVERSIONS, SCALING, issues, vehicle
     )

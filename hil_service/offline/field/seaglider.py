@@ -107,7 +107,7 @@ def read_seaglider(paths: list[Path]) -> FieldData:
                 f"{path}: {DEPTH} in {units[DEPTH][0]}, {PITCH} in {units[PITCH][0]} "
                 "(its units attributes), unlike the first file's"
             )
-    check_something_read(issues, len(dives))
+    check_something_read(read_files, issues, len(dives))
     return FieldData.from_columns(
         "seaglider",
         read_files,

@@ -179,32 +179,15 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
         )
     read_files: list[str] = []
     for number, path in enumerate(ordered):
-        header = headers.get(path)
-        if header is None:
+        if path not in headers:
             continue
-        with tempfile.TemporaryDirectory(prefix="glider-hil-cac-") as scratch:
-            # A file that carries its sensor list has dbdreader write it into the cache
-            # given; a scratch directory keeps a list cut short out of the user's cache.
-            carries = header.get("sensor_list_factored", "").strip() == "0"
-            given = Path(scratch) if carries else cache
-            try:
-                dbd = _open(path, path, given, cache, dbdreader)
-            except UnreadableFile as error:
-                skip_unreadable(error, issues, len(ordered))
-                continue
-            read_files.append(str(path))
-            try:
-                cut = _whole_records(path, dbd, Path(scratch), dbdreader)
-                if cut is not None:
-                    dbd.close()
-                    dbd = _open(Path(scratch) / WHOLE_RECORDS, path, given, cache, dbdreader)
-                    issues.notes.append(cut.note(path))
-                _read(dbd, path, number, columns, issues, cut)
-            finally:
-                dbd.close()
-            if carries:
-                _keep_sensor_list(Path(scratch), cache, str(dbd.cacheID))
-    check_something_read(issues, len(ordered))
+        try:
+            _read_file(path, number, headers[path], cache, dbdreader, columns, issues)
+        except UnreadableFile as error:
+            skip_unreadable(error, issues, len(ordered))
+            continue
+        read_files.append(str(path))
+    check_something_read(read_files, issues, len(ordered))
     return FieldData.from_columns(
         "slocum",
         read_files,
@@ -214,6 +197,36 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
         issues,
         vehicle=next(iter(vehicles), ""),
     )
+
+
+def _read_file(
+    path: Path,
+    number: int,
+    header: dict[str, str],
+    cache: Path,
+    dbdreader: Any,
+    columns: Columns,
+    issues: Issues,
+) -> None:
+    """One file's rows into ``columns`` as dive ``number``. UnreadableFile, before any row is
+    added, when dbdreader cannot open the file (or its whole records, when it is cut)."""
+    with tempfile.TemporaryDirectory(prefix="glider-hil-cac-") as scratch:
+        # A file that carries its sensor list has dbdreader write it into the cache given;
+        # a scratch directory keeps a list cut short out of the user's cache.
+        carries = header.get("sensor_list_factored", "").strip() == "0"
+        given = Path(scratch) if carries else cache
+        dbd = _open(path, path, given, cache, dbdreader)
+        try:
+            cut = _whole_records(path, dbd, Path(scratch), dbdreader)
+            if cut is not None:
+                dbd.close()
+                dbd = _open(Path(scratch) / WHOLE_RECORDS, path, given, cache, dbdreader)
+                issues.notes.append(cut.note(path))
+            _read(dbd, path, number, columns, issues, cut)
+        finally:
+            dbd.close()
+        if carries:
+            _keep_sensor_list(Path(scratch), cache, str(dbd.cacheID))
 
 
 def _open(file: Path, path: Path, given: Path, cache: Path, dbdreader: Any) -> Any:

@@ -130,11 +130,11 @@ def skip_unreadable(error: UnreadableFile, issues: Issues, files: int) -> None:
     issues.notes.append(f"{error}: skipped")
 
 
-def check_something_read(issues: Issues, files: int) -> None:
-    """The error of an import none of whose ``files`` could be read (each was skipped)."""
-    skipped = issues.unreadable_files
-    if files and len(skipped) >= files:
-        first = next(iter(skipped.values()))
+def check_something_read(read_files: list[str], issues: Issues, files: int) -> None:
+    """The error of an import of ``files`` files none of which could be read (each was
+    skipped: ``issues.unreadable_files``)."""
+    if files and not read_files:
+        first = next(iter(issues.unreadable_files.values()), "")
         raise FieldError(f"none of the {files} files could be read; the first: {first}")
 
 
