@@ -141,3 +141,10 @@ def test_the_import_and_its_report_name_the_skipped_dive(tmp_path: Path) -> None
     text = (report_dir / "report.md").read_text()
     assert "2 file(s) read, 1 that could not be read skipped" in text
     assert f"{folder / CUT_DIVE}: not a readable netCDF3 file" in text
+
+
+def test_one_unreadable_file_given_twice_is_still_nothing_read(tmp_path: Path) -> None:
+    cut = tmp_path / "p5420304.nc"
+    cut.write_bytes((SG / "p5420304.nc").read_bytes()[:3000])
+    with pytest.raises(FieldError, match=r"none of the 2 files could be read"):
+        read_field([cut, cut])
