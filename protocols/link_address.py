@@ -68,6 +68,16 @@ def _network_problem(connection: str, scheme: str, rest: str, free_port: bool) -
     return f"{connection!r}: {unresolved}" if unresolved else ""
 
 
+def normalized(connection: str) -> str:
+    """``connection`` with a network scheme in lower case (``UDPIN:…`` → ``udpin:…``), as
+    ``connection_problem`` reads it; anything else as given. pymavlink matches schemes case
+    by case and would open ``UDPIN:127.0.0.1:14550`` as a serial device of that name."""
+    scheme, colon, rest = connection.strip().partition(":")
+    if colon and scheme.lower() in NETWORK_SCHEMES:
+        return f"{scheme.lower()}:{rest}"
+    return connection
+
+
 def recorded_kind(name: str) -> str:
     """ "a CSV log" or "a file" when pymavlink would open ``name`` as a record to read
     rather than a live link (a ``csv:`` export, a recorded log's name whether it exists or

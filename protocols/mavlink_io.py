@@ -27,7 +27,7 @@ from pymavlink.dialects.v20 import common as dialect
 from protocols.flag_types import MAX_SPIN_WAIT_US
 from protocols.frame_decoder import FrameDecoder
 from protocols.frame_encoder import FrameEncoder
-from protocols.link_address import ACCEPTED_LINKS, recorded_kind
+from protocols.link_address import ACCEPTED_LINKS, normalized, recorded_kind
 from protocols.signing import FrameVerifier, signing_timestamp
 
 DIALECT_NAME = "common"
@@ -317,6 +317,7 @@ class Link:
         source_component: int = 0,
         spin_wait: float = 0.0,
     ):
+        connection = normalized(connection)
         self.connection = connection
         check_link(connection)
         problem = spin_wait_problem(spin_wait)

@@ -66,6 +66,37 @@ def test_a_udp_link_still_opens(tmp_path):
         link.close()
 
 
+def test_a_scheme_in_capitals_opens_the_link_it_names():
+    """The check reads ``UDPIN:`` as ``udpin:``; pymavlink would open it as a serial device
+    of that name, so the link opens it in lower case and reports it so."""
+    link = Link("UDPIN:127.0.0.1:0")
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        assert link.datagram
+        bound = link.bound()
+        assert bound.startswith("udpin:127.0.0.1:") and not bound.endswith(":0")
+        sender.sendto(b"telemetry", ("127.0.0.1", int(bound.rpartition(":")[2])))
+        assert link.wait(5.0)
+        assert link.recv() == b"telemetry"
+    finally:
+        sender.close()
+        link.close()
+
+
+def test_the_same_link_in_two_cases_is_one_link_given_twice():
+    import argparse
+
+    from hil_service.cli.serve import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(
+        ["--mavlink", "udpin:127.0.0.1:0", "--mavlink", "UDPin:127.0.0.1:0", "--no-log"]
+    )
+    with pytest.raises(ValueError, match="the same link given twice"):
+        config_from_args(args)
+
+
 def test_a_second_link_cannot_take_a_listening_port_and_its_vehicle():
     """pymavlink binds with SO_REUSEADDR; on Linux a second socket that sets it too could
     bind the port and take the vehicle's datagrams. The second must be refused, by name,

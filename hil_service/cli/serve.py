@@ -44,7 +44,7 @@ from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
 from hil_service.vehicle_links import LinkSet
 from protocols.flag_types import spin_wait_us
-from protocols.link_address import connection_problem
+from protocols.link_address import connection_problem, normalized
 from protocols.mavlink_io import Link
 from protocols.profiles import (
     DEFAULT_PROFILE,
@@ -358,7 +358,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         max_bytes=int(args.log_max_mb * 1024 * 1024),
         max_seconds=args.log_max_s,
     )
-    links = list(dict.fromkeys(args.mavlink)) or [DEFAULT_MAVLINK]
+    links = list(dict.fromkeys(normalized(c) for c in args.mavlink)) or [DEFAULT_MAVLINK]
     if len(links) != len(args.mavlink) and args.mavlink:
         raise ValueError("--mavlink: the same link given twice")
     for connection in links:
