@@ -126,3 +126,48 @@ def test_serve_and_the_router_name_an_endpoint_whose_host_is_no_address(processe
         _, err = process.communicate(timeout=60)
         assert process.returncode == 2, err
         assert f"glider-hil {verb}: {flag} tcp/999.0.0.1:7447: host '999.0.0.1'" in err
+
+
+def _file_with(tmp_path, listen: object, connect: object) -> str:
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        json.dumps(
+            {
+                "mode": "peer",
+                "listen": {"endpoints": listen},
+                "connect": {"endpoints": connect},
+                "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+            }
+        )
+    )
+    return str(path)
+
+
+def test_an_endpoint_of_the_config_file_whose_host_is_no_address_is_named(tmp_path):
+    """The file's endpoints are checked like the flags' (a list, or one list per mode),
+    naming the file, the key and the endpoint; a flag that replaces the key wins."""
+    good = f"tcp/127.0.0.1:{free_tcp_port()}"
+    per_mode = {"router": [], "peer": ["tcp/999.2.2.2:7447"]}
+    config_file = _file_with(tmp_path, [good], per_mode)
+    with pytest.raises(ValueError) as refused:
+        _parse("--zenoh-config", config_file).to_config()
+    assert str(refused.value).startswith(
+        f"--zenoh-config {config_file}: connect/endpoints tcp/999.2.2.2:7447: host '999.2.2.2'"
+    )
+    _parse("--zenoh-config", config_file, "--zenoh-connect", good).to_config()
+
+    listening = _file_with(tmp_path, ["udp/10.0.0.300:7447"], [])
+    with pytest.raises(ValueError, match=r"listen/endpoints udp/10\.0\.0\.300:7447: host"):
+        _parse("--zenoh-config", listening).to_config()
+    _parse("--zenoh-config", listening, "--zenoh-listen", good).to_config()
+    _parse("--zenoh-config", _file_with(tmp_path, ["tcp/[::]:0"], [good])).to_config()
+
+
+def test_the_router_names_an_endpoint_of_its_config_file_whose_host_is_no_address(tmp_path):
+    from hil_service.cli.router import router_config
+
+    config_file = _file_with(tmp_path, ["tcp/999.3.3.3:7447"], [])
+    refusal = r"--config .*listen/endpoints tcp/999\.3\.3\.3:7447: host"
+    with pytest.raises(ValueError, match=refusal):
+        router_config(config_file, [])
+    router_config(config_file, [f"tcp/127.0.0.1:{free_tcp_port()}"])

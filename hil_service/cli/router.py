@@ -20,6 +20,8 @@ import threading
 import zenoh
 
 from hil_service.listeners.zenoh_config import (
+    ENDPOINT_KEYS,
+    check_file_endpoints,
     config_from_file,
     insert_flag,
     unscouted_config,
@@ -56,6 +58,9 @@ def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
         listen = listen or [DEFAULT_LISTEN]
     if listen:
         insert_flag(config, "listen/endpoints", listen, "--listen")
+    if config_file:
+        keys = [key for key in ENDPOINT_KEYS if not (listen and key == "listen/endpoints")]
+        check_file_endpoints(config, keys, f"--config {config_file}")
     return config
 
 

@@ -44,6 +44,10 @@ class ZenohOptions:
             insert_flag(config, "listen/endpoints", list(self.listen), "--zenoh-listen")
         if self.connect:
             insert_flag(config, "connect/endpoints", list(self.connect), "--zenoh-connect")
+        if self.config_file:
+            flagged = {"listen/endpoints": self.listen, "connect/endpoints": self.connect}
+            keys = [key for key, given in flagged.items() if not given]
+            check_file_endpoints(config, keys, f"--zenoh-config {self.config_file}")
         return config
 
 
@@ -83,6 +87,23 @@ def insert_flag(config: zenoh.Config, key: str, value: object, flag: str) -> Non
             problem = endpoint_problem(str(endpoint))
             if problem:
                 raise ValueError(f"{flag} {endpoint}: {problem}")
+
+
+ENDPOINT_KEYS = ("listen/endpoints", "connect/endpoints")
+
+
+def check_file_endpoints(config: zenoh.Config, keys: Sequence[str], source: str) -> None:
+    """ValueError naming ``source`` (the flag and the file), the key and the endpoint when
+    an endpoint a configuration file gives under ``keys`` has a host that is not an address
+    (``endpoint_problem``). Only the keys no flag replaced: a flag the user typed wins."""
+    for key in keys:
+        given = json.loads(config.get_json(key))
+        per_mode = given.values() if isinstance(given, dict) else [given]
+        for endpoints in per_mode:
+            for endpoint in endpoints if isinstance(endpoints, list) else [endpoints]:
+                problem = endpoint_problem(str(endpoint))
+                if problem:
+                    raise ValueError(f"{source}: {key} {endpoint}: {problem}")
 
 
 #: Zenoh's protocols whose address is HOST:PORT (the others name a path or a device).
