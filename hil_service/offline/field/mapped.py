@@ -31,7 +31,7 @@ from hil_service.offline.field.table import (
     check_something_read,
     is_log_time,
     no_log_time,
-    skip_unreadable,
+    read_each,
     whole_dive,
 )
 from protocols.input_files import not_a_file
@@ -311,14 +311,12 @@ def read_mapped(paths: list[Path], mapping_path: str | Path) -> FieldData:
     mapping = load_mapping(mapping_path)
     issues = Issues()
     columns = Columns()
-    read_files: list[str] = []
-    for number, path in enumerate(paths):
-        try:
-            _read_file(path, number, mapping, columns, issues)
-        except UnreadableFile as error:
-            skip_unreadable(error, issues, len(paths))
-            continue
-        read_files.append(str(path))
+    read = read_each(
+        list(enumerate(paths)),
+        lambda item: _read_file(item[1], item[0], mapping, columns, issues),
+        issues,
+    )
+    read_files = [str(path) for (_, path), _ in read]
     check_something_read(read_files, issues, len(paths))
     if not columns.t and issues.unparsable_rows:
         first = next(n for n in issues.notes if n.endswith(UNPARSABLE_NOTE))

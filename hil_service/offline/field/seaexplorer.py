@@ -35,7 +35,7 @@ from hil_service.offline.field.table import (
     Issues,
     UnreadableFile,
     check_something_read,
-    skip_unreadable,
+    read_each,
 )
 
 SURFACE_STATES = frozenset({105, 115, 116})
@@ -81,14 +81,8 @@ def read_seaexplorer(paths: list[Path]) -> FieldData:
             "at a time"
         )
     vehicle = next(iter(vehicles), "")
-    read_files: list[str] = []
-    for path in ordered:
-        try:
-            _read_file(path, columns, issues)
-        except UnreadableFile as error:
-            skip_unreadable(error, issues, len(ordered))
-            continue
-        read_files.append(str(path))
+    read = read_each(ordered, lambda path: _read_file(path, columns, issues), issues)
+    read_files = [str(path) for path, _ in read]
     check_something_read(read_files, issues, len(ordered))
     return FieldData.from_columns(
         "seaexplorer", read_files, columns, CONVERSIONS, SCALING, issues, vehicle

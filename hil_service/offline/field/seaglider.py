@@ -35,7 +35,7 @@ from hil_service.offline.field.table import (
     Issues,
     UnreadableFile,
     check_something_read,
-    skip_unreadable,
+    read_each,
     whole_dive,
 )
 
@@ -84,14 +84,14 @@ def read_seaglider(paths: list[Path]) -> FieldData:
     gliders: dict[str, Path] = {}
     conversions: list[Conversion] = []
     read_files: list[str] = []
-    for number, path in dives:
-        try:
-            read, units, glider = _read_dive(path, number, issues)
-        except UnreadableFile as error:
-            skip_unreadable(error, issues, len(dives))
-            continue
-        read_files.append(str(path))
+
+    def take(dive: tuple[int, Path]) -> tuple[dict[str, tuple[str, float]], str]:
+        read, units, glider = _read_dive(dive[1], dive[0], issues)
         columns.extend(**read)
+        return units, glider
+
+    for (_, path), (units, glider) in read_each(dives, take, issues):
+        read_files.append(str(path))
         if glider:
             gliders.setdefault(glider, path)
         if len(gliders) > 1:

@@ -43,7 +43,7 @@ from hil_service.offline.field.table import (
     Issues,
     UnreadableFile,
     check_something_read,
-    skip_unreadable,
+    read_each,
 )
 
 SUFFIXES = frozenset({".dbd", ".sbd", ".tbd", ".ebd", ".mbd", ".nbd"})
@@ -160,12 +160,7 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
     issues = Issues()
     columns = Columns()
     ordered = sorted(paths, key=lambda p: p.name.lower())
-    headers: dict[Path, dict[str, str]] = {}
-    for path in ordered:
-        try:
-            headers[path] = _header(path, dbdreader)
-        except UnreadableFile as error:
-            skip_unreadable(error, issues, len(ordered))
+    headers = dict(read_each(ordered, lambda path: _header(path, dbdreader), issues))
     vehicles: dict[str, Path] = {}
     for path, header in headers.items():
         # The glider's name leads the header's full_filename (an 8.3 name does not hold it).
@@ -177,16 +172,18 @@ def read_slocum(paths: list[Path], cache_dir: str | Path | None) -> FieldData:
             f"files of two gliders: {one} is {first}, {other} is {second}; import one glider "
             "at a time"
         )
-    read_files: list[str] = []
-    for number, path in enumerate(ordered):
-        if path not in headers:
-            continue
-        try:
-            _read_file(path, number, headers[path], cache, dbdreader, columns, issues)
-        except UnreadableFile as error:
-            skip_unreadable(error, issues, len(ordered))
-            continue
-        read_files.append(str(path))
+    # A file keeps its place in the order as its dive number, whether or not those before
+    # it could be read.
+    numbered = [(number, path) for number, path in enumerate(ordered) if path in headers]
+    read = read_each(
+        numbered,
+        lambda dive: _read_file(
+            dive[1], dive[0], headers[dive[1]], cache, dbdreader, columns, issues
+        ),
+        issues,
+        files=len(ordered),
+    )
+    read_files = [str(path) for (_, path), _ in read]
     check_something_read(read_files, issues, len(ordered))
     return FieldData.from_columns(
         "slocum",

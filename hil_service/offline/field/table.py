@@ -12,8 +12,9 @@ Nothing is dropped without a count in ``Issues``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -118,6 +119,30 @@ class Issues:
         for path, columns in self.missing_columns.items():
             lines.append(f"{path}: missing column(s) {', '.join(columns)}")
         return lines + list(self.notes)
+
+
+Item = TypeVar("Item")
+Read = TypeVar("Read")
+
+
+def read_each(
+    items: Sequence[Item],
+    read: Callable[[Item], Read],
+    issues: Issues,
+    files: int | None = None,
+) -> list[tuple[Item, Read]]:
+    """``read`` of each item (a file, or a file with its dive number) in order, beside what
+    it returned; an item it raises ``UnreadableFile`` for is skipped (``skip_unreadable``).
+    ``files``: how many files the import was given, when ``items`` are what is left of them
+    after an earlier pass (default: ``len(items)``)."""
+    given = len(items) if files is None else files
+    results: list[tuple[Item, Read]] = []
+    for item in items:
+        try:
+            results.append((item, read(item)))
+        except UnreadableFile as error:
+            skip_unreadable(error, issues, given)
+    return results
 
 
 def skip_unreadable(error: UnreadableFile, issues: Issues, files: int) -> None:
