@@ -213,6 +213,9 @@ def test_a_short_demo_runs_end_to_end(processes, tmp_path):
     # the 60 s default).
     for channel in ("depth", "pitch"):
         assert result["identification"][channel]["skill"] >= 0.25, result["identification"]
+        # The multi-step fit beside the one-step figures, at the controller's horizon.
+        assert result["identification"][channel]["multistep_horizon"] >= 2
+        assert -1e3 < result["identification"][channel]["multistep_fit"] <= 100.0
     reader = LogReader(result["log"])
     # The service also sends its heartbeat as the vehicle's companion: count the commands.
     commands = sum(1 for _ in reader.messages({"mavlink/json/out/COMMAND_LONG"}))

@@ -247,7 +247,17 @@ def demo_result(
     return {
         "samples": summary.get("counters", {}).get("samples", 0),
         "identification": {
-            ch: {k: v[k] for k in ("nmse", "persistence_nmse", "skill")}
+            ch: {
+                k: v.get(k)
+                for k in (
+                    "nmse",
+                    "persistence_nmse",
+                    "skill",
+                    "multistep_fit",
+                    "multistep_horizon",
+                    "horizon_fit",
+                )
+            }
             for ch, v in vehicle.get("identifier", {}).items()
         },
         "tracking_mae": {ch: tracking_error(telemetry, ch, segments[ch]) for ch in segments},
@@ -263,6 +273,16 @@ def demo_result(
     }
 
 
+def _percent(value: Any) -> str:
+    return "n/a" if value is None else f"{value:.1f} %"
+
+
+def _multistep(scores: dict[str, Any]) -> str:
+    """The free-run fit at the control horizon k, against the output's mean."""
+    fit = scores.get("multistep_fit")
+    return "n/a" if fit is None else f"{_percent(fit)} (k={scores.get('multistep_horizon')})"
+
+
 def print_summary(result: dict[str, Any]) -> None:
     def fmt(value: Any) -> str:
         if value is None:
@@ -270,13 +290,17 @@ def print_summary(result: dict[str, Any]) -> None:
         return f"{value:.4g}" if isinstance(value, float) else str(value)
 
     print(f"\nsamples assembled: {result['samples']}")
-    print(f"{'channel':8} {'NMSE':>10} {'persist.':>10} {'skill':>8} {'track MAE':>10}")
+    print(
+        f"{'channel':8} {'NMSE':>10} {'persist.':>10} {'skill':>8} "
+        f"{'k-step fit':>16} {'vs hold':>8} {'track MAE':>10}"
+    )
     for channel, scores in result["identification"].items():
         mae = result["tracking_mae"].get(channel)
         unit = "m" if channel == "depth" else "rad"
         print(
             f"{channel:8} {fmt(scores['nmse']):>10} {fmt(scores['persistence_nmse']):>10} "
-            f"{fmt(scores['skill']):>8} {fmt(mae):>8} {unit}"
+            f"{fmt(scores['skill']):>8} {_multistep(scores):>16} "
+            f"{_percent(scores.get('horizon_fit')):>8} {fmt(mae):>8} {unit}"
         )
     print(
         f"commands: {result['commands_sent']} sent, acks {result['acks']}; "
