@@ -70,17 +70,21 @@ def test_a_scheme_in_capitals_opens_the_link_it_names():
     """The check reads ``UDPIN:`` as ``udpin:``; pymavlink would open it as a serial device
     of that name, so the link opens it in lower case and reports it so."""
     link = Link("UDPIN:127.0.0.1:0")
-    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         assert link.datagram
         bound = link.bound()
         assert bound.startswith("udpin:127.0.0.1:") and not bound.endswith(":0")
-        sender.sendto(b"telemetry", ("127.0.0.1", int(bound.rpartition(":")[2])))
+        _assert_a_datagram_reaches(link)
+    finally:
+        link.close()
+
+
+def _assert_a_datagram_reaches(link: Link) -> None:
+    """A datagram sent to the port ``link`` listens on is what it receives."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+        sender.sendto(b"telemetry", ("127.0.0.1", int(link.bound().rpartition(":")[2])))
         assert link.wait(5.0)
         assert link.recv() == b"telemetry"
-    finally:
-        sender.close()
-        link.close()
 
 
 def test_the_same_link_in_two_cases_is_one_link_given_twice():
@@ -102,17 +106,12 @@ def test_a_second_link_cannot_take_a_listening_port_and_its_vehicle():
     bind the port and take the vehicle's datagrams. The second must be refused, by name,
     and the first must keep receiving."""
     first = Link("udpin:127.0.0.1:0")
-    taken = first.bound()
-    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         with pytest.raises(OSError, match="in use by another process") as refused:
-            Link(taken)
+            Link(first.bound())
         assert refused.value.errno == errno.EADDRINUSE
-        vehicle.sendto(b"telemetry", ("127.0.0.1", int(taken.rpartition(":")[2])))
-        assert first.wait(5.0)
-        assert first.recv() == b"telemetry"
+        _assert_a_datagram_reaches(first)
     finally:
-        vehicle.close()
         first.close()
 
 
