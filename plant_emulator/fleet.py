@@ -50,6 +50,7 @@ from plant_emulator.excitation import build_channel_excitations
 from plant_emulator.gcs import count_heartbeat
 from plant_emulator.plant import GliderPlant, PlantConfig
 from protocols import keys
+from protocols.link_address import normalized
 from protocols.mapping import command_target_system, is_ballast_command
 from protocols.mavlink_io import Link, MavlinkCodec, MavMessage
 
@@ -254,8 +255,9 @@ def check_links(vehicles: int, connections: list[str]) -> None:
             f"--fleet-connect gives {len(connections)} links for --vehicles {vehicles}: "
             f"{len(connections) - vehicles} would carry no vehicle (each link needs one)"
         )
-    for connection in dict.fromkeys(connections):
-        if connections.count(connection) > 1:
+    as_opened = [normalized(connection) for connection in connections]
+    for connection in dict.fromkeys(as_opened):
+        if as_opened.count(connection) > 1:
             raise ValueError(
                 f"--fleet-connect {connection} is given more than once: each link is one "
                 "socket with one block of vehicles"

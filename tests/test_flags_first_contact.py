@@ -379,6 +379,15 @@ def test_emulate_refuses_a_link_given_twice(capsys, no_emulation) -> None:
     assert f"--fleet-connect {LINK.format(9)} is given more than once" in line
 
 
+def test_emulate_refuses_a_link_given_twice_in_two_cases(capsys, no_emulation) -> None:
+    """``UDPOUT:`` opens as ``udpout:``: the two would be one socket's block twice."""
+    shouted = LINK.format(9).replace("udpout:", "UDPOUT:")
+    line = refused_line(
+        capsys, "emulate", *SHORT, "--vehicles", "4", *_links(9, 10), "--fleet-connect", shouted
+    )
+    assert f"--fleet-connect {LINK.format(9)} is given more than once" in line
+
+
 def test_emulate_runs_a_fleet_with_a_vehicle_on_every_link(capsys, monkeypatch) -> None:
     started: list[argparse.Namespace] = []
     monkeypatch.setattr(emulate_cli, "run_fleet", lambda args: started.append(args) or 0)
