@@ -97,6 +97,7 @@ PREDICTIVE_FIELDS: dict[str, str] = {
     "disturbance_share": "disturbance_share",
     "refresh": "refresh",
     "cost_points": "cost_points",
+    "disturbance_forecast": "disturbance_forecast",
 }
 _PREDICTIVE = PredictiveSettings()
 
@@ -120,6 +121,7 @@ class ControlSettings:
     disturbance_share: float = _PREDICTIVE.disturbance_share
     refresh: int = _PREDICTIVE.refresh
     cost_points: int = _PREDICTIVE.cost_points
+    disturbance_forecast: float = _PREDICTIVE.disturbance_forecast
     #: The horizon test's thresholds (``umodel.supervisor.HorizonTest``, docs/control.md):
     #: the model's k-step fit relative to holding the output, and relative to the mean of
     #: the outputs scored (%), both of which a channel needs before it may command (None:

@@ -48,6 +48,7 @@ HOT_PATH: tuple[str, ...] = (
     "hil_service.umodel.predictive",
     "hil_service.umodel.rbf",
     "hil_service.umodel.reproducible",
+    "hil_service.umodel.residual_forecast",
     "hil_service.umodel.rls",
     "hil_service.sources.lockstep",
     "hil_service.sources.lockstep_assembler",

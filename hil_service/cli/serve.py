@@ -198,6 +198,15 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         "docs/control.md)",
     )
     group.add_argument(
+        "--disturbance-forecast",
+        type=float,
+        default=None,
+        metavar="RATIO",
+        help="plan against a forecast of the disturbance over the horizon (an AR(2) of the "
+        "residual) while its one-step errors' mean square is below RATIO times the held "
+        "level's (0..1; default 0: the level held; docs/control.md)",
+    )
+    group.add_argument(
         "--no-input-dead-zone",
         action="store_true",
         help="with --input-lags auto, choose no input dead zone from the record (by default "
@@ -292,6 +301,9 @@ def settings_from_args(args: argparse.Namespace, profile: Profile) -> PipelineSe
         settings = settings.replace(lag_smoothing_gain=args.lag_smoothing_gain)
     if args.no_input_dead_zone:
         settings = settings.replace(choose_dead_zone=False)
+    if args.disturbance_forecast is not None:
+        control = replace(settings.control, disturbance_forecast=args.disturbance_forecast)
+        settings = settings.replace(control=control)
     if args.max_ballast_rate is not None:
         if not args.max_ballast_rate > 0:
             raise ValueError("--max-ballast-rate must be positive")

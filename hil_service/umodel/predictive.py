@@ -69,6 +69,7 @@ from .horizon import (
     step_response,
 )
 from .inverse import solve_inverse
+from .residual_forecast import ResidualForecast
 
 __all__ = [
     "PredictiveInverse",
@@ -99,6 +100,7 @@ class PredictiveSettings:
     __slots__ = (
         "band",
         "cost_points",
+        "disturbance_forecast",
         "disturbance_share",
         "max_blocks",
         "max_horizon",
@@ -117,6 +119,7 @@ class PredictiveSettings:
         disturbance_share: float = 0.5,
         refresh: int = 50,
         cost_points: int = 120,
+        disturbance_forecast: float = 0.0,
     ) -> None:
         if not 2 <= min_horizon <= max_horizon:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
@@ -132,6 +135,8 @@ class PredictiveSettings:
             raise ValueError("refresh must be >= 1")
         if cost_points < 1:
             raise ValueError("cost_points must be >= 1")
+        if not (finite(disturbance_forecast) and 0.0 <= disturbance_forecast <= 1.0):
+            raise ValueError("disturbance_forecast must be in [0, 1]")
         self.min_horizon = int(min_horizon)
         self.max_horizon = int(max_horizon)
         self.band = float(band)
@@ -142,6 +147,10 @@ class PredictiveSettings:
         #: At most this many points of the horizon enter the cost (evenly spaced, the last
         #: one always).
         self.cost_points = int(cost_points)
+        #: Plan with a forecast of the disturbance over the horizon (``residual_forecast``)
+        #: while its one-step errors' mean square is below this share of the level's;
+        #: 0: never (the level held over the horizon).
+        self.disturbance_forecast = float(disturbance_forecast)
 
 
 def _steady_state_direction(rows: list[list[float]], m: int) -> list[float] | None:
@@ -297,6 +306,7 @@ class PredictiveInverse:
         "_columns",
         "_disturbance",
         "_estimates",
+        "_forecast",
         "_free_ar",
         "_hessian",
         "_horizon",
@@ -350,6 +360,9 @@ class PredictiveInverse:
         # from the sample before, predicted the residual since the internal model started.
         self._estimates = [0.0] * DISTURBANCE_PACES
         self._scores = [0.0] * DISTURBANCE_PACES
+        self._forecast: ResidualForecast | None = (
+            ResidualForecast() if self.settings.disturbance_forecast > 0.0 else None
+        )
         self._points: list[int] = []  # cost points j (ŷ(k+j))
         #: Per cost point, each block's (weighted) effect on it: points × blocks, row-major.
         self._columns = vec[float]()
@@ -410,7 +423,10 @@ class PredictiveInverse:
         self._age += 1
         self.horizon_for(dyn)  # derives the response time again when it is due
         share = self.settings.disturbance_share
+        previous = self._disturbance
         self._estimate_disturbance(y - y_m, 1.0 / (1.0 + share * self._response_time))
+        if self._forecast is not None:
+            self._forecast.observe(y - y_m - self._disturbance, y - y_m - previous)
 
     def coast(self, dyn: ModelDynamics) -> None:
         """Advance the internal model by a sample whose output was lost (``dyn`` holds the
@@ -456,6 +472,8 @@ class PredictiveInverse:
         self._disturbance = estimates[best]
 
     def _forget_disturbance(self) -> None:
+        if self._forecast is not None:
+            self._forecast = ResidualForecast()
         self._disturbance = 0.0
         for i in range(len(self._estimates)):
             self._estimates[i] = 0.0
@@ -623,7 +641,16 @@ class PredictiveInverse:
         linear = self._linear
         level = self._disturbance - setpoint
         step, ones, onset = linear.step, linear.ones, linear.onset
-        f = [constant * step[b] + level * ones[b] - w0 * onset[b] for b in range(len(step))]
+        forecast = self._forecast
+        if forecast is not None and forecast.confident(self.settings.disturbance_forecast):
+            # The disturbance forecast at each cost point instead of the level throughout.
+            ahead = forecast.forecast(self._disturbance, self._points)
+            for p in range(len(ahead)):
+                ahead[p] -= setpoint
+            seen = project(self._columns, len(step), ahead)
+            f = [constant * step[b] + seen[b] - w0 * onset[b] for b in range(len(step))]
+        else:
+            f = [constant * step[b] + level * ones[b] - w0 * onset[b] for b in range(len(step))]
         for d in range(len(departures)):
             row = linear.impulses[d]
             departure = departures[d]

@@ -1,0 +1,128 @@
+"""The disturbance forecast over the horizon (``umodel.residual_forecast``, opt-in with
+``ControlSettings.disturbance_forecast``): what it fits, when it is trusted, and what it
+does for a loop under a periodic disturbance."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from hil_service.experiment.closed_loop import ClosedLoopSettings
+from hil_service.experiment.family_loop import run_vehicle
+from hil_service.pipeline import ControlSettings, PipelineSettings
+from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
+from hil_service.umodel.residual_forecast import MIN_SAMPLES, ResidualForecast
+from plant_emulator.family import draw_family
+
+PERIOD = 37.0  # samples
+
+
+def _sine(k: int, scale: float = 1.0) -> float:
+    return scale * math.sin(2.0 * math.pi * k / PERIOD)
+
+
+def _fed(values: list[float], level_errors: list[float]) -> ResidualForecast:
+    forecast = ResidualForecast()
+    for value, level_error in zip(values, level_errors, strict=True):
+        forecast.observe(value, level_error)
+    return forecast
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_a_sinusoid_is_forecast_over_the_horizon_in_any_units(scale):
+    n = 400
+    values = [_sine(k, scale) for k in range(n)]
+    forecast = _fed(values, values)  # the level (0) errs by the whole sinusoid
+    assert forecast.confident(0.25)
+    a1, a2 = forecast.coefficients
+    assert a1 == pytest.approx(2.0 * math.cos(2.0 * math.pi / PERIOD), abs=1e-6)
+    assert a2 == pytest.approx(-1.0, abs=1e-6)
+    points = [60, 30, 10, 1]
+    ahead = forecast.forecast(5.0 * scale, points)
+    for j, value in zip(points, ahead, strict=True):
+        assert value == pytest.approx(5.0 * scale + _sine(n - 1 + j, scale), abs=1e-4 * scale)
+
+
+def test_white_noise_is_not_trusted_and_forecast_as_the_level():
+    rng = np.random.default_rng(3)
+    values = [float(v) for v in rng.standard_normal(2000)]
+    forecast = _fed(values, values)
+    a1, a2 = forecast.coefficients
+    assert abs(a1) < 0.15 and abs(a2) < 0.15
+    assert not forecast.confident(0.25)
+    assert forecast.forecast(2.0, [200])[0] == pytest.approx(2.0, abs=1e-3)
+
+
+def test_too_few_samples_a_growing_residual_and_non_finite_input():
+    values = [_sine(k) for k in range(MIN_SAMPLES - 10)]
+    assert not _fed(values, values).confident(0.25)
+    growing = [1.02**k for k in range(400)]
+    forecast = _fed(growing, [10.0 * v for v in growing])
+    assert not forecast.stable() and not forecast.confident(0.25)
+    values = [_sine(k) for k in range(400)]
+    clean = _fed(values, values)
+    dirty = ResidualForecast()
+    for k, value in enumerate(values):
+        dirty.observe(value, value)
+        if k % 50 == 7:
+            dirty.observe(math.nan, 1.0)
+            dirty.observe(1.0, math.inf)
+    assert dirty.coefficients == clean.coefficients
+
+
+def test_off_by_default_and_its_setting_checked():
+    assert ControlSettings().disturbance_forecast == 0.0
+    assert PredictiveInverse(-2.0, 2.0, 0.5)._forecast is None
+    on = PredictiveInverse(-2.0, 2.0, 0.5, PredictiveSettings(disturbance_forecast=0.25))
+    assert on._forecast is not None
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="disturbance_forecast"):
+            ControlSettings(disturbance_forecast=bad)
+
+
+def test_a_loop_under_a_periodic_disturbance_tracks_better_with_the_forecast():
+    """Family seed 12, vehicle 10: a Hammerstein pitch channel under a periodic disturbance
+    1.5 times the control authority. Chased one lagged level at a time it ends at reference-
+    only's IAE; planned against the forecast, well below it (0.65 × on the tuning run)."""
+    settings = dataclasses.replace(
+        ClosedLoopSettings(samples=2000, seed=12, identify=800, step_every=300, oracle=False),
+        scenario="family",
+        neutral_after_identify=True,
+    )
+    depth, pitch = draw_family(12, 22)[10]
+    assert pitch.disturbance == "periodic" and pitch.disturbance_level > 1.0
+
+    def pitch_ratio(share: float) -> float:
+        control = ControlSettings(disturbance_forecast=share)
+        rows, _ = run_vehicle(settings, depth, pitch, PipelineSettings(seed=12, control=control))
+        ratio = next(row for row in rows if row.spec.channel == "pitch").reference_ratio
+        assert ratio is not None
+        return ratio
+
+    level_only, forecast = pitch_ratio(0.0), pitch_ratio(0.25)
+    assert forecast < 0.8 * level_only, (level_only, forecast)
+    assert forecast < 0.8
+
+
+def test_the_ratio_is_a_serve_flag_stored_in_the_log_config_and_an_older_one_replays_without():
+    import argparse
+    import json
+
+    from hil_service.cli.serve import add_arguments, settings_from_args
+    from protocols.profiles import load_profile
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    glider = load_profile("glider")
+    assert settings_from_args(parser.parse_args([]), glider).control.disturbance_forecast == 0.0
+    on = settings_from_args(parser.parse_args(["--disturbance-forecast", "0.25"]), glider)
+    assert on.control.disturbance_forecast == 0.25
+    stored = json.loads(json.dumps(on.to_json()))
+    assert PipelineSettings.from_json(stored).control.disturbance_forecast == 0.25
+    del stored["control"]["disturbance_forecast"]  # a log recorded before the setting
+    assert PipelineSettings.from_json(stored).control.disturbance_forecast == 0.0
+    with pytest.raises(ValueError, match="disturbance_forecast"):
+        settings_from_args(parser.parse_args(["--disturbance-forecast", "2"]), glider)
