@@ -54,6 +54,7 @@ STORED_CONTROL = {
     "disturbance_share": 0.75,
     "refresh": 25,
     "cost_points": 90,
+    "disturbance_forecast": 0.3,
     "horizon_fit": 60.0,
     "mean_fit": 30.0,
     "safe_input": "hold",
@@ -72,6 +73,7 @@ def test_a_stored_configuration_with_every_control_key_loads_and_is_written_back
         25,
         90,
     )
+    assert predictive.disturbance_forecast == 0.3
     assert (control.u_limit, control.rate_limit) == (1.5, 0.25)
     assert (control.horizon_fit, control.mean_fit, control.safe_input) == (60.0, 30.0, "hold")
     assert control.probe == 0.2
