@@ -4,18 +4,22 @@ does for a loop under a periodic disturbance."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
 
+from hil_service.cli.serve import add_arguments, settings_from_args
 from hil_service.experiment.closed_loop import ClosedLoopSettings
 from hil_service.experiment.family_loop import run_vehicle
 from hil_service.pipeline import ControlSettings, PipelineSettings
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.residual_forecast import MIN_SAMPLES, ResidualForecast
 from plant_emulator.family import draw_family
+from protocols.profiles import load_profile
 
 PERIOD = 37.0  # samples
 
@@ -108,12 +112,6 @@ def test_a_loop_under_a_periodic_disturbance_tracks_better_with_the_forecast():
 
 
 def test_the_ratio_is_a_serve_flag_stored_in_the_log_config_and_an_older_one_replays_without():
-    import argparse
-    import json
-
-    from hil_service.cli.serve import add_arguments, settings_from_args
-    from protocols.profiles import load_profile
-
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     glider = load_profile("glider")

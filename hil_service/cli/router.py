@@ -20,7 +20,6 @@ import threading
 import zenoh
 
 from hil_service.listeners.zenoh_config import (
-    ENDPOINT_KEYS,
     check_file_endpoints,
     config_from_file,
     insert_flag,
@@ -59,8 +58,8 @@ def router_config(config_file: str | None, listen: list[str]) -> zenoh.Config:
     if listen:
         insert_flag(config, "listen/endpoints", listen, "--listen")
     if config_file:
-        keys = [key for key in ENDPOINT_KEYS if not (listen and key == "listen/endpoints")]
-        check_file_endpoints(config, keys, f"--config {config_file}")
+        replaced = {"listen/endpoints"} if listen else set()
+        check_file_endpoints(config, replaced, f"--config {config_file}")
     return config
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import zenoh
@@ -46,8 +46,8 @@ class ZenohOptions:
             insert_flag(config, "connect/endpoints", list(self.connect), "--zenoh-connect")
         if self.config_file:
             flagged = {"listen/endpoints": self.listen, "connect/endpoints": self.connect}
-            keys = [key for key, given in flagged.items() if not given]
-            check_file_endpoints(config, keys, f"--zenoh-config {self.config_file}")
+            replaced = {key for key, given in flagged.items() if given}
+            check_file_endpoints(config, replaced, f"--zenoh-config {self.config_file}")
         return config
 
 
@@ -83,27 +83,34 @@ def insert_flag(config: zenoh.Config, key: str, value: object, flag: str) -> Non
     except zenoh.ZError as error:
         raise ValueError(f"{flag}: {zenoh_error_text(error)}") from error
     if key.endswith("/endpoints") and isinstance(value, list):
-        for endpoint in value:
-            problem = endpoint_problem(str(endpoint))
-            if problem:
-                raise ValueError(f"{flag} {endpoint}: {problem}")
+        _check_endpoints(value, flag)
 
 
 ENDPOINT_KEYS = ("listen/endpoints", "connect/endpoints")
 
 
-def check_file_endpoints(config: zenoh.Config, keys: Sequence[str], source: str) -> None:
+def check_file_endpoints(config: zenoh.Config, replaced: Collection[str], source: str) -> None:
     """ValueError naming ``source`` (the flag and the file), the key and the endpoint when
-    an endpoint a configuration file gives under ``keys`` has a host that is not an address
-    (``endpoint_problem``). Only the keys no flag replaced: a flag the user typed wins."""
-    for key in keys:
+    an endpoint a configuration file gives under ``ENDPOINT_KEYS`` has a host that is not an
+    address (``endpoint_problem``). Keys in ``replaced`` are skipped: a flag the user typed
+    replaced the file's value, and was checked as it was inserted."""
+    for key in ENDPOINT_KEYS:
+        if key in replaced:
+            continue
         given = json.loads(config.get_json(key))
         per_mode = given.values() if isinstance(given, dict) else [given]
         for endpoints in per_mode:
-            for endpoint in endpoints if isinstance(endpoints, list) else [endpoints]:
-                problem = endpoint_problem(str(endpoint))
-                if problem:
-                    raise ValueError(f"{source}: {key} {endpoint}: {problem}")
+            listed = endpoints if isinstance(endpoints, list) else [endpoints]
+            _check_endpoints(listed, f"{source}: {key}")
+
+
+def _check_endpoints(endpoints: Iterable[object], where: str) -> None:
+    """ValueError ``{where} {endpoint}: {why}`` for the first endpoint whose host is not an
+    address."""
+    for endpoint in endpoints:
+        problem = endpoint_problem(str(endpoint))
+        if problem:
+            raise ValueError(f"{where} {endpoint}: {problem}")
 
 
 #: Zenoh's protocols whose address is HOST:PORT (the others name a path or a device).

@@ -423,10 +423,11 @@ class PredictiveInverse:
         self._age += 1
         self.horizon_for(dyn)  # derives the response time again when it is due
         share = self.settings.disturbance_share
+        residual = y - y_m
         previous = self._disturbance
-        self._estimate_disturbance(y - y_m, 1.0 / (1.0 + share * self._response_time))
+        self._estimate_disturbance(residual, 1.0 / (1.0 + share * self._response_time))
         if self._forecast is not None:
-            self._forecast.observe(y - y_m - self._disturbance, y - y_m - previous)
+            self._forecast.observe(residual - self._disturbance, residual - previous)
 
     def coast(self, dyn: ModelDynamics) -> None:
         """Advance the internal model by a sample whose output was lost (``dyn`` holds the
