@@ -427,7 +427,7 @@ class PredictiveInverse:
         previous = self._disturbance
         self._estimate_disturbance(residual, 1.0 / (1.0 + share * self._response_time))
         if self._forecast is not None:
-            self._forecast.observe(residual - self._disturbance, residual - previous)
+            self._forecast.observe(residual, self._disturbance, previous)
 
     def coast(self, dyn: ModelDynamics) -> None:
         """Advance the internal model by a sample whose output was lost (``dyn`` holds the
@@ -475,6 +475,7 @@ class PredictiveInverse:
     def _forget_disturbance(self) -> None:
         if self._forecast is not None:
             self._forecast = ResidualForecast()
+            self._forecast.check_leads(self._points)
         self._disturbance = 0.0
         for i in range(len(self._estimates)):
             self._estimates[i] = 0.0
@@ -534,6 +535,8 @@ class PredictiveInverse:
         self._horizon = n
         self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))
         self._points = points
+        if self._forecast is not None:
+            self._forecast.check_leads(points)
         self._columns = columns
         self._onset = onset
         self._hessian = hessian

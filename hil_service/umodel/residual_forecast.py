@@ -12,13 +12,22 @@ and forecasts white noise as 0, where the level alone remains.
 The forecast is used only while it has predicted the residual clearly better than the
 level did: the mean square of its one-step errors below ``ratio`` times the level's
 (both exponentially weighted over about ``1 / AVERAGING`` samples), after ``MIN_SAMPLES``
-samples, with the fitted AR part's forecast not growing. Its prior is set from the first
+samples, with the fitted AR part's forecast not growing; and over the horizon only as far
+as it has predicted there: at leads 2, 4, 8, … and the plan's last cost point
+(``check_leads``) the forecasts made that many samples before are compared with the
+residual, and the plan is given the forecast up to the longest lead below which every
+checked lead's mean square error is smaller than the level's (held from then), and the
+level beyond it. One-step skill alone is not enough: a smooth residual is fitted with
+roots near 1 (a₁ ≈ 2, a₂ ≈ −1 extrapolates its slope, a₁ + a₂ ≈ 1 its momentum), which
+predicts the next sample well and the horizon's end badly. Its prior is set from the first
 deviations it sees, so that the fit does not depend on the output's units.
 
 Pure arithmetic, no I/O; compiled with the controller (``protocols.compiled.HOT_PATH``).
 """
 
 from __future__ import annotations
+
+import math
 
 from .finite import finite
 
@@ -36,10 +45,59 @@ PRIOR = 1e4
 STABILITY_MARGIN = 1e-6
 
 
+class _LeadCheck:
+    """The forecasts made ``lead`` samples ago, and how well they and the level held from
+    then have predicted the residual since (exponentially weighted mean squares)."""
+
+    __slots__ = ("checked", "err_forecast", "err_level", "lead", "level", "made", "predicted")
+
+    def __init__(self, lead: int) -> None:
+        self.lead = lead
+        self.predicted = [0.0] * lead  # ring: the forecast of the residual at its slot's time
+        self.level = [0.0] * lead  # ring: the level when that forecast was made
+        self.made = 0  # forecasts made
+        self.checked = 0  # forecasts compared with the residual they forecast
+        self.err_forecast = 0.0
+        self.err_level = 0.0
+
+    def compare(self, residual: float) -> None:
+        """The residual that the forecast made ``lead`` samples ago was for."""
+        if self.made < self.lead:
+            return
+        slot = self.made % self.lead
+        if not finite(self.predicted[slot]):
+            return  # no forecast was made then
+        forecast_error = residual - self.predicted[slot]
+        level_error = residual - self.level[slot]
+        self.err_forecast += AVERAGING * (forecast_error * forecast_error - self.err_forecast)
+        self.err_level += AVERAGING * (level_error * level_error - self.err_level)
+        self.checked += 1
+
+    def keep(self, predicted: float, level: float) -> None:
+        slot = self.made % self.lead
+        self.predicted[slot] = predicted
+        self.level[slot] = level
+        self.made += 1
+
+    def passed(self) -> bool:
+        return self.checked >= MIN_SAMPLES and self.err_forecast < self.err_level
+
+
 class ResidualForecast:
     """AR(2) of the residual's departure from the disturbance level, by RLS."""
 
-    __slots__ = ("_a1", "_a2", "_err_ar", "_err_level", "_n", "_p", "_seen", "_x1", "_x2")
+    __slots__ = (
+        "_a1",
+        "_a2",
+        "_checks",
+        "_err_ar",
+        "_err_level",
+        "_n",
+        "_p",
+        "_seen",
+        "_x1",
+        "_x2",
+    )
 
     def __init__(self) -> None:
         self._a1 = 0.0
@@ -51,12 +109,33 @@ class ResidualForecast:
         self._n = 0  # RLS updates
         self._err_ar = 0.0
         self._err_level = 0.0
+        self._checks: list[_LeadCheck] = []
 
-    def observe(self, deviation: float, level_error: float) -> None:
-        """The newest residual's departure from the level ``deviation`` (x(t)), and the
-        error with which the level held from the sample before predicted the residual."""
+    def check_leads(self, points: list[int]) -> None:
+        """Check the forecast at leads 2, 4, 8, … below the plan's last cost point and at
+        that point (``points``: j ≥ 1); leads already checked keep their record."""
+        last = 0
+        for j in points:
+            last = max(last, j)
+        leads = []
+        lead = 2
+        while lead < last:
+            leads.append(lead)
+            lead *= 2
+        if last > 1:
+            leads.append(last)
+        if [c.lead for c in self._checks] != leads:
+            kept = {c.lead: c for c in self._checks}
+            self._checks = [kept.get(lead) or _LeadCheck(lead) for lead in leads]
+
+    def observe(self, residual: float, level: float, previous_level: float) -> None:
+        """The newest residual y − y_m, the level estimated with it and the level before it."""
+        deviation = residual - level
+        level_error = residual - previous_level
         if not (finite(deviation) and finite(level_error)):
             return
+        for check in self._checks:
+            check.compare(residual)
         if self._seen < 2:
             self._x2, self._x1 = self._x1, deviation
             self._seen += 1
@@ -84,6 +163,34 @@ class ResidualForecast:
                 self._p = [q11, q12, q22]
         self._n += 1
         self._x2, self._x1 = x1, deviation
+        # Only a forecast that could be planned with is judged: a growing AR part's is not.
+        stable = self.stable()
+        for check in self._checks:
+            check.keep(level + self._ahead(check.lead) if stable else math.nan, level)
+
+    def _ahead(self, lead: int) -> float:
+        """x̂(t + lead): the companion matrix's power by squaring, applied to (x(t), x(t−1))."""
+        # [[a1, a2], [1, 0]]^lead, kept as [[m11, m12], [m21, m22]].
+        m11, m12, m21, m22 = 1.0, 0.0, 0.0, 1.0
+        b11, b12, b21, b22 = self._a1, self._a2, 1.0, 0.0
+        n = lead
+        while n:
+            if n & 1:
+                m11, m12, m21, m22 = (
+                    m11 * b11 + m12 * b21,
+                    m11 * b12 + m12 * b22,
+                    m21 * b11 + m22 * b21,
+                    m21 * b12 + m22 * b22,
+                )
+            n >>= 1
+            if n:
+                b11, b12, b21, b22 = (
+                    b11 * b11 + b12 * b21,
+                    b11 * b12 + b12 * b22,
+                    b21 * b11 + b22 * b21,
+                    b21 * b12 + b22 * b22,
+                )
+        return m11 * self._x1 + m12 * self._x2
 
     def stable(self) -> bool:
         """The AR part's roots inside or on the unit circle (the stability triangle): its
@@ -97,11 +204,25 @@ class ResidualForecast:
         errors whose mean square is below ``ratio`` times the level's."""
         return self._n >= MIN_SAMPLES and self.stable() and self._err_ar < ratio * self._err_level
 
+    def trusted_lead(self) -> int:
+        """The longest lead up to which every checked lead's forecast has beaten the level
+        (1 where the first has not: the one-step test's; the longest point where nothing is
+        checked)."""
+        trusted = 1
+        for check in self._checks:
+            if not check.passed():
+                return trusted
+            trusted = check.lead
+        return trusted if self._checks else 1 << 30
+
     def forecast(self, level: float, points: list[int]) -> list[float]:
-        """level + x̂(t + j) for each j of ``points`` (j ≥ 1, any order)."""
+        """level + x̂(t + j) for each j of ``points`` (j ≥ 1, any order) up to the trusted
+        lead, the level beyond it."""
+        trusted = self.trusted_lead()
         last = 0
         for j in points:
             last = max(last, j)
+        last = min(last, trusted)
         ahead = [0.0] * (last + 1)
         a1, a2 = self._a1, self._a2
         x1, x2 = self._x1, self._x2
@@ -109,7 +230,7 @@ class ResidualForecast:
             x = a1 * x1 + a2 * x2
             ahead[j] = x
             x2, x1 = x1, x
-        return [level + ahead[j] for j in points]
+        return [level + ahead[j] if j <= last else level for j in points]
 
     @property
     def coefficients(self) -> tuple[float, float]:
