@@ -148,8 +148,8 @@ class PredictiveSettings:
         #: one always).
         self.cost_points = int(cost_points)
         #: Plan with a forecast of the disturbance over the horizon (``residual_forecast``)
-        #: while its one-step errors' mean square is below this share of the level's;
-        #: 0: never (the level held over the horizon).
+        #: while its one-step errors' mean square is below this share of the level's, as
+        #: far ahead as it has beaten the level; 0: never (the level held over the horizon).
         self.disturbance_forecast = float(disturbance_forecast)
 
 
