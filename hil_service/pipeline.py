@@ -257,7 +257,10 @@ class PipelineSettings:
         data.setdefault("rebuild_keeps_record", False)
         # ... and before an input dead zone was chosen with the lags.
         data.setdefault("choose_dead_zone", False)
-        control = ControlSettings.from_json(dict(data.pop("control", {})))
+        control_data = dict(data.pop("control", {}))
+        # ... and before the disturbance was forecast over the horizon.
+        control_data.setdefault("disturbance_forecast", 0.0)
+        control = ControlSettings.from_json(control_data)
         options = data.get("model_options")
         if options:
             taken = option_names(str(data.get("model", "dynamic")))

@@ -204,8 +204,8 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="RATIO",
         help="plan against a forecast of the disturbance over the horizon (an AR(2) of the "
         "residual) while its one-step errors' mean square is below RATIO times the held "
-        "level's, as far ahead as it has beaten the level (0..1; default 0: the level "
-        "held; docs/control.md)",
+        "level's, as far ahead as it has beaten the level (0..1; default 0.25; 0: the "
+        "level held; docs/control.md)",
     )
     group.add_argument(
         "--no-input-dead-zone",

@@ -119,7 +119,7 @@ class PredictiveSettings:
         disturbance_share: float = 0.5,
         refresh: int = 50,
         cost_points: int = 120,
-        disturbance_forecast: float = 0.0,
+        disturbance_forecast: float = 0.25,
     ) -> None:
         if not 2 <= min_horizon <= max_horizon:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
@@ -307,6 +307,9 @@ class PredictiveInverse:
         "_disturbance",
         "_estimates",
         "_forecast",
+        "_forecast_lead",
+        "_forecast_u",
+        "_forecast_v",
         "_free_ar",
         "_hessian",
         "_horizon",
@@ -363,6 +366,11 @@ class PredictiveInverse:
         self._forecast: ResidualForecast | None = (
             ResidualForecast() if self.settings.disturbance_forecast > 0.0 else None
         )
+        # The held forecast's weights projected on the columns (``_linear_term``), for the
+        # trusted lead they were projected with (-1: none since the last derivation).
+        self._forecast_lead = -1
+        self._forecast_u: list[float] = []
+        self._forecast_v: list[float] = []
         self._points: list[int] = []  # cost points j (ŷ(k+j))
         #: Per cost point, each block's (weighted) effect on it: points × blocks, row-major.
         self._columns = vec[float]()
@@ -475,7 +483,8 @@ class PredictiveInverse:
     def _forget_disturbance(self) -> None:
         if self._forecast is not None:
             self._forecast = ResidualForecast()
-            self._forecast.check_leads(self._points)
+            self._forecast.hold(self._points)
+            self._forecast_lead = -1
         self._disturbance = 0.0
         for i in range(len(self._estimates)):
             self._estimates[i] = 0.0
@@ -536,7 +545,8 @@ class PredictiveInverse:
         self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))
         self._points = points
         if self._forecast is not None:
-            self._forecast.check_leads(points)
+            self._forecast.hold(points)
+        self._forecast_lead = -1
         self._columns = columns
         self._onset = onset
         self._hessian = hessian
@@ -647,12 +657,21 @@ class PredictiveInverse:
         step, ones, onset = linear.step, linear.ones, linear.onset
         forecast = self._forecast
         if forecast is not None and forecast.confident(self.settings.disturbance_forecast):
-            # The disturbance forecast at each cost point instead of the level throughout.
-            ahead = forecast.forecast(self._disturbance, self._points)
-            for p in range(len(ahead)):
-                ahead[p] -= setpoint
-            seen = project(self._columns, len(step), ahead)
-            f = [constant * step[b] + seen[b] - w0 * onset[b] for b in range(len(step))]
+            # The disturbance forecast at each cost point on top of the level:
+            # x̂(k+j) = u(j)·x(k) + v(j)·x(k−1), whose projections are fixed while the
+            # coefficients and the trusted lead are.
+            trusted = forecast.trusted_lead()
+            if trusted != self._forecast_lead:
+                u, v = forecast.weights(self._points, trusted)
+                self._forecast_u = project(self._columns, len(step), u)
+                self._forecast_v = project(self._columns, len(step), v)
+                self._forecast_lead = trusted
+            x1, x2 = forecast.state()
+            pu, pv = self._forecast_u, self._forecast_v
+            f = [
+                constant * step[b] + level * ones[b] + x1 * pu[b] + x2 * pv[b] - w0 * onset[b]
+                for b in range(len(step))
+            ]
         else:
             f = [constant * step[b] + level * ones[b] - w0 * onset[b] for b in range(len(step))]
         for d in range(len(departures)):

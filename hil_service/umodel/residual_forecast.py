@@ -1,4 +1,4 @@
-"""A forecast of the disturbance over the horizon, for the predictive inverse (opt-in).
+"""A forecast of the disturbance over the horizon, for the predictive inverse.
 
 The predictive inverse holds its disturbance estimate constant over the horizon: the
 residual y − y_m of its internal model, low-passed (``PredictiveInverse.track``). A
@@ -14,13 +14,17 @@ level did: the mean square of its one-step errors below ``ratio`` times the leve
 (both exponentially weighted over about ``1 / AVERAGING`` samples), after ``MIN_SAMPLES``
 samples, with the fitted AR part's forecast not growing; and over the horizon only as far
 as it has predicted there: at leads 2, 4, 8, … and the plan's last cost point
-(``check_leads``) the forecasts made that many samples before are compared with the
+(``hold``) the forecasts made that many samples before are compared with the
 residual, and the plan is given the forecast up to the longest lead below which every
 checked lead's mean square error is smaller than the level's (held from then), and the
 level beyond it. One-step skill alone is not enough: a smooth residual is fitted with
 roots near 1 (a₁ ≈ 2, a₂ ≈ −1 extrapolates its slope, a₁ + a₂ ≈ 1 its momentum), which
 predicts the next sample well and the horizon's end badly. Its prior is set from the first
 deviations it sees, so that the fit does not depend on the output's units.
+
+The coefficients the forecasts use are held from one derivation of the plan to the next
+(``hold``), as the plan's model is, so that the plan's projections of them are fixed in
+between and a sample costs two numbers per block; the fit itself goes on every sample.
 
 Pure arithmetic, no I/O; compiled with the controller (``protocols.compiled.HOT_PATH``).
 """
@@ -49,10 +53,22 @@ class _LeadCheck:
     """The forecasts made ``lead`` samples ago, and how well they and the level held from
     then have predicted the residual since (exponentially weighted mean squares)."""
 
-    __slots__ = ("checked", "err_forecast", "err_level", "lead", "level", "made", "predicted")
+    __slots__ = (
+        "checked",
+        "err_forecast",
+        "err_level",
+        "lead",
+        "level",
+        "made",
+        "predicted",
+        "u",
+        "v",
+    )
 
     def __init__(self, lead: int) -> None:
         self.lead = lead
+        self.u = 0.0  # x̂(t + lead) = u·x(t) + v·x(t − 1) with the held coefficients
+        self.v = 0.0
         self.predicted = [0.0] * lead  # ring: the forecast of the residual at its slot's time
         self.level = [0.0] * lead  # ring: the level when that forecast was made
         self.made = 0  # forecasts made
@@ -92,9 +108,12 @@ class ResidualForecast:
         "_checks",
         "_err_ar",
         "_err_level",
+        "_held_stable",
         "_n",
         "_p",
         "_seen",
+        "_u",
+        "_v",
         "_x1",
         "_x2",
     )
@@ -110,13 +129,27 @@ class ResidualForecast:
         self._err_ar = 0.0
         self._err_level = 0.0
         self._checks: list[_LeadCheck] = []
+        # The held forecast: x̂(t + j) = u[j]·x(t) + v[j]·x(t − 1) (``hold``).
+        self._u: list[float] = []
+        self._v: list[float] = []
+        self._held_stable = False
 
-    def check_leads(self, points: list[int]) -> None:
-        """Check the forecast at leads 2, 4, 8, … below the plan's last cost point and at
-        that point (``points``: j ≥ 1); leads already checked keep their record."""
+    def hold(self, points: list[int]) -> None:
+        """Hold today's coefficients for the forecasts until the next call (the plan's
+        derivation: its model is held as long), and check them at leads 2, 4, 8, … below
+        the plan's last cost point and at that point (``points``: j ≥ 1); leads already
+        checked keep their record."""
         last = 0
         for j in points:
             last = max(last, j)
+        a1, a2 = self._a1, self._a2
+        u = [1.0, a1]
+        v = [0.0, a2]
+        for j in range(2, last + 1):
+            u.append(a1 * u[j - 1] + a2 * u[j - 2])
+            v.append(a1 * v[j - 1] + a2 * v[j - 2])
+        self._u, self._v = u, v
+        self._held_stable = self.stable()
         leads = []
         lead = 2
         while lead < last:
@@ -127,6 +160,8 @@ class ResidualForecast:
         if [c.lead for c in self._checks] != leads:
             kept = {c.lead: c for c in self._checks}
             self._checks = [kept.get(lead) or _LeadCheck(lead) for lead in leads]
+        for check in self._checks:
+            check.u, check.v = u[check.lead], v[check.lead]
 
     def observe(self, residual: float, level: float, previous_level: float) -> None:
         """The newest residual y − y_m, the level estimated with it and the level before it."""
@@ -164,33 +199,10 @@ class ResidualForecast:
         self._n += 1
         self._x2, self._x1 = x1, deviation
         # Only a forecast that could be planned with is judged: a growing AR part's is not.
-        stable = self.stable()
+        stable = self._held_stable
         for check in self._checks:
-            check.keep(level + self._ahead(check.lead) if stable else math.nan, level)
-
-    def _ahead(self, lead: int) -> float:
-        """x̂(t + lead): the companion matrix's power by squaring, applied to (x(t), x(t−1))."""
-        # [[a1, a2], [1, 0]]^lead, kept as [[m11, m12], [m21, m22]].
-        m11, m12, m21, m22 = 1.0, 0.0, 0.0, 1.0
-        b11, b12, b21, b22 = self._a1, self._a2, 1.0, 0.0
-        n = lead
-        while n:
-            if n & 1:
-                m11, m12, m21, m22 = (
-                    m11 * b11 + m12 * b21,
-                    m11 * b12 + m12 * b22,
-                    m21 * b11 + m22 * b21,
-                    m21 * b12 + m22 * b22,
-                )
-            n >>= 1
-            if n:
-                b11, b12, b21, b22 = (
-                    b11 * b11 + b12 * b21,
-                    b11 * b12 + b12 * b22,
-                    b21 * b11 + b22 * b21,
-                    b21 * b12 + b22 * b22,
-                )
-        return m11 * self._x1 + m12 * self._x2
+            ahead = check.u * deviation + check.v * x1
+            check.keep(level + ahead if stable else math.nan, level)
 
     def stable(self) -> bool:
         """The AR part's roots inside or on the unit circle (the stability triangle): its
@@ -200,9 +212,12 @@ class ResidualForecast:
         return abs(a2) <= limit and a1 + a2 <= limit and a2 - a1 <= limit
 
     def confident(self, ratio: float) -> bool:
-        """Whether to plan with the forecast: enough samples, a stable AR part, and one-step
-        errors whose mean square is below ``ratio`` times the level's."""
-        return self._n >= MIN_SAMPLES and self.stable() and self._err_ar < ratio * self._err_level
+        """Whether to plan with the forecast: enough samples, held coefficients whose
+        forecast does not grow, and one-step errors whose mean square is below ``ratio``
+        times the level's."""
+        return (
+            self._n >= MIN_SAMPLES and self._held_stable and self._err_ar < ratio * self._err_level
+        )
 
     def trusted_lead(self) -> int:
         """The longest lead up to which every checked lead's forecast has beaten the level
@@ -215,22 +230,27 @@ class ResidualForecast:
             trusted = check.lead
         return trusted if self._checks else 1 << 30
 
-    def forecast(self, level: float, points: list[int]) -> list[float]:
-        """level + x̂(t + j) for each j of ``points`` (j ≥ 1, any order) up to the trusted
-        lead, the level beyond it."""
-        trusted = self.trusted_lead()
-        last = 0
+    def weights(self, points: list[int], trusted: int) -> tuple[list[float], list[float]]:
+        """(u, v) at each of ``points`` (held ones): x̂(t + j) = u·x(t) + v·x(t − 1) up to the
+        lead ``trusted``, 0 beyond it (the level alone)."""
+        u, v = self._u, self._v
+        us: list[float] = []
+        vs: list[float] = []
         for j in points:
-            last = max(last, j)
-        last = min(last, trusted)
-        ahead = [0.0] * (last + 1)
-        a1, a2 = self._a1, self._a2
-        x1, x2 = self._x1, self._x2
-        for j in range(1, last + 1):
-            x = a1 * x1 + a2 * x2
-            ahead[j] = x
-            x2, x1 = x1, x
-        return [level + ahead[j] if j <= last else level for j in points]
+            inside = j <= trusted and j < len(u)
+            us.append(u[j] if inside else 0.0)
+            vs.append(v[j] if inside else 0.0)
+        return us, vs
+
+    def state(self) -> tuple[float, float]:
+        """(x(t), x(t − 1)): the newest departures from the level."""
+        return self._x1, self._x2
+
+    def forecast(self, level: float, points: list[int]) -> list[float]:
+        """level + x̂(t + j) for each j of ``points`` (held ones, j ≥ 1, any order) up to
+        the trusted lead, the level beyond it."""
+        us, vs = self.weights(points, self.trusted_lead())
+        return [level + us[i] * self._x1 + vs[i] * self._x2 for i in range(len(points))]
 
     @property
     def coefficients(self) -> tuple[float, float]:
