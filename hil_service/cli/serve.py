@@ -39,7 +39,7 @@ from hil_service.config import (
 from hil_service.inputs import SetpointLimits
 from hil_service.listeners.zenoh_config import add_zenoh_arguments, open_session, options_from_args
 from hil_service.live.address import LiveAddress
-from hil_service.pipeline import PipelineSettings
+from hil_service.pipeline import ControlSettings, PipelineSettings
 from hil_service.process_tuning import tune_for_service
 from hil_service.umodel import U_MODELS
 from hil_service.vehicle_links import LinkSet
@@ -204,8 +204,8 @@ def _add_control_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="RATIO",
         help="plan against a forecast of the disturbance over the horizon (an AR(2) of the "
         "residual) while its one-step errors' mean square is below RATIO times the held "
-        "level's, as far ahead as it has beaten the level (0..1; default 0.25; 0: the "
-        "level held; docs/control.md)",
+        "level's, as far ahead as it has beaten the level (0..1; default "
+        f"{ControlSettings().disturbance_forecast:g}; 0: the level held; docs/control.md)",
     )
     group.add_argument(
         "--no-input-dead-zone",

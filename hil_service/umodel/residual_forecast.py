@@ -53,22 +53,10 @@ class _LeadCheck:
     """The forecasts made ``lead`` samples ago, and how well they and the level held from
     then have predicted the residual since (exponentially weighted mean squares)."""
 
-    __slots__ = (
-        "checked",
-        "err_forecast",
-        "err_level",
-        "lead",
-        "level",
-        "made",
-        "predicted",
-        "u",
-        "v",
-    )
+    __slots__ = ("checked", "err_forecast", "err_level", "lead", "level", "made", "predicted")
 
     def __init__(self, lead: int) -> None:
         self.lead = lead
-        self.u = 0.0  # x̂(t + lead) = u·x(t) + v·x(t − 1) with the held coefficients
-        self.v = 0.0
         self.predicted = [0.0] * lead  # ring: the forecast of the residual at its slot's time
         self.level = [0.0] * lead  # ring: the level when that forecast was made
         self.made = 0  # forecasts made
@@ -160,8 +148,6 @@ class ResidualForecast:
         if [c.lead for c in self._checks] != leads:
             kept = {c.lead: c for c in self._checks}
             self._checks = [kept.get(lead) or _LeadCheck(lead) for lead in leads]
-        for check in self._checks:
-            check.u, check.v = u[check.lead], v[check.lead]
 
     def observe(self, residual: float, level: float, previous_level: float) -> None:
         """The newest residual y − y_m, the level estimated with it and the level before it."""
@@ -200,8 +186,9 @@ class ResidualForecast:
         self._x2, self._x1 = x1, deviation
         # Only a forecast that could be planned with is judged: a growing AR part's is not.
         stable = self._held_stable
+        u, v = self._u, self._v
         for check in self._checks:
-            ahead = check.u * deviation + check.v * x1
+            ahead = u[check.lead] * deviation + v[check.lead] * x1
             check.keep(level + ahead if stable else math.nan, level)
 
     def stable(self) -> bool:
@@ -245,12 +232,6 @@ class ResidualForecast:
     def state(self) -> tuple[float, float]:
         """(x(t), x(t − 1)): the newest departures from the level."""
         return self._x1, self._x2
-
-    def forecast(self, level: float, points: list[int]) -> list[float]:
-        """level + x̂(t + j) for each j of ``points`` (held ones, j ≥ 1, any order) up to
-        the trusted lead, the level beyond it."""
-        us, vs = self.weights(points, self.trusted_lead())
-        return [level + us[i] * self._x1 + vs[i] * self._x2 for i in range(len(points))]
 
     @property
     def coefficients(self) -> tuple[float, float]:
