@@ -25,7 +25,7 @@ from hil_service.umodel import (
     build_model,
     option_names,
 )
-from hil_service.umodel.dead_zone import narrow, widen
+from hil_service.umodel.dead_zone import narrow, widen, widen_beside
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.finite import finite
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
@@ -33,6 +33,7 @@ from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
 from hil_service.umodel.probe import Probe
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
 from hil_service.umodel.structure import (
+    DEAD_ZONE_CANDIDATES,
     VALIDATION_SEGMENT,
     LagChoice,
     choose_dead_zone,
@@ -387,6 +388,10 @@ class ChannelPipeline:
         #: identifier, the horizon test, the supervisor and the plan see every input beyond
         #: it (``narrow``); the commands sent step over it (``widen``).
         self.dead_zone = 0.0
+        #: A plan's input within this of the zone's edge on its other side stays on the
+        #: applied input's side (``widen_beside``): half a step of the candidate widths.
+        step = DEAD_ZONE_CANDIDATES[1] - DEAD_ZONE_CANDIDATES[0]
+        self._crossing_band = 0.5 * step * float(options.get("u_scale", settings.control.u_limit))
         #: With ``choose_input_lags``, the dynamic model's input lags are chosen from the
         #: first ``LAG_CHOICE_RECORD`` consecutive samples unless the options give them.
         self._lags_pending = bool(settings.choose_input_lags) and "nb" not in options
@@ -1186,6 +1191,7 @@ class ChannelPipeline:
     def solve(self, setpoint: float, u_applied: float) -> tuple[float, str, bool]:
         """One predictive-inverse step: (command, path, saturated); path is the inverse
         step's ("newton", "fallback") or "hold" when no plan could be made."""
+        raw_applied = u_applied
         u_applied = self.narrow(u_applied)
         if not self.active:
             self.probe.stop()
@@ -1207,7 +1213,8 @@ class ChannelPipeline:
         u, path, saturated = self.controller.decide(dynamics, u_applied, setpoint)
         shaped = self.shaper.shape(u)
         self._last_saturated = saturated or shaped.saturated
-        return self.widen(shaped.u), path, saturated or shaped.saturated or shaped.rate_limited
+        command = widen_beside(shaped.u, self.dead_zone, raw_applied, self._crossing_band)
+        return command, path, saturated or shaped.saturated or shaped.rate_limited
 
     def may_probe(self) -> bool:
         """Asked to command, identified, and not qualified by the horizon test: the channel

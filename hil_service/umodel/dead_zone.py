@@ -24,3 +24,22 @@ def widen(v: float, width: float) -> float:
     if width == 0.0 or v == 0.0 or not finite(v):
         return v
     return v + math.copysign(width, v)
+
+
+def widen_beside(v: float, width: float, applied: float, band: float) -> float:
+    """``widen(v)``, except that a ``v`` of the other sign than the ``applied`` input and
+    smaller than ``band`` is sent as the zone's edge on the applied input's side (its part
+    beyond the zone is 0 either way).
+
+    Across the zone the command jumps by twice its width, and the width is a choice from a
+    grid (``structure.DEAD_ZONE_CANDIDATES``): a plan whose steady state lies at the zone's
+    edge would otherwise send the input across the zone and back as its estimate of that
+    steady state wanders by less than the width's own uncertainty, each crossing a kick
+    wherever the true zone is narrower. A plan that needs the other side goes on asking
+    for it (its disturbance estimate integrates the error the edge leaves) until its
+    input is beyond the band."""
+    if width == 0.0 or not (finite(v) and finite(applied)) or applied == 0.0:
+        return widen(v, width)
+    if v * applied <= 0.0 and abs(v) < band:
+        return math.copysign(width, applied)
+    return widen(v, width)
