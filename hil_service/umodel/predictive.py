@@ -419,6 +419,8 @@ class PredictiveInverse:
         sim = self._sim
         if sim is None or len(sim) != na or not finite(y):
             self._sim = list(dyn.outputs[:na])
+            if self._forecast is not None:
+                self._forecast.skip()
             return
         y_m = dyn.one_step(sim)
         if not finite(y_m) or not finite(y - y_m):
@@ -440,7 +442,10 @@ class PredictiveInverse:
     def coast(self, dyn: ModelDynamics) -> None:
         """Advance the internal model by a sample whose output was lost (``dyn`` holds the
         input that produced it): on its own outputs, as ever; the disturbance estimate,
-        with nothing measured, holds."""
+        with nothing measured, holds, and so does the forecast's fit (its lead checks move
+        on by the sample)."""
+        if self._forecast is not None:
+            self._forecast.skip()
         na = len(dyn.ar)
         sim = self._sim
         if sim is None or len(sim) != na:

@@ -99,6 +99,7 @@ class ResidualForecast:
         "_held_stable",
         "_n",
         "_p",
+        "_refill",
         "_seen",
         "_u",
         "_v",
@@ -113,6 +114,7 @@ class ResidualForecast:
         self._x1 = 0.0  # x(t), x(t − 1)
         self._x2 = 0.0
         self._seen = 0  # deviations seen since the last reset (0, 1, 2: the history fills)
+        self._refill = 0  # samples until the history is whole again after a lost one
         self._n = 0  # RLS updates
         self._err_ar = 0.0
         self._err_level = 0.0
@@ -154,6 +156,7 @@ class ResidualForecast:
         deviation = residual - level
         level_error = residual - previous_level
         if not (finite(deviation) and finite(level_error)):
+            self.skip()
             return
         for check in self._checks:
             check.compare(residual)
@@ -164,6 +167,13 @@ class ResidualForecast:
                 scale = self._x1 * self._x1 + self._x2 * self._x2
                 weight = PRIOR / scale if scale > 0.0 else PRIOR
                 self._p = [weight, 0.0, weight]
+            return
+        if self._refill > 0:
+            # After a lost sample: the history fills again before the fit learns from it
+            # or forecasts from it (x(t − 1) would be the sample before the loss).
+            self._x2, self._x1 = self._x1, deviation
+            self._refill -= 1
+            self._keep_forecasts(level, math.nan if self._refill else deviation, self._x2)
             return
         x1, x2 = self._x1, self._x2
         error = deviation - (self._a1 * x1 + self._a2 * x2)
@@ -184,12 +194,27 @@ class ResidualForecast:
                 self._p = [q11, q12, q22]
         self._n += 1
         self._x2, self._x1 = x1, deviation
-        # Only a forecast that could be planned with is judged: a growing AR part's is not.
-        stable = self._held_stable
+        self._keep_forecasts(level, deviation, x1)
+
+    def _keep_forecasts(self, level: float, x1: float, x2: float) -> None:
+        """Each lead check's forecast from the departures ``x1`` = x(t), ``x2`` = x(t − 1)
+        (NaN: none). Only a forecast that could be planned with is judged: a growing AR
+        part's is not."""
+        stable = self._held_stable and finite(x1)
         u, v = self._u, self._v
         for check in self._checks:
-            ahead = u[check.lead] * deviation + v[check.lead] * x1
-            check.keep(level + ahead if stable else math.nan, level)
+            ahead = u[check.lead] * x1 + v[check.lead] * x2 if stable else math.nan
+            check.keep(level + ahead, level)
+
+    def skip(self) -> None:
+        """A sample without a residual (its output lost, or not finite): every lead check
+        moves on by one sample, comparing nothing and forecasting nothing from it, so that
+        each goes on comparing a forecast with the residual of the sample it was made for;
+        and the fit waits for two samples in a row again before it learns or forecasts."""
+        for check in self._checks:
+            check.keep(math.nan, math.nan)
+        if self._seen >= 2:
+            self._refill = 2
 
     def stable(self) -> bool:
         """The AR part's roots inside or on the unit circle (the stability triangle): its
