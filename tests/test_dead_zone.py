@@ -94,6 +94,14 @@ def test_a_plan_close_to_the_edge_on_the_other_side_keeps_the_applied_side():
         assert narrow(widen_beside(v, width, -0.3, band), width) == pytest.approx(v)
 
 
+def _family_settings(seed: int) -> ClosedLoopSettings:
+    """The family benchmark's run of a vehicle (docs/control.md), without the oracle."""
+    return ClosedLoopSettings(
+        scenario="family", samples=2000, seed=seed, identify=800, step_every=300, oracle=False,
+        neutral_after_identify=True,
+    )  # fmt: skip
+
+
 class _Recording:
     """A ``VehiclePipeline`` whose decisions are kept (the family loop builds its own)."""
 
@@ -128,10 +136,7 @@ def test_a_loop_steps_over_the_dead_zone_it_found(monkeypatch: pytest.MonkeyPatc
     # is the neutral input, the zone's edge or beyond it.
     depth, pitch = draw_vehicle(10, 11)
     assert pitch.kind == "hammerstein" and pitch.disturbance == "none"
-    settings = ClosedLoopSettings(
-        scenario="family", samples=2000, seed=10, identify=800, step_every=300, oracle=False,
-        neutral_after_identify=True,
-    )  # fmt: skip
+    settings = _family_settings(10)
     without = PipelineSettings(seed=10, choose_dead_zone=False)
     ratio_without = run_vehicle(settings, depth, pitch, without)[0][1].reference_ratio
     monkeypatch.setattr(closed_loop, "VehiclePipeline", _Recording)
@@ -205,10 +210,7 @@ def test_a_loop_settled_at_the_zones_edge_does_not_kick_across_it(monkeypatch: p
     # reference-only). Held on the applied side within half a candidate step: 1.14 ×.
     depth, pitch = draw_vehicle(4, 57)
     assert pitch.kind == "hammerstein" and pitch.disturbance == "none"
-    settings = ClosedLoopSettings(
-        scenario="family", samples=2000, seed=4, identify=800, step_every=300, oracle=False,
-        neutral_after_identify=True,
-    )  # fmt: skip
+    settings = _family_settings(4)
     monkeypatch.setattr(closed_loop, "VehiclePipeline", _Recording)
 
     def last_segment_crossings(band: float | None = None) -> tuple[float, int]:
