@@ -19,6 +19,7 @@ from hil_service.umodel.predictive import (
     settling_horizon,
     step_response,
 )
+from hil_service.umodel.residual_forecast import ResidualForecast
 
 
 def test_step_response_of_a_first_order_lag() -> None:
@@ -284,6 +285,49 @@ def test_the_linear_term_is_the_columns_against_the_predicted_error(na: int, nb:
             expected[b] += controller._columns[p * blocks + b] * error
     expected[0] -= controller._rho * 0.25
     assert f == pytest.approx(expected, rel=1e-9, abs=1e-9 * max(map(abs, expected)))
+
+
+@pytest.mark.parametrize(("na", "nb"), [(1, 1), (2, 4), (4, 2)])
+def test_the_forecasts_cached_projection_is_the_forecast_at_each_point(na: int, nb: int) -> None:
+    # With the disturbance forecast trusted, each cost point's predicted error carries the
+    # forecast x̂(k+j) = u(j)·x(k) + v(j)·x(k−1) on top of the level; the linear term gets it
+    # from projections made once per derivation and trusted lead. Equal to projecting the
+    # forecast at each point directly, on the sample the projections are made and on later
+    # ones that reuse them with new departures.
+    rng, dyn, controller = _derived(na, nb, na * 10 + nb + 2)
+    forecast = ResidualForecast()
+    controller._forecast = forecast
+    points = controller._points
+    period = 37.0
+    for k in range(1000):
+        if k % 50 == 0:
+            forecast.hold(points)
+        value = math.sin(2.0 * math.pi * k / period)
+        forecast.observe(value, 0.0, 0.0)
+    forecast.hold(points)
+    assert forecast.confident(controller.settings.disturbance_forecast)
+    trusted = forecast.trusted_lead()
+    assert trusted > 1
+    controller._sim = rng.normal(size=na).tolist()
+    controller._disturbance = 0.3
+    plan = ModelDynamics(dyn.ar, dyn.bias, dyn.lag_polys, dyn.poly_scale, [], [])
+    for k in range(1000, 1003):
+        f = controller._linear_term(dyn, plan, 0.4, 0.25, 1.7)
+        free = _free_response(controller, plan, 0.4, controller._sim)
+        x1, x2 = forecast.state()
+        us, vs = forecast.weights(points, trusted)
+        blocks = len(f)
+        expected = [0.0] * blocks
+        for p in range(len(points)):
+            ahead = us[p] * x1 + vs[p] * x2
+            assert (ahead != 0.0) == (points[p] <= trusted)
+            error = free[p] + 0.3 + ahead - 0.25 * controller._onset[p] - 1.7
+            for b in range(blocks):
+                expected[b] += controller._columns[p * blocks + b] * error
+        expected[0] -= controller._rho * 0.25
+        assert f == pytest.approx(expected, rel=1e-9, abs=1e-9 * max(map(abs, expected)))
+        forecast.observe(math.sin(2.0 * math.pi * k / period), 0.0, 0.0)
+        assert forecast.trusted_lead() == trusted
 
 
 def _estimate(residuals: list[float], horizon: int = 5) -> list[float]:
