@@ -99,6 +99,7 @@ PREDICTIVE_FIELDS: dict[str, str] = {
     "refresh": "refresh",
     "cost_points": "cost_points",
     "disturbance_forecast": "disturbance_forecast",
+    "horizon_arrivals": "horizon_arrivals",
 }
 _PREDICTIVE = PredictiveSettings()
 
@@ -123,6 +124,7 @@ class ControlSettings:
     refresh: int = _PREDICTIVE.refresh
     cost_points: int = _PREDICTIVE.cost_points
     disturbance_forecast: float = _PREDICTIVE.disturbance_forecast
+    horizon_arrivals: float = _PREDICTIVE.horizon_arrivals
     #: The horizon test's thresholds (``umodel.supervisor.HorizonTest``, docs/control.md):
     #: the model's k-step fit relative to holding the output, and relative to the mean of
     #: the outputs scored (%), both of which a channel needs before it may command (None:
@@ -261,6 +263,8 @@ class PipelineSettings:
         control_data = dict(data.pop("control", {}))
         # ... and before the disturbance was forecast over the horizon.
         control_data.setdefault("disturbance_forecast", 0.0)
+        # ... and before the horizon was capped by the response's arrival time.
+        control_data.setdefault("horizon_arrivals", 0.0)
         control = ControlSettings.from_json(control_data)
         options = data.get("model_options")
         if options:

@@ -256,3 +256,23 @@ def test_a_channel_never_commanded_sits_at_neutral_after_the_excitation():
     for ch in CHANNELS:
         assert np.all(trace.u[ch][settings.identify :] == 0.0), ch
         assert np.any(trace.u[ch][: settings.identify] != 0.0), ch
+
+
+def test_a_periodic_disturbance_in_the_models_ar_part_does_not_stretch_the_plan():
+    # Seed 2's vehicle 24 depth: linear, second order, no delay, a periodic disturbance of
+    # 0.69 of the authority. The identifier puts the disturbance's oscillation in its AR
+    # part; its step response arrives within a few samples and rings for hundreds, and a
+    # plan over the whole ring trades the next samples for a far future (2.06 ×
+    # reference-only). With the horizon at most four arrival times: 1.89 ×.
+    from hil_service.pipeline import ControlSettings, PipelineSettings
+
+    depth, pitch = draw_vehicle(2, 24)
+    assert (depth.disturbance, depth.order, depth.delay) == ("periodic", 2, 0)
+    settings = ClosedLoopSettings(
+        scenario="family", samples=2000, seed=2, identify=800, step_every=300, oracle=False,
+        neutral_after_identify=True,
+    )  # fmt: skip
+    uncapped = PipelineSettings(seed=2, control=ControlSettings(horizon_arrivals=0.0))
+    stretched = run_vehicle(settings, depth, pitch, uncapped)[0][0].reference_ratio
+    capped = run_vehicle(settings, depth, pitch)[0][0].reference_ratio
+    assert capped < 0.95 * stretched, (capped, stretched)

@@ -31,8 +31,11 @@ def test_settings_recorded_by_the_old_controller_load_with_todays_defaults() -> 
     old = {"control": old_control}
     control = PipelineSettings.from_json(old).control
     assert control.rate_limit == 0.4
-    # Recorded before the disturbance was forecast: replayed without the forecast.
-    assert control == ControlSettings(rate_limit=0.4, disturbance_forecast=0.0)
+    # Recorded before the disturbance was forecast and the horizon capped by the response's
+    # arrival time: replayed without either.
+    assert control == ControlSettings(
+        rate_limit=0.4, disturbance_forecast=0.0, horizon_arrivals=0.0
+    )
 
 
 def test_invalid_predictive_constants_are_refused() -> None:
@@ -56,6 +59,7 @@ STORED_CONTROL = {
     "refresh": 25,
     "cost_points": 90,
     "disturbance_forecast": 0.3,
+    "horizon_arrivals": 6.0,
     "horizon_fit": 60.0,
     "mean_fit": 30.0,
     "safe_input": "hold",
@@ -75,6 +79,7 @@ def test_a_stored_configuration_with_every_control_key_loads_and_is_written_back
         90,
     )
     assert predictive.disturbance_forecast == 0.3
+    assert predictive.horizon_arrivals == 6.0
     assert (control.u_limit, control.rate_limit) == (1.5, 0.25)
     assert (control.horizon_fit, control.mean_fit, control.safe_input) == (60.0, 30.0, "hold")
     assert control.probe == 0.2

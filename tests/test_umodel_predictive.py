@@ -397,3 +397,38 @@ def test_the_phase_brings_the_second_derivation_forward(phase: int) -> None:
         samples += 1
     assert controller.horizon < first
     assert samples == refresh - phase % refresh
+
+
+def _ringing_and_smooth() -> tuple[ModelDynamics, ModelDynamics]:
+    """A response that arrives within a few samples and rings for hundreds (poles
+    0.995·e^(±0.3i) beside a fast one), and a smooth one that settles in about 150."""
+    r, w = 0.995, 0.3
+    a1, a2 = 2 * r * math.cos(w), -r * r
+    ringing = [a1 + 0.2, a2 - 0.2 * a1, -0.2 * a2]  # (1 − 0.2 q⁻¹)(1 − a1 q⁻¹ − a2 q⁻²)
+    shape = [1.0, 0.0, 0.0]
+    ring = ModelDynamics(ringing, 0.0, [shape], 0.5, [0.0] * 3, [0.0])
+    smooth = ModelDynamics([0.98], 0.0, [shape], 0.5, [0.0], [0.0])
+    return ring, smooth
+
+
+def test_the_horizon_is_at_most_four_arrival_times_of_the_response() -> None:
+    # The plan's horizon is the step response's settling time, at most four times its
+    # arrival time (``PredictiveSettings.horizon_arrivals``): a response that arrives fast
+    # and rings for long is planned over a few arrivals, a smooth one over its settling.
+    from hil_service.umodel.predictive import PredictiveSettings
+
+    ring, smooth = _ringing_and_smooth()
+    capped = PredictiveInverse(-2.0, 2.0, 0.5)
+    uncapped = PredictiveInverse(-2.0, 2.0, 0.5, PredictiveSettings(horizon_arrivals=0.0))
+    response = step_response(ring.ar, [1.0], 1000)
+    settled = settling_horizon(response, 0.05, 5, 1000)
+    arrived = arrival_time(response, 0.05, 5, 1000)
+    assert 4 * arrived < settled
+    assert uncapped.horizon_for(ring) == settled
+    assert capped.horizon_for(ring) == 4 * arrived
+    slow = PredictiveInverse(-2.0, 2.0, 0.5)
+    assert slow.horizon_for(smooth) == settling_horizon(
+        step_response([0.98], [1.0], 1000), 0.05, 5, 1000
+    )
+    with pytest.raises(ValueError):
+        PredictiveSettings(horizon_arrivals=0.5)

@@ -102,6 +102,7 @@ class PredictiveSettings:
         "cost_points",
         "disturbance_forecast",
         "disturbance_share",
+        "horizon_arrivals",
         "max_blocks",
         "max_horizon",
         "min_horizon",
@@ -120,6 +121,7 @@ class PredictiveSettings:
         refresh: int = 50,
         cost_points: int = 120,
         disturbance_forecast: float = 0.25,
+        horizon_arrivals: float = 4.0,
     ) -> None:
         if not 2 <= min_horizon <= max_horizon:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
@@ -137,6 +139,8 @@ class PredictiveSettings:
             raise ValueError("cost_points must be >= 1")
         if not (finite(disturbance_forecast) and 0.0 <= disturbance_forecast <= 1.0):
             raise ValueError("disturbance_forecast must be in [0, 1]")
+        if not (finite(horizon_arrivals) and (horizon_arrivals == 0.0 or horizon_arrivals >= 1.0)):
+            raise ValueError("horizon_arrivals must be 0 (no cap) or finite and >= 1")
         self.min_horizon = int(min_horizon)
         self.max_horizon = int(max_horizon)
         self.band = float(band)
@@ -151,6 +155,12 @@ class PredictiveSettings:
         #: while its one-step errors' mean square is below this share of the level's, as
         #: far ahead as it has beaten the level; 0: never (the level held over the horizon).
         self.disturbance_forecast = float(disturbance_forecast)
+        #: The horizon at most this many arrival times of the step response (0: the
+        #: settling time alone). A response that arrives in T samples and then rings for
+        #: far longer is, on the plants measured (docs/control.md, "A horizon of a few
+        #: arrival times"), a disturbance's oscillation the identifier has put in its AR
+        #: part, and a plan over that ring trades the next samples for a far future.
+        self.horizon_arrivals = float(horizon_arrivals)
 
 
 def _steady_state_direction(rows: list[list[float]], m: int) -> list[float] | None:
@@ -527,6 +537,9 @@ class PredictiveInverse:
         s = self.settings
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
+        arrival = arrival_time(response, s.band, s.min_horizon, s.max_horizon)
+        if s.horizon_arrivals > 0.0:
+            n = min(n, max(s.min_horizon, int(s.horizon_arrivals * arrival)))
         starts = block_starts(n, s.max_blocks)
         span = min(2 * n, s.max_horizon)
         stride = max(1, -(-span // s.cost_points))
@@ -547,7 +560,7 @@ class PredictiveInverse:
             project(columns, nblocks, onset),
         )
         self._horizon = n
-        self._response_time = min(n, arrival_time(response, s.band, s.min_horizon, s.max_horizon))
+        self._response_time = min(n, arrival)
         self._points = points
         if self._forecast is not None:
             self._forecast.hold(points)
