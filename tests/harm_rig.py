@@ -8,10 +8,20 @@ import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from hil_service.experiment.closed_loop import ClosedLoopSettings
 from hil_service.pipeline import PipelineSettings, VehiclePipeline
 from plant_emulator.excitation import RandomSteps
 from plant_emulator.random_plants import RandomPlantSpec, RandomVehicle, RandomVehicleConfig
 from protocols.samples import TelemetrySample
+
+
+def family_loop(seed: int, identify: int = 800) -> ClosedLoopSettings:
+    """The family benchmark's run of a vehicle (``run_family_closed_loop``, docs/control.md,
+    "The family benchmark"), without the oracle."""
+    return ClosedLoopSettings(
+        seed=seed, samples=2000, identify=identify, step_every=300, scenario="family",
+        oracle=False, neutral_after_identify=True,
+    )  # fmt: skip
 
 
 def spec(

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from hil_service.experiment import closed_loop
-from hil_service.experiment.closed_loop import ClosedLoopSettings
 from hil_service.experiment.family_loop import run_vehicle
 from hil_service.pipeline import PipelineSettings
 from hil_service.umodel.dead_zone import narrow, widen, widen_beside
 from hil_service.umodel.structure import choose_dead_zone
 from plant_emulator.family import draw_vehicle
+from tests.harm_rig import family_loop
 
 U_SCALE = 2.0
 DATA = Path(__file__).parent / "data"
@@ -94,14 +94,6 @@ def test_a_plan_close_to_the_edge_on_the_other_side_keeps_the_applied_side():
         assert narrow(widen_beside(v, width, -0.3, band), width) == pytest.approx(v)
 
 
-def _family_settings(seed: int) -> ClosedLoopSettings:
-    """The family benchmark's run of a vehicle (docs/control.md), without the oracle."""
-    return ClosedLoopSettings(
-        scenario="family", samples=2000, seed=seed, identify=800, step_every=300, oracle=False,
-        neutral_after_identify=True,
-    )  # fmt: skip
-
-
 class _Recording:
     """A ``VehiclePipeline`` whose decisions are kept (the family loop builds its own)."""
 
@@ -136,7 +128,7 @@ def test_a_loop_steps_over_the_dead_zone_it_found(monkeypatch: pytest.MonkeyPatc
     # is the neutral input, the zone's edge or beyond it.
     depth, pitch = draw_vehicle(10, 11)
     assert pitch.kind == "hammerstein" and pitch.disturbance == "none"
-    settings = _family_settings(10)
+    settings = family_loop(10)
     without = PipelineSettings(seed=10, choose_dead_zone=False)
     ratio_without = run_vehicle(settings, depth, pitch, without)[0][1].reference_ratio
     monkeypatch.setattr(closed_loop, "VehiclePipeline", _Recording)
@@ -205,12 +197,13 @@ def test_a_loop_settled_at_the_zones_edge_does_not_kick_across_it(monkeypatch: p
     # Seed 4's vehicle 57 pitch: Hammerstein, first order, delay 2, a dead zone of 0.23
     # and a cubic term, no disturbance (a targets' seed of docs/control.md). Its last
     # setpoint needs the input -0.35, where the zone chosen from the record leaves the
-    # plan's input a few thousandths below 0. As the plan's steady state wanders across 0
-    # the command used to jump across the zone and back, a kick every derivation (1.56 ×
-    # reference-only). Held on the applied side within half a candidate step: 1.14 ×.
+    # plan's input a few thousandths below 0. Widened alone (a band of 0), the command
+    # jumps across the zone and back as the plan's steady state wanders across 0, a kick
+    # every derivation (1.56 × reference-only); held on the applied side within half a
+    # candidate step, 1.14 ×.
     depth, pitch = draw_vehicle(4, 57)
     assert pitch.kind == "hammerstein" and pitch.disturbance == "none"
-    settings = _family_settings(4)
+    settings = family_loop(4)
     monkeypatch.setattr(closed_loop, "VehiclePipeline", _Recording)
 
     def last_segment_crossings(band: float | None = None) -> tuple[float, int]:

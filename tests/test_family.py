@@ -13,6 +13,7 @@ import pytest
 from hil_service.experiment.closed_loop import ClosedLoopSettings
 from hil_service.experiment.family_loop import levels, run_vehicle
 from plant_emulator.family import FamilyVehicle, InputMap, draw_family, draw_vehicle
+from tests.harm_rig import family_loop
 
 
 def test_the_family_is_seeded_and_a_plant_does_not_depend_on_the_family_size():
@@ -149,10 +150,7 @@ def test_input_lags_that_cover_the_delay_bring_a_delayed_plant_back_to_reference
 
     depth, pitch = draw_vehicle(11, 12)
     assert (pitch.delay, pitch.disturbance, pitch.order) == (5, "none", 1)
-    settings = ClosedLoopSettings(
-        scenario="family", samples=2000, seed=11, identify=800, step_every=300, oracle=False,
-        neutral_after_identify=True,
-    )  # fmt: skip
+    settings = family_loop(11)
     auto = PipelineSettings(seed=11)
     four_lags = PipelineSettings(seed=11).with_input_lags(4)
     four = run_vehicle(settings, depth, pitch, four_lags)[0][1].reference_ratio
@@ -183,10 +181,7 @@ def test_an_identifier_with_an_unstable_ar_part_is_rebuilt_with_fewer_output_lag
     assert (depth.kind, depth.order, depth.delay, depth.disturbance) == (
         "hammerstein", 2, 1, "none",
     )  # fmt: skip
-    settings = ClosedLoopSettings(
-        scenario="family", samples=2000, seed=13, identify=800, step_every=300, oracle=False,
-        neutral_after_identify=True,
-    )  # fmt: skip
+    settings = family_loop(13)
     four = PipelineSettings(seed=13, model_options={"depth": {"na": 4}, "pitch": {}})
     given = run_vehicle(settings, depth, pitch, four)[0][0]
     assert not given.horizon_passed and given.reference_ratio > 5.0  # the options are kept
@@ -222,10 +217,7 @@ def test_the_input_map_is_the_models_steady_state_only_where_that_rises_over_mor
     depth, pitch = draw_vehicle(seed, vehicle)
     spec = depth if channel == "depth" else pitch
     assert spec.kind == kind
-    settings = ClosedLoopSettings(
-        scenario="family", samples=2000, seed=seed, identify=800, step_every=300,
-        oracle=False, neutral_after_identify=True,
-    )  # fmt: skip
+    settings = family_loop(seed)
     row = next(r for r in run_vehicle(settings, depth, pitch)[0] if r.spec.channel == channel)
     assert row.trips == 0
     assert row.reference_ratio < 1.1, row.reference_ratio
@@ -258,20 +250,18 @@ def test_a_channel_never_commanded_sits_at_neutral_after_the_excitation():
         assert np.any(trace.u[ch][: settings.identify] != 0.0), ch
 
 
-def test_a_periodic_disturbance_in_the_models_ar_part_does_not_stretch_the_plan():
+def test_the_horizon_cap_helps_a_plant_whose_model_holds_a_periodic_disturbance():
     # Seed 2's vehicle 24 depth: linear, second order, no delay, a periodic disturbance of
     # 0.69 of the authority. The identifier puts the disturbance's oscillation in its AR
-    # part; its step response arrives within a few samples and rings for hundreds, and a
-    # plan over the whole ring trades the next samples for a far future (2.06 ×
-    # reference-only). With the horizon at most four arrival times: 1.89 ×.
+    # part, and the horizon is the ring's length, 1,000 samples, at most of the plan's
+    # 40 derivations: 2.06 × reference-only. Where the response arrives within a few
+    # samples the cap (four arrival times) plans over a few tens of samples instead (823 →
+    # 20 at one derivation): 1.89 ×.
     from hil_service.pipeline import ControlSettings, PipelineSettings
 
     depth, pitch = draw_vehicle(2, 24)
     assert (depth.disturbance, depth.order, depth.delay) == ("periodic", 2, 0)
-    settings = ClosedLoopSettings(
-        scenario="family", samples=2000, seed=2, identify=800, step_every=300, oracle=False,
-        neutral_after_identify=True,
-    )  # fmt: skip
+    settings = family_loop(2)
     uncapped = PipelineSettings(seed=2, control=ControlSettings(horizon_arrivals=0.0))
     stretched = run_vehicle(settings, depth, pitch, uncapped)[0][0].reference_ratio
     capped = run_vehicle(settings, depth, pitch)[0][0].reference_ratio

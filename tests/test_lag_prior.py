@@ -10,7 +10,7 @@ import random
 import numpy as np
 import pytest
 
-from hil_service.experiment.closed_loop import ClosedLoopSettings, inverse_run, setpoint_schedule
+from hil_service.experiment.closed_loop import inverse_run, setpoint_schedule
 from hil_service.experiment.family_loop import levels, run_vehicle
 from hil_service.pipeline import ChannelPipeline, PipelineSettings
 from hil_service.umodel import DynamicUModel
@@ -24,7 +24,7 @@ from hil_service.umodel.lag_prior import (
 from hil_service.umodel.structure import choose_input_lags
 from plant_emulator.family import FamilyVehicle, draw_vehicle
 from protocols.profiles import DEFAULT_PROFILE, load_profile
-from tests.harm_rig import Loop, spec
+from tests.harm_rig import Loop, family_loop, spec
 
 DEFAULT = load_profile(DEFAULT_PROFILE)  # serve's, with no --profile
 
@@ -125,16 +125,8 @@ def test_the_gain_is_a_serve_flag_stored_and_a_log_from_before_replays_without_i
         PipelineSettings(lag_smoothing_gain=-1.0)
 
 
-def _family_loop(seed: int, identify: int = 800) -> ClosedLoopSettings:
-    """The family benchmark's run (``run_family_closed_loop``), one vehicle at a time."""
-    return ClosedLoopSettings(
-        seed=seed, samples=2000, identify=identify, step_every=300, scenario="family",
-        oracle=False, neutral_after_identify=True,
-    )  # fmt: skip
-
-
 def _family_row(seed: int, vehicle: int, channel: str, settings: PipelineSettings):
-    rows, _ = run_vehicle(_family_loop(seed), *draw_vehicle(seed, vehicle), settings)
+    rows, _ = run_vehicle(family_loop(seed), *draw_vehicle(seed, vehicle), settings)
     return next(r for r in rows if r.spec.channel == channel)
 
 
@@ -166,7 +158,7 @@ def test_a_plant_without_noise_keeps_its_plain_identifier_and_commands():
     row = _family_row(13, 8, "depth", settings)
     assert row.horizon_passed and row.commanded > 1000 and row.reference_ratio < 1.0
     depth, pitch = draw_vehicle(13, 8)
-    loop = _family_loop(13)
+    loop = family_loop(13)
     schedule = setpoint_schedule(loop, {"depth": levels(depth), "pitch": levels(pitch)})
     health = inverse_run(loop, FamilyVehicle(depth, pitch, 13), schedule, settings).identifier
     choice = health["depth"]["input_lag_choice"]
@@ -179,7 +171,7 @@ def test_an_identifier_rebuilt_with_other_lags_is_judged_on_its_record():
     # test on the record it was rebuilt from and commands from the first controlled sample,
     # where a record started afresh (as a log from before replays) must refill first, at
     # neutral meanwhile.
-    loop = _family_loop(11, identify=400)
+    loop = family_loop(11, identify=400)
     rows = {}
     for kept in (True, False):
         settings = PipelineSettings(seed=11, rebuild_keeps_record=kept)
