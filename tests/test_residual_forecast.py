@@ -128,6 +128,22 @@ def test_a_lost_sample_neither_teaches_the_fit_nor_shifts_the_lead_checks(told: 
         assert abs(ahead - _sine(n - 1 + 300)) > 0.2
 
 
+def test_a_sample_lost_while_the_history_first_fills_starts_the_fill_again():
+    # Lost after the first deviation: the fit then starts from the two samples after the
+    # loss, exactly as a fit that never saw the one before it; pairing the samples across
+    # the loss would teach it x(t) from x(t − 2) at its first update.
+    points = [1, 5, 40]
+    interrupted, fresh = ResidualForecast(), ResidualForecast()
+    interrupted.hold(points)
+    fresh.hold(points)
+    interrupted.observe(_sine(0), 0.0, 0.0)
+    interrupted.skip()
+    for k in range(2, 60):
+        interrupted.observe(_sine(k), 0.0, 0.0)
+        fresh.observe(_sine(k), 0.0, 0.0)
+    assert interrupted.coefficients == fresh.coefficients
+
+
 def test_a_smooth_residual_predicted_one_step_ahead_but_not_over_the_horizon_is_not_trusted():
     """A wandering current under waves (periods 60, 23 and 11 s at 1 Hz, as the disturbed
     glider's): smooth, so one step ahead the AR part is far better than the lagged level,

@@ -210,11 +210,14 @@ class ResidualForecast:
         """A sample without a residual (its output lost, or not finite): every lead check
         moves on by one sample, comparing nothing and forecasting nothing from it, so that
         each goes on comparing a forecast with the residual of the sample it was made for;
-        and the fit waits for two samples in a row again before it learns or forecasts."""
+        and the fit waits for two samples in a row again before it learns or forecasts
+        (while its history is first filling, the fill starts again)."""
         for check in self._checks:
             check.keep(math.nan, math.nan)
         if self._seen >= 2:
             self._refill = 2
+        else:
+            self._seen = 0
 
     def stable(self) -> bool:
         """The AR part's roots inside or on the unit circle (the stability triangle): its
