@@ -29,5 +29,7 @@ def test_picked_ports_are_this_workers_below_the_ephemeral_range_and_free(monkey
                 break
             except OSError:
                 continue
+        held = holder.getsockname()[1]
+        assert held != 0, "no other port of the block was free to hold"
         second = conftest.pick_port(kind)  # the held one is passed over
-        assert second not in (first, holder.getsockname()[1]) and second in block
+        assert second not in (first, held) and second in block
