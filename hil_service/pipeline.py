@@ -25,11 +25,12 @@ from hil_service.umodel import (
     build_model,
     option_names,
 )
+from hil_service.umodel.cancellation import record_prefers, reduced_model
 from hil_service.umodel.dead_zone import narrow, widen, widen_beside
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.finite import finite
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
-from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings
+from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings, factorise
 from hil_service.umodel.probe import Probe
 from hil_service.umodel.scoring import ErrorStats, MultiStepStats, significant
 from hil_service.umodel.structure import (
@@ -100,6 +101,7 @@ PREDICTIVE_FIELDS: dict[str, str] = {
     "cost_points": "cost_points",
     "disturbance_forecast": "disturbance_forecast",
     "horizon_arrivals": "horizon_arrivals",
+    "cancel_near_pairs": "cancel_near_pairs",
 }
 _PREDICTIVE = PredictiveSettings()
 
@@ -125,6 +127,7 @@ class ControlSettings:
     cost_points: int = _PREDICTIVE.cost_points
     disturbance_forecast: float = _PREDICTIVE.disturbance_forecast
     horizon_arrivals: float = _PREDICTIVE.horizon_arrivals
+    cancel_near_pairs: bool = _PREDICTIVE.cancel_near_pairs
     #: The horizon test's thresholds (``umodel.supervisor.HorizonTest``, docs/control.md):
     #: the model's k-step fit relative to holding the output, and relative to the mean of
     #: the outputs scored (%), both of which a channel needs before it may command (None:
@@ -265,6 +268,8 @@ class PipelineSettings:
         control_data.setdefault("disturbance_forecast", 0.0)
         # ... and before the horizon was capped by the response's arrival time.
         control_data.setdefault("horizon_arrivals", 0.0)
+        # ... and before near pole-zero pairs the record contradicts were let go.
+        control_data.setdefault("cancel_near_pairs", False)
         control = ControlSettings.from_json(control_data)
         options = data.get("model_options")
         if options:
@@ -413,6 +418,7 @@ class ChannelPipeline:
         self._lag_choice_json: dict[str, object] | None = None
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
+        self._long_run_wait = 0  # samples until ``_long_run_known`` is asked again
         # Multi-step accuracy: a frozen copy of the model runs free on the applied inputs
         # and restarts from the measured outputs every control horizon.
         self.multistep = MultiStepStats(window=settings.window)
@@ -919,7 +925,33 @@ class ChannelPipeline:
                 if skill is not None and skill >= self.settings.min_skill:
                     self.converged = True
             self.dynamics = self.model.dynamics()
+            self._long_run_wait -= 1
+            if self._long_run_wait <= 0:
+                self._long_run_wait = self.settings.control.refresh
+                self.controller.long_run_known = self._long_run_known(self.dynamics)
             self.controller.track(self.dynamics, y)
+
+    def _long_run_known(self, dynamics: ModelDynamics) -> bool:
+        """Whether the identified G's near pole–zero pairs (``cancellation.reduced_model``)
+        may set the plan's arrival time: no such pair, a record shorter than the horizon
+        test's window, or a record that the input path with the pairs simulates at least
+        as well as the one without them (``cancellation.record_prefers``)."""
+        control = self.settings.control
+        if not control.cancel_near_pairs or self.horizon_test.count < self.horizon_test.window:
+            return True
+        factors = factorise(dynamics, -control.u_limit, control.u_limit)
+        if factors is None:
+            return True
+        gains, shape = factors
+        predictive = self.controller.settings
+        reduced = reduced_model(
+            dynamics.ar, gains, predictive.band, predictive.min_horizon, predictive.max_horizon
+        )
+        if reduced is None:
+            return True
+        outputs, inputs = self.horizon_test.samples()
+        mapped = [shape.evaluate(u)[0] for u in inputs]
+        return not record_prefers((list(dynamics.ar), gains), reduced, mapped, outputs)
 
     def _restart_free_run(self) -> None:
         dynamics = self.model.dynamics()  # a copy of its own: it advances its histories

@@ -250,6 +250,25 @@ def test_a_channel_never_commanded_sits_at_neutral_after_the_excitation():
         assert np.any(trace.u[ch][: settings.identify] != 0.0), ch
 
 
+def test_a_disturbance_mode_the_record_contradicts_does_not_set_the_horizon():
+    # Seed 0's vehicle 26 pitch: Hammerstein, first order, delay 3, a periodic disturbance
+    # (period 398 samples). The identifier fits the disturbance with a pole near 0.9995
+    # beside a zero near 1.0018: the response arrives with the plant and then drifts to
+    # the other sign, and a plan over the drift (1,000 samples) drives the input to the
+    # wrong limit: 3.2 × reference-only. Once the record holds inputs held long enough to
+    # show no such drift, the horizon is a few arrivals of the plant's own response.
+    from hil_service.pipeline import ControlSettings, PipelineSettings
+
+    depth, pitch = draw_vehicle(0, 26)
+    assert (pitch.disturbance, pitch.order, pitch.delay) == ("periodic", 1, 3)
+    settings = family_loop(0)
+    kept = PipelineSettings(seed=0, control=ControlSettings(cancel_near_pairs=False))
+    drifting = run_vehicle(settings, depth, pitch, kept)[0][1].reference_ratio
+    cancelled = run_vehicle(settings, depth, pitch)[0][1].reference_ratio
+    assert drifting > 2.0, drifting
+    assert cancelled < 1.0, cancelled
+
+
 def test_the_horizon_cap_helps_a_plant_whose_model_holds_a_periodic_disturbance():
     # Seed 2's vehicle 24 depth: linear, second order, no delay, a periodic disturbance of
     # 0.69 of the authority. The identifier puts the disturbance's oscillation in its AR

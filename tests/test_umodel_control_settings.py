@@ -31,10 +31,10 @@ def test_settings_recorded_by_the_old_controller_load_with_todays_defaults() -> 
     old = {"control": old_control}
     control = PipelineSettings.from_json(old).control
     assert control.rate_limit == 0.4
-    # Recorded before the disturbance was forecast and the horizon capped by the response's
-    # arrival time: replayed without either.
+    # Recorded before the disturbance was forecast, the horizon capped by the response's
+    # arrival time and near pole-zero pairs let go: replayed without any of them.
     assert control == ControlSettings(
-        rate_limit=0.4, disturbance_forecast=0.0, horizon_arrivals=0.0
+        rate_limit=0.4, disturbance_forecast=0.0, horizon_arrivals=0.0, cancel_near_pairs=False
     )
 
 
@@ -60,6 +60,7 @@ STORED_CONTROL = {
     "cost_points": 90,
     "disturbance_forecast": 0.3,
     "horizon_arrivals": 6.0,
+    "cancel_near_pairs": False,
     "horizon_fit": 60.0,
     "mean_fit": 30.0,
     "safe_input": "hold",
@@ -80,6 +81,7 @@ def test_a_stored_configuration_with_every_control_key_loads_and_is_written_back
     )
     assert predictive.disturbance_forecast == 0.3
     assert predictive.horizon_arrivals == 6.0
+    assert predictive.cancel_near_pairs is False
     assert (control.u_limit, control.rate_limit) == (1.5, 0.25)
     assert (control.horizon_fit, control.mean_fit, control.safe_input) == (60.0, 30.0, "hold")
     assert control.probe == 0.2

@@ -52,6 +52,7 @@ import math
 from librt.vecs import vec
 
 from .box_qp import solve_box_qp
+from .cancellation import reduced_model
 from .dynamics import ModelDynamics, StaticMap
 from .finite import finite
 from .horizon import (
@@ -99,6 +100,7 @@ class PredictiveSettings:
 
     __slots__ = (
         "band",
+        "cancel_near_pairs",
         "cost_points",
         "disturbance_forecast",
         "disturbance_share",
@@ -122,6 +124,7 @@ class PredictiveSettings:
         cost_points: int = 120,
         disturbance_forecast: float = 0.25,
         horizon_arrivals: float = 4.0,
+        cancel_near_pairs: bool = True,
     ) -> None:
         if not 2 <= min_horizon <= max_horizon:
             raise ValueError("need 2 <= min_horizon <= max_horizon")
@@ -161,6 +164,11 @@ class PredictiveSettings:
         #: arrival times"), a disturbance's oscillation the identifier has put in its AR
         #: part, and a plan over that ring trades the next samples for a far future.
         self.horizon_arrivals = float(horizon_arrivals)
+        #: Where the record shows the identified G's near pole–zero pairs wrong
+        #: (``PredictiveInverse.long_run_known``), the arrival time is taken from G without
+        #: them (``cancellation.reduced_model``): a disturbance's mode in the AR part that
+        #: nearly cancels against a zero (docs/control.md, "Near pole–zero cancellations").
+        self.cancel_near_pairs = bool(cancel_near_pairs)
 
 
 def _steady_state_direction(rows: list[list[float]], m: int) -> list[float] | None:
@@ -337,6 +345,7 @@ class PredictiveInverse:
         "_shape",
         "_sim",
         "_starts",
+        "long_run_known",
         "rate",
         "settings",
         "u_max",
@@ -362,6 +371,10 @@ class PredictiveInverse:
         self.u_max = float(u_max)
         self.rate = float(rate)
         self.settings = settings or PredictiveSettings()
+        #: False where the record shows that the identified G's near pole–zero pairs do
+        #: not hold over the long run (the channel sets it: ``ChannelPipeline``); then a
+        #: pair hidden until the response has arrived does not set the arrival time.
+        self.long_run_known = True
         self._horizon = 0
         # The disturbance estimate's time scale: the shorter of the horizon and the step
         # response's arrival time (``arrival_time``), derived with the horizon.
@@ -538,12 +551,18 @@ class PredictiveInverse:
         response = step_response(ar, gains, s.max_horizon)
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
         arrival = arrival_time(response, s.band, s.min_horizon, s.max_horizon)
+        shown = response
+        if s.cancel_near_pairs and not self.long_run_known:
+            reduced = reduced_model(ar, gains, s.band, s.min_horizon, s.max_horizon)
+            if reduced is not None:
+                shown = step_response(reduced[0], reduced[1], s.max_horizon)
+                arrival = arrival_time(shown, s.band, s.min_horizon, s.max_horizon)
         if s.horizon_arrivals > 0.0:
             n = min(n, max(s.min_horizon, int(s.horizon_arrivals * arrival)))
         starts = block_starts(n, s.max_blocks)
         span = min(2 * n, s.max_horizon)
         stride = max(1, -(-span // s.cost_points))
-        points, weights = cost_points(span, stride, starts, cost_start(response, n))
+        points, weights = cost_points(span, stride, starts, cost_start(shown, n))
         columns, onset, hessian = plan_matrices(response, starts, points, weights)
         nblocks = len(starts)
         rho = add_move_penalty(hessian, nblocks, s.move_weight)
