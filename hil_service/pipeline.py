@@ -16,6 +16,8 @@ import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
+from librt.vecs import vec
+
 from hil_service.umodel import (
     U_MODELS,
     CommandShaper,
@@ -25,10 +27,11 @@ from hil_service.umodel import (
     build_model,
     option_names,
 )
-from hil_service.umodel.cancellation import record_prefers, reduced_model
+from hil_service.umodel.cancellation import mapped_inputs, record_prefers, reduced_model
 from hil_service.umodel.dead_zone import narrow, widen, widen_beside
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.finite import finite
+from hil_service.umodel.horizon import step_response
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings, factorise
 from hil_service.umodel.probe import Probe
@@ -75,6 +78,12 @@ REARM_INPUT_SPAN = 0.1
 #: k = ``VALIDATION_SEGMENT`` samples: it doubles within a segment the choice validates on.
 #: A slower one (a fitted integrator, r within 1.4 % of 1) looks like an integrator there.
 UNSTABLE_MODE = 2.0 ** (1.0 / VALIDATION_SEGMENT)
+
+#: Samples between a channel's verdicts on its near pole–zero pairs
+#: (``ChannelPipeline._contradicted_pairs_removed``): the record it simulates (up to 1,100 samples)
+#: changes by less than a quarter in between, and the verdict's two roots, factorisation and
+#: filters over the record cost a fifth of the service path when asked every 50.
+LONG_RUN_CHECK = 250
 
 #: The most input lags ``with_input_lags`` takes: 5 s of delay at 10 Hz, and the identifier's
 #: regressor (3 × lags + 5 terms) still small enough for its per-sample RLS update.
@@ -418,7 +427,7 @@ class ChannelPipeline:
         self._lag_choice_json: dict[str, object] | None = None
         self.persistence = PersistenceModel()
         self.stats = ErrorStats(burn_in=settings.burn_in, window=settings.window)
-        self._long_run_wait = 0  # samples until ``_long_run_known`` is asked again
+        self._long_run_wait = 0  # samples until the near pole-zero pairs are judged again
         # Multi-step accuracy: a frozen copy of the model runs free on the applied inputs
         # and restarts from the measured outputs every control horizon.
         self.multistep = MultiStepStats(window=settings.window)
@@ -927,31 +936,34 @@ class ChannelPipeline:
             self.dynamics = self.model.dynamics()
             self._long_run_wait -= 1
             if self._long_run_wait <= 0:
-                self._long_run_wait = self.settings.control.refresh
-                self.controller.long_run_known = self._long_run_known(self.dynamics)
+                self._long_run_wait = LONG_RUN_CHECK
+                self.controller.reduced = self._contradicted_pairs_removed(self.dynamics)
             self.controller.track(self.dynamics, y)
 
-    def _long_run_known(self, dynamics: ModelDynamics) -> bool:
-        """Whether the identified G's near pole–zero pairs (``cancellation.reduced_model``)
-        may set the plan's arrival time: no such pair, a record shorter than the horizon
-        test's window, or a record that the input path with the pairs simulates at least
-        as well as the one without them (``cancellation.record_prefers``)."""
+    def _contradicted_pairs_removed(self, dynamics: ModelDynamics) -> vec[float] | None:
+        """G's step response without its near pole–zero pairs (``cancellation.
+        reduced_model``) where the record simulated from its inputs fits that input path
+        better than G whole (``cancellation.record_prefers``), else None: no such pair, a
+        record shorter than the horizon test's window, or a record that keeps them. Asked
+        every ``LONG_RUN_CHECK`` samples."""
         control = self.settings.control
         if not control.cancel_near_pairs or self.horizon_test.count < self.horizon_test.window:
-            return True
+            return None
         factors = factorise(dynamics, -control.u_limit, control.u_limit)
         if factors is None:
-            return True
+            return None
         gains, shape = factors
         predictive = self.controller.settings
         reduced = reduced_model(
             dynamics.ar, gains, predictive.band, predictive.min_horizon, predictive.max_horizon
         )
         if reduced is None:
-            return True
+            return None
         outputs, inputs = self.horizon_test.samples()
-        mapped = [shape.evaluate(u)[0] for u in inputs]
-        return not record_prefers((list(dynamics.ar), gains), reduced, mapped, outputs)
+        mapped = mapped_inputs(shape, inputs)
+        if not record_prefers((list(dynamics.ar), gains), reduced, mapped, outputs):
+            return None
+        return step_response(reduced[0], reduced[1], predictive.max_horizon)
 
     def _restart_free_run(self) -> None:
         dynamics = self.model.dynamics()  # a copy of its own: it advances its histories

@@ -105,15 +105,15 @@ def _model(ar: list[float], gains: list[float]) -> ModelDynamics:
 def test_the_channels_verdict_decides_whether_a_hidden_pair_sets_the_horizon() -> None:
     ar, gains = _with_pair(0.38, 0, 0.9955, 1.0045)
     model = _model(ar, gains)
+    reduced = reduced_model(ar, gains, BAND, LO, HI)
+    assert reduced is not None
+    without = step_response(*reduced, HI)
     kept = PredictiveInverse(-2.0, 2.0, 0.5)
     dropped = PredictiveInverse(-2.0, 2.0, 0.5)
-    dropped.long_run_known = False
+    dropped.reduced = without
     off = PredictiveInverse(-2.0, 2.0, 0.5, PredictiveSettings(cancel_near_pairs=False))
-    off.long_run_known = False
+    off.reduced = without
     full = kept.horizon_for(model)
     assert full > 100
     assert off.horizon_for(model) == full
-    reduced = reduced_model(ar, gains, BAND, LO, HI)
-    assert reduced is not None
-    fast = arrival_time(step_response(*reduced, HI), BAND, LO, HI)
-    assert dropped.horizon_for(model) == 4 * fast < 40
+    assert dropped.horizon_for(model) == 4 * arrival_time(without, BAND, LO, HI) < 40

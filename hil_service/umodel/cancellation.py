@@ -23,9 +23,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import lfilter
 
+from .dynamics import StaticMap
 from .horizon import arrival_time, step_response
 
-__all__ = ["record_prefers", "reduced_model"]
+__all__ = ["mapped_inputs", "record_prefers", "reduced_model"]
 
 #: Farthest apart a pole and a zero may be to be tried as a pair (the horizon then
 #: decides); keeps the search to near neighbours.
@@ -133,6 +134,19 @@ def reduced_model(
     return None
 
 
+def mapped_inputs(shape: StaticMap, inputs: list[float]) -> np.ndarray:
+    """N(u) of each input: the polynomial by numpy over the whole record (the record check
+    runs on a channel's every ``refresh`` samples), an RBF term sample by sample."""
+    u = np.asarray(inputs, dtype=float)
+    if shape.rbf is not None:
+        return np.array([shape.evaluate(float(v))[0] for v in u])
+    x = u * shape.scale
+    value = np.zeros_like(x)
+    for p in reversed(shape.poly):
+        value = value * x + p
+    return value * x
+
+
 def _misfit(ar: list[float], gains: list[float], w: np.ndarray, y: np.ndarray) -> float:
     """Sum of squares of y − (G·w from rest), about its mean."""
     simulated = lfilter(np.array([0.0, *gains]), np.array([1.0, *(-c for c in ar)]), w)
@@ -143,8 +157,8 @@ def _misfit(ar: list[float], gains: list[float], w: np.ndarray, y: np.ndarray) -
 def record_prefers(
     full: tuple[list[float], list[float]],
     reduced: tuple[list[float], list[float]],
-    w: list[float],
-    y: list[float],
+    w: list[float] | np.ndarray,
+    y: list[float] | np.ndarray,
 ) -> bool:
     """Whether the record's outputs ``y`` are simulated better from its inputs alone
     (``w``: N of the input applied one sample before each output) by the reduced input

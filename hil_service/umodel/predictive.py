@@ -52,7 +52,6 @@ import math
 from librt.vecs import vec
 
 from .box_qp import solve_box_qp
-from .cancellation import reduced_model
 from .dynamics import ModelDynamics, StaticMap
 from .finite import finite
 from .horizon import (
@@ -165,9 +164,9 @@ class PredictiveSettings:
         #: part, and a plan over that ring trades the next samples for a far future.
         self.horizon_arrivals = float(horizon_arrivals)
         #: Where the record shows the identified G's near pole–zero pairs wrong
-        #: (``PredictiveInverse.long_run_known``), the arrival time is taken from G without
-        #: them (``cancellation.reduced_model``): a disturbance's mode in the AR part that
-        #: nearly cancels against a zero (docs/control.md, "Near pole–zero cancellations").
+        #: (``PredictiveInverse.reduced``), the arrival time is taken from G without them
+        #: (``cancellation.reduced_model``): a disturbance's mode in the AR part that nearly
+        #: cancels against a zero (docs/control.md, "Near pole–zero cancellations").
         self.cancel_near_pairs = bool(cancel_near_pairs)
 
 
@@ -345,8 +344,8 @@ class PredictiveInverse:
         "_shape",
         "_sim",
         "_starts",
-        "long_run_known",
         "rate",
+        "reduced",
         "settings",
         "u_max",
         "u_min",
@@ -371,10 +370,11 @@ class PredictiveInverse:
         self.u_max = float(u_max)
         self.rate = float(rate)
         self.settings = settings or PredictiveSettings()
-        #: False where the record shows that the identified G's near pole–zero pairs do
-        #: not hold over the long run (the channel sets it: ``ChannelPipeline``); then a
-        #: pair hidden until the response has arrived does not set the arrival time.
-        self.long_run_known = True
+        #: G's step response without the near pole–zero pairs that the record contradicts,
+        #: from the channel's last verdict on them (``ChannelPipeline``); None: G whole.
+        #: Where set, its arrival time, not G's, sets the horizon's cap, the disturbance
+        #: estimate's pace and the cost's start.
+        self.reduced: vec[float] | None = None
         self._horizon = 0
         # The disturbance estimate's time scale: the shorter of the horizon and the step
         # response's arrival time (``arrival_time``), derived with the horizon.
@@ -552,11 +552,10 @@ class PredictiveInverse:
         n = settling_horizon(response, s.band, s.min_horizon, s.max_horizon)
         arrival = arrival_time(response, s.band, s.min_horizon, s.max_horizon)
         shown = response
-        if s.cancel_near_pairs and not self.long_run_known:
-            reduced = reduced_model(ar, gains, s.band, s.min_horizon, s.max_horizon)
-            if reduced is not None:
-                shown = step_response(reduced[0], reduced[1], s.max_horizon)
-                arrival = arrival_time(shown, s.band, s.min_horizon, s.max_horizon)
+        reduced = self.reduced
+        if s.cancel_near_pairs and reduced is not None:
+            shown = reduced
+            arrival = arrival_time(shown, s.band, s.min_horizon, s.max_horizon)
         if s.horizon_arrivals > 0.0:
             n = min(n, max(s.min_horizon, int(s.horizon_arrivals * arrival)))
         starts = block_starts(n, s.max_blocks)
