@@ -31,7 +31,6 @@ from hil_service.umodel.cancellation import mapped_inputs, record_prefers, reduc
 from hil_service.umodel.dead_zone import narrow, widen, widen_beside
 from hil_service.umodel.dynamics import ModelDynamics
 from hil_service.umodel.finite import finite
-from hil_service.umodel.horizon import step_response
 from hil_service.umodel.lag_prior import LAG_SMOOTHING_GAIN, adds_a_slower_mode, slowest_mode
 from hil_service.umodel.predictive import PredictiveInverse, PredictiveSettings, factorise
 from hil_service.umodel.probe import Probe
@@ -80,9 +79,10 @@ REARM_INPUT_SPAN = 0.1
 UNSTABLE_MODE = 2.0 ** (1.0 / VALIDATION_SEGMENT)
 
 #: Samples between a channel's verdicts on its near pole–zero pairs
-#: (``ChannelPipeline._contradicted_pairs_removed``): the record it simulates (up to 1,100 samples)
-#: changes by less than a quarter in between, and the verdict's two roots, factorisation and
-#: filters over the record cost a fifth of the service path when asked every 50.
+#: (``ChannelPipeline._contradicted_pairs_removed``): the record it simulates (up to 1,100
+#: samples) changes by less than a quarter in between, and a verdict (roots, factorisation,
+#: two filters over the record) on every ``refresh`` samples cost the service path a tenth
+#: of its throughput (docs/control.md, "Near pole–zero cancellations").
 LONG_RUN_CHECK = 250
 
 #: The most input lags ``with_input_lags`` takes: 5 s of delay at 10 Hz, and the identifier's
@@ -961,9 +961,10 @@ class ChannelPipeline:
             return None
         outputs, inputs = self.horizon_test.samples()
         mapped = mapped_inputs(shape, inputs)
-        if not record_prefers((list(dynamics.ar), gains), reduced, mapped, outputs):
+        full, without = (list(dynamics.ar), gains), (reduced.ar, reduced.gains)
+        if not record_prefers(full, without, mapped, outputs):
             return None
-        return step_response(reduced[0], reduced[1], predictive.max_horizon)
+        return reduced.response
 
     def _restart_free_run(self) -> None:
         dynamics = self.model.dynamics()  # a copy of its own: it advances its histories

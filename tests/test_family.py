@@ -250,7 +250,7 @@ def test_a_channel_never_commanded_sits_at_neutral_after_the_excitation():
         assert np.any(trace.u[ch][: settings.identify] != 0.0), ch
 
 
-def test_a_disturbance_mode_the_record_contradicts_does_not_set_the_horizon():
+def test_dropping_a_disturbance_mode_the_record_contradicts_takes_its_plant_below_reference_only():
     # Seed 0's vehicle 26 pitch: Hammerstein, first order, delay 3, a periodic disturbance
     # (period 398 samples). The identifier fits the disturbance with a pole near 0.9995
     # beside a zero near 1.0018: the response arrives with the plant and then drifts to

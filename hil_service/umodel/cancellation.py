@@ -20,17 +20,29 @@ scipy's linear filter), no I/O; docs/control.md, "Near pole–zero cancellations
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
+from librt.vecs import vec
 from scipy.signal import lfilter
 
 from .dynamics import StaticMap
 from .horizon import arrival_time, step_response
 
-__all__ = ["mapped_inputs", "record_prefers", "reduced_model"]
+__all__ = ["Reduced", "mapped_inputs", "record_prefers", "reduced_model"]
 
 #: Farthest apart a pole and a zero may be to be tried as a pair (the horizon then
 #: decides); keeps the search to near neighbours.
 WIDEST_PAIR = 0.05
+
+
+class Reduced(NamedTuple):
+    """G without its near pole–zero pairs: ar and gains as ``reduced_model`` takes them,
+    and the step response (``hi`` samples) that judged them hidden."""
+
+    ar: list[float]
+    gains: list[float]
+    response: vec[float]
 
 
 def _pairs(poles: np.ndarray, zeros: np.ndarray) -> list[tuple[int, int, float]]:
@@ -95,7 +107,7 @@ def _model(
 
 def reduced_model(
     ar: list[float], gains: list[float], band: float, lo: int, hi: int
-) -> tuple[list[float], list[float]] | None:
+) -> Reduced | None:
     """G without the pole–zero pairs that stay within ``band`` until its step response
     has arrived (ar and gains as given), or None when there is no such pair (or the
     coefficients are not finite). ``lo``, ``hi``: the response's length and the arrival
@@ -127,16 +139,16 @@ def reduced_model(
         model = _model(_without(poles, dropped_p), _without(zeros, dropped_z), numerator[0], delay)
         if model is None:
             return None
-        arrival = arrival_time(step_response(model[0], model[1], hi), band, lo, hi)
-        if pairs[-1][2] * arrival <= band:
-            return model
+        response = step_response(model[0], model[1], hi)
+        if pairs[-1][2] * arrival_time(response, band, lo, hi) <= band:
+            return Reduced(model[0], model[1], response)
         pairs.pop()
     return None
 
 
 def mapped_inputs(shape: StaticMap, inputs: list[float]) -> np.ndarray:
-    """N(u) of each input: the polynomial by numpy over the whole record (the record check
-    runs on a channel's every ``refresh`` samples), an RBF term sample by sample."""
+    """N(u) of each input (``StaticMap.evaluate``'s value): the polynomial by numpy over
+    the whole record at once, an RBF term sample by sample."""
     u = np.asarray(inputs, dtype=float)
     if shape.rbf is not None:
         return np.array([shape.evaluate(float(v))[0] for v in u])
